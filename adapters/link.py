@@ -1,0 +1,307 @@
+"""The harness side of a transport: one small interface, shared work in the base.
+
+A ``Link`` sends frames and clock-sync probes to one target and receives what it
+answers. The base class stamps (``t_tx`` before the hand-off, ``t0'`` on receipt by
+the transport's reader), decodes, counts protocol errors and drops, and keeps
+received messages in bounded queues. A transport fills four private hooks:
+
+* ``_open()``            connect / spawn; start delivering bytes or messages
+* ``_send_bytes(data)``  hand one encoded message to the wire
+* ``_close_transport()`` release everything (idempotent)
+* and calls ``self._on_bytes(data, t_rx_ns)`` (stream transports) or
+  ``self._on_message_bytes(data, t_rx_ns)`` (message transports) from its reader.
+
+Transports are chosen by name (``open_link``); an unknown name lists valid ones.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+from adapters import protocol
+from adapters.messages import (Bye, CameraInfo, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
+                               Message, SyncRequest,
+                               SyncResponse)
+from timing.clock import Clock
+from timing.errors import ProtocolError, TargetError, TimeoutError_, TransportError
+
+
+@dataclass(frozen=True)
+class Received:
+    """A message, the harness-clock instant (ns) its last byte arrived, and the
+    vehicle id of the link it came through."""
+
+    msg: Message
+    t_rx_ns: int
+    link_vehicle_id: int = 0
+
+
+@dataclass(frozen=True)
+class SyncSample:
+    """One 4-timestamp exchange: t1/t4 harness clock, t2/t3 target clock (ns)."""
+
+    seq: int
+    t1_ns: int
+    t2_target_ns: int
+    t3_target_ns: int
+    t4_ns: int
+
+    @property
+    def offset_ns(self) -> float:
+        """Target clock minus harness clock, NTP's estimate."""
+        return ((self.t2_target_ns - self.t1_ns) + (self.t3_target_ns - self.t4_ns)) / 2
+
+    @property
+    def delay_ns(self) -> int:
+        """Round trip less the target's turnaround."""
+        return (self.t4_ns - self.t1_ns) - (self.t3_target_ns - self.t2_target_ns)
+
+
+@dataclass
+class LinkStats:
+    frames_sent: int = 0
+    bytes_sent: int = 0
+    messages_received: int = 0
+    bytes_received: int = 0
+    protocol_errors: int = 0
+    rx_dropped: int = 0
+    target_errors: int = 0
+    last_error: str | None = None
+
+
+class Link(ABC):
+    """Harness side of one transport to one target (vehicle).
+
+    Use as a context manager; ``close()`` is idempotent and safe on a half-built
+    object. Not thread-safe for sending: the sim loop is the only sender.
+    """
+
+    transport_name = "abstract"
+
+    def __init__(self, *, vehicle_id: int, clock: Clock, rx_queue_size: int = 1024,
+                 rx_queue: queue.Queue[Received] | None = None) -> None:
+        """``rx_queue``: deliver received messages into this (shared, bounded) queue
+        instead of a private one, so one loop can wait on many links."""
+        self.vehicle_id = vehicle_id
+        self.clock = clock
+        self.stats = LinkStats()
+        self.hello: Hello | None = None
+        self._rx: queue.Queue[Received] = rx_queue if rx_queue is not None else queue.Queue(maxsize=rx_queue_size)
+        self._sync_rx: queue.Queue[Received] = queue.Queue(maxsize=64)
+        self._decoder = protocol.StreamDecoder()
+        self._lock = threading.Lock()
+        self._closed = False
+        self._peer_gone = threading.Event()
+        self.peer_gone_reason: str | None = None
+        self._sync_seq = 0
+
+    # -- lifecycle -----------------------------------------------------------
+
+    def open(self, *, hello_timeout_s: float) -> Hello:
+        """Connect (or start) the target and wait for its HELLO.
+
+        Raises:
+            TargetError: the target could not start or did not say hello in time.
+            TransportError: the transport could not connect.
+        """
+        self._open()
+        deadline = self.clock.now_ns() + int(hello_timeout_s * 1e9)
+        while True:
+            remaining = (deadline - self.clock.now_ns()) / 1e9
+            if remaining <= 0:
+                raise TargetError(self._no_hello_reason(hello_timeout_s))
+            try:
+                r = self._rx.get(timeout=min(remaining, 0.05))
+            except queue.Empty:
+                if self._peer_gone.is_set():
+                    raise TargetError(self._no_hello_reason(hello_timeout_s)) from None
+                continue
+            if r.link_vehicle_id != self.vehicle_id:
+                self._rx.put(r)  # another link's message: give it back
+                continue
+            if isinstance(r.msg, Hello):
+                if r.msg.protocol_version != protocol.VERSION:
+                    raise TargetError(f"target speaks protocol version {r.msg.protocol_version}; "
+                                      f"this harness speaks {protocol.VERSION}")
+                self.hello = r.msg
+                return r.msg
+
+    def _no_hello_reason(self, timeout_s: float) -> str:
+        if self.peer_gone_reason:
+            return f"target went away before saying hello: {self.peer_gone_reason}"
+        return f"target did not say hello within {timeout_s:g} s"
+
+    @property
+    def alive(self) -> bool:
+        """False once the peer has gone (EOF, process exit, liveliness lost)."""
+        return not self._peer_gone.is_set()
+
+    def close(self) -> None:
+        if getattr(self, "_closed", True):
+            return
+        self._closed = True
+        try:
+            if self.alive:
+                try:
+                    self._send_bytes(protocol.encode(Bye(self.vehicle_id, "harness closing")))
+                except (TransportError, OSError):
+                    pass
+        finally:
+            self._close_transport()
+
+    def __enter__(self) -> Link:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- sending -------------------------------------------------------------
+
+    def send_frame(self, *, frame_id: int, sim_time_ns: int, t0_ns: int, width: int, height: int,
+                   encoding: ImageEncoding, camera: CameraInfo,
+                   ego_speed_mps: float, data: bytes) -> int:
+        """Stamp ``t_tx`` (harness clock, ns), encode and send one frame; returns t_tx.
+
+        Raises:
+            TransportError: the peer is gone or the write failed.
+        """
+        t_tx = self.clock.now_ns()
+        frame = Frame(self.vehicle_id, frame_id, sim_time_ns, t0_ns, t_tx, width, height,
+                      encoding, camera, ego_speed_mps, data)
+        buf = protocol.encode(frame)
+        self._send_checked(buf)
+        self.stats.frames_sent += 1
+        return t_tx
+
+    def send_sync_request(self) -> SyncRequest:
+        """Send one clock-sync probe stamped with t1 (harness clock)."""
+        self._sync_seq += 1
+        req = SyncRequest(self.vehicle_id, self._sync_seq, self.clock.now_ns())
+        self._send_checked(protocol.encode(req))
+        return req
+
+    def sync_exchange(self, *, timeout_s: float = 0.5) -> SyncSample | None:
+        """One blocking 4-timestamp exchange; None if no answer in ``timeout_s``."""
+        req = self.send_sync_request()
+        deadline = self.clock.now_ns() + int(timeout_s * 1e9)
+        while (remaining := (deadline - self.clock.now_ns()) / 1e9) > 0:
+            try:
+                r = self._sync_rx.get(timeout=remaining)
+            except queue.Empty:
+                break
+            m = r.msg
+            if isinstance(m, SyncResponse) and m.seq == req.seq:
+                return SyncSample(m.seq, m.t1_ns, m.t2_target_ns, m.t3_target_ns, r.t_rx_ns)
+        return None
+
+    def _send_checked(self, buf: bytes) -> None:
+        if self._closed:
+            raise TransportError("link is closed")
+        if not self.alive:
+            raise TransportError(f"target is gone: {self.peer_gone_reason}")
+        self._send_bytes(buf)
+        self.stats.bytes_sent += len(buf)
+
+    # -- receiving -----------------------------------------------------------
+
+    def sync_samples(self) -> list[SyncSample]:
+        """Answers to earlier ``send_sync_request`` calls, without waiting."""
+        out = []
+        while True:
+            try:
+                r = self._sync_rx.get_nowait()
+            except queue.Empty:
+                return out
+            m = r.msg
+            if isinstance(m, SyncResponse):
+                out.append(SyncSample(m.seq, m.t1_ns, m.t2_target_ns, m.t3_target_ns, r.t_rx_ns))
+
+    def recv(self, *, timeout_s: float) -> Received | None:
+        """Next received estimate/heartbeat/error, or None after ``timeout_s``.
+
+        Raises:
+            TimeoutError_: never; a timeout returns None (callers decide what it means).
+        """
+        try:
+            if timeout_s <= 0:
+                return self._rx.get_nowait()
+            return self._rx.get(timeout=timeout_s)
+        except queue.Empty:
+            return None
+
+    def _on_bytes(self, data: bytes, t_rx_ns: int) -> None:
+        """Reader-thread entry for stream transports: decode and dispatch."""
+        self.stats.bytes_received += len(data)
+        for item in self._decoder.feed(data):
+            self._dispatch(item, t_rx_ns)
+
+    def _on_message_bytes(self, data: bytes, t_rx_ns: int) -> None:
+        """Reader-thread entry for message transports (one message per call)."""
+        self.stats.bytes_received += len(data)
+        try:
+            item: Message | ProtocolError = protocol.decode(data)
+        except ProtocolError as err:
+            item = err
+        self._dispatch(item, t_rx_ns)
+
+    def _dispatch(self, item: Message | ProtocolError, t_rx_ns: int) -> None:
+        if isinstance(item, ProtocolError):
+            self.stats.protocol_errors += 1
+            self.stats.last_error = str(item)
+            return
+        self.stats.messages_received += 1
+        if isinstance(item, ErrorMsg):
+            self.stats.target_errors += 1
+            self.stats.last_error = f"target error {item.code}: {item.message}"
+        if isinstance(item, Bye):
+            self._mark_gone(f"target said bye ({item.reason or 'no reason given'})")
+            return
+        target = self._sync_rx if isinstance(item, SyncResponse) else self._rx
+        try:
+            target.put_nowait(Received(item, t_rx_ns, self.vehicle_id))
+        except queue.Full:
+            # Counted, never silent; the consumer is far behind, so the oldest
+            # message is the least useful one.
+            self.stats.rx_dropped += 1
+            try:
+                target.get_nowait()
+                target.put_nowait(Received(item, t_rx_ns, self.vehicle_id))
+            except (queue.Empty, queue.Full):
+                pass
+
+    def _mark_gone(self, reason: str) -> None:
+        if not self._peer_gone.is_set():
+            self.peer_gone_reason = reason
+            self._peer_gone.set()
+
+    # -- transport hooks -----------------------------------------------------
+
+    @abstractmethod
+    def _open(self) -> None: ...
+
+    @abstractmethod
+    def _send_bytes(self, data: bytes) -> None: ...
+
+    @abstractmethod
+    def _close_transport(self) -> None: ...
+
+
+TRANSPORTS = ("local",)
+
+
+def open_link(transport: str, **options: object) -> Link:
+    """Build the link for ``transport`` by name (not yet opened).
+
+    Raises:
+        TransportError: unknown transport name (listing the valid ones).
+    """
+    if transport == "local":
+        from adapters.local import LocalLink
+        return LocalLink(**options)  # type: ignore[arg-type]
+    raise TransportError(f"unknown transport {transport!r}; valid: {', '.join(TRANSPORTS)}")
+
+
+__all__ = ["Estimate", "Link", "LinkStats", "Received", "SyncSample", "TimeoutError_", "open_link"]

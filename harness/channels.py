@@ -1,0 +1,69 @@
+"""The JSON-schema channels of ``run.mcap``: one place that names every topic.
+
+Topics per vehicle ``V``: ``/V/camera`` (foxglove.CompressedImage or RawImage),
+``/V/estimate``, ``/V/pipeline``, ``/V/clock_sync``; shared: ``/ground_truth`` and
+``/events``. ``log_time`` is always the harness clock (receipt or capture);
+``publish_time`` the source's time (``t0`` for frames and records, the target's
+``t_reply`` for estimates, ``t1`` for clock-sync samples).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any
+
+from harness.recorder import Recorder
+
+
+def _obj(title: str, props: dict[str, Any], required: Iterable[str] = ()) -> dict[str, Any]:
+    return {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": title,
+            "type": "object", "properties": props, "required": list(required)}
+
+
+_INT = {"type": "integer"}
+_NUM = {"type": "number"}
+_NINT = {"type": ["integer", "null"]}
+
+ESTIMATE = _obj("hil.Estimate", {
+    "frame_id": _INT, "state": {"enum": ["SAFE", "SLOW", "STOP"]},
+    "control": _obj("hil.Control", {"steering_rad": _NUM, "throttle": _NUM, "brake": _NUM}),
+    "objects": {"type": "array", "items": _obj("hil.DetectedObject", {
+        "cls": {"type": "string"}, "confidence": _NUM,
+        "box_px": {"type": "array", "items": _NUM}, "position_m": {"type": "array", "items": _NUM}})},
+}, ["frame_id", "state", "control", "objects"])
+
+PIPELINE = _obj("hil.PipelineRecord", {
+    "vehicle": {"type": "string"}, "frame_id": _INT, "status": {"enum": ["ok", "dropped", "stale", "pending"]},
+    "sim_time_ns": _INT, "t0_ns": _INT, "t_tx_ns": _INT, "t_rx_target_ns": _NINT,
+    "t_infer_start_target_ns": _NINT, "t_infer_end_target_ns": _NINT, "t_reply_target_ns": _NINT,
+    "t0p_ns": _NINT, "t_apply_ns": _NINT, "sim_time_apply_ns": _NINT,
+    "stages_ns": {"type": "object", "additionalProperties": _INT},
+}, ["vehicle", "frame_id", "status", "t0_ns", "t_tx_ns"])
+
+CLOCK_SYNC = _obj("hil.ClockSyncSample", {
+    "seq": _INT, "t1_ns": _INT, "t2_target_ns": _INT, "t3_target_ns": _INT, "t4_ns": _INT,
+    "offset_ns": _NUM, "delay_ns": _INT, "warmup": {"type": "boolean"}})
+
+GROUND_TRUTH = _obj("hil.GroundTruth", {
+    "sim_time_ns": _INT,
+    "entities": {"type": "array", "items": _obj("hil.EntityState", {
+        "name": {"type": "string"}, "cls": {"type": "string"}, "x_m": _NUM, "y_m": _NUM,
+        "vx_mps": _NUM, "vy_mps": _NUM, "heading_rad": _NUM, "size_m": {"type": "array", "items": _NUM}})},
+    "egos": {"type": "array", "items": _obj("hil.EgoTruth", {
+        "vehicle": {"type": "string"}, "gap_m": {"type": ["number", "null"]},
+        "obstacle": {"type": ["string", "null"]}, "speed_mps": _NUM,
+        "ref_state": {"enum": ["SAFE", "SLOW", "STOP"]}})},
+}, ["sim_time_ns", "entities", "egos"])
+
+EVENT = _obj("hil.Event", {"kind": {"type": "string"}, "vehicle": {"type": "string"}},
+             ["kind"])
+
+
+def register_all(rec: Recorder, vehicles: Iterable[str]) -> None:
+    """Declare every JSON channel of a run."""
+    rec.register_json_channel("/ground_truth", "hil.GroundTruth", GROUND_TRUTH)
+    rec.register_json_channel("/events", "hil.Event", EVENT)
+    for v in vehicles:
+        rec.register_json_channel(f"/{v}/estimate", "hil.Estimate", ESTIMATE)
+        rec.register_json_channel(f"/{v}/pipeline", "hil.PipelineRecord", PIPELINE)
+        rec.register_json_channel(f"/{v}/clock_sync", "hil.ClockSyncSample", CLOCK_SYNC)

@@ -1,0 +1,88 @@
+"""The ``hil`` command line.
+
+Exit codes: 0 success; 1 the run ended early (target died, interrupted); 2 a user
+mistake (bad config, missing file, target that cannot start) with a one-line
+message and no traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from harness import __version__
+from timing.errors import HilError
+
+EXIT_OK, EXIT_EARLY, EXIT_USAGE = 0, 1, 2
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2, like every user mistake
+        self.exit(EXIT_USAGE, f"hil: error: {message} (see hil {self.prog.split()[-1]} --help)\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="hil", description="Hardware-in-the-loop timing harness for autonomous-driving AI.")
+    p.add_argument("--version", action="version", version=f"hil {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    r = sub.add_parser("run", help="run a configuration and write a run folder")
+    r.add_argument("config", help="a hil_configs/*.yaml file")
+    r.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",
+                   help="override a config field, e.g. --set camera.fps=10 (repeatable)")
+    r.add_argument("--out", type=Path, default=None,
+                   help="run folder (default runs/<name>-<timestamp>/)")
+    r.add_argument("--no-progress", action="store_true", help="no live display")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        if args.command == "run":
+            return _cmd_run(args)
+    except HilError as err:
+        print(f"hil: error: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("hil: interrupted before the run started; nothing recorded", file=sys.stderr)
+        return EXIT_EARLY
+    return EXIT_USAGE  # pragma: no cover - argparse requires a command
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from harness.config import load_config
+    from harness.progress import Progress, final_table
+    from harness.run import default_out_dir, execute, prepare_out_dir
+    from scenarios.gl import select_backend
+
+    cfg = load_config(args.config, overrides=args.overrides)
+    import scenarios  # validate scenario and parameters before starting anything
+
+    scenarios.get(cfg.scenario.name).resolve(cfg.scenario.params)
+    out = prepare_out_dir(args.out or default_out_dir(cfg))
+    console = Console(stderr=False)
+    backend = select_backend()
+    console.print(f"renderer: MuJoCo offscreen via [bold]{backend.upper()}[/bold]"
+                  + (" (software fallback: slower)" if backend == "osmesa" else ""))
+    with Progress(console=console, enabled=cfg.progress and not args.no_progress) as progress:
+        result = execute(cfg, out_dir=out, gl_backend=backend, on_progress=progress.update)
+    s = result.summary
+    console.print(final_table(s))
+    if not s["realtime"]["kept_realtime"]:
+        console.print(f"[yellow]warning: real time was not kept: achieved factor "
+                      f"{s['realtime']['achieved_factor']:.2f} of {s['realtime']['requested_factor']:g}, "
+                      f"{s['realtime']['late_steps']} late physics steps[/yellow]")
+    console.print(f"run.mcap:     {result.mcap_path}")
+    console.print(f"summary.json: {result.summary_path}")
+    if s["ended_by"] != "duration":
+        console.print(f"[red]run ended early: {s['ended_by']}[/red] (what was recorded is kept)")
+        return EXIT_EARLY
+    return EXIT_OK
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,295 @@
+"""The simulator loop: step physics, capture and send frames, apply estimates.
+
+Real-time mode paces physics to the harness clock at ``realtime_factor`` and never
+waits for a target: an estimate is applied the moment it arrives, between physics
+steps, so latency has physical consequences. A physics step that runs more than
+``LATE_TOLERANCE_NS`` after its due time is counted as late (as a real-time test
+system counts late iterations); the summary says when real time was not kept.
+
+Lockstep mode waits at each camera tick for every vehicle's estimate (or its
+timeout, a drop) before stepping on: deterministic, for regression and replay.
+"""
+
+from __future__ import annotations
+
+import queue
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from adapters.link import Received
+from adapters.messages import CameraInfo, ErrorMsg, Estimate, Heartbeat, ImageEncoding
+from harness.config import Encoding, Mode, RunConfig
+from harness.recorder import Recorder
+from harness.vehicle_state import InFlight, VehicleRun
+from scenarios.ground_truth import GroundTruth
+from scenarios.sim import Simulation
+from timing.clock import MonotonicClock
+from timing.errors import TransportError
+from timing.records import FrameStatus, PipelineRecord
+
+LATE_TOLERANCE_NS = 10_000_000
+SYNC_INTERVAL_NS = 1_000_000_000
+
+
+@dataclass
+class LoopStats:
+    wall_start_ns: int = 0
+    wall_end_ns: int = 0
+    sim_steps: int = 0
+    late_steps: int = 0
+    max_lateness_ns: int = 0
+    ended_by: str = "duration"
+
+
+class SimLoop:
+    """Runs one configured simulation against its vehicles' links."""
+
+    def __init__(self, cfg: RunConfig, sim: Simulation, vehicles: list[VehicleRun],
+                 rx: queue.Queue[Received], recorder: Recorder, clock: MonotonicClock,
+                 *, on_tick: Callable[[], None] | None = None) -> None:
+        self.cfg, self.sim, self.vehicles, self.rx, self.rec, self.clock = cfg, sim, vehicles, rx, recorder, clock
+        self.by_id = {v.vehicle_id: v for v in vehicles}
+        self.stats = LoopStats()
+        self.stop_reason: str | None = None
+        self.on_tick = on_tick
+        self.timeout_ns = int(cfg.target.estimate_timeout_s * 1e9)
+        self.period = cfg.camera_period_steps
+        intr = sim.intrinsics()
+        cam = cfg.camera
+        self.camera_info = CameraInfo(intr.fx, intr.fy, intr.cx, intr.cy, cam.mount_height_m, 0.0)
+        self.collisions: list[dict[str, object]] = []
+        self.min_gap_m: dict[str, float] = {}
+        self._next_sync_ns = 0
+
+    def request_stop(self, reason: str) -> None:
+        """Ask the loop to end after the current step (signal handlers call this)."""
+        if self.stop_reason is None:
+            self.stop_reason = reason
+
+    # -- main loop -----------------------------------------------------------
+
+    def run(self) -> LoopStats:
+        total_steps = round(self.cfg.duration_s * 1e9 / self.sim.step_ns)
+        wall_per_step = self.sim.step_ns / self.cfg.realtime_factor
+        lockstep = self.cfg.mode == Mode.LOCKSTEP
+        st = self.stats
+        st.wall_start_ns = self.clock.now_ns()
+        self._next_sync_ns = st.wall_start_ns
+        try:
+            while self.sim.steps < total_steps and self.stop_reason is None:
+                if not lockstep:
+                    due = st.wall_start_ns + int(self.sim.steps * wall_per_step)
+                    now = self.clock.now_ns()
+                    if now < due:
+                        self._service(until_ns=due)
+                        continue
+                    lateness = now - due
+                    st.max_lateness_ns = max(st.max_lateness_ns, lateness)
+                    if lateness > LATE_TOLERANCE_NS:
+                        st.late_steps += 1
+                if self.sim.steps % self.period == 0:
+                    self._capture_all()
+                    if lockstep:
+                        self._await_answers()
+                self.sim.step()
+                self._service(until_ns=0)
+                if self.on_tick is not None:
+                    self.on_tick()
+            # Let the frames in flight finish (answer or time out): nothing unaccounted.
+            self._drain()
+        except KeyboardInterrupt:
+            self.request_stop("interrupted (Ctrl-C)")
+            self._expire_all()
+        st.sim_steps = self.sim.steps
+        st.wall_end_ns = self.clock.now_ns()
+        if self.stop_reason is not None:
+            st.ended_by = self.stop_reason
+        return st
+
+    # -- frames out ----------------------------------------------------------
+
+    def _capture_all(self) -> None:
+        gt = self.sim.ground_truth()
+        self._record_truth(gt)
+        for v in self.vehicles:
+            if not v.link.alive:
+                self.request_stop(f"target of {v.name} is gone: {v.link.peer_gone_reason}")
+                return
+            rgb = self.sim.render(v.name)
+            t0 = self.clock.now_ns()
+            data, enc = self._encode(rgb)
+            frame_id = v.next_frame_id
+            v.next_frame_id += 1
+            try:
+                t_tx = v.link.send_frame(frame_id=frame_id, sim_time_ns=self.sim.sim_time_ns, t0_ns=t0,
+                                         width=rgb.shape[1], height=rgb.shape[0], encoding=enc,
+                                         camera=self.camera_info, ego_speed_mps=self.sim.speed_mps(v.name),
+                                         data=data)
+            except TransportError as err:
+                self.request_stop(f"target of {v.name} is gone: {err}")
+                return
+            v.in_flight[frame_id] = InFlight(frame_id, self.sim.sim_time_ns, t0, t_tx)
+            v.fps_meter.add(t0)
+            if self.cfg.recording.images:
+                topic = f"/{v.name}/camera"
+                if enc == ImageEncoding.JPEG:
+                    self.rec.write_image(topic, data, fmt="jpeg", frame_id=f"{v.name}/camera",
+                                         log_time_ns=t0, publish_time_ns=t0)
+                else:
+                    self.rec.write_raw_image(topic, rgb.copy(), encoding="rgb8", frame_id=f"{v.name}/camera",
+                                             log_time_ns=t0, publish_time_ns=t0)
+        now = self.clock.now_ns()
+        if now >= self._next_sync_ns:
+            self._next_sync_ns = now + SYNC_INTERVAL_NS
+            for v in self.vehicles:
+                try:
+                    v.link.send_sync_request()
+                except TransportError:
+                    pass
+
+    def _encode(self, rgb: np.ndarray) -> tuple[bytes, ImageEncoding]:
+        if self.cfg.camera.encoding == Encoding.JPEG:
+            ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
+                                   (cv2.IMWRITE_JPEG_QUALITY, self.cfg.camera.jpeg_quality))
+            if not ok:  # pragma: no cover - OpenCV failing to encode a valid array
+                raise RuntimeError("JPEG encoding failed")
+            return buf.tobytes(), ImageEncoding.JPEG
+        return rgb.tobytes(), ImageEncoding.RGB8
+
+    def _record_truth(self, gt: GroundTruth) -> None:
+        t = self.clock.now_ns()
+        for e in gt.egos:
+            if e.gap_m is not None:
+                self.min_gap_m[e.vehicle] = min(self.min_gap_m.get(e.vehicle, float("inf")), e.gap_m)
+        for c in gt.collisions:
+            ev = {"kind": "collision", "sim_time_ns": c.sim_time_ns, "a": c.a, "b": c.b, "force_n": c.force_n}
+            self.collisions.append(ev)
+            self.rec.write_json("/events", ev, log_time_ns=t, publish_time_ns=t)
+        self.rec.write_json("/ground_truth", {
+            "sim_time_ns": gt.sim_time_ns,
+            "entities": [e.__dict__ | {"size_m": list(e.size_m)} for e in gt.entities],
+            "egos": [{"vehicle": e.vehicle, "gap_m": e.gap_m, "obstacle": e.obstacle,
+                      "speed_mps": e.speed_mps, "ref_state": e.ref_state.name} for e in gt.egos],
+        }, log_time_ns=t, publish_time_ns=t)
+
+    # -- answers in ----------------------------------------------------------
+
+    def _service(self, *, until_ns: int) -> None:
+        """Handle received messages until ``until_ns`` (0: only what is waiting)."""
+        while True:
+            now = self.clock.now_ns()
+            self._expire(now)
+            timeout_s = max(0.0, (until_ns - now) / 1e9)
+            try:
+                r = self.rx.get(timeout=timeout_s) if timeout_s > 0 else self.rx.get_nowait()
+            except queue.Empty:
+                self._collect_sync()
+                return
+            self._handle(r)
+
+    def _handle(self, r: Received) -> None:
+        v = self.by_id.get(r.link_vehicle_id)
+        if v is None:
+            return
+        m = r.msg
+        if isinstance(m, Estimate):
+            self._on_estimate(v, m, r.t_rx_ns)
+        elif isinstance(m, ErrorMsg):
+            ev = {"kind": "target_error", "vehicle": v.name, "code": m.code, "message": m.message}
+            self.rec.write_json("/events", ev, log_time_ns=r.t_rx_ns, publish_time_ns=r.t_rx_ns)
+        elif isinstance(m, Heartbeat):
+            pass
+
+    def _on_estimate(self, v: VehicleRun, m: Estimate, t0p: int) -> None:
+        fl = v.in_flight.pop(m.frame_id, None)
+        if fl is None:
+            # Already counted as dropped (late) or never sent (a confused target).
+            if m.frame_id < v.next_frame_id:
+                v.late_estimates += 1
+            else:
+                v.unknown_estimates += 1
+            ev = {"kind": "late_estimate" if m.frame_id < v.next_frame_id else "unknown_estimate",
+                  "vehicle": v.name, "frame_id": m.frame_id, "t0p_ns": t0p}
+            self.rec.write_json("/events", ev, log_time_ns=t0p, publish_time_ns=t0p)
+            return
+        t_apply: int | None = None
+        sim_apply: int | None = None
+        if m.frame_id > v.last_applied_frame_id:
+            c = m.control
+            self.sim.set_control(v.name, steering_rad=c.steering_rad, throttle=c.throttle, brake=c.brake)
+            t_apply = self.clock.now_ns()
+            sim_apply = self.sim.sim_time_ns
+            v.last_applied_frame_id = m.frame_id
+            status = FrameStatus.OK
+        else:
+            status = FrameStatus.STALE
+        rec = PipelineRecord(v.name, fl.frame_id, fl.sim_time_ns, fl.t0_ns, fl.t_tx_ns, status,
+                             m.t_rx_target_ns, m.t_infer_start_target_ns, m.t_infer_end_target_ns,
+                             m.t_reply_target_ns, t0p, t_apply, sim_apply)
+        self._add_record(v, rec)
+        self.rec.write_json(f"/{v.name}/estimate", {
+            "frame_id": m.frame_id, "state": m.state.name,
+            "control": {"steering_rad": m.control.steering_rad, "throttle": m.control.throttle,
+                        "brake": m.control.brake},
+            "objects": [{"cls": o.cls.name, "confidence": o.confidence, "box_px": list(o.box_px),
+                         "position_m": list(o.position_m)} for o in m.objects],
+        }, log_time_ns=t0p, publish_time_ns=m.t_reply_target_ns)
+
+    def _add_record(self, v: VehicleRun, rec: PipelineRecord) -> None:
+        v.records.append(rec)
+        if rec.t0p_ns is not None and rec.status == FrameStatus.OK:
+            v.e2e_window.add(rec.t0p_ns - rec.t0_ns)
+        t = rec.t0p_ns or self.clock.now_ns()
+        self.rec.write_json(f"/{v.name}/pipeline", rec.to_json(), log_time_ns=t, publish_time_ns=rec.t0_ns)
+
+    def _expire(self, now: int) -> None:
+        for v in self.vehicles:
+            if not v.in_flight:
+                continue
+            for fid in [f for f, fl in v.in_flight.items() if now - fl.t0_ns > self.timeout_ns]:
+                self._drop(v, v.in_flight.pop(fid), now)
+
+    def _expire_all(self) -> None:
+        now = self.clock.now_ns()
+        for v in self.vehicles:
+            for fid in sorted(v.in_flight):
+                self._drop(v, v.in_flight.pop(fid), now)
+
+    def _drop(self, v: VehicleRun, fl: InFlight, now: int) -> None:
+        self._add_record(v, PipelineRecord(v.name, fl.frame_id, fl.sim_time_ns, fl.t0_ns, fl.t_tx_ns,
+                                           FrameStatus.DROPPED))
+        ev = {"kind": "dropped_frame", "vehicle": v.name, "frame_id": fl.frame_id,
+              "timeout_ms": self.timeout_ns / 1e6}
+        self.rec.write_json("/events", ev, log_time_ns=now, publish_time_ns=fl.t0_ns)
+
+    def _await_answers(self) -> None:
+        """Lockstep: wait until no vehicle has a frame in flight."""
+        while any(v.in_flight for v in self.vehicles) and self.stop_reason is None:
+            deadline = min(fl.t0_ns for v in self.vehicles for fl in v.in_flight.values()) + self.timeout_ns
+            self._service(until_ns=deadline + 1)
+            if any(not v.link.alive for v in self.vehicles if v.in_flight):
+                gone = next(v for v in self.vehicles if not v.link.alive)
+                self.request_stop(f"target of {gone.name} is gone: {gone.link.peer_gone_reason}")
+                self._expire_all()
+
+    def _drain(self) -> None:
+        if any(v.in_flight for v in self.vehicles):
+            deadline = max(fl.t0_ns for v in self.vehicles for fl in v.in_flight.values()) + self.timeout_ns
+            while any(v.in_flight for v in self.vehicles) and self.clock.now_ns() <= deadline:
+                if not all(v.link.alive for v in self.vehicles if v.in_flight):
+                    break
+                self._service(until_ns=min(deadline + 1, self.clock.now_ns() + 50_000_000))
+        self._expire_all()
+        self._collect_sync()
+
+    def _collect_sync(self) -> None:
+        for v in self.vehicles:
+            for s in v.link.sync_samples():
+                self.rec.write_json(f"/{v.name}/clock_sync", {
+                    "seq": s.seq, "t1_ns": s.t1_ns, "t2_target_ns": s.t2_target_ns,
+                    "t3_target_ns": s.t3_target_ns, "t4_ns": s.t4_ns,
+                    "offset_ns": s.offset_ns, "delay_ns": s.delay_ns}, log_time_ns=s.t4_ns,
+                    publish_time_ns=s.t1_ns)

@@ -1,0 +1,77 @@
+"""``summary.json``: the machine-readable figures of a run (schema in README.md)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from harness.loop import LoopStats, SimLoop
+from harness.vehicle_state import VehicleRun
+from timing.records import STAGES, FrameStatus
+from timing.stats import summarize_ns
+
+SCHEMA_VERSION = 1
+
+
+def vehicle_summary(v: VehicleRun, *, wall_s: float) -> dict[str, Any]:
+    ok = [r for r in v.records if r.status == FrameStatus.OK]
+    stages: dict[str, Any] = {}
+    for name in STAGES:
+        vals = [d[name] for r in ok if name in (d := r.stages_ns())]
+        stages[name] = summarize_ns(vals)
+    frames = len(v.records)
+    return {
+        "frames_sent": v.next_frame_id,
+        "frames_accounted": frames,
+        "estimates_applied": len(ok),
+        "dropped": v.count(FrameStatus.DROPPED),
+        "stale": v.count(FrameStatus.STALE),
+        "late_estimates": v.late_estimates,
+        "unknown_estimates": v.unknown_estimates,
+        "drop_rate": round(v.count(FrameStatus.DROPPED) / frames, 6) if frames else 0.0,
+        "frames_per_s": round(v.next_frame_id / wall_s, 3) if wall_s > 0 else 0.0,
+        "estimates_per_s": round(len(ok) / wall_s, 3) if wall_s > 0 else 0.0,
+        "order_violations": sum(1 for r in ok if r.order_violations()),
+        "latency_ms": stages,
+        "link": {k: val for k, val in v.link.stats.__dict__.items()},
+        "target": None if v.link.hello is None else {
+            "name": v.link.hello.target_name, "clock": v.link.hello.clock_id.name,
+            "clock_resolution_ns": v.link.hello.clock_resolution_ns},
+    }
+
+
+def build_summary(*, loop: SimLoop, stats: LoopStats, recorder_stats: dict[str, Any],
+                  meta: dict[str, Any]) -> dict[str, Any]:
+    wall_s = max((stats.wall_end_ns - stats.wall_start_ns) / 1e9, 1e-9)
+    sim_s = stats.sim_steps * loop.sim.step_ns / 1e9
+    rtf = sim_s / wall_s
+    realtime = loop.cfg.mode.value == "realtime"
+    requested = loop.cfg.realtime_factor
+    kept = (not realtime) or (rtf >= 0.95 * requested and stats.late_steps <= 0.01 * max(stats.sim_steps, 1))
+    vehicles = {v.name: vehicle_summary(v, wall_s=wall_s) for v in loop.vehicles}
+    for name, s in vehicles.items():
+        final_gap = loop.sim.ground_truth().egos
+        s["outcome"] = {
+            "min_gap_m": loop.min_gap_m.get(name),
+            "final_gap_m": next((e.gap_m for e in final_gap if e.vehicle == name), None),
+            "final_speed_mps": round(loop.sim.speed_mps(name), 4),
+            "collisions": sum(1 for c in loop.collisions if name in (c["a"], c["b"])),
+        }
+    return {
+        "schema_version": SCHEMA_VERSION,
+        **meta,
+        "ended_by": stats.ended_by,
+        "sim_time_s": round(sim_s, 6),
+        "wall_time_s": round(wall_s, 6),
+        "realtime": {
+            "mode": loop.cfg.mode.value,
+            "requested_factor": requested,
+            "achieved_factor": round(rtf, 4),
+            "late_steps": stats.late_steps,
+            "late_tolerance_ms": 10.0,
+            "max_lateness_ms": round(stats.max_lateness_ns / 1e6, 3),
+            "kept_realtime": kept,
+        },
+        "collisions": loop.collisions,
+        "recorder": recorder_stats,
+        "vehicles": vehicles,
+    }

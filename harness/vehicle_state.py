@@ -1,0 +1,38 @@
+"""Per-vehicle bookkeeping of a run: frames in flight, applied estimates, the
+pipeline records and the live statistics shown while the run goes on."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from adapters.link import Link
+from timing.records import FrameStatus, PipelineRecord
+from timing.stats import RateMeter, RollingWindow
+
+
+@dataclass
+class InFlight:
+    """A frame sent and not yet answered (harness clock, ns)."""
+
+    frame_id: int
+    sim_time_ns: int
+    t0_ns: int
+    t_tx_ns: int
+
+
+@dataclass
+class VehicleRun:
+    name: str
+    vehicle_id: int
+    link: Link
+    next_frame_id: int = 0
+    in_flight: dict[int, InFlight] = field(default_factory=dict)
+    last_applied_frame_id: int = -1
+    records: list[PipelineRecord] = field(default_factory=list)
+    late_estimates: int = 0
+    unknown_estimates: int = 0
+    e2e_window: RollingWindow = field(default_factory=RollingWindow)
+    fps_meter: RateMeter = field(default_factory=RateMeter)
+
+    def count(self, status: FrameStatus) -> int:
+        return sum(1 for r in self.records if r.status == status)

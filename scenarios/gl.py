@@ -1,0 +1,63 @@
+"""Choosing MuJoCo's headless OpenGL backend.
+
+MuJoCo reads ``MUJOCO_GL`` once, when ``mujoco`` is first imported, so the choice
+must be made before that. ``select_backend()`` keeps a backend the user set, else
+probes EGL then OSMesa in a short-lived child process (a failed GL init can abort
+the process that tries it) and sets the variable.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+from timing.errors import SimulationError
+
+_PROBE = (
+    "import os, sys; os.environ['MUJOCO_GL'] = sys.argv[1]; "
+    "import mujoco; "
+    "m = mujoco.MjModel.from_xml_string('<mujoco><worldbody><geom size=\"1\"/></worldbody></mujoco>'); "
+    "r = mujoco.Renderer(m, 16, 16); d = mujoco.MjData(m); r.update_scene(d); r.render(); r.close()"
+)
+
+INSTALL_HINT = (
+    "install Mesa's EGL (Debian: apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri) "
+    "or OSMesa (apt-get install libosmesa6)"
+)
+
+
+def probe(backend: str, *, timeout_s: float = 30.0) -> str | None:
+    """Try to render one tiny image with ``backend``; return None on success or the
+    last line of the failure."""
+    try:
+        proc = subprocess.run([sys.executable, "-c", _PROBE, backend], capture_output=True,
+                              text=True, timeout=timeout_s, check=False)
+    except subprocess.TimeoutExpired:
+        return f"probe timed out after {timeout_s:g} s"
+    if proc.returncode == 0:
+        return None
+    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+    return lines[-1] if lines else f"exit code {proc.returncode}"
+
+
+def select_backend() -> str:
+    """Set ``MUJOCO_GL`` to a working headless backend and return its name.
+
+    Raises:
+        SimulationError: neither EGL nor OSMesa works (with the install hint), or
+            ``mujoco`` was already imported with another backend.
+    """
+    chosen = os.environ.get("MUJOCO_GL", "").strip().lower()
+    if chosen:
+        return chosen
+    if "mujoco" in sys.modules:
+        raise SimulationError("mujoco was imported before a GL backend was chosen; call select_backend() first")
+    failures = []
+    for backend in ("egl", "osmesa"):
+        err = probe(backend)
+        if err is None:
+            os.environ["MUJOCO_GL"] = backend
+            return backend
+        failures.append(f"{backend}: {err}")
+    raise SimulationError(f"no headless OpenGL backend works ({'; '.join(failures)}); {INSTALL_HINT}")

@@ -1,0 +1,48 @@
+"""A minimal target: answers every frame with a fixed control, after an optional
+busy inference time. It is the floor for transport benchmarks and the known-latency
+target of timing tests (it never looks at the image).
+
+    python -m targets.echo --infer-ms 20 --throttle 0.1
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Sequence
+
+from adapters.messages import Control, DrivingState, Frame, Inference
+
+
+class Echo:
+    """``infer`` spins for ``infer_ms`` (wall clock; spinning, not sleeping, so the
+    duration is exact) then returns SAFE with the given control."""
+
+    def __init__(self, *, infer_ms: float = 0.0, throttle: float = 0.0, brake: float = 0.0) -> None:
+        self.infer_ns = int(infer_ms * 1e6)
+        self.result = Inference(DrivingState.SAFE, Control(0.0, throttle, brake))
+
+    def infer(self, frame: Frame) -> Inference:
+        del frame
+        if self.infer_ns:
+            end = time.monotonic_ns() + self.infer_ns
+            while time.monotonic_ns() < end:
+                pass
+        return self.result
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m targets.echo", description=__doc__.splitlines()[0])
+    p.add_argument("--infer-ms", type=float, default=0.0, help="busy time per frame (ms)")
+    p.add_argument("--throttle", type=float, default=0.0)
+    p.add_argument("--brake", type=float, default=0.0)
+    p.add_argument("--name", default="echo")
+    a = p.parse_args(argv)
+    from adapters.sdk import serve
+
+    serve(Echo(infer_ms=a.infer_ms, throttle=a.throttle, brake=a.brake).infer, target_name=a.name)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
