@@ -64,7 +64,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     scenarios.get(cfg.scenario.name).resolve(cfg.scenario.params)
     out = prepare_out_dir(args.out or default_out_dir(cfg))
-    console = Console(stderr=False)
+    console = Console()
+    if not console.is_terminal:
+        console.width = max(console.width, 120)
     backend = select_backend()
     console.print(f"renderer: MuJoCo offscreen via [bold]{backend.upper()}[/bold]"
                   + (" (software fallback: slower)" if backend == "osmesa" else ""))

@@ -111,6 +111,8 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
     }
     with Simulation(world) as sim:
         sim.open_renderer()
+        for name in sim.egos:  # first render compiles shaders; keep it out of the loop
+            sim.render(name)
         vehicles: list[VehicleRun] = []
         try:
             for i, name in enumerate(sim.egos):

@@ -61,3 +61,17 @@ def select_backend() -> str:
             return backend
         failures.append(f"{backend}: {err}")
     raise SimulationError(f"no headless OpenGL backend works ({'; '.join(failures)}); {INSTALL_HINT}")
+
+
+def main() -> int:
+    """``python -m scenarios.gl``: say which backend works, or what to install."""
+    try:
+        print(f"MuJoCo headless rendering: {select_backend()}")
+    except SimulationError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -8,6 +8,7 @@ target of timing tests (it never looks at the image).
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from collections.abc import Sequence
 
@@ -18,12 +19,19 @@ class Echo:
     """``infer`` spins for ``infer_ms`` (wall clock; spinning, not sleeping, so the
     duration is exact) then returns SAFE with the given control."""
 
-    def __init__(self, *, infer_ms: float = 0.0, throttle: float = 0.0, brake: float = 0.0) -> None:
+    def __init__(self, *, infer_ms: float = 0.0, throttle: float = 0.0, brake: float = 0.0,
+                 exit_after_frames: int | None = None) -> None:
         self.infer_ns = int(infer_ms * 1e6)
         self.result = Inference(DrivingState.SAFE, Control(0.0, throttle, brake))
+        self.exit_after_frames = exit_after_frames
+        self.frames = 0
 
     def infer(self, frame: Frame) -> Inference:
         del frame
+        self.frames += 1
+        if self.exit_after_frames is not None and self.frames > self.exit_after_frames:
+            # Die abruptly, like a crashed device: no BYE, no flush.
+            os._exit(3)
         if self.infer_ns:
             end = time.monotonic_ns() + self.infer_ns
             while time.monotonic_ns() < end:
@@ -37,10 +45,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--throttle", type=float, default=0.0)
     p.add_argument("--brake", type=float, default=0.0)
     p.add_argument("--name", default="echo")
+    p.add_argument("--exit-after-frames", type=int, default=None,
+                   help="crash (exit 3) on the frame after this many: for failure tests")
     a = p.parse_args(argv)
     from adapters.sdk import serve
 
-    serve(Echo(infer_ms=a.infer_ms, throttle=a.throttle, brake=a.brake).infer, target_name=a.name)
+    echo = Echo(infer_ms=a.infer_ms, throttle=a.throttle, brake=a.brake, exit_after_frames=a.exit_after_frames)
+    serve(echo.infer, target_name=a.name)
     return 0
 
 

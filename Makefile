@@ -1,0 +1,27 @@
+# Two commands for a new machine: `make run` (the demo) and `make test` (the suite).
+# Both create .venv if missing and install the project into it first.
+PYTHON ?= python3.11
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+
+.PHONY: run test install clean
+
+run: $(STAMP)
+	$(BIN)/hil run hil_configs/demo.yaml
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml constraints.txt Makefile tools/check_system.sh
+	@bash tools/check_system.sh "$(PYTHON)"
+	@test -x $(BIN)/python || $$(bash tools/check_system.sh --print-python "$(PYTHON)") -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e ".[dev]" -c constraints.txt
+	@$(BIN)/python -m scenarios.gl || bash tools/check_system.sh --gl-help
+	@touch $(STAMP)
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache

@@ -1,0 +1,438 @@
+"""Run configuration: the validated model of a ``hil_configs/*.yaml`` file.
+
+Every model is frozen and forbids unknown keys, and every field has a default, so an
+empty mapping ``{}`` is a complete config. Units are in the field names (``_s``
+seconds, ``_m`` metres, ``_deg`` degrees, ``fps`` frames per second).
+
+``load_config`` reads YAML, applies ``dotted.path=value`` overrides and validates.
+Whatever is wrong comes back as one ``ConfigError`` line that names the file, the
+YAML path, the bad value and what was expected, e.g.::
+
+    run.yaml: config error at camera.fps: got 0; expected greater than 0
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import hashlib
+import json
+import math
+import os
+import re
+from collections.abc import Callable, Mapping, Sequence
+from enum import Enum
+from pathlib import Path
+from typing import Annotated, Any, get_origin
+
+import yaml
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationError,
+    model_validator,
+)
+from pydantic_core import PydanticCustomError
+
+from timing.errors import ConfigError
+
+__all__ = [
+    "CameraConfig", "Encoding", "Mode", "RecordingConfig", "RunConfig", "ScenarioConfig",
+    "TargetConfig", "Transport", "config_hash", "dump_config", "load_config", "parse_config",
+]
+
+FPS_MAX = 240.0
+PHYSICS_STEP_MAX_S = 0.05
+_PERIOD_REL_TOL = 1e-9
+_PERIOD_ERROR = "camera_period"
+_GOT_MAX_CHARS = 60
+
+
+def _reject_bool(value: Any) -> Any:
+    # pydantic's lax mode reads true/false as 1/0; in a config that is always a typo.
+    if isinstance(value, bool):
+        raise PydanticCustomError("bool_not_number", "a number, not true/false")
+    return value
+
+
+Int = Annotated[int, BeforeValidator(_reject_bool)]
+Float = Annotated[float, BeforeValidator(_reject_bool)]
+
+_MODEL_CONFIG = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+class Mode(str, Enum):
+    """How the simulation paces itself against the target."""
+
+    REALTIME = "realtime"  # wall-clock pace, never waits for the target
+    LOCKSTEP = "lockstep"  # waits for each estimate: deterministic, for replay
+
+
+class Encoding(str, Enum):
+    """How camera frames travel on the wire."""
+
+    RAW = "raw"
+    JPEG = "jpeg"
+
+
+class Transport(str, Enum):
+    """How the harness reaches the AI target (grows: zenoh, can)."""
+
+    LOCAL = "local"
+
+
+class ScenarioConfig(BaseModel):
+    """Which registered scenario to build, and its parameters (units in the names)."""
+
+    model_config = _MODEL_CONFIG
+
+    name: str = "stopped_car"
+    params: dict[str, Float] = Field(default_factory=dict)
+
+
+class CameraConfig(BaseModel):
+    """The ego vehicle's camera: image size, optics, rate, encoding and mount."""
+
+    model_config = _MODEL_CONFIG
+
+    width: Int = Field(320, ge=16, le=4096)
+    height: Int = Field(240, ge=16, le=4096)
+    fovy_deg: Float = Field(60.0, ge=10, le=170)
+    fps: Float = Field(20.0, gt=0, le=FPS_MAX)
+    encoding: Encoding = Encoding.JPEG
+    jpeg_quality: Int = Field(85, ge=1, le=100)
+    shadows: bool = False
+    reflections: bool = False
+    mount_height_m: Float = Field(1.3, ge=0.2, le=5)
+    mount_forward_m: Float = Field(2.3, ge=-5, le=5)  # from the vehicle centre
+
+
+class TargetConfig(BaseModel):
+    """The AI target: how to reach it, how to start it, how long to wait for it.
+
+    ``"{python}"`` in ``command`` is replaced with ``sys.executable`` at launch;
+    ``args`` are appended to ``command``.
+    """
+
+    model_config = _MODEL_CONFIG
+
+    transport: Transport = Transport.LOCAL
+    command: list[str] = Field(
+        default_factory=lambda: ["{python}", "-m", "targets.cv_baseline"], min_length=1
+    )
+    args: list[str] = Field(default_factory=list)
+    startup_timeout_s: Float = Field(15.0, gt=0, le=300)
+    # No estimate within this after t0: the frame counts as dropped.
+    estimate_timeout_s: Float = Field(0.5, gt=0, le=60)
+
+
+class RecordingConfig(BaseModel):
+    """The recorder: its bounded queue (items) and whether images are stored."""
+
+    model_config = _MODEL_CONFIG
+
+    queue_size: Int = Field(4096, ge=16, le=1_000_000)
+    images: bool = True
+
+
+class RunConfig(BaseModel):
+    """One run: pacing, duration, physics step, scenario, camera, target, recording.
+
+    Raises ``pydantic.ValidationError`` when built directly; ``load_config`` and
+    ``parse_config`` turn that into a one-line ``ConfigError``.
+    """
+
+    model_config = _MODEL_CONFIG
+
+    name: str = Field("run", pattern=r"^[A-Za-z0-9_.-]+$")
+    seed: Int = Field(0, ge=0)
+    mode: Mode = Mode.REALTIME
+    duration_s: Float = Field(20.0, gt=0, le=86400)
+    realtime_factor: Float = Field(1.0, gt=0, le=100)
+    physics_step_s: Float = Field(0.002, gt=0, le=PHYSICS_STEP_MAX_S)
+    scenario: ScenarioConfig = Field(default_factory=ScenarioConfig)
+    camera: CameraConfig = Field(default_factory=CameraConfig)
+    target: TargetConfig = Field(default_factory=TargetConfig)
+    recording: RecordingConfig = Field(default_factory=RecordingConfig)
+    progress: bool = True
+
+    @model_validator(mode="after")
+    def _camera_period_fits_physics_step(self) -> RunConfig:
+        fps, step = self.camera.fps, self.physics_step_s
+        if not _period_fits(fps, step):
+            raise PydanticCustomError(_PERIOD_ERROR, _period_message(fps, step), {"fps": fps})
+        return self
+
+    @property
+    def camera_period_steps(self) -> int:
+        """Physics steps per camera frame (the camera period is a whole multiple)."""
+        return round(1.0 / (self.camera.fps * self.physics_step_s))
+
+
+# --- camera period / physics step -----------------------------------------------
+
+
+def _period_fits(fps: float, step_s: float, *, rel_tol: float = _PERIOD_REL_TOL) -> bool:
+    steps = 1.0 / (fps * step_s)
+    return round(steps) >= 1 and math.isclose(steps, round(steps), rel_tol=rel_tol)
+
+
+def _shortest(value: float, ok: Callable[[float], bool]) -> str:
+    """Fewest decimals of ``value`` that still pass ``ok`` (so a suggestion works)."""
+    for decimals in range(18):
+        text = f"{value:.{decimals}f}"
+        if float(text) > 0 and ok(float(text)):
+            return text
+    return repr(value)
+
+
+def _period_message(fps: float, step_s: float) -> str:
+    steps = 1.0 / (fps * step_s)
+    period_s = 1.0 / fps
+    # Suggestions are rounded, but 10x inside the tolerance so none is borderline.
+    tight = _PERIOD_REL_TOL / 10
+
+    def fps_text(k: int) -> str:
+        return _shortest(
+            1.0 / (k * step_s),
+            lambda v: v <= FPS_MAX
+            and round(1.0 / (v * step_s)) == k
+            and _period_fits(v, step_s, rel_tol=tight),
+        )
+
+    def step_text(m: int) -> str:
+        return _shortest(
+            period_s / m,
+            lambda v: v <= PHYSICS_STEP_MAX_S
+            and round(1.0 / (fps * v)) == m
+            and _period_fits(fps, v, rel_tol=tight),
+        )
+
+    # fps = 1/(k*step) nearest the asked one, within the fps bound.
+    k_min = max(1, math.ceil(1.0 / (FPS_MAX * step_s) - 1e-9))
+    ks = range(max(k_min, math.floor(steps) - 6), max(k_min, math.floor(steps)) + 8)
+    near_ks = sorted(ks, key=lambda k: abs(1.0 / (k * step_s) - fps))[:6]
+    # physics step = period/m nearest the asked one, within the step bound.
+    ms = [m for m in range(max(1, math.floor(steps) - 2), math.floor(steps) + 4)
+          if period_s / m <= PHYSICS_STEP_MAX_S]
+    near_ms = sorted(ms, key=lambda m: abs(period_s / m - step_s))[:3]
+    message = (
+        f"a camera period (1/fps = {period_s * 1e3:.6g} ms) that is a whole multiple "
+        f"of physics_step_s ({step_s * 1e3:.6g} ms), but it is {steps:.6g} steps; "
+        f"with physics_step_s {step_s:g} use camera.fps one of "
+        + ", ".join(fps_text(k) for k in sorted(near_ks))
+    )
+    if near_ms:
+        message += f"; or with camera.fps {fps:g} use physics_step_s one of " + ", ".join(
+            step_text(m) for m in sorted(near_ms)
+        )
+    return message
+
+
+# --- loading ----------------------------------------------------------------------
+
+
+def load_config(path: str | os.PathLike[str], *, overrides: Sequence[str] = ()) -> RunConfig:
+    """Read a YAML run config, apply ``dotted.path=value`` overrides, validate.
+
+    Override values are parsed as YAML (``10``, ``true``, ``[a, b]``); a missing key
+    on the path is created (``scenario.params.gap_m=40``). An empty file is the
+    empty config.
+
+    Raises:
+        ConfigError: one line: file missing or unreadable, YAML syntax (with line and
+            column), top level not a mapping, malformed override, or a value that
+            fails validation (with its YAML path, the value and what was expected).
+    """
+    source = os.fspath(path)
+    data = _read_yaml(Path(source))
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(
+            f"{source}: config error at <root>: got {_short_repr(data)}; "
+            "expected a mapping of keys to values"
+        )
+    return parse_config(data, source=source, overrides=overrides)
+
+
+def parse_config(
+    data: Mapping[str, Any], *, source: str = "<config>", overrides: Sequence[str] = ()
+) -> RunConfig:
+    """Validate an already-parsed mapping (after applying ``overrides``).
+
+    ``source`` starts every error message. Raises ``ConfigError`` as ``load_config``.
+    """
+    merged = copy.deepcopy(dict(data))
+    applied: list[tuple[tuple[str, ...], str]] = []
+    for override in overrides:
+        keys, value = _parse_override(override, source)
+        _apply_override(merged, keys, value, override, source)
+        applied.append((keys, override))
+    try:
+        return RunConfig.model_validate(merged)
+    except ValidationError as err:
+        raise ConfigError(_format_validation_error(err, source, applied)) from err
+
+
+def _read_yaml(path: Path) -> Any:
+    if not path.exists():
+        raise ConfigError(f"config file not found: {path}")
+    if path.is_dir():
+        raise ConfigError(f"config path is a directory, not a file: {path}")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
+        raise ConfigError(f"cannot read config file {path}: {reason}") from err
+    try:
+        return yaml.safe_load(text)
+    except yaml.MarkedYAMLError as err:
+        raise ConfigError(_one_line(f"{path}: {_describe_yaml_error(err)}")) from err
+    except yaml.YAMLError as err:
+        raise ConfigError(_one_line(f"{path}: YAML error: {err}")) from err
+
+
+def _describe_yaml_error(err: yaml.MarkedYAMLError) -> str:
+    mark = err.problem_mark or err.context_mark
+    where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "unknown place"
+    problem = err.problem or "invalid YAML"
+    context = f" ({err.context})" if err.context else ""
+    return f"YAML syntax error at {where}: {problem}{context}"
+
+
+def _parse_override(override: str, source: str) -> tuple[tuple[str, ...], Any]:
+    dotted, sep, text = override.partition("=")
+    keys = tuple(part.strip() for part in dotted.split("."))
+    if not sep or not all(keys):
+        raise ConfigError(
+            f"{source}: malformed override {_short_repr(override)}: expected dotted.path=value, "
+            "e.g. camera.fps=10"
+        )
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        problem = err.problem if isinstance(err, yaml.MarkedYAMLError) else str(err)
+        raise ConfigError(
+            _one_line(f"{source}: override {_short_repr(override)}: value is not valid YAML: {problem}")
+        ) from err
+    return keys, value
+
+
+def _apply_override(
+    data: dict[str, Any], keys: tuple[str, ...], value: Any, override: str, source: str
+) -> None:
+    node, model = data, _model_at(())
+    for depth, key in enumerate(keys[:-1]):
+        field = model.model_fields.get(key) if model else None
+        model = _model_at(keys[: depth + 1])
+        if key not in node and field and not model and get_origin(field.annotation) is not dict:
+            # Absent scalar field: the path runs through its default, not a new mapping.
+            child = field.get_default(call_default_factory=True)
+        else:
+            child = node.setdefault(key, {})
+        if not isinstance(child, dict):
+            raise ConfigError(
+                f"{source}: override {_short_repr(override)}: cannot set {'.'.join(keys)} "
+                f"because {'.'.join(keys[: depth + 1])} is {_short_repr(child)}, "
+                "not a mapping"
+            )
+        node = child
+    node[keys[-1]] = value
+
+
+# --- error messages ---------------------------------------------------------------
+
+_MESSAGE_REWRITES = (
+    (re.compile(r"^Value error, "), ""),
+    (re.compile(r"^Input should be a valid dictionary or instance of \w+"), "a mapping"),
+    (re.compile(r"^Input should be "), ""),
+    (re.compile(r"^(String|List|Dictionary) should have "), lambda m: f"a {m[1].lower()} with "),
+    (re.compile(r"^String should match "), "a string matching "),
+)
+
+
+def _format_validation_error(
+    err: ValidationError, source: str, applied: Sequence[tuple[tuple[str, ...], str]]
+) -> str:
+    errors = err.errors(include_url=False)
+    first = errors[0]
+    loc = tuple(first["loc"])
+    if first["type"] == "extra_forbidden":
+        key, parent = loc[-1], loc[:-1]
+        message = f"{source}: unknown key {_short_repr(key)} at {_loc_text(parent)}"
+        model = _model_at(parent)
+        if model is not None:
+            valid = list(model.model_fields)
+            close = difflib.get_close_matches(str(key), valid, n=1)
+            if close:
+                message += f" (did you mean {close[0]!r}?)"
+            message += f" (valid keys: {', '.join(valid)})"
+    else:
+        got = first["input"]
+        if first["type"] == _PERIOD_ERROR:
+            loc, got = ("camera", "fps"), first["ctx"]["fps"]
+        message = (
+            f"{source}: config error at {_loc_text(loc)}: got {_short_repr(got)}; "
+            f"expected {_expected(first['msg'])}"
+        )
+    for keys, override in applied:
+        if loc and (loc[: len(keys)] == keys or keys[: len(loc)] == loc):
+            message += f" (set by override {_short_repr(override)})"
+            break
+    if len(errors) > 1:
+        others = ", ".join(_loc_text(tuple(e["loc"])) for e in errors[1:6])
+        more = ", ..." if len(errors) > 6 else ""
+        message += f" (+{len(errors) - 1} more: {others}{more})"
+    return _one_line(message)
+
+
+def _expected(msg: str) -> str:
+    for pattern, replacement in _MESSAGE_REWRITES:
+        new = pattern.sub(replacement, msg, count=1)
+        if new != msg:
+            return new
+    return msg[:1].lower() + msg[1:]
+
+
+def _model_at(loc: tuple[Any, ...]) -> type[BaseModel] | None:
+    model: type[BaseModel] = RunConfig
+    for part in loc:
+        field = model.model_fields.get(part) if isinstance(part, str) else None
+        annotation = field.annotation if field else None
+        if not (isinstance(annotation, type) and issubclass(annotation, BaseModel)):
+            return None
+        model = annotation
+    return model
+
+
+def _loc_text(loc: tuple[Any, ...]) -> str:
+    text = ""
+    for part in loc:
+        text += f"[{part}]" if isinstance(part, int) else (f".{part}" if text else str(part))
+    return text or "<root>"
+
+
+def _short_repr(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= _GOT_MAX_CHARS else text[: _GOT_MAX_CHARS - 3] + "..."
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
+
+
+# --- canonical form ---------------------------------------------------------------
+
+
+def dump_config(cfg: RunConfig) -> dict[str, Any]:
+    """The config as a JSON-able dict (enums as their string values)."""
+    return cfg.model_dump(mode="json")
+
+
+def config_hash(cfg: RunConfig) -> str:
+    """sha256 hex digest of the canonical JSON (sorted keys): stable across runs."""
+    canonical = json.dumps(dump_config(cfg), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(canonical.encode("utf-8")).hexdigest()
