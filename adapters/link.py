@@ -124,6 +124,11 @@ class Link(ABC):
                 continue
             if isinstance(r.msg, Hello):
                 if r.msg.protocol_version != protocol.VERSION:
+                    try:
+                        self._send_bytes(protocol.encode(ErrorMsg(self.vehicle_id, protocol.ErrorCode.UNSUPPORTED_VERSION,
+                                                                  f"harness speaks protocol version {protocol.VERSION}")))
+                    except (TransportError, OSError):
+                        pass
                     raise TargetError(f"target speaks protocol version {r.msg.protocol_version}; "
                                       f"this harness speaks {protocol.VERSION}")
                 self.hello = r.msg

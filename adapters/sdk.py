@@ -100,7 +100,7 @@ class _Endpoint:
         """Reader-thread handler; returns quickly."""
         if isinstance(item, ProtocolError):
             self.stats.protocol_errors += 1
-            self.send(ErrorMsg(self._vehicle_id, 1, str(item)[:1000]))
+            self.send(ErrorMsg(self._vehicle_id, protocol.ErrorCode.MALFORMED, str(item)[:1000]))
             return
         if isinstance(item, SyncRequest):
             t3 = self.clock.now_ns()
@@ -138,7 +138,7 @@ class _Endpoint:
                 result = self.infer(frame)
             except Exception as err:  # the AI's bug must not kill the session
                 self.stats.infer_errors += 1
-                self.send(ErrorMsg(frame.vehicle_id, 2, f"infer failed: {type(err).__name__}: {err}"[:1000]))
+                self.send(ErrorMsg(frame.vehicle_id, protocol.ErrorCode.TARGET_FAILURE, f"infer failed: {type(err).__name__}: {err}"[:1000]))
                 continue
             t_end = self.clock.now_ns()
             est = Estimate(frame.vehicle_id, frame.frame_id, result.state, result.control,
