@@ -70,34 +70,82 @@ def decode_image(frame: Frame) -> np.ndarray:
     return img
 
 
-class _Endpoint:
-    """Target side of one connection: reader thread + inference worker."""
+class Endpoint:
+    """Target side of one session, independent of the transport: a transport feeds it
+    received bytes (``on_bytes`` for streams, ``on_message_bytes`` for message
+    transports) and gives it a ``send`` function; the endpoint answers clock-sync
+    requests at once and runs ``infer`` on a worker thread, newest frame first.
+    """
 
-    def __init__(self, infer: InferFn, *, send: Callable[[bytes], None], target_name: str,
-                 clock: Clock, clock_id: ClockId, clock_resolution_ns: int) -> None:
+    def __init__(self, infer: InferFn, *, target_name: str, clock: Clock | None = None,
+                 clock_id: ClockId = ClockId.MONOTONIC, clock_resolution_ns: int = 1) -> None:
         self.infer = infer
-        self._send_raw = send
-        self.clock = clock
+        self.clock = clock or MonotonicClock()
         self.stats = SdkStats()
         self.target_name = target_name
         self.clock_id = clock_id
         self.clock_resolution_ns = clock_resolution_ns
+        self._send_raw: Callable[[bytes], None] | None = None
         self._send_lock = threading.Lock()
         self._cv = threading.Condition()
         self._pending: tuple[Frame, int] | None = None
-        self._stop = False
+        self._stopped = threading.Event()
         self._vehicle_id = 0
+        self._decoder = protocol.StreamDecoder()
+        self._worker: threading.Thread | None = None
+
+    # -- lifecycle -------------------------------------------------------------
+
+    def start(self, send: Callable[[bytes], None]) -> None:
+        """Attach the transport's ``send`` (one encoded message per call), start the
+        inference worker and say HELLO."""
+        self._send_raw = send
+        self._worker = threading.Thread(target=self._work, name="infer", daemon=True)
+        self._worker.start()
+        self.send(Hello(self.target_name, protocol.VERSION, self.clock_id, self.clock_resolution_ns, 0))
+
+    @property
+    def stopped(self) -> bool:
+        """True once the harness said BYE (or ``stop()`` was called)."""
+        return self._stopped.is_set()
+
+    def wait_stopped(self, timeout_s: float | None = None) -> bool:
+        return self._stopped.wait(timeout_s)
+
+    def stop(self) -> None:
+        with self._cv:
+            self._stopped.set()
+            self._cv.notify()
+
+    def join(self, timeout_s: float = 5.0) -> None:
+        self.stop()
+        if self._worker is not None and self._worker is not threading.current_thread():
+            self._worker.join(timeout=timeout_s)
+
+    # -- transport side ----------------------------------------------------------
 
     def send(self, msg: Message) -> None:
+        if self._send_raw is None:
+            raise TransportError("endpoint not started")
         buf = protocol.encode(msg)
         with self._send_lock:
             self._send_raw(buf)
 
-    def say_hello(self) -> None:
-        self.send(Hello(self.target_name, protocol.VERSION, self.clock_id, self.clock_resolution_ns, 0))
+    def on_bytes(self, data: bytes, t_rx: int) -> None:
+        """Stream transports: bytes as they arrive, stamped at arrival (target clock)."""
+        for item in self._decoder.feed(data):
+            self.on_message(item, t_rx)
+
+    def on_message_bytes(self, data: bytes, t_rx: int) -> None:
+        """Message transports: one whole message, stamped at arrival (target clock)."""
+        try:
+            item: Message | ProtocolError = protocol.decode(data)
+        except ProtocolError as err:
+            item = err
+        self.on_message(item, t_rx)
 
     def on_message(self, item: Message | ProtocolError, t_rx: int) -> None:
-        """Reader-thread handler; returns quickly."""
+        """Handle one decoded message; returns quickly (never waits for inference)."""
         if isinstance(item, ProtocolError):
             self.stats.protocol_errors += 1
             self.send(ErrorMsg(self._vehicle_id, protocol.ErrorCode.MALFORMED, str(item)[:1000]))
@@ -117,18 +165,14 @@ class _Endpoint:
         elif isinstance(item, Bye):
             self.stop()
 
-    def stop(self) -> None:
-        with self._cv:
-            self._stop = True
-            self._cv.notify()
+    # -- inference worker --------------------------------------------------------
 
-    def work(self) -> None:
-        """Inference worker: process the newest pending frame, one at a time."""
+    def _work(self) -> None:
         while True:
             with self._cv:
-                while self._pending is None and not self._stop:
+                while self._pending is None and not self._stopped.is_set():
                     self._cv.wait()
-                if self._stop:
+                if self._stopped.is_set():
                     return
                 assert self._pending is not None
                 frame, t_rx = self._pending
@@ -138,7 +182,8 @@ class _Endpoint:
                 result = self.infer(frame)
             except Exception as err:  # the AI's bug must not kill the session
                 self.stats.infer_errors += 1
-                self.send(ErrorMsg(frame.vehicle_id, protocol.ErrorCode.TARGET_FAILURE, f"infer failed: {type(err).__name__}: {err}"[:1000]))
+                self.send(ErrorMsg(frame.vehicle_id, protocol.ErrorCode.TARGET_FAILURE,
+                                   f"infer failed: {type(err).__name__}: {err}"[:1000]))
                 continue
             t_end = self.clock.now_ns()
             est = Estimate(frame.vehicle_id, frame.frame_id, result.state, result.control,
@@ -150,38 +195,48 @@ class _Endpoint:
             self.stats.estimates_sent += 1
 
 
+TRANSPORTS = ("local",)
+
+
 def serve(infer: InferFn, *, target_name: str, transport: str = "local", clock: Clock | None = None,
-          clock_id: ClockId = ClockId.MONOTONIC, clock_resolution_ns: int = 1) -> SdkStats:
-    """Serve ``infer`` until the harness says BYE or closes the connection.
+          clock_id: ClockId = ClockId.MONOTONIC, clock_resolution_ns: int = 1,
+          **transport_options: object) -> SdkStats:
+    """Serve ``infer`` until the harness says BYE or the connection ends.
 
     Args:
         infer: the AI; called with each frame, returns an ``Inference``.
         target_name: reported in HELLO (at most 64 bytes of UTF-8).
-        transport: ``"local"`` (a child of the harness; more transports later).
+        transport: one of ``TRANSPORTS``; ``"local"`` is a child of the harness.
         clock: the clock to stamp with (default: this host's monotonic clock).
+        transport_options: passed to the transport (see its module).
 
     Returns:
         Counters of what was served.
 
     Raises:
-        TransportError: the transport cannot be used (for example ``HIL_LOCAL_FD``
-            is not set because the program was not started by the harness).
+        TransportError: unknown transport, or it cannot be used (for example
+            ``HIL_LOCAL_FD`` is not set because the program was not started by the
+            harness).
     """
-    if transport != "local":
-        raise TransportError(f"unknown transport {transport!r}; valid: local")
+    ep = Endpoint(infer, target_name=target_name, clock=clock, clock_id=clock_id,
+                  clock_resolution_ns=clock_resolution_ns)
+    if transport == "local":
+        if transport_options:
+            raise TransportError(f"the local transport takes no options; got {sorted(transport_options)}")
+        _serve_local(ep)
+        return ep.stats
+    raise TransportError(f"unknown transport {transport!r}; valid: {', '.join(TRANSPORTS)}")
+
+
+def _serve_local(ep: Endpoint) -> None:
     fd_text = os.environ.get("HIL_LOCAL_FD")
     if not fd_text or not fd_text.isdigit():
         raise TransportError("HIL_LOCAL_FD is not set: a local target is started by the harness "
                              "(hil run), not by hand")
     sock = socket.socket(fileno=int(fd_text))
-    ep = _Endpoint(infer, send=sock.sendall, target_name=target_name, clock=clock or MonotonicClock(),
-                   clock_id=clock_id, clock_resolution_ns=clock_resolution_ns)
-    worker = threading.Thread(target=ep.work, name="infer", daemon=True)
-    worker.start()
-    decoder = protocol.StreamDecoder()
     try:
-        ep.say_hello()
-        while not ep._stop:
+        ep.start(sock.sendall)
+        while not ep.stopped:
             try:
                 data = sock.recv(1 << 20)
             except OSError:
@@ -189,10 +244,7 @@ def serve(infer: InferFn, *, target_name: str, transport: str = "local", clock: 
             t_rx = ep.clock.now_ns()
             if not data:
                 break
-            for item in decoder.feed(data):
-                ep.on_message(item, t_rx)
+            ep.on_bytes(data, t_rx)
     finally:
-        ep.stop()
-        worker.join(timeout=5.0)
+        ep.join()
         sock.close()
-    return ep.stats
