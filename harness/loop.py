@@ -139,7 +139,7 @@ class SimLoop:
                     self.rec.write_image(topic, data, fmt="jpeg", frame_id=f"{v.name}/camera",
                                          log_time_ns=t0, publish_time_ns=t0)
                 else:
-                    self.rec.write_raw_image(topic, rgb.copy(), encoding="rgb8", frame_id=f"{v.name}/camera",
+                    self.rec.write_raw_image(topic, rgb, encoding="rgb8", frame_id=f"{v.name}/camera",
                                              log_time_ns=t0, publish_time_ns=t0)
         now = self.clock.now_ns()
         if now >= self._next_sync_ns:

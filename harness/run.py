@@ -123,7 +123,7 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
             warmup = {v.name: [s for _ in range(SYNC_WARMUP_SAMPLES)
                                if (s := v.link.sync_exchange(timeout_s=0.5)) is not None]
                       for v in vehicles}
-            with Recorder(mcap_path, queue_size=cfg.recording.queue_size, metadata={
+            with Recorder(mcap_path, queue_size=cfg.recording.queue_size, compression="zstd", metadata={
                 "run": {k: json.dumps(val) if not isinstance(val, str) else val for k, val in meta.items()},
                 "config": {"yaml_json": json.dumps(dump_config(cfg), sort_keys=True)},
             }) as rec:
