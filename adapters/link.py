@@ -202,6 +202,11 @@ class Link(ABC):
                 return SyncSample(m.seq, m.t1_ns, m.t2_target_ns, m.t3_target_ns, r.t_rx_ns)
         return None
 
+    def send_raw(self, data: bytes) -> None:
+        """Send bytes as they are, unchecked: for conformance tests and diagnostics
+        (for example, to see how a target handles a corrupt message)."""
+        self._send_checked(data)
+
     def _send_checked(self, buf: bytes) -> None:
         if self._closed:
             raise TransportError("link is closed")
@@ -294,11 +299,12 @@ class Link(ABC):
     def _close_transport(self) -> None: ...
 
 
-TRANSPORTS = ("local",)
+TRANSPORTS = ("local", "zenoh", "can")
 
 
 def open_link(transport: str, **options: object) -> Link:
-    """Build the link for ``transport`` by name (not yet opened).
+    """Build the link for ``transport`` by name (not yet opened); each transport's
+    module is imported only when named, so zenoh and python-can stay optional.
 
     Raises:
         TransportError: unknown transport name (listing the valid ones).
@@ -306,6 +312,12 @@ def open_link(transport: str, **options: object) -> Link:
     if transport == "local":
         from adapters.local import LocalLink
         return LocalLink(**options)  # type: ignore[arg-type]
+    if transport == "zenoh":
+        from adapters.zenoh_transport import ZenohLink
+        return ZenohLink(**options)  # type: ignore[arg-type]
+    if transport == "can":
+        from adapters.can_transport import CanLink
+        return CanLink(**options)  # type: ignore[arg-type]
     raise TransportError(f"unknown transport {transport!r}; valid: {', '.join(TRANSPORTS)}")
 
 

@@ -22,6 +22,7 @@ Needs only numpy and the chosen transport: no simulator, torch or harness code.
 
 from __future__ import annotations
 
+import argparse
 import os
 import socket
 import threading
@@ -195,7 +196,38 @@ class Endpoint:
             self.stats.estimates_sent += 1
 
 
-TRANSPORTS = ("local",)
+TRANSPORTS = ("local", "zenoh", "can")
+
+
+def add_transport_args(parser: argparse.ArgumentParser) -> None:
+    """Add the transport options every target program shares: ``--transport`` and the
+    options of each transport (ignored by the others)."""
+    g = parser.add_argument_group("transport")
+    g.add_argument("--transport", choices=TRANSPORTS, default="local",
+                   help="local: started by `hil run`; zenoh: network; can: CAN bus")
+    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="zenoh: endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)")
+    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="zenoh: endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable)")
+    g.add_argument("--mode", choices=("peer", "client"), default="peer", help="zenoh session mode")
+    g.add_argument("--key-prefix", default="hil", help="zenoh: key expression prefix")
+    g.add_argument("--vehicle", type=int, default=0, help="vehicle id this target serves (zenoh, can)")
+    g.add_argument("--interface", default="socketcan",
+                   help="can: python-can interface (socketcan, pcan, kvaser, vector, slcan, virtual)")
+    g.add_argument("--channel", default="vcan0", help="can: channel, e.g. vcan0, PCAN_USBBUS1")
+    g.add_argument("--bitrate", type=int, default=500_000, help="can: nominal bitrate (bit/s)")
+    g.add_argument("--data-bitrate", type=int, default=2_000_000, help="can: CAN FD data bitrate (bit/s)")
+
+
+def transport_options(args: argparse.Namespace) -> dict[str, object]:
+    """The keyword options ``serve`` passes to ``args.transport``."""
+    if args.transport == "zenoh":
+        return {"listen": list(args.listen), "connect": list(args.connect), "mode": args.mode,
+                "key_prefix": args.key_prefix, "vehicle_id": args.vehicle}
+    if args.transport == "can":
+        return {"interface": args.interface, "channel": args.channel, "bitrate": args.bitrate,
+                "data_bitrate": args.data_bitrate, "vehicle_id": args.vehicle}
+    return {}
 
 
 def serve(infer: InferFn, *, target_name: str, transport: str = "local", clock: Clock | None = None,
@@ -224,6 +256,14 @@ def serve(infer: InferFn, *, target_name: str, transport: str = "local", clock: 
         if transport_options:
             raise TransportError(f"the local transport takes no options; got {sorted(transport_options)}")
         _serve_local(ep)
+        return ep.stats
+    if transport == "zenoh":
+        from adapters.zenoh_transport import serve_endpoint as serve_zenoh
+        serve_zenoh(ep, **transport_options)  # type: ignore[arg-type]
+        return ep.stats
+    if transport == "can":
+        from adapters.can_transport import serve_endpoint as serve_can
+        serve_can(ep, **transport_options)  # type: ignore[arg-type]
         return ep.stats
     raise TransportError(f"unknown transport {transport!r}; valid: {', '.join(TRANSPORTS)}")
 

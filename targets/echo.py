@@ -47,11 +47,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--name", default="echo")
     p.add_argument("--exit-after-frames", type=int, default=None,
                    help="crash (exit 3) on the frame after this many: for failure tests")
-    a = p.parse_args(argv)
-    from adapters.sdk import serve
+    from adapters.sdk import add_transport_args, serve, transport_options
 
+    add_transport_args(p)
+    a = p.parse_args(argv)
     echo = Echo(infer_ms=a.infer_ms, throttle=a.throttle, brake=a.brake, exit_after_frames=a.exit_after_frames)
-    serve(echo.infer, target_name=a.name)
+    serve(echo.infer, target_name=a.name, transport=a.transport, **transport_options(a))
     return 0
 
 
