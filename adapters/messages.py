@@ -2,7 +2,9 @@
 
 Units: times are integer nanoseconds (``*_ns``; ``*_target_ns`` on the target's
 clock), distances metres, angles radians, boxes pixels ``(x0, y0, x1, y1)`` with the
-origin at the image's top-left corner. Vehicle frame: x forward, y left, z up.
+origin at the image's top-left corner. Object positions are in the camera-ground
+frame: origin on the road directly under the camera, x forward along the camera's
+heading, y left, z up.
 
 Byte layouts are in ``PROTOCOL.md``; ``adapters.protocol`` encodes and decodes.
 """
@@ -101,7 +103,8 @@ class Frame:
 
 @dataclass(frozen=True)
 class DetectedObject:
-    """An object the AI believes it sees. ``position_m`` is in the vehicle frame."""
+    """An object the AI believes it sees. ``position_m`` is the centre of its nearest
+    visible face at road level, in the camera-ground frame (see module docstring)."""
 
     cls: ObjectClass
     confidence: float
