@@ -22,6 +22,7 @@ import numpy as np
 from adapters.link import Received
 from adapters.messages import CameraInfo, ErrorMsg, Estimate, Heartbeat, ImageEncoding
 from harness.config import Encoding, Mode, RunConfig
+from harness.observers import RunObserver
 from harness.recorder import Recorder
 from harness.vehicle_state import InFlight, VehicleRun
 from scenarios.ground_truth import GroundTruth
@@ -60,6 +61,7 @@ class SimLoop:
         intr = sim.intrinsics()
         cam = cfg.camera
         self.camera_info = CameraInfo(intr.fx, intr.fy, intr.cx, intr.cy, cam.mount_height_m, 0.0)
+        self.observers: list[RunObserver] = []
         self.collisions: list[dict[str, object]] = []
         self.min_gap_m: dict[str, float] = {}
         self._next_sync_ns = 0
@@ -96,6 +98,10 @@ class SimLoop:
                         self._await_answers()
                 self.sim.step()
                 self._service(until_ns=0)
+                if self.observers:
+                    now_ns, sim_ns = self.clock.now_ns(), self.sim.sim_time_ns
+                    for ob in self.observers:
+                        ob.on_tick(now_ns=now_ns, sim_time_ns=sim_ns)
                 if self.on_tick is not None:
                     self.on_tick()
             # Let the frames in flight finish (answer or time out): nothing unaccounted.
@@ -161,6 +167,8 @@ class SimLoop:
 
     def _record_truth(self, gt: GroundTruth) -> None:
         t = self.clock.now_ns()
+        for ob in self.observers:
+            ob.on_truth(gt, t_ns=t)
         for e in gt.egos:
             if e.gap_m is not None:
                 self.min_gap_m[e.vehicle] = min(self.min_gap_m.get(e.vehicle, float("inf")), e.gap_m)
@@ -229,7 +237,7 @@ class SimLoop:
         rec = PipelineRecord(v.name, fl.frame_id, fl.sim_time_ns, fl.t0_ns, fl.t_tx_ns, status,
                              m.t_rx_target_ns, m.t_infer_start_target_ns, m.t_infer_end_target_ns,
                              m.t_reply_target_ns, t0p, t_apply, sim_apply)
-        self._add_record(v, rec)
+        self._add_record(v, rec, m)
         self.rec.write_json(f"/{v.name}/estimate", {
             "frame_id": m.frame_id, "state": m.state.name,
             "control": {"steering_rad": m.control.steering_rad, "throttle": m.control.throttle,
@@ -238,8 +246,10 @@ class SimLoop:
                          "position_m": list(o.position_m)} for o in m.objects],
         }, log_time_ns=t0p, publish_time_ns=m.t_reply_target_ns)
 
-    def _add_record(self, v: VehicleRun, rec: PipelineRecord) -> None:
+    def _add_record(self, v: VehicleRun, rec: PipelineRecord, estimate: Estimate | None = None) -> None:
         v.records.append(rec)
+        for ob in self.observers:
+            ob.on_record(v.name, rec, estimate)
         if rec.t0p_ns is not None and rec.status == FrameStatus.OK:
             v.e2e_window.add(rec.t0p_ns - rec.t0_ns)
         t = rec.t0p_ns or self.clock.now_ns()
@@ -288,6 +298,8 @@ class SimLoop:
     def _collect_sync(self) -> None:
         for v in self.vehicles:
             for s in v.link.sync_samples():
+                for ob in self.observers:
+                    ob.on_sync(v.name, s)
                 self.rec.write_json(f"/{v.name}/clock_sync", {
                     "seq": s.seq, "t1_ns": s.t1_ns, "t2_target_ns": s.t2_target_ns,
                     "t3_target_ns": s.t3_target_ns, "t4_ns": s.t4_ns,

@@ -1,0 +1,30 @@
+"""Run observers: what the sim loop tells the analysis that watches it.
+
+The loop calls every observer in order at these points; an observer never blocks
+and never raises for data it dislikes (it records an event instead). Timing
+analysis (clock sync, anomalies) and the corner-case detector are observers, so
+the loop stays about stepping, sending and applying.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from adapters.link import SyncSample
+from adapters.messages import Estimate
+from scenarios.ground_truth import GroundTruth
+from timing.records import PipelineRecord
+
+
+class RunObserver(Protocol):
+    def on_truth(self, gt: GroundTruth, *, t_ns: int) -> None:
+        """Ground truth taken at a camera tick (``t_ns`` harness clock)."""
+
+    def on_record(self, vehicle: str, rec: PipelineRecord, estimate: Estimate | None) -> None:
+        """A frame is settled: answered (with its estimate), stale, or dropped."""
+
+    def on_sync(self, vehicle: str, sample: SyncSample) -> None:
+        """A clock-sync sample arrived for ``vehicle``'s target."""
+
+    def on_tick(self, *, now_ns: int, sim_time_ns: int) -> None:
+        """Called after every physics step (keep it cheap)."""
