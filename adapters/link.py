@@ -22,6 +22,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 from adapters import protocol
+from adapters.stream import StreamDecoder
 from adapters.messages import (Bye, CameraInfo, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
                                Message, SyncRequest,
                                SyncResponse)
@@ -91,7 +92,7 @@ class Link(ABC):
         self.hello: Hello | None = None
         self._rx: queue.Queue[Received] = rx_queue if rx_queue is not None else queue.Queue(maxsize=rx_queue_size)
         self._sync_rx: queue.Queue[Received] = queue.Queue(maxsize=64)
-        self._decoder = protocol.StreamDecoder()
+        self._decoder = StreamDecoder()
         self._lock = threading.Lock()
         self._closed = False
         self._peer_gone = threading.Event()

@@ -46,7 +46,7 @@ HELLO_FIXED_SIZE = 12
 FRAME_META_SIZE = 40
 ESTIMATE_FIXED_SIZE = 16
 OBJECT_SIZE = 36
-STREAM_BUFFER_LIMIT = HEADER_SIZE + MAX_PAYLOAD  # most bytes a StreamDecoder holds
+STREAM_BUFFER_LIMIT = HEADER_SIZE + MAX_PAYLOAD  # most bytes a stream.StreamDecoder holds
 
 
 
@@ -305,12 +305,12 @@ def encode_frame(frame: Frame, *, payload_crc: bool = False) -> bytes:
 
 # ---------------------------------------------------------------- decode
 
-def _view(buf: bytes | bytearray | memoryview) -> memoryview:
+def as_view(buf: bytes | bytearray | memoryview) -> memoryview:
     mv = memoryview(buf)
     return mv if mv.ndim == 1 and mv.itemsize == 1 else mv.cast("B")
 
 
-def _magic_error(first4: bytes) -> ProtocolError:
+def magic_error(first4: bytes) -> ProtocolError:
     return ProtocolError(f"bad magic {first4!r}, expected {MAGIC!r}", offset=0)
 
 
@@ -325,14 +325,14 @@ def decode_header(buf: bytes | bytearray | memoryview) -> Header:
         ProtocolError: ``offset`` is ``len(buf)`` when shorter than 64 bytes, else the
             offset of the bad field (0, 4, 5, 6, 12, 60 or 56).
     """
-    with _view(buf) as mv:
+    with as_view(buf) as mv:
         n = mv.nbytes
         if n < HEADER_SIZE:
             raise ProtocolError(f"need {HEADER_SIZE} header bytes, got {n}", offset=n)
         magic, version, mtype, flags, vid, plen, fid, t0, t1, t2, t3, pcrc = \
             _HEADER_BODY.unpack_from(mv)
         if magic != MAGIC:
-            raise _magic_error(magic)
+            raise magic_error(magic)
         if version not in SUPPORTED_VERSIONS:
             raise ProtocolError(f"unsupported protocol version {version}; this decoder supports "
                                 f"version(s) {', '.join(map(str, SUPPORTED_VERSIONS))}", offset=4)
@@ -531,7 +531,7 @@ def decode(buf: bytes | bytearray | memoryview) -> Message:
             absolute byte offset within ``buf`` of the bad field (``len(buf)`` when
             truncated, ``HEADER_SIZE + payload_len`` when there are trailing bytes).
     """
-    with _view(buf) as mv:
+    with as_view(buf) as mv:
         try:
             h = decode_header(mv)
             n, total = mv.nbytes, HEADER_SIZE + h.payload_len
@@ -551,108 +551,18 @@ def decode(buf: bytes | bytearray | memoryview) -> Message:
             raise ProtocolError(f"malformed message ({err})", offset=0) from err
 
 
-class StreamDecoder:
-    """Splits a byte stream (Unix/TCP socket, ISO-TP) into messages.
-
-    ``feed`` takes whatever bytes arrived and returns the messages completed by them,
-    in order, with a ``ProtocolError`` in place of each message that could not be
-    decoded. A bad header loses sync: the error is reported once and the decoder skips
-    to the next ``MAGIC`` after the bad start. A good header with a bad payload is
-    reported and skipped by its (trusted) length. The buffer never holds more than
-    ``STREAM_BUFFER_LIMIT`` (``HEADER_SIZE + MAX_PAYLOAD``) bytes.
-
-    Attributes:
-        messages: messages decoded so far.
-        errors: ``ProtocolError`` s reported so far.
-    """
-
-    def __init__(self) -> None:
-        self._buf = bytearray()
-        self._pos = 0  # start of the unconsumed bytes in _buf
-        self._header: Header | None = None  # validated header of the message at _pos
-        self._skipping = False  # lost sync: skip non-magic bytes without reporting them
-        self.messages = 0
-        self.errors = 0
-
-    @property
-    def buffered(self) -> int:
-        """Bytes held that are not yet part of a returned message or error."""
-        return len(self._buf) - self._pos
-
-    def feed(self, data: bytes | bytearray | memoryview) -> list[Message | ProtocolError]:
-        """Add received bytes; return the messages (and errors) they complete. Never
-        raises for any content of ``data``."""
-        out: list[Message | ProtocolError] = []
-        with _view(data) as incoming:
-            start, end = 0, incoming.nbytes
-            while start < end:
-                if self._pos and len(self._buf) + end - start > STREAM_BUFFER_LIMIT:
-                    self._compact()
-                room = STREAM_BUFFER_LIMIT - len(self._buf)  # >= 1: see _drain
-                self._buf += incoming[start:start + room]
-                start += room
-                self._drain(out)
-        if self._pos * 2 >= len(self._buf):
-            self._compact()
-        return out
-
-    def _compact(self) -> None:
-        del self._buf[:self._pos]
-        self._pos = 0
-
-    def _fail(self, out: list[Message | ProtocolError], err: ProtocolError) -> None:
-        out.append(err)
-        self.errors += 1
-        self._skipping = True
-        found = self._buf.find(MAGIC, self._pos + 1)
-        # Without a magic ahead, keep the last 3 bytes: they may begin the next one.
-        self._pos = found if found >= 0 else max(self._pos + 1, len(self._buf) - 3)
-
-    def _drain(self, out: list[Message | ProtocolError]) -> None:
-        # Leaves fewer than STREAM_BUFFER_LIMIT unconsumed bytes: a whole message is
-        # consumed as soon as it is present, and its length is at most that limit.
-        buf = self._buf
-        while True:
-            pos = self._pos
-            avail = len(buf) - pos
-            if self._header is None:
-                if avail < len(MAGIC):
-                    return
-                if buf[pos:pos + len(MAGIC)] != MAGIC:
-                    if self._skipping:
-                        found = buf.find(MAGIC, pos + 1)
-                        self._pos = found if found >= 0 else len(buf) - 3
-                    else:
-                        self._fail(out, _magic_error(bytes(buf[pos:pos + len(MAGIC)])))
-                    continue
-                if avail < HEADER_SIZE:
-                    return
-                try:
-                    self._header = decode_header(bytes(buf[pos:pos + HEADER_SIZE]))
-                except ProtocolError as err:
-                    self._fail(out, err)
-                    continue
-                self._skipping = False
-            total = HEADER_SIZE + self._header.payload_len
-            if avail < total:
-                return
-            self._header = None
-            self._pos = pos + total
-            try:
-                with memoryview(buf) as whole, whole[pos:pos + total] as one:
-                    msg = decode(one)
-            except ProtocolError as err:
-                out.append(err)
-                self.errors += 1
-            else:
-                out.append(msg)
-                self.messages += 1
-
-
 __all__ = [
     "ESTIMATE_FIXED_SIZE", "FLAG_PAYLOAD_CRC", "FRAME_META_SIZE", "HEADER_SIZE",
     "HELLO_FIXED_SIZE", "KNOWN_FLAGS", "MAGIC", "MAX_ERROR_LEN", "MAX_IMAGE_SIDE",
     "MAX_NAME_LEN", "MAX_OBJECTS", "MAX_PAYLOAD", "MAX_REASON_LEN", "OBJECT_SIZE",
     "STREAM_BUFFER_LIMIT", "SUPPORTED_VERSIONS", "VERSION", "ErrorCode", "Header",
-    "StreamDecoder", "decode", "decode_header", "encode", "encode_frame",
+    "decode", "decode_header", "encode", "encode_frame",
 ]
+
+
+def __getattr__(name: str) -> object:
+    # StreamDecoder moved to adapters.stream; keep the old name working.
+    if name == "StreamDecoder":
+        from adapters.stream import StreamDecoder
+        return StreamDecoder
+    raise AttributeError(f"module 'adapters.protocol' has no attribute {name!r}")

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from adapters import protocol
+from adapters.stream import StreamDecoder
 from adapters.messages import (Bye, ClockId, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
                                Inference, Message, SyncRequest, SyncResponse)
 from timing.clock import Clock, MonotonicClock
@@ -92,7 +93,7 @@ class Endpoint:
         self._pending: tuple[Frame, int] | None = None
         self._stopped = threading.Event()
         self._vehicle_id = 0
-        self._decoder = protocol.StreamDecoder()
+        self._decoder = StreamDecoder()
         self._worker: threading.Thread | None = None
 
     # -- lifecycle -------------------------------------------------------------

@@ -19,9 +19,10 @@ from adapters.messages import (
 )
 from adapters.protocol import (
     FLAG_PAYLOAD_CRC, ErrorCode, HEADER_SIZE, MAGIC, MAX_NAME_LEN, MAX_OBJECTS, MAX_PAYLOAD,
-    STREAM_BUFFER_LIMIT, VERSION, Header, StreamDecoder, decode, decode_header, encode,
+    STREAM_BUFFER_LIMIT, VERSION, Header, decode, decode_header, encode,
     encode_frame,
 )
+from adapters.stream import StreamDecoder
 from timing.errors import ProtocolError
 
 SETTINGS = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
