@@ -34,10 +34,27 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", type=Path, default=None,
                    help="run folder (default runs/<name>-<timestamp>/)")
     r.add_argument("--no-progress", action="store_true", help="no live display")
+    t = sub.add_parser("target", help="serve an example AI target (on this host or a device)",
+                       description="Serve an example AI target over a transport, e.g. on a remote host: "
+                                   "hil target cv --transport zenoh --listen tcp/0.0.0.0:7447. Options after "
+                                   "the name go to the target (see hil target cv --help).",
+                       add_help=False)
+    t.add_argument("name", choices=sorted(TARGETS), help="which example target")
+    t.add_argument("target_args", nargs=argparse.REMAINDER, help="options for the target")
     return p
 
 
+# Example targets by name: module with a main(argv) -> int.
+TARGETS = {"cv": "targets.cv_baseline", "echo": "targets.echo"}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if len(argv) >= 2 and argv[0] == "target" and argv[1] in TARGETS:
+        # Everything after the name belongs to the target (including --help).
+        import importlib
+
+        return int(importlib.import_module(TARGETS[argv[1]]).main(argv[2:]) or 0)
     args = build_parser().parse_args(argv)
     try:
         if args.command == "run":
