@@ -1,0 +1,158 @@
+"""Streaming per-stage latency statistics in fixed memory.
+
+Each stage gets an HdrHistogram covering 1 µs .. 60 s at 3 significant digits
+(~136 KiB, values recorded in whole µs; sub-µs values land in the 0 bucket), plus
+exact count / min / max / mean / std kept alongside in ns (Welford), so only the
+percentiles carry the histogram's 0.1 % quantisation. Histograms merge, so
+per-vehicle or per-worker statistics combine into one.
+
+Negative durations are never recorded (counted in ``rejected``); durations beyond
+60 s are recorded as 60 s and counted in ``overflow``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from timing.anomaly import is_sane
+from timing.errors import HilError
+from timing.records import PipelineRecord
+
+LOWEST_US = 1
+HIGHEST_US = 60_000_000
+SIGNIFICANT_DIGITS = 3
+MAX_STAGES = 64
+
+
+def _new_histogram() -> Any:
+    try:
+        from hdrh.histogram import HdrHistogram
+    except ImportError as err:  # pragma: no cover - depends on the install
+        raise HilError("streaming latency statistics need the 'hdrhistogram' package: "
+                       "pip install 'hdrhistogram>=0.10'") from err
+    return HdrHistogram(LOWEST_US, HIGHEST_US, SIGNIFICANT_DIGITS)
+
+
+@dataclass
+class _Moments:
+    """Exact running count, min, max, mean and sum of squared deviations (ns)."""
+
+    count: int = 0
+    mean: float = 0.0
+    m2: float = 0.0
+    lo: int = 0
+    hi: int = 0
+
+    def add(self, values_ns: np.ndarray) -> None:
+        n = int(values_ns.size)
+        if n == 0:
+            return
+        f = values_ns.astype(np.float64)
+        other = _Moments(n, float(f.mean()), float(((f - f.mean()) ** 2).sum()),
+                         int(values_ns.min()), int(values_ns.max()))
+        self.merge(other)
+
+    def merge(self, o: _Moments) -> None:
+        if o.count == 0:
+            return
+        if self.count == 0:
+            self.count, self.mean, self.m2, self.lo, self.hi = o.count, o.mean, o.m2, o.lo, o.hi
+            return
+        n = self.count + o.count
+        d = o.mean - self.mean
+        self.mean += d * o.count / n
+        self.m2 += o.m2 + d * d * self.count * o.count / n
+        self.count, self.lo, self.hi = n, min(self.lo, o.lo), max(self.hi, o.hi)
+
+
+class StageHistograms:
+    """Per-stage streaming latency histograms; bounded memory (≤ 64 stages)."""
+
+    def __init__(self) -> None:
+        self._hist: dict[str, Any] = {}
+        self._moments: dict[str, _Moments] = {}
+        self.rejected = 0
+        self.overflow = 0
+        self.excluded_records = 0
+
+    def stages(self) -> list[str]:
+        """Stage names recorded so far."""
+        return list(self._hist)
+
+    def _slot(self, stage: str) -> tuple[Any, _Moments]:
+        if stage not in self._hist:
+            if len(self._hist) >= MAX_STAGES:
+                raise ValueError(f"more than {MAX_STAGES} stages; got new stage {stage!r}: "
+                                 "stage names must come from a fixed set (timing.records.STAGES)")
+            self._hist[stage], self._moments[stage] = _new_histogram(), _Moments()
+        return self._hist[stage], self._moments[stage]
+
+    def record(self, stage: str, value_ns: int) -> bool:
+        """Record one duration (ns). Returns False (and counts it in ``rejected``)
+        for a negative value. Raises ValueError beyond ``MAX_STAGES`` stage names."""
+        return self.record_many(stage, np.asarray([value_ns], dtype=np.int64)) == 1
+
+    def record_many(self, stage: str, values_ns: Iterable[int] | np.ndarray) -> int:
+        """Record a batch of durations (ns); returns how many were recorded."""
+        a = np.asarray(values_ns, dtype=np.int64).ravel()
+        bad = a < 0
+        if bad.any():
+            self.rejected += int(bad.sum())
+            a = a[~bad]
+        if a.size == 0:
+            return 0
+        hist, moments = self._slot(stage)
+        us = (a + 500) // 1000
+        over = us > HIGHEST_US
+        if over.any():
+            self.overflow += int(over.sum())
+            us = np.minimum(us, HIGHEST_US)
+        for v, c in zip(*np.unique(us, return_counts=True), strict=True):
+            hist.record_value(int(v), int(c))
+        moments.add(a)
+        return int(a.size)
+
+    def record_record(self, rec: PipelineRecord) -> bool:
+        """Record every sync-free stage of a record; an insane record (see
+        ``timing.anomaly.is_sane``) is skipped and counted in ``excluded_records``."""
+        if not is_sane(rec)[0]:
+            self.excluded_records += 1
+            return False
+        for stage, v in rec.stages_ns().items():
+            self.record(stage, v)
+        return True
+
+    def percentiles_ms(self, stage: str) -> dict[str, float | int]:
+        """``count`` and p50/p90/p99/max/min/mean/std in ms (percentiles from the
+        histogram, ±0.1 %; the rest exact). An unknown or empty stage gives
+        ``{"count": 0}``."""
+        m = self._moments.get(stage)
+        if m is None or m.count == 0:
+            return {"count": 0}
+        h = self._hist[stage]
+        out: dict[str, float | int] = {"count": m.count}
+        for q in (50, 90, 99):
+            out[f"p{q}_ms"] = round(h.get_value_at_percentile(q) / 1e3, 4)
+        out.update(max_ms=round(m.hi / 1e6, 4), min_ms=round(m.lo / 1e6, 4),
+                   mean_ms=round(m.mean / 1e6, 4), std_ms=round(math.sqrt(m.m2 / m.count) / 1e6, 4))
+        return out
+
+    def summary_ms(self) -> dict[str, dict[str, float | int]]:
+        """``percentiles_ms`` of every stage."""
+        return {s: self.percentiles_ms(s) for s in self._hist}
+
+    def merge(self, other: StageHistograms) -> None:
+        """Add ``other``'s values into this one (``other`` is unchanged).
+        Raises ValueError beyond ``MAX_STAGES`` stage names."""
+        for stage, h in other._hist.items():
+            mine, moments = self._slot(stage)
+            mine.add(h)
+            moments.merge(other._moments[stage])
+        self.rejected += other.rejected
+        self.overflow += other.overflow
+        self.excluded_records += other.excluded_records

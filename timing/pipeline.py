@@ -1,0 +1,113 @@
+"""Stage splits across clock domains.
+
+``PipelineRecord.stages_ns()`` gives every stage that needs no clock sync
+(end-to-end, inference, the whole transport, …); those are exact and are returned
+here with uncertainty 0, whatever the sync state. Only the two cross-clock stages
+need the target clock mapped onto the harness clock:
+
+* ``uplink``   = map(t_rx) − t_tx
+* ``downlink`` = t0' − map(t_reply)
+
+each with the mapping's error bound. Both truths lie in ``[0, t0' − t_tx]``, so an
+estimate outside that range is clipped into it (this never increases the error) and
+the uncertainty is capped at the range. A mapped timestamp earlier than its cause by
+more than its uncertainty is a causality violation (``causality_violations``).
+All values are integer nanoseconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple, Protocol
+
+from timing.records import PipelineRecord
+from timing.sync import Mapped, SyncState
+
+CROSS_CLOCK_STAGES: tuple[str, ...] = ("uplink", "downlink")
+
+
+class Mapper(Protocol):
+    """Anything that maps a target timestamp onto the harness clock
+    (``ClockSync``, ``SyncState``)."""
+
+    def to_harness(self, t_target_ns: int) -> Mapped:
+        ...
+
+
+@dataclass(frozen=True)
+class Split:
+    """A stage duration and its error bound, both ns (bound 0: exact, one clock)."""
+
+    value_ns: int
+    uncertainty_ns: int
+
+    def to_json(self) -> dict[str, int]:
+        return {"value_ns": self.value_ns, "uncertainty_ns": self.uncertainty_ns}
+
+
+class Violation(NamedTuple):
+    """A mapped timestamp earlier than its cause: ``name`` says which pair,
+    ``by_ns`` how much earlier, ``uncertainty_ns`` the bound it exceeded."""
+
+    name: str
+    by_ns: int
+    uncertainty_ns: int
+
+
+def _usable(mapper: Mapper | None) -> bool:
+    if mapper is None:
+        return False
+    if isinstance(mapper, SyncState):
+        return mapper.samples_used > 0
+    state = getattr(mapper, "state", None)
+    if callable(state):
+        s = state()
+        return not isinstance(s, SyncState) or s.samples_used > 0
+    return True
+
+
+def _mapped_ends(rec: PipelineRecord, mapper: Mapper | None) -> tuple[Mapped, Mapped] | None:
+    if (rec.t_rx_target_ns is None or rec.t_reply_target_ns is None or rec.t0p_ns is None
+            or not _usable(mapper)):
+        return None
+    assert mapper is not None
+    return mapper.to_harness(rec.t_rx_target_ns), mapper.to_harness(rec.t_reply_target_ns)
+
+
+def split_stages(rec: PipelineRecord, sync: Mapper | None) -> dict[str, Split]:
+    """Every stage of ``rec`` as a ``Split``.
+
+    Sync-free stages come from ``rec.stages_ns()`` unchanged, uncertainty 0.
+    ``uplink``/``downlink`` are added when the record has ``t_rx``, ``t_reply`` and
+    ``t0'`` and ``sync`` has a model (a ``SyncState`` with ``samples_used == 0`` or
+    ``None`` gives no cross-clock split: a split is never reported without its
+    uncertainty). Never raises for a record with missing stamps.
+    """
+    out = {name: Split(v, 0) for name, v in rec.stages_ns().items()}
+    ends = _mapped_ends(rec, sync)
+    if ends is None:
+        return out
+    rx, reply = ends
+    assert rec.t0p_ns is not None
+    span = max(rec.t0p_ns - rec.t_tx_ns, 0)
+    for name, raw, u in (("uplink", rx.value_ns - rec.t_tx_ns, rx.uncertainty_ns),
+                         ("downlink", rec.t0p_ns - reply.value_ns, reply.uncertainty_ns)):
+        out[name] = Split(min(max(raw, 0), span), min(u, span))
+    return out
+
+
+def causality_violations(rec: PipelineRecord, mapper: Mapper | None) -> list[Violation]:
+    """Cross-clock order checks: mapped ``t_rx`` before ``t_tx``, or ``t0'`` before
+    mapped ``t_reply``, by more than the mapping uncertainty. Empty when the record
+    lacks the stamps or ``mapper`` has no model."""
+    ends = _mapped_ends(rec, mapper)
+    if ends is None:
+        return []
+    rx, reply = ends
+    assert rec.t0p_ns is not None
+    out = []
+    if rec.t_tx_ns - rx.value_ns > rx.uncertainty_ns:
+        out.append(Violation("t_rx < t_tx", rec.t_tx_ns - rx.value_ns, rx.uncertainty_ns))
+    if reply.value_ns - rec.t0p_ns > reply.uncertainty_ns:
+        out.append(Violation("t0' < t_reply", reply.value_ns - rec.t0p_ns, reply.uncertainty_ns))
+    return out
