@@ -44,11 +44,16 @@ def test_frame_round_trip_is_stamped(pair):
 
 
 def test_inference_time_is_measured_on_the_target(pair):
+    # The echo target spins exactly 20 ms; preemption on a busy machine can only
+    # lengthen a frame, so the best of five shows the measurement's own accuracy.
     with pair(["--infer-ms", "20"]) as link:
-        send_frame(link, 0)
-        est, _ = next_estimate(link)
-        infer_ms = (est.t_infer_end_target_ns - est.t_infer_start_target_ns) / 1e6
-        assert 20.0 <= infer_ms < 20.5
+        measured = []
+        for i in range(5):
+            send_frame(link, i)
+            est, t0p = next_estimate(link)
+            measured.append((est.t_infer_end_target_ns - est.t_infer_start_target_ns) / 1e6)
+        assert all(m >= 20.0 for m in measured)
+        assert min(measured) < 20.5, measured
 
 
 def test_clock_sync_exchange(pair):

@@ -1,0 +1,427 @@
+"""The Zenoh transport: the target is a remote host (or a local process) on a Zenoh network.
+
+Each Zenoh sample carries exactly one encoded protocol message (PROTOCOL.md). A run
+uses four key expressions per vehicle, under a key prefix (``key_prefix``, default
+``hil``) that both sides are given::
+
+    {prefix}/v{vehicle_id}/h2t      harness -> target: FRAME, SYNC_REQUEST, HEARTBEAT, BYE
+    {prefix}/v{vehicle_id}/t2h      target -> harness: HELLO, ESTIMATE, SYNC_RESPONSE, ERROR, BYE
+    {prefix}/v{vehicle_id}/alive    liveliness token of the target
+    {prefix}/v{vehicle_id}/harness  liveliness token of the harness
+
+One key per direction, because a Zenoh session receives its own publications. One run
+drives several targets by vehicle id; two runs on one network keep apart by giving
+each its own prefix (``hil/run-a``, ``hil/run-b``).
+
+Handshake. The target's HELLO (sent once by ``Endpoint.start``) may be published
+before the harness has subscribed, and is then lost. So the harness, once its
+subscribers are declared, publishes a HEARTBEAT on ``h2t`` every 100 ms (and at once
+when it sees the target's liveliness token) until a HELLO arrives; ``serve_endpoint``
+answers every HEARTBEAT that comes before the first FRAME or SYNC_REQUEST with a
+fresh HELLO. The harness keeps the first HELLO and drops the duplicates (counted in
+``ZenohLink.zenoh_stats.duplicate_hellos``).
+
+Liveness. The harness subscribes to the target's liveliness token; its DELETE (the
+target's session closed, its process died, or its link's lease expired) marks the
+link gone. A killed process closes its TCP socket and is noticed in a few ms (3-4 ms
+measured on loopback). A silent peer (frozen process, pulled cable) is noticed when
+the lease it announced expires: ``transport/link/tx/lease`` is set to ``lease_ms``
+(default 1000 ms, Zenoh's own default is 10 s) with a keep-alive every
+``lease_ms / keep_alive`` (250 ms), on both sides; a frozen (SIGSTOP) target was
+noticed after 0.9 s. It is the silent side's announced lease that counts, so a target
+started with Zenoh's defaults would take 10 s. The target likewise stops serving when
+the harness's token goes away (as the local transport stops on EOF), so a crashed
+harness never leaves it wedged. A target stopped by SIGTERM or Ctrl-C says BYE and
+then waits (at most ``BYE_LINGER_S``) for the harness to leave, because its token's
+DELETE could otherwise overtake the BYE and read as a crash.
+
+Congestion. Frames are put with ``congestion_control="block"`` by default: Zenoh's
+default (DROP) lost hundreds of frames in bursts. BLOCK waits for the queue (at most
+Zenoh's ``wait_before_close``, 5 s, after which the link is closed and liveliness is
+lost). Under ``"drop"`` Zenoh drops silently, and those frames surface only as
+frames without an estimate (the harness counts them as dropped). A put that raises
+is counted in ``zenoh_stats.put_failures`` and raised as ``TransportError``.
+
+Network policy. Configs are explicit: multicast scouting and gossip are off unless
+asked for, and the session listens and connects only on the endpoints given
+(``make_config``). TLS: give ``tls`` a dict of ``transport/link/tls`` keys
+(``TLS_KEYS``), for example ``{"root_ca_certificate": "ca.pem"}`` on the harness and
+``{"listen_certificate": "dev.pem", "listen_private_key": "dev.key"}`` on the target,
+with ``tls/host:port`` endpoints; mutual TLS adds ``enable_mtls: true`` and the
+``connect_certificate``/``connect_private_key`` pair on the harness.
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import signal
+import threading
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import TYPE_CHECKING
+
+from adapters import protocol
+from adapters.link import Link, Received
+from adapters.messages import Bye, Heartbeat, Hello, MsgType
+from timing.clock import Clock
+from timing.errors import ConfigError, TransportError
+
+try:
+    import zenoh
+except ImportError as _err:  # pragma: no cover - depends on the install
+    raise ImportError("the zenoh transport needs eclipse-zenoh: pip install eclipse-zenoh==1.10.2") from _err
+
+if TYPE_CHECKING:
+    from adapters.sdk import Endpoint
+
+MODES = ("peer", "client")
+CONGESTION = MappingProxyType({"block": zenoh.CongestionControl.BLOCK, "drop": zenoh.CongestionControl.DROP})
+TLS_KEYS = (
+    "root_ca_certificate", "root_ca_certificate_base64",
+    "listen_certificate", "listen_certificate_base64",
+    "listen_private_key", "listen_private_key_base64",
+    "connect_certificate", "connect_certificate_base64",
+    "connect_private_key", "connect_private_key_base64",
+    "enable_mtls", "verify_name_on_connect", "close_link_on_expiration",
+)
+DEFAULT_LEASE_MS = 1000
+DEFAULT_KEEP_ALIVE = 4  # keep-alives per lease
+HELLO_POLL_S = 0.1  # harness HEARTBEAT period until HELLO
+BYE_LINGER_S = 1.0  # how long a stopping target waits for the harness to leave after its BYE
+_RETRY = MappingProxyType({"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 2})
+_WILDCARD_CHARS = frozenset("*$?#")
+
+
+@dataclass(frozen=True)
+class Keys:
+    """The key expressions of one vehicle under one prefix (module docstring)."""
+
+    h2t: str
+    t2h: str
+    alive: str
+    harness: str
+
+    @classmethod
+    def of(cls, key_prefix: str, vehicle_id: int) -> Keys:
+        """Raises ConfigError: the prefix is not a plain key expression or the id is out of range."""
+        if not isinstance(vehicle_id, int) or not 0 <= vehicle_id <= 2**32 - 1:
+            raise ConfigError(f"vehicle_id={vehicle_id!r}: expected an integer in 0..4294967295")
+        if (not key_prefix or key_prefix.startswith("/") or key_prefix.endswith("/")
+                or "//" in key_prefix or _WILDCARD_CHARS & set(key_prefix)):
+            raise ConfigError(f"key_prefix={key_prefix!r}: expected a plain key expression such as "
+                              f"'hil' or 'hil/run-a' (no wildcards, no leading or trailing '/')")
+        try:
+            zenoh.KeyExpr(key_prefix)
+        except zenoh.ZError as err:
+            raise ConfigError(f"key_prefix={key_prefix!r} is not a zenoh key expression: {err}") from err
+        base = f"{key_prefix}/v{vehicle_id}"
+        return cls(f"{base}/h2t", f"{base}/t2h", f"{base}/alive", f"{base}/harness")
+
+
+@dataclass
+class ZenohStats:
+    """Counters only this transport has (the shared ones are in ``LinkStats``)."""
+
+    put_failures: int = 0
+    duplicate_hellos: int = 0
+    heartbeats_sent: int = 0
+
+
+def _check_endpoints(name: str, endpoints: Sequence[str]) -> list[str]:
+    if isinstance(endpoints, str):
+        raise ConfigError(f"{name}={endpoints!r}: expected a list of endpoints, e.g. [{endpoints!r}]")
+    out = []
+    for ep in endpoints:
+        proto, sep, addr = str(ep).partition("/")
+        if not sep or not proto or not addr:
+            raise ConfigError(f"{name}: endpoint {ep!r} is not PROTOCOL/ADDRESS, e.g. tcp/192.168.1.10:7447")
+        out.append(str(ep))
+    return out
+
+
+def config_entries(*, mode: str = "peer", connect: Sequence[str] = (), listen: Sequence[str] = (),
+                   multicast_scouting: bool = False, gossip: bool = False,
+                   tls: Mapping[str, object] | None = None, lease_ms: int = DEFAULT_LEASE_MS,
+                   keep_alive: int = DEFAULT_KEEP_ALIVE, shared_memory: bool | None = None) -> dict[str, object]:
+    """The Zenoh config this transport uses, as ``{config path: JSON value}``.
+
+    ``lease_ms`` (ms) is how long a peer may stay silent before this session's lease
+    runs out at the other end; ``shared_memory`` None keeps Zenoh's default (on).
+
+    Raises:
+        ConfigError: a bad mode, endpoint, TLS key or lease (the message names it).
+    """
+    if mode not in MODES:
+        raise ConfigError(f"zenoh mode={mode!r}: expected one of {', '.join(MODES)}")
+    if not isinstance(lease_ms, int) or lease_ms < 100:
+        raise ConfigError(f"zenoh lease_ms={lease_ms!r}: expected an integer number of ms >= 100")
+    if not isinstance(keep_alive, int) or keep_alive < 1:
+        raise ConfigError(f"zenoh keep_alive={keep_alive!r}: expected an integer >= 1")
+    entries: dict[str, object] = {
+        "mode": mode,
+        "connect/endpoints": _check_endpoints("connect", connect),
+        "listen/endpoints": _check_endpoints("listen", listen),
+        "connect/retry": dict(_RETRY),
+        "scouting/multicast/enabled": bool(multicast_scouting),
+        "scouting/gossip/enabled": bool(gossip),
+        "transport/link/tx/lease": lease_ms,
+        "transport/link/tx/keep_alive": keep_alive,
+    }
+    if not multicast_scouting:
+        # Without scouting there is nothing to wait for: open() returns at once (else
+        # 500 ms) and unreached endpoints are retried in the background (connect/retry).
+        entries["scouting/delay"] = 0
+    if shared_memory is not None:
+        entries["transport/shared_memory/enabled"] = bool(shared_memory)
+    for key, value in (tls or {}).items():
+        if key not in TLS_KEYS:
+            raise ConfigError(f"zenoh tls key {key!r} is unknown; valid: {', '.join(TLS_KEYS)}")
+        entries[f"transport/link/tls/{key}"] = value
+    return entries
+
+
+def make_config(**options: object) -> zenoh.Config:
+    """A ``zenoh.Config`` from ``config_entries(**options)``; nothing else is defaulted
+    from the environment.
+
+    Raises:
+        ConfigError: as ``config_entries``, or Zenoh rejects a value.
+    """
+    cfg = zenoh.Config()
+    for key, value in config_entries(**options).items():  # type: ignore[arg-type]
+        try:
+            cfg.insert_json5(key, json.dumps(value))
+        except zenoh.ZError as err:
+            raise ConfigError(f"zenoh config {key}={value!r} rejected: {err}") from err
+    return cfg
+
+
+def _open_session(cfg: zenoh.Config, where: str) -> zenoh.Session:
+    try:
+        return zenoh.open(cfg)
+    except zenoh.ZError as err:
+        raise TransportError(f"cannot open a zenoh session ({where}): {err}") from err
+
+
+def _is(data: bytes, mtype: MsgType) -> bool:
+    return len(data) >= protocol.HEADER_SIZE and data[:4] == protocol.MAGIC and data[5] == mtype
+
+
+class ZenohLink(Link):
+    """Harness side over Zenoh: publishes on ``h2t``, receives on ``t2h`` (module docstring).
+
+    Options are keyword-only; ``connect``/``listen`` are Zenoh endpoints
+    (``tcp/host:port``, ``tls/host:port``); ``congestion_control`` is ``"block"``
+    (default, nothing dropped silently) or ``"drop"``; ``lease_ms`` as in
+    ``config_entries``. ``config`` is the ``zenoh.Config`` the session opens with;
+    ``zenoh_stats`` counts what only this transport has.
+    """
+
+    transport_name = "zenoh"
+
+    def __init__(self, *, vehicle_id: int, clock: Clock, connect: Sequence[str] = ("tcp/127.0.0.1:7447",),
+                 listen: Sequence[str] = (), mode: str = "peer", key_prefix: str = "hil",
+                 multicast_scouting: bool = False, tls: Mapping[str, object] | None = None,
+                 congestion_control: str = "block", lease_ms: int = DEFAULT_LEASE_MS,
+                 shared_memory: bool | None = None, rx_queue_size: int = 1024,
+                 rx_queue: queue.Queue[Received] | None = None) -> None:
+        """Raises ConfigError: a bad option (checked here, before anything opens)."""
+        super().__init__(vehicle_id=vehicle_id, clock=clock, rx_queue_size=rx_queue_size, rx_queue=rx_queue)
+        self._session: zenoh.Session | None = None
+        self._publisher: zenoh.Publisher | None = None
+        self._entities: list[object] = []
+        self._hb_thread: threading.Thread | None = None
+        self._poke = threading.Event()  # wakes the HEARTBEAT loop (HELLO seen, token seen, closing)
+        self._hello_seen = threading.Event()
+        self._hello_lock = threading.Lock()
+        self._target_seen = False
+        self.zenoh_stats = ZenohStats()
+        if congestion_control not in CONGESTION:
+            raise ConfigError(f"zenoh congestion_control={congestion_control!r}: expected 'block' or 'drop'")
+        if not connect and not listen:
+            raise ConfigError("zenoh link needs at least one connect or listen endpoint")
+        self.keys = Keys.of(key_prefix, vehicle_id)
+        self.congestion_control = congestion_control
+        self.connect, self.listen = list(connect), list(listen)
+        self.config = make_config(mode=mode, connect=connect, listen=listen, tls=tls,
+                                   multicast_scouting=multicast_scouting, lease_ms=lease_ms,
+                                   shared_memory=shared_memory)
+
+    def _open(self) -> None:
+        self._session = s = _open_session(self.config, f"connect={self.connect} listen={self.listen}")
+        try:
+            self._publisher = s.declare_publisher(self.keys.h2t, congestion_control=CONGESTION[self.congestion_control])
+            # Zenoh undeclares an entity when its Python object is dropped: keep them all.
+            self._entities = [
+                s.declare_subscriber(self.keys.t2h, self._on_sample),
+                s.liveliness().declare_token(self.keys.harness),
+                s.liveliness().declare_subscriber(self.keys.alive, self._on_liveliness, history=True),
+            ]
+        except zenoh.ZError as err:
+            raise TransportError(f"zenoh declarations on {self.keys.h2t!r} failed: {err}") from err
+        self._hb_thread = threading.Thread(target=self._ask_hello, name=f"zenoh-hello-{self.vehicle_id}",
+                                           daemon=True)
+        self._hb_thread.start()
+
+    def _ask_hello(self) -> None:
+        while not (self._hello_seen.is_set() or self._closed or not self.alive):
+            try:
+                self._put(protocol.encode(Heartbeat(self.vehicle_id, self.clock.now_ns())))
+            except TransportError:
+                return
+            self.zenoh_stats.heartbeats_sent += 1
+            self._poke.wait(HELLO_POLL_S)
+            self._poke.clear()
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        t_rx = self.clock.now_ns()
+        data = sample.payload.to_bytes()
+        if _is(data, MsgType.HELLO):
+            with self._hello_lock:
+                if self._hello_seen.is_set():
+                    self.zenoh_stats.duplicate_hellos += 1
+                    return
+                self._hello_seen.set()
+            self._poke.set()
+        self._on_message_bytes(data, t_rx)
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            self._target_seen = True
+            self._poke.set()  # ask for HELLO now rather than at the next tick
+        elif sample.kind == zenoh.SampleKind.DELETE:
+            self._mark_gone(f"zenoh liveliness lost: token {self.keys.alive!r} went away "
+                            f"(target process exited, closed its session or its lease expired)")
+
+    def _put(self, data: bytes) -> None:
+        pub = self._publisher
+        if pub is None:
+            raise TransportError("zenoh link is not open")
+        try:
+            pub.put(data)
+        except zenoh.ZError as err:
+            self.zenoh_stats.put_failures += 1
+            self.stats.last_error = f"zenoh put failed: {err}"
+            raise TransportError(f"zenoh put on {self.keys.h2t!r} failed: {err}") from err
+
+    def _send_bytes(self, data: bytes) -> None:
+        self._put(data)
+
+    def _no_hello_reason(self, timeout_s: float) -> str:
+        s = self._session
+        if self.peer_gone_reason or s is None or s.is_closed():
+            return super()._no_hello_reason(timeout_s)
+        info = s.info
+        if not (info.peers_zid() or info.routers_zid()):
+            return (f"no zenoh peer reached within {timeout_s:g} s (connect={self.connect}, "
+                    f"listen={self.listen}): is the target running, e.g. with "
+                    f"--transport zenoh --listen tcp/0.0.0.0:7447, and reachable?")
+        if not self._target_seen:
+            return (f"zenoh is connected but no target serves {self.keys.alive!r} within {timeout_s:g} s: "
+                    f"check the target's --vehicle and --key-prefix")
+        return f"the target at {self.keys.alive!r} did not say hello within {timeout_s:g} s"
+
+    def _close_transport(self) -> None:
+        poke = getattr(self, "_poke", None)
+        if poke is not None:
+            poke.set()
+        thread = getattr(self, "_hb_thread", None)
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout=2.0)
+        session, self._session = getattr(self, "_session", None), None
+        self._publisher, self._entities = None, []
+        if session is not None and not session.is_closed():
+            session.close()  # undeclares everything and flushes; without it exit can hang
+
+
+def serve_endpoint(ep: Endpoint, *, listen: Sequence[str] = (), connect: Sequence[str] = (), mode: str = "peer",
+                   key_prefix: str = "hil", vehicle_id: int = 0, multicast_scouting: bool = False,
+                   tls: Mapping[str, object] | None = None, lease_ms: int = DEFAULT_LEASE_MS,
+                   shared_memory: bool | None = None) -> None:
+    """Target side: serve ``ep`` for one harness on vehicle ``vehicle_id``, until the
+    harness says BYE, its liveliness token goes away, or SIGTERM/Ctrl-C (then the
+    target says BYE). Listens on ``listen`` (how a harness reaches a device,
+    e.g. ``tcp/0.0.0.0:7447``) and/or connects to ``connect``.
+
+    Raises:
+        ConfigError: a bad option, or neither ``listen`` nor ``connect`` given.
+        TransportError: the session cannot be opened (e.g. the port is taken).
+    """
+    if not listen and not connect:
+        raise ConfigError("a zenoh target needs --listen ENDPOINT (e.g. tcp/0.0.0.0:7447) or --connect ENDPOINT")
+    keys = Keys.of(key_prefix, vehicle_id)
+    cfg = make_config(mode=mode, connect=connect, listen=listen, tls=tls, multicast_scouting=multicast_scouting,
+                      lease_ms=lease_ms, shared_memory=shared_memory)
+    session = _open_session(cfg, f"listen={list(listen)} connect={list(connect)}")
+    engaged = threading.Event()  # a FRAME or SYNC_REQUEST came: the handshake is over
+    harness_gone = threading.Event()  # BYE from the harness, or its token went away
+
+    def hello() -> Hello:
+        return Hello(ep.target_name, protocol.VERSION, ep.clock_id, ep.clock_resolution_ns, 0)
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        t_rx = ep.clock.now_ns()
+        data = sample.payload.to_bytes()
+        try:
+            if _is(data, MsgType.HEARTBEAT):
+                if not engaged.is_set():
+                    ep.send(hello())
+                return
+            engaged.set()
+            if _is(data, MsgType.BYE):
+                harness_gone.set()
+            ep.on_message_bytes(data, t_rx)
+        except TransportError:
+            pass  # the session is closing: nothing can be answered any more
+
+    def on_harness(sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE:
+            harness_gone.set()
+            ep.stop()
+
+    old_term = None
+    entities: list[object] = []
+    try:
+        pub = session.declare_publisher(keys.t2h, congestion_control=zenoh.CongestionControl.BLOCK)
+
+        def send(data: bytes) -> None:
+            try:
+                pub.put(data)
+            except zenoh.ZError as err:
+                raise TransportError(f"zenoh put on {keys.t2h!r} failed: {err}") from err
+
+        # Declarations before HELLO: a harness that has our HELLO knows our subscriber,
+        # or its first frame would find no match and vanish. Zenoh undeclares an entity
+        # when its Python object is dropped: keep them all.
+        entities += [session.declare_subscriber(keys.h2t, on_sample),
+                     session.liveliness().declare_subscriber(keys.harness, on_harness)]
+        ep.start(send)  # a HEARTBEAT that comes before this is answered by the next one
+        entities.append(session.liveliness().declare_token(keys.alive))
+        if threading.current_thread() is threading.main_thread():
+            old_term = signal.signal(signal.SIGTERM, lambda *_: ep.stop())
+        try:
+            # No timeout: a waking main thread would take the GIL from a spinning AI.
+            # A POSIX lock wait still lets SIGTERM and Ctrl-C through.
+            ep.wait_stopped()
+        except KeyboardInterrupt:
+            ep.stop()
+        if not harness_gone.is_set():
+            try:
+                ep.send(Bye(vehicle_id, "target stopping"))
+            except TransportError:
+                pass
+            else:
+                # Our token's DELETE can overtake the BYE (declarations travel at a
+                # higher priority); stay until the harness leaves, or BYE_LINGER_S.
+                harness_gone.wait(BYE_LINGER_S)
+    except zenoh.ZError as err:
+        raise TransportError(f"zenoh declarations on {keys.h2t!r} failed: {err}") from err
+    finally:
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
+        ep.join()
+        entities.clear()
+        session.close()
+
