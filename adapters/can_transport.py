@@ -1,0 +1,263 @@
+"""The CAN transport: a device on a CAN FD bus (python-can, cantools, can-isotp).
+
+Two ways over the wire (``adapters/CAN.md`` has the full specification, ``hil.dbc``
+the frames, ``adapters.can_dbc`` the id layout ``P << 26 | M << 16 | vehicle``):
+
+================  =========  ===========================================  =========
+message           direction  on CAN                                       priority
+================  =========  ===========================================  =========
+ESTIMATE          T -> H     HIL_ESTIMATE (16 B), HIL_ESTIMATE_OBJECT     0, 2
+                             (48 B) per object, HIL_TARGET_TIMESTAMPS
+                             (48 B) last; more than 8 objects: ISO-TP
+SYNC_REQUEST      H -> T     HIL_SYNC_REQUEST (12 B)                      1
+SYNC_RESPONSE     T -> H     HIL_SYNC_RESPONSE (32 B)                     1
+HEARTBEAT         both       HIL_HEARTBEAT_HARNESS / _TARGET (8 B),       3
+                             every 250 ms from each side
+HELLO             T -> H     HIL_HELLO (64 B), name <= 52 B               4
+ERROR, BYE        both       HIL_ERROR_* / HIL_BYE_* (64 B), text <= 60 B 4
+FRAME (camera)    H -> T     ISO-TP, PROTOCOL.md bytes                    6 (FC 5)
+anything else     both       ISO-TP, PROTOCOL.md bytes                    6 (FC 5)
+================  =========  ===========================================  =========
+
+"Anything else": a message the DBC frames cannot carry exactly (see
+``adapters.can_dbc``) and bytes that are not a valid message (``Link.send_raw``).
+ISO-TP (ISO 15765-2) runs on CAN FD 64-byte frames, block size 0, STmin 0, with one
+address pair per vehicle per direction: HIL_ISOTP_UP_DATA/UP_FC (harness -> target)
+and HIL_ISOTP_DOWN_DATA/DOWN_FC (target -> harness); ``max_frame_size`` is
+``HEADER_SIZE + MAX_PAYLOAD``. The link needs CAN FD: ``fd=False`` is refused.
+
+Liveness: each side sends a heartbeat every 250 ms. A target sends HELLO instead until
+it hears the harness, and answers the first frame it hears with HELLO at once, so a
+harness that starts later still gets one. The harness marks the target gone after
+``heartbeat_timeout_s`` (0.75 s, three periods) without a frame from it, so a vanished
+device is noticed within 1 s.
+
+Receive stamps: a reader thread stamps each frame on the link's ``Clock`` the moment
+``bus.recv`` returns (a multi-frame message: its last frame). python-can's own
+``Message.timestamp`` is ``time.time()``-based (wall clock, or the adapter's clock
+mapped onto it), not the harness clock, so it is not used.
+
+Camera frames are newest-wins: while one is in transmission, a newer frame replaces
+the one waiting (``CanLink.frames_superseded`` counts them; the harness sees them as
+dropped). ``camera_over="none"`` is a mixed target: frames travel over another
+transport (not implemented yet) and sending one here raises.
+
+python-can's ``virtual`` interface works within one process and has no bit timing
+(``adapters.can_capacity`` gives a real bus's limits); ``udp_multicast`` is refused:
+it sends every frame off this machine as IP multicast.
+"""
+
+from __future__ import annotations
+
+import queue
+from typing import TYPE_CHECKING
+
+try:
+    import can
+except ImportError as err:  # pragma: no cover - depends on the install
+    raise ImportError("the CAN transport needs python-can: pip install 'python-can>=4.6,<5'") from err
+
+from adapters import protocol
+from adapters.can_capacity import CapacityReport, bus_capacity
+from adapters.can_dbc import MAX_VEHICLE_ID, VEHICLE_MASK, Role
+from adapters.can_peer import HEARTBEAT_TIMEOUT_S, CanPeer, CanStats
+from adapters.link import Link, Received
+from adapters.messages import Bye, Hello, Message
+from timing.clock import Clock
+from timing.errors import ConfigError, ProtocolError, TransportError
+
+if TYPE_CHECKING:
+    from adapters.sdk import Endpoint
+
+REFUSED_INTERFACES = {"udp_multicast": "it sends every CAN frame off this machine as IP multicast"}
+
+
+def check_interface(interface: str) -> None:
+    """Raise ``ConfigError`` for a refused or unknown python-can interface name."""
+    if interface in REFUSED_INTERFACES:
+        raise ConfigError(f"CAN interface {interface!r} is refused: {REFUSED_INTERFACES[interface]}. Use "
+                          f"'virtual' (in-process tests), 'socketcan' (vcan0, can0) or an adapter's "
+                          f"interface (pcan, kvaser, vector, ...)")
+    valid = sorted(set(can.VALID_INTERFACES) - set(REFUSED_INTERFACES))
+    if interface not in valid:
+        raise ConfigError(f"unknown CAN interface {interface!r}; valid: {', '.join(valid)}")
+
+
+def _check_options(*, interface: str, vehicle_id: int, bitrate: int, data_bitrate: int, fd: bool) -> None:
+    check_interface(interface)
+    if not 0 <= vehicle_id <= MAX_VEHICLE_ID:
+        raise ConfigError(f"vehicle_id={vehicle_id}: the CAN id carries vehicle ids 0..{MAX_VEHICLE_ID}")
+    if not fd:
+        raise ConfigError("fd=False: the CAN transport needs CAN FD (its DBC frames are up to 64 bytes); "
+                          "use an FD-capable adapter, or send over zenoh")
+    if bitrate <= 0 or data_bitrate < bitrate:
+        raise ConfigError(f"bitrate={bitrate}, data_bitrate={data_bitrate}: expected 0 < bitrate <= "
+                          f"data_bitrate (bit/s), e.g. 500000 and 2000000")
+
+
+def open_bus(*, interface: str, channel: str, bitrate: int, data_bitrate: int, vehicle_id: int) -> can.BusABC:
+    """Open a CAN FD bus receiving only ``vehicle_id``'s frames.
+
+    socketcan takes its bitrates from the interface (``ip link set can0 type can
+    bitrate 500000 dbitrate 2000000 fd on``); other interfaces get them here.
+    Configuration files of python-can are ignored: the options are explicit.
+
+    Raises:
+        ConfigError: refused or unknown interface.
+        TransportError: the bus cannot be opened (with a hint).
+    """
+    check_interface(interface)
+    kwargs: dict[str, object] = {"fd": True}
+    if interface not in ("socketcan", "virtual"):
+        kwargs.update(bitrate=bitrate, data_bitrate=data_bitrate)
+    filters = [{"can_id": vehicle_id, "can_mask": VEHICLE_MASK, "extended": True}]
+    try:
+        return can.Bus(interface=interface, channel=channel, can_filters=filters, ignore_config=True, **kwargs)
+    except (can.CanError, OSError, ValueError, ImportError) as err:
+        hint = ""
+        if interface == "socketcan":
+            hint = (f"; does {channel} exist and is it up? A virtual one: sudo modprobe vcan && sudo ip link "
+                    f"add dev {channel} type vcan && sudo ip link set {channel} mtu 72 up")
+        raise TransportError(f"cannot open CAN interface {interface!r} channel {channel!r}: {err}{hint}") from err
+
+
+class CanLink(Link):
+    """Harness side of the CAN transport for one vehicle (see the module docstring).
+
+    Args:
+        vehicle_id: 0..65535, carried in every CAN id.
+        clock: stamps sends and receipts (the harness clock).
+        interface, channel: python-can's (``udp_multicast`` is refused).
+        bitrate, data_bitrate: nominal and CAN FD data bitrates, bit/s (socketcan
+            takes them from ``ip link`` instead).
+        fd: must be True (the transport's frames are CAN FD).
+        camera_over: ``"isotp"`` (camera frames on this bus) or ``"none"`` (a mixed
+            target takes frames over another transport).
+        heartbeat_timeout_s: silence after which the target is gone.
+
+    Raises:
+        ConfigError: an option is invalid (names it).
+    """
+
+    transport_name = "can"
+
+    def __init__(self, *, vehicle_id: int, clock: Clock, interface: str = "socketcan", channel: str = "vcan0",
+                 bitrate: int = 500_000, data_bitrate: int = 2_000_000, fd: bool = True,
+                 camera_over: str = "isotp", heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_S,
+                 rx_queue_size: int = 1024, rx_queue: queue.Queue[Received] | None = None) -> None:
+        _check_options(interface=interface, vehicle_id=vehicle_id, bitrate=bitrate, data_bitrate=data_bitrate, fd=fd)
+        if camera_over not in ("isotp", "none"):
+            raise ConfigError(f"camera_over={camera_over!r}; expected 'isotp' (frames on this bus) or 'none' "
+                              f"(a mixed target takes frames over another transport)")
+        super().__init__(vehicle_id=vehicle_id, clock=clock, rx_queue_size=rx_queue_size, rx_queue=rx_queue)
+        self.interface, self.channel = interface, channel
+        self.bitrate, self.data_bitrate, self.camera_over = bitrate, data_bitrate, camera_over
+        self._heartbeat_timeout_s = heartbeat_timeout_s
+        self._peer: CanPeer | None = None
+        self._hello_seen = False
+
+    @property
+    def can_stats(self) -> CanStats | None:
+        """CAN-level counters (None before ``open``)."""
+        return self._peer.stats if self._peer is not None else None
+
+    @property
+    def frames_superseded(self) -> int:
+        """Camera frames replaced by a newer one before they were sent."""
+        return self._peer.stats.frames_superseded if self._peer is not None else 0
+
+    def capacity(self, *, frame_bytes: int, fps: float, **options: object) -> CapacityReport:
+        """``bus_capacity`` at this link's bitrates (options as there)."""
+        return bus_capacity(bitrate=self.bitrate, data_bitrate=self.data_bitrate, fd=True, frame_bytes=frame_bytes,
+                            fps=fps, camera_over=self.camera_over, **options)  # type: ignore[arg-type]
+
+    def wait_sent(self, timeout_s: float) -> bool:
+        """Wait until every ISO-TP message handed over has left; False on timeout."""
+        return self._peer.wait_sent(timeout_s) if self._peer is not None else True
+
+    def _open(self) -> None:
+        bus = open_bus(interface=self.interface, channel=self.channel, bitrate=self.bitrate,
+                       data_bitrate=self.data_bitrate, vehicle_id=self.vehicle_id)
+        try:
+            self._peer = CanPeer(role=Role.HARNESS, bus=bus, owns_bus=True, vehicle_id=self.vehicle_id,
+                                 clock=self.clock, deliver=self._deliver, deliver_bytes=self._on_message_bytes,
+                                 on_error=self._count_error, on_silent=self._mark_gone, on_fatal=self._mark_gone,
+                                 heartbeat_timeout_s=self._heartbeat_timeout_s, camera_over=self.camera_over)
+        except BaseException:
+            bus.shutdown()
+            raise
+        self._peer.start()
+
+    def _deliver(self, item: Message | ProtocolError, t_rx_ns: int, nbytes: int) -> None:
+        if isinstance(item, Hello):
+            if self._hello_seen:
+                return  # a repeated HELLO (it doubles as the target's heartbeat until it hears us)
+            self._hello_seen = True
+        self.stats.bytes_received += nbytes
+        self._dispatch(item, t_rx_ns)
+
+    def _count_error(self, text: str) -> None:
+        self.stats.protocol_errors += 1
+        self.stats.last_error = text
+
+    def _send_bytes(self, data: bytes) -> None:
+        if self._peer is None:
+            raise TransportError("CAN link is not open")
+        self._peer.send_bytes(data)
+
+    def _close_transport(self) -> None:
+        peer, self._peer = getattr(self, "_peer", None), None
+        if peer is not None:
+            peer.close()
+
+
+def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str = "vcan0", bitrate: int = 500_000,
+                   data_bitrate: int = 2_000_000, vehicle_id: int = 0, bus: can.BusABC | None = None,
+                   heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_S) -> None:
+    """Target side: serve ``ep`` on the CAN bus until the harness says BYE (or
+    ``ep.stop()``). Sends HELLO (repeated until the harness is heard), then heartbeats
+    every 250 ms; sends BYE on leaving unless the harness said it first. A harness that
+    goes silent is waited for (a new one gets HELLO).
+
+    Args:
+        bus: an open python-can bus to use instead of opening one (tests pass a
+            ``virtual`` bus); the caller keeps ownership and closes it.
+
+    Raises:
+        ConfigError: an option is invalid.
+        TransportError: the bus cannot be opened, or failed while serving.
+    """
+    _check_options(interface=interface, vehicle_id=vehicle_id, bitrate=bitrate, data_bitrate=data_bitrate, fd=True)
+    if bus is not None and type(bus).__module__.endswith("udp_multicast.bus"):
+        check_interface("udp_multicast")
+    owns = bus is None
+    if bus is None:
+        bus = open_bus(interface=interface, channel=channel, bitrate=bitrate, data_bitrate=data_bitrate,
+                       vehicle_id=vehicle_id)
+
+    def count_error(text: str) -> None:
+        ep.stats.protocol_errors += 1
+
+    peer = CanPeer(role=Role.TARGET, bus=bus, owns_bus=owns, vehicle_id=vehicle_id, clock=ep.clock,
+                   deliver=lambda item, t_rx, n: ep.on_message(item, t_rx), deliver_bytes=ep.on_message_bytes,
+                   on_error=count_error, on_silent=lambda why: None, on_fatal=lambda why: ep.stop(),
+                   heartbeat_timeout_s=heartbeat_timeout_s)
+    try:
+        ep.start(peer.send_bytes)  # HELLO first, so the reader can repeat it
+        peer.start()
+        while not ep.wait_stopped(0.25):
+            pass
+    finally:
+        if not peer.peer_said_bye and not peer.failed:
+            try:
+                peer.send_bytes(protocol.encode(Bye(vehicle_id, "target stopping")))
+            except TransportError:
+                pass
+        ep.join()
+        peer.close()
+    if peer.failed:
+        raise TransportError(f"the target left the CAN bus: {peer.failure}")
+
+
+__all__ = ["CanLink", "CanStats", "CapacityReport", "bus_capacity", "check_interface", "open_bus",
+           "serve_endpoint"]
