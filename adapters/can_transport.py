@@ -1,6 +1,6 @@
 """The CAN transport: a device on a CAN FD bus (python-can, cantools, can-isotp).
 
-Two ways over the wire (``adapters/CAN.md`` has the full specification, ``hil.dbc``
+Two ways over the wire (PROTOCOL.md section 10.3 has the full specification, ``hil.dbc``
 the frames, ``adapters.can_dbc`` the id layout ``P << 26 | M << 16 | vehicle``):
 
 ================  =========  ===========================================  =========

@@ -27,6 +27,7 @@ from adapters.messages import (Bye, CameraInfo, ErrorMsg, Estimate, Frame, Hello
                                Message, SyncRequest,
                                SyncResponse)
 from timing.clock import Clock
+from timing.sync import SyncSample
 from timing.errors import ProtocolError, TargetError, TimeoutError_, TransportError
 
 
@@ -38,27 +39,6 @@ class Received:
     msg: Message
     t_rx_ns: int
     link_vehicle_id: int = 0
-
-
-@dataclass(frozen=True)
-class SyncSample:
-    """One 4-timestamp exchange: t1/t4 harness clock, t2/t3 target clock (ns)."""
-
-    seq: int
-    t1_ns: int
-    t2_target_ns: int
-    t3_target_ns: int
-    t4_ns: int
-
-    @property
-    def offset_ns(self) -> float:
-        """Target clock minus harness clock, NTP's estimate."""
-        return ((self.t2_target_ns - self.t1_ns) + (self.t3_target_ns - self.t4_ns)) / 2
-
-    @property
-    def delay_ns(self) -> int:
-        """Round trip less the target's turnaround."""
-        return (self.t4_ns - self.t1_ns) - (self.t3_target_ns - self.t2_target_ns)
 
 
 @dataclass
@@ -200,7 +180,7 @@ class Link(ABC):
                 break
             m = r.msg
             if isinstance(m, SyncResponse) and m.seq == req.seq:
-                return SyncSample(m.seq, m.t1_ns, m.t2_target_ns, m.t3_target_ns, r.t_rx_ns)
+                return SyncSample(m.t1_ns, m.t2_target_ns, m.t3_target_ns, r.t_rx_ns, seq=m.seq)
         return None
 
     def send_raw(self, data: bytes) -> None:
@@ -228,7 +208,7 @@ class Link(ABC):
                 return out
             m = r.msg
             if isinstance(m, SyncResponse):
-                out.append(SyncSample(m.seq, m.t1_ns, m.t2_target_ns, m.t3_target_ns, r.t_rx_ns))
+                out.append(SyncSample(m.t1_ns, m.t2_target_ns, m.t3_target_ns, r.t_rx_ns, seq=m.seq))
 
     def recv(self, *, timeout_s: float) -> Received | None:
         """Next received estimate/heartbeat/error, or None after ``timeout_s``.

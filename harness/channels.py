@@ -1,8 +1,8 @@
 """The JSON-schema channels of ``run.mcap``: one place that names every topic.
 
 Topics per vehicle ``V``: ``/V/camera`` (foxglove.CompressedImage or RawImage),
-``/V/estimate``, ``/V/pipeline``, ``/V/clock_sync``; shared: ``/ground_truth`` and
-``/events``. ``log_time`` is always the harness clock (receipt or capture);
+``/V/estimate``, ``/V/pipeline``, ``/V/clock_sync``, ``/V/truth`` (the camera's
+visible boxes); shared: ``/ground_truth`` and ``/events``. ``log_time`` is always the harness clock (receipt or capture);
 ``publish_time`` the source's time (``t0`` for frames and records, the target's
 ``t_reply`` for estimates, ``t1`` for clock-sync samples).
 """
@@ -13,6 +13,7 @@ from collections.abc import Iterable
 from typing import Any
 
 from harness.recorder import Recorder
+from timing.sync import SyncSample
 
 
 def _obj(title: str, props: dict[str, Any], required: Iterable[str] = ()) -> dict[str, Any]:
@@ -44,19 +45,48 @@ CLOCK_SYNC = _obj("hil.ClockSyncSample", {
     "seq": _INT, "t1_ns": _INT, "t2_target_ns": _INT, "t3_target_ns": _INT, "t4_ns": _INT,
     "offset_ns": _NUM, "delay_ns": _INT, "warmup": {"type": "boolean"}})
 
+_EGO_TRUTH = _obj("hil.EgoTruth", {
+    "vehicle": {"type": "string"}, "gap_m": {"type": ["number", "null"]},
+    "obstacle": {"type": ["string", "null"]}, "speed_mps": _NUM,
+    "ref_state": {"enum": ["SAFE", "SLOW", "STOP"]}, "obstacle_speed_mps": _NUM,
+    "ttc_s": {"type": ["number", "null"]}})
+
+# entities: every entity's state in the first record ("initial"), then only those that changed.
 GROUND_TRUTH = _obj("hil.GroundTruth", {
-    "sim_time_ns": _INT,
+    "sim_time_ns": _INT, "initial": {"type": "boolean"},
     "entities": {"type": "array", "items": _obj("hil.EntityState", {
-        "name": {"type": "string"}, "cls": {"type": "string"}, "x_m": _NUM, "y_m": _NUM,
-        "vx_mps": _NUM, "vy_mps": _NUM, "heading_rad": _NUM, "size_m": {"type": "array", "items": _NUM}})},
-    "egos": {"type": "array", "items": _obj("hil.EgoTruth", {
-        "vehicle": {"type": "string"}, "gap_m": {"type": ["number", "null"]},
-        "obstacle": {"type": ["string", "null"]}, "speed_mps": _NUM,
-        "ref_state": {"enum": ["SAFE", "SLOW", "STOP"]}})},
+        "id": _INT, "name": {"type": "string"}, "cls": {"type": "string"}, "x_m": _NUM, "y_m": _NUM,
+        "vx_mps": _NUM, "vy_mps": _NUM, "heading_rad": _NUM, "size_m": {"type": "array", "items": _NUM},
+        "sim_time_ns": _INT})},
+    "egos": {"type": "array", "items": _EGO_TRUTH},
+    "collisions": {"type": "array", "items": _obj("hil.Collision", {
+        "sim_time_ns": _INT, "a": {"type": "string"}, "b": {"type": "string"}, "force_n": _NUM,
+        "closing_speed_mps": _NUM, "striker": {"type": ["string", "null"]}})},
 }, ["sim_time_ns", "entities", "egos"])
+
+CAMERA_TRUTH = _obj("hil.CameraTruth", {
+    "vehicle": {"type": "string"}, "frame_id": _INT, "sim_time_ns": _INT,
+    "boxes": {"type": "array", "items": _obj("hil.VisibleBox", {
+        "entity": {"type": "string"}, "id": _INT, "cls": {"type": "string"},
+        "box_px": {"type": "array", "items": _INT}, "visible_px": _INT, "visible_fraction": _NUM,
+        "truncated": {"type": "boolean"}, "path_s_m": _NUM, "path_lateral_m": _NUM})},
+    "ego": _EGO_TRUTH,
+}, ["vehicle", "frame_id", "sim_time_ns", "boxes", "ego"])
 
 EVENT = _obj("hil.Event", {"kind": {"type": "string"}, "vehicle": {"type": "string"}},
              ["kind"])
+
+
+CLOCK_STATE = _obj("hil.ClockState", {
+    "offset_ns": _INT, "ref_ns": _INT, "skew_ppm": _NUM, "skew_uncertainty_ppm": _NUM,
+    "uncertainty_ns": _INT, "delay_ns": _NINT, "samples_used": _INT, "synced": {"type": "boolean"}},
+    ["offset_ns", "skew_ppm", "uncertainty_ns", "synced"])
+
+
+def sync_sample_json(s: SyncSample, *, warmup: bool = False) -> dict[str, Any]:
+    """The ``/<vehicle>/clock_sync`` message of one exchange."""
+    return {"seq": s.seq, "t1_ns": s.t1_ns, "t2_target_ns": s.t2_target_ns, "t3_target_ns": s.t3_target_ns,
+            "t4_ns": s.t4_ns, "offset_ns": s.offset_ns, "delay_ns": s.delay_ns, "warmup": warmup}
 
 
 def register_all(rec: Recorder, vehicles: Iterable[str]) -> None:
@@ -67,3 +97,5 @@ def register_all(rec: Recorder, vehicles: Iterable[str]) -> None:
         rec.register_json_channel(f"/{v}/estimate", "hil.Estimate", ESTIMATE)
         rec.register_json_channel(f"/{v}/pipeline", "hil.PipelineRecord", PIPELINE)
         rec.register_json_channel(f"/{v}/clock_sync", "hil.ClockSyncSample", CLOCK_SYNC)
+        rec.register_json_channel(f"/{v}/clock", "hil.ClockState", CLOCK_STATE)
+        rec.register_json_channel(f"/{v}/truth", "hil.CameraTruth", CAMERA_TRUTH)

@@ -34,6 +34,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", type=Path, default=None,
                    help="run folder (default runs/<name>-<timestamp>/)")
     r.add_argument("--no-progress", action="store_true", help="no live display")
+    sc = sub.add_parser("scenarios", help="list the scenarios with their parameters, ranges and defaults")
+    sc.add_argument("name", nargs="?", default=None, help="show only this scenario")
+    sc.add_argument("--json", action="store_true", help="machine-readable output")
+    from harness import clock_cmd
+
+    clock_cmd.add_parser(sub)
     t = sub.add_parser("target", help="serve an example AI target (on this host or a device)",
                        description="Serve an example AI target over a transport, e.g. on a remote host: "
                                    "hil target cv --transport zenoh --listen tcp/0.0.0.0:7447. Options after "
@@ -41,6 +47,11 @@ def build_parser() -> argparse.ArgumentParser:
                        add_help=False)
     t.add_argument("name", choices=sorted(TARGETS), help="which example target")
     t.add_argument("target_args", nargs=argparse.REMAINDER, help="options for the target")
+    # Each command lives in its own module: add_parser(sub) and cmd(args).
+    from harness import compare, report
+
+    report.add_parser(sub)
+    compare.add_parser(sub)
     return p
 
 
@@ -59,6 +70,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.command == "run":
             return _cmd_run(args)
+        if args.command == "clock":
+            from harness import clock_cmd
+
+            return clock_cmd.cmd(args)
+        if args.command == "scenarios":
+            return _cmd_scenarios(args)
+        if args.command in ("report", "compare"):
+            import importlib
+
+            return int(importlib.import_module(f"harness.{args.command}").cmd(args))
     except HilError as err:
         print(f"hil: error: {err}", file=sys.stderr)
         return EXIT_USAGE
@@ -68,11 +89,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     return EXIT_USAGE  # pragma: no cover - argparse requires a command
 
 
-def _cmd_run(args: argparse.Namespace) -> int:
-    from rich.console import Console
+def _cmd_scenarios(args: argparse.Namespace) -> int:
+    import json
 
+    from scenarios import catalog
+
+    if args.json:
+        print(json.dumps(catalog.as_dict(args.name), indent=2))
+    else:
+        print(catalog.describe(args.name), end="")
+    return EXIT_OK
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
     from harness.config import load_config
-    from harness.progress import Progress, final_table
+    from harness.progress import Progress, final_table, make_console
     from harness.run import default_out_dir, execute, prepare_out_dir
     from scenarios.gl import select_backend
 
@@ -81,14 +112,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     scenarios.get(cfg.scenario.name).resolve(cfg.scenario.params)
     out = prepare_out_dir(args.out or default_out_dir(cfg))
-    console = Console()
-    if not console.is_terminal:
-        console.width = max(console.width, 120)
+    console = make_console()
     backend = select_backend()
     console.print(f"renderer: MuJoCo offscreen via [bold]{backend.upper()}[/bold]"
                   + (" (software fallback: slower)" if backend == "osmesa" else ""))
     with Progress(console=console, enabled=cfg.progress and not args.no_progress) as progress:
-        result = execute(cfg, out_dir=out, gl_backend=backend, on_progress=progress.update)
+        result = execute(cfg, out_dir=out, gl_backend=backend, on_progress=progress.update,
+                         notify=console.print)
     s = result.summary
     console.print(final_table(s))
     if not s["realtime"]["kept_realtime"]:
@@ -97,6 +127,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
                       f"{s['realtime']['late_steps']} late physics steps[/yellow]")
     console.print(f"run.mcap:     {result.mcap_path}")
     console.print(f"summary.json: {result.summary_path}")
+    console.print(f"report.html:  {result.out_dir / 'report.html'}")
     if s["ended_by"] != "duration":
         console.print(f"[red]run ended early: {s['ended_by']}[/red] (what was recorded is kept)")
         return EXIT_EARLY

@@ -23,44 +23,37 @@ import re
 from collections.abc import Callable, Mapping, Sequence
 from enum import Enum
 from pathlib import Path
-from typing import Annotated, Any, get_origin
+from typing import Any, get_origin
 
 import yaml
 from pydantic import (
     BaseModel,
-    BeforeValidator,
-    ConfigDict,
     Field,
     ValidationError,
     model_validator,
 )
 from pydantic_core import PydanticCustomError
 
+from harness.config_target import CanTargetConfig, ZenohTargetConfig
+from harness.config_timing import TimingConfig
+from harness.config_types import MODEL_CONFIG, Float, Int
 from timing.errors import ConfigError
 
 __all__ = [
-    "CameraConfig", "Encoding", "Mode", "RecordingConfig", "RunConfig", "ScenarioConfig",
-    "TargetConfig", "Transport", "config_hash", "dump_config", "load_config", "parse_config",
+    "CameraConfig", "Encoding", "LatencyConfig", "LatencyKind", "LatencyStage", "LockstepConfig", "Mode",
+    "RecordingConfig", "RunConfig", "ScenarioConfig", "TargetConfig", "Transport", "TruthConfig",
+    "config_hash", "dump_config", "load_config", "parse_config",
 ]
 
 FPS_MAX = 240.0
 PHYSICS_STEP_MAX_S = 0.05
 _PERIOD_REL_TOL = 1e-9
 _PERIOD_ERROR = "camera_period"
+_RULE_ERROR = "cross_field_rule"  # ctx: loc (the field to blame), got
 _GOT_MAX_CHARS = 60
 
 
-def _reject_bool(value: Any) -> Any:
-    # pydantic's lax mode reads true/false as 1/0; in a config that is always a typo.
-    if isinstance(value, bool):
-        raise PydanticCustomError("bool_not_number", "a number, not true/false")
-    return value
-
-
-Int = Annotated[int, BeforeValidator(_reject_bool)]
-Float = Annotated[float, BeforeValidator(_reject_bool)]
-
-_MODEL_CONFIG = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+_MODEL_CONFIG = MODEL_CONFIG
 
 
 class Mode(str, Enum):
@@ -78,9 +71,11 @@ class Encoding(str, Enum):
 
 
 class Transport(str, Enum):
-    """How the harness reaches the AI target (grows: zenoh, can)."""
+    """How the harness reaches the AI target."""
 
     LOCAL = "local"
+    ZENOH = "zenoh"
+    CAN = "can"
 
 
 class ScenarioConfig(BaseModel):
@@ -107,6 +102,9 @@ class CameraConfig(BaseModel):
     reflections: bool = False
     mount_height_m: Float = Field(1.3, ge=0.2, le=5)
     mount_forward_m: Float = Field(2.3, ge=-5, le=5)  # from the vehicle centre
+    mount_lateral_m: Float = Field(0.0, ge=-3, le=3)  # left of the vehicle centre line
+    pitch_deg: Float = Field(0.0, ge=-45, le=45)  # positive looks down
+    yaw_deg: Float = Field(0.0, ge=-180, le=180)  # positive looks left
 
 
 class TargetConfig(BaseModel):
@@ -119,10 +117,12 @@ class TargetConfig(BaseModel):
     model_config = _MODEL_CONFIG
 
     transport: Transport = Transport.LOCAL
-    command: list[str] = Field(
-        default_factory=lambda: ["{python}", "-m", "targets.cv_baseline"], min_length=1
-    )
+    # local: the program to start (required). zenoh/can: optional, [] = the target
+    # runs elsewhere; see harness/config_target.py for {vehicle_id} and {port}.
+    command: list[str] = Field(default_factory=lambda: ["{python}", "-m", "targets.cv_baseline"])
     args: list[str] = Field(default_factory=list)
+    zenoh: ZenohTargetConfig = Field(default_factory=ZenohTargetConfig)
+    can: CanTargetConfig = Field(default_factory=CanTargetConfig)
     startup_timeout_s: Float = Field(15.0, gt=0, le=300)
     # No estimate within this after t0: the frame counts as dropped.
     estimate_timeout_s: Float = Field(0.5, gt=0, le=60)
@@ -135,6 +135,61 @@ class RecordingConfig(BaseModel):
 
     queue_size: Int = Field(4096, ge=16, le=1_000_000)
     images: bool = True
+
+
+class TruthConfig(BaseModel):
+    """Ground truth: the reference-state thresholds (rules in scenarios/ground_truth.py)
+    and the per-camera visible boxes (a segmentation render per camera and frame)."""
+
+    model_config = _MODEL_CONFIG
+
+    comfort_decel_mps2: Float = Field(4.0, gt=0, le=15)
+    stop_margin_m: Float = Field(5.0, ge=0, le=100)
+    slow_headway_s: Float = Field(2.0, ge=0, le=20)
+    slow_ttc_s: Float = Field(4.0, ge=0, le=60)
+    visible_boxes: bool = True
+    min_visible_px: Int = Field(1, ge=1, le=100_000)
+
+
+class LatencyKind(str, Enum):
+    """How lockstep delays the application of each estimate's control (sim time)."""
+
+    NONE = "none"            # applied at the capture tick (no delay)
+    CONSTANT = "constant"    # ms
+    NORMAL = "normal"        # mean ms, std_ms; clipped to [min_ms, max_ms]
+    LOGNORMAL = "lognormal"  # median ms, shape sigma; clipped to [min_ms, max_ms]
+    RECORDED = "recorded"    # per frame, from a recorded run's pipeline records
+
+
+class LatencyStage(str, Enum):
+    """Which latency of a recorded run to replay."""
+
+    SIM_APPLY = "sim_apply"    # sim_time_apply - sim_time: exactly what the sim saw
+    TO_APPLY = "to_apply"      # t_apply - t0 (wall clock, times the recorded real-time factor)
+    END_TO_END = "end_to_end"  # t0' - t0 (wall clock, times the recorded real-time factor)
+
+
+class LatencyConfig(BaseModel):
+    """A latency profile for lockstep replay (see harness/latency.py)."""
+
+    model_config = _MODEL_CONFIG
+
+    kind: LatencyKind = LatencyKind.NONE
+    ms: Float = Field(100.0, ge=0, le=60_000)
+    std_ms: Float = Field(20.0, ge=0, le=60_000)
+    sigma: Float = Field(0.5, gt=0, le=5)
+    min_ms: Float = Field(0.0, ge=0, le=60_000)
+    max_ms: Float = Field(5_000.0, ge=0, le=60_000)
+    path: str | None = None  # a recorded run's folder or its run.mcap
+    stage: LatencyStage = LatencyStage.SIM_APPLY
+
+
+class LockstepConfig(BaseModel):
+    """Lockstep-only settings."""
+
+    model_config = _MODEL_CONFIG
+
+    latency: LatencyConfig = Field(default_factory=LatencyConfig)
 
 
 class RunConfig(BaseModel):
@@ -156,6 +211,9 @@ class RunConfig(BaseModel):
     camera: CameraConfig = Field(default_factory=CameraConfig)
     target: TargetConfig = Field(default_factory=TargetConfig)
     recording: RecordingConfig = Field(default_factory=RecordingConfig)
+    truth: TruthConfig = Field(default_factory=TruthConfig)
+    lockstep: LockstepConfig = Field(default_factory=LockstepConfig)
+    timing: TimingConfig = Field(default_factory=TimingConfig)
     progress: bool = True
 
     @model_validator(mode="after")
@@ -163,6 +221,29 @@ class RunConfig(BaseModel):
         fps, step = self.camera.fps, self.physics_step_s
         if not _period_fits(fps, step):
             raise PydanticCustomError(_PERIOD_ERROR, _period_message(fps, step), {"fps": fps})
+        lat = self.lockstep.latency
+        if lat.kind != LatencyKind.NONE and self.mode != Mode.LOCKSTEP:
+            raise PydanticCustomError(_RULE_ERROR, "mode: lockstep (a latency profile delays control in "
+                                      "lockstep only; in realtime the target's own latency applies)",
+                                      {"loc": ("lockstep", "latency", "kind"), "got": lat.kind.value})
+        if lat.kind == LatencyKind.RECORDED:
+            if not lat.path:
+                raise PydanticCustomError(_RULE_ERROR, "a recorded run's folder or run.mcap in "
+                                          "lockstep.latency.path", {"loc": ("lockstep", "latency", "path"),
+                                                                    "got": None})
+            if not (Path(lat.path).is_file() or (Path(lat.path) / "run.mcap").is_file()):
+                raise PydanticCustomError(_RULE_ERROR, "an existing run.mcap or a run folder holding one",
+                                          {"loc": ("lockstep", "latency", "path"), "got": lat.path})
+        if lat.min_ms > lat.max_ms:
+            raise PydanticCustomError(_RULE_ERROR, f"at most max_ms ({lat.max_ms:g})",
+                                      {"loc": ("lockstep", "latency", "min_ms"), "got": lat.min_ms})
+        if self.target.transport == Transport.LOCAL and not self.target.command:
+            raise PydanticCustomError(_RULE_ERROR, "the program to start: the local transport runs the "
+                                      "target as a child process", {"loc": ("target", "command"), "got": []})
+        if self.target.transport == Transport.CAN and self.target.can.interface == "udp_multicast":
+            raise PydanticCustomError(_RULE_ERROR, "a CAN interface on this machine (socketcan, pcan, kvaser, "
+                                      "vector, slcan, virtual); udp_multicast sends off the machine",
+                                      {"loc": ("target", "can", "interface"), "got": "udp_multicast"})
         return self
 
     @property
@@ -374,6 +455,8 @@ def _format_validation_error(
         got = first["input"]
         if first["type"] == _PERIOD_ERROR:
             loc, got = ("camera", "fps"), first["ctx"]["fps"]
+        elif first["type"] == _RULE_ERROR:
+            loc, got = tuple(first["ctx"]["loc"]), first["ctx"]["got"]
         message = (
             f"{source}: config error at {_loc_text(loc)}: got {_short_repr(got)}; "
             f"expected {_expected(first['msg'])}"

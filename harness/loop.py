@@ -8,10 +8,18 @@ system counts late iterations); the summary says when real time was not kept.
 
 Lockstep mode waits at each camera tick for every vehicle's estimate (or its
 timeout, a drop) before stepping on: deterministic, for regression and replay.
+With a latency profile (``harness.latency``) each control is held and applied when
+sim time reaches its capture time plus the frame's latency.
+
+Ground truth goes to ``/ground_truth`` at every camera tick (every entity's state
+the first time, then the entities that changed; ego truth; collisions) and, with
+``truth.visible_boxes``, to ``/<vehicle>/truth`` (the camera's visible boxes from a
+segmentation render, after the frames are sent so it adds no capture latency).
 """
 
 from __future__ import annotations
 
+import math
 import queue
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -21,18 +29,30 @@ import numpy as np
 
 from adapters.link import Received
 from adapters.messages import CameraInfo, ErrorMsg, Estimate, Heartbeat, ImageEncoding
-from harness.config import Encoding, Mode, RunConfig
+from harness.channels import sync_sample_json
+from harness.config import CameraConfig, Encoding, Mode, RunConfig
+from harness.latency import HeldControls, LatencyProfile
 from harness.observers import RunObserver
 from harness.recorder import Recorder
 from harness.vehicle_state import InFlight, VehicleRun
-from scenarios.ground_truth import GroundTruth
+from scenarios.ground_truth import GroundTruth, StateChanges
 from scenarios.sim import Simulation
 from timing.clock import MonotonicClock
 from timing.errors import TransportError
 from timing.records import FrameStatus, PipelineRecord
 
 LATE_TOLERANCE_NS = 10_000_000
-SYNC_INTERVAL_NS = 1_000_000_000
+
+
+def encode_image(rgb: np.ndarray, camera: CameraConfig) -> tuple[bytes, ImageEncoding]:
+    """An RGB8 render as the wire carries it: JPEG at the configured quality, or raw."""
+    if camera.encoding == Encoding.JPEG:
+        ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
+                               (cv2.IMWRITE_JPEG_QUALITY, camera.jpeg_quality))
+        if not ok:  # pragma: no cover - OpenCV failing to encode a valid array
+            raise RuntimeError("JPEG encoding failed")
+        return buf.tobytes(), ImageEncoding.JPEG
+    return rgb.tobytes(), ImageEncoding.RGB8
 
 
 @dataclass
@@ -50,7 +70,7 @@ class SimLoop:
 
     def __init__(self, cfg: RunConfig, sim: Simulation, vehicles: list[VehicleRun],
                  rx: queue.Queue[Received], recorder: Recorder, clock: MonotonicClock,
-                 *, on_tick: Callable[[], None] | None = None) -> None:
+                 *, on_tick: Callable[[], None] | None = None, latency: LatencyProfile | None = None) -> None:
         self.cfg, self.sim, self.vehicles, self.rx, self.rec, self.clock = cfg, sim, vehicles, rx, recorder, clock
         self.by_id = {v.vehicle_id: v for v in vehicles}
         self.stats = LoopStats()
@@ -60,7 +80,11 @@ class SimLoop:
         self.period = cfg.camera_period_steps
         intr = sim.intrinsics()
         cam = cfg.camera
-        self.camera_info = CameraInfo(intr.fx, intr.fy, intr.cx, intr.cy, cam.mount_height_m, 0.0)
+        self.camera_info = CameraInfo(intr.fx, intr.fy, intr.cx, intr.cy, cam.mount_height_m,
+                                      math.radians(cam.pitch_deg))
+        self.latency = latency if cfg.mode == Mode.LOCKSTEP and latency is not None else None
+        self.held = None if self.latency is None else HeldControls(self.latency, step_ns=sim.step_ns)
+        self._changes = StateChanges()
         self.observers: list[RunObserver] = []
         self.collisions: list[dict[str, object]] = []
         self.min_gap_m: dict[str, float] = {}
@@ -96,6 +120,9 @@ class SimLoop:
                     self._capture_all()
                     if lockstep:
                         self._await_answers()
+                if self.held is not None:
+                    for h in self.held.pop_due(self.sim.sim_time_ns):
+                        self._settle(*h.item)  # type: ignore[misc]
                 self.sim.step()
                 self._service(until_ns=0)
                 if self.observers:
@@ -106,6 +133,7 @@ class SimLoop:
                     self.on_tick()
             # Let the frames in flight finish (answer or time out): nothing unaccounted.
             self._drain()
+            self._settle_held_at_end()
         except KeyboardInterrupt:
             self.request_stop("interrupted (Ctrl-C)")
             self._expire_all()
@@ -147,23 +175,21 @@ class SimLoop:
                 else:
                     self.rec.write_raw_image(topic, rgb, encoding="rgb8", frame_id=f"{v.name}/camera",
                                              log_time_ns=t0, publish_time_ns=t0)
+        if self.cfg.truth.visible_boxes:
+            self._record_camera_truth()
         now = self.clock.now_ns()
         if now >= self._next_sync_ns:
-            self._next_sync_ns = now + SYNC_INTERVAL_NS
+            sync = self.cfg.timing.sync
+            self._next_sync_ns = now + int(sync.interval_s * 1e9)
             for v in self.vehicles:
                 try:
-                    v.link.send_sync_request()
+                    for _ in range(sync.burst):  # the clock filter keeps the fastest
+                        v.link.send_sync_request()
                 except TransportError:
                     pass
 
     def _encode(self, rgb: np.ndarray) -> tuple[bytes, ImageEncoding]:
-        if self.cfg.camera.encoding == Encoding.JPEG:
-            ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
-                                   (cv2.IMWRITE_JPEG_QUALITY, self.cfg.camera.jpeg_quality))
-            if not ok:  # pragma: no cover - OpenCV failing to encode a valid array
-                raise RuntimeError("JPEG encoding failed")
-            return buf.tobytes(), ImageEncoding.JPEG
-        return rgb.tobytes(), ImageEncoding.RGB8
+        return encode_image(rgb, self.cfg.camera)
 
     def _record_truth(self, gt: GroundTruth) -> None:
         t = self.clock.now_ns()
@@ -173,20 +199,31 @@ class SimLoop:
             if e.gap_m is not None:
                 self.min_gap_m[e.vehicle] = min(self.min_gap_m.get(e.vehicle, float("inf")), e.gap_m)
         for c in gt.collisions:
-            ev = {"kind": "collision", "sim_time_ns": c.sim_time_ns, "a": c.a, "b": c.b, "force_n": c.force_n}
+            ev = {"kind": "collision", **c.to_json()}
             self.collisions.append(ev)
             self.rec.write_json("/events", ev, log_time_ns=t, publish_time_ns=t)
+        initial = not self._changes.seen
         self.rec.write_json("/ground_truth", {
             "sim_time_ns": gt.sim_time_ns,
-            "entities": [e.__dict__ | {"size_m": list(e.size_m)} for e in gt.entities],
-            "egos": [{"vehicle": e.vehicle, "gap_m": e.gap_m, "obstacle": e.obstacle,
-                      "speed_mps": e.speed_mps, "ref_state": e.ref_state.name} for e in gt.egos],
+            "initial": initial,  # every entity's state once, then only those that changed
+            "entities": [e.to_json() for e in self._changes.changes(gt)],
+            "egos": [e.to_json() for e in gt.egos],
+            "collisions": [c.to_json() for c in gt.collisions],
         }, log_time_ns=t, publish_time_ns=t)
+
+    def _record_camera_truth(self) -> None:
+        """Per camera: the entities it shows (segmentation render), for the frame just sent."""
+        for v in self.vehicles:
+            ct = self.sim.camera_truth(v.name, min_visible_px=self.cfg.truth.min_visible_px)
+            t = self.clock.now_ns()
+            self.rec.write_json(f"/{v.name}/truth", {"frame_id": v.next_frame_id - 1, **ct.to_json()},
+                                log_time_ns=t, publish_time_ns=t)
 
     # -- answers in ----------------------------------------------------------
 
-    def _service(self, *, until_ns: int) -> None:
-        """Handle received messages until ``until_ns`` (0: only what is waiting)."""
+    def _service(self, *, until_ns: int, until_answered: bool = False) -> None:
+        """Handle received messages until ``until_ns`` (0: only what is waiting), or,
+        with ``until_answered``, as soon as no frame is in flight any more."""
         while True:
             now = self.clock.now_ns()
             self._expire(now)
@@ -194,9 +231,12 @@ class SimLoop:
             try:
                 r = self.rx.get(timeout=timeout_s) if timeout_s > 0 else self.rx.get_nowait()
             except queue.Empty:
-                self._collect_sync()
+                self.collect_sync()
                 return
             self._handle(r)
+            if until_answered and not any(v.in_flight for v in self.vehicles):
+                self.collect_sync()
+                return
 
     def _handle(self, r: Received) -> None:
         v = self.by_id.get(r.link_vehicle_id)
@@ -223,6 +263,13 @@ class SimLoop:
                   "vehicle": v.name, "frame_id": m.frame_id, "t0p_ns": t0p}
             self.rec.write_json("/events", ev, log_time_ns=t0p, publish_time_ns=t0p)
             return
+        if self.held is not None:  # lockstep latency profile: applied when sim time comes
+            self._hold(v, fl, m, t0p)
+            return
+        self._settle(v, fl, m, t0p)
+
+    def _settle(self, v: VehicleRun, fl: InFlight, m: Estimate, t0p: int) -> None:
+        """Apply an answered frame's control now (or count it stale) and record it."""
         t_apply: int | None = None
         sim_apply: int | None = None
         if m.frame_id > v.last_applied_frame_id:
@@ -245,6 +292,28 @@ class SimLoop:
             "objects": [{"cls": o.cls.name, "confidence": o.confidence, "box_px": list(o.box_px),
                          "position_m": list(o.position_m)} for o in m.objects],
         }, log_time_ns=t0p, publish_time_ns=m.t_reply_target_ns)
+
+    def _hold(self, v: VehicleRun, fl: InFlight, m: Estimate, t0p: int) -> None:
+        assert self.held is not None and self.latency is not None
+        d = self.latency.delay(v.vehicle_id, fl.frame_id)
+        if d.latency_ns is None:  # the replayed run lost (or discarded) this frame: so does the replay
+            self._add_record(v, PipelineRecord(v.name, fl.frame_id, fl.sim_time_ns, fl.t0_ns, fl.t_tx_ns, d.status,
+                                               m.t_rx_target_ns, m.t_infer_start_target_ns, m.t_infer_end_target_ns,
+                                               m.t_reply_target_ns, t0p), m)
+            ev = {"kind": "replayed_" + d.status.value, "vehicle": v.name, "frame_id": fl.frame_id}
+            self.rec.write_json("/events", ev, log_time_ns=t0p, publish_time_ns=fl.t0_ns)
+            return
+        self.held.hold(self.held.due_time(fl.sim_time_ns, d.latency_ns), v.vehicle_id, fl.frame_id, (v, fl, m, t0p))
+
+    def _settle_held_at_end(self) -> None:
+        """Controls still held when the run ends were never applied: recorded as pending."""
+        if self.held is None:
+            return
+        for h in self.held.pop_all():
+            v, fl, m, t0p = h.item  # type: ignore[misc]
+            self._add_record(v, PipelineRecord(v.name, fl.frame_id, fl.sim_time_ns, fl.t0_ns, fl.t_tx_ns,
+                                               FrameStatus.PENDING, m.t_rx_target_ns, m.t_infer_start_target_ns,
+                                               m.t_infer_end_target_ns, m.t_reply_target_ns, t0p), m)
 
     def _add_record(self, v: VehicleRun, rec: PipelineRecord, estimate: Estimate | None = None) -> None:
         v.records.append(rec)
@@ -279,7 +348,7 @@ class SimLoop:
         """Lockstep: wait until no vehicle has a frame in flight."""
         while any(v.in_flight for v in self.vehicles) and self.stop_reason is None:
             deadline = min(fl.t0_ns for v in self.vehicles for fl in v.in_flight.values()) + self.timeout_ns
-            self._service(until_ns=deadline + 1)
+            self._service(until_ns=deadline + 1, until_answered=True)
             if any(not v.link.alive for v in self.vehicles if v.in_flight):
                 gone = next(v for v in self.vehicles if not v.link.alive)
                 self.request_stop(f"target of {gone.name} is gone: {gone.link.peer_gone_reason}")
@@ -293,15 +362,13 @@ class SimLoop:
                     break
                 self._service(until_ns=min(deadline + 1, self.clock.now_ns() + 50_000_000))
         self._expire_all()
-        self._collect_sync()
+        self.collect_sync()
 
-    def _collect_sync(self) -> None:
+    def collect_sync(self) -> None:
+        """Record (and pass to observers) the clock-sync answers received so far."""
         for v in self.vehicles:
             for s in v.link.sync_samples():
                 for ob in self.observers:
                     ob.on_sync(v.name, s)
-                self.rec.write_json(f"/{v.name}/clock_sync", {
-                    "seq": s.seq, "t1_ns": s.t1_ns, "t2_target_ns": s.t2_target_ns,
-                    "t3_target_ns": s.t3_target_ns, "t4_ns": s.t4_ns,
-                    "offset_ns": s.offset_ns, "delay_ns": s.delay_ns}, log_time_ns=s.t4_ns,
-                    publish_time_ns=s.t1_ns)
+                self.rec.write_json(f"/{v.name}/clock_sync", sync_sample_json(s), log_time_ns=s.t4_ns,
+                                    publish_time_ns=s.t1_ns)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Protocol
 
-from adapters.link import SyncSample
+from timing.sync import SyncSample
 from adapters.messages import Estimate
 from scenarios.ground_truth import GroundTruth
 from timing.records import PipelineRecord

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from rich.console import Console
@@ -10,6 +11,14 @@ from rich.table import Table
 
 from harness.vehicle_state import VehicleRun
 from timing.records import FrameStatus
+
+
+def make_console() -> Console:
+    """A console; when output is not a terminal (CI logs, pipes) tables get room."""
+    console = Console()
+    if not console.is_terminal:
+        console.width = max(console.width, 120)
+    return console
 
 
 def _ms(x: float | None) -> str:
@@ -39,17 +48,17 @@ class Progress:
             self._live = None
 
     def update(self, *, now_ns: int, sim_time_s: float, duration_s: float,
-               vehicles: list[VehicleRun]) -> None:
+               vehicles: list[VehicleRun], anomalies: Callable[[str], int] | None = None) -> None:
         if self._live is None or now_ns - self._last_ns < self.refresh_ns:
             return
         self._last_ns = now_ns
         t = Table(title=f"sim {sim_time_s:6.2f} / {duration_s:g} s", title_justify="left")
-        for col in ("vehicle", "frames", "fps", "e2e p50 ms", "e2e p99 ms", "dropped"):
+        for col in ("vehicle", "frames", "fps", "e2e p50 ms", "e2e p99 ms", "dropped", "anomalies"):
             t.add_column(col, justify="right")
         for v in vehicles:
             t.add_row(v.name, str(v.next_frame_id), f"{v.fps_meter.rate_hz(now_ns):.1f}",
                       _ms(v.e2e_window.percentile_ms(50)), _ms(v.e2e_window.percentile_ms(99)),
-                      str(v.count(FrameStatus.DROPPED)))
+                      str(v.count(FrameStatus.DROPPED)), "-" if anomalies is None else str(anomalies(v.name)))
         self._live.update(t, refresh=True)
 
 

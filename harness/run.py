@@ -9,10 +9,10 @@ summary written with what was recorded.
 from __future__ import annotations
 
 import json
+import math
 import platform
 import queue
 import signal
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from harness import __version__
-from harness.config import RunConfig, config_hash, dump_config
+from harness.config import RunConfig, Transport, config_hash, dump_config
 from timing.clock import MonotonicClock
 from timing.errors import ConfigError
 
@@ -68,12 +68,8 @@ def versions() -> dict[str, str]:
     return out
 
 
-def target_command(cfg: RunConfig) -> list[str]:
-    return [sys.executable if part == "{python}" else part for part in cfg.target.command] + list(cfg.target.args)
-
-
 def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
-            on_progress: Callable[..., None] | None = None,
+            on_progress: Callable[..., None] | None = None, notify: Callable[[str], None] = lambda _m: None,
             install_signal_handlers: bool = True) -> RunResult:
     """Run ``cfg`` and write its folder. The MuJoCo GL backend must already be chosen.
 
@@ -84,12 +80,18 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
         SimulationError: the world cannot be built or rendered.
     """
     import scenarios
-    from adapters.link import Received, open_link
-    from harness.channels import register_all
+    from adapters.link import Received
+    from harness.loop import encode_image
+    from harness.target_launch import TargetProcess, can_preflight, make_link
+    from harness.channels import register_all, sync_sample_json
+    from harness.config import LatencyKind
+    from harness.latency import LatencyProfile
     from harness.loop import SimLoop
     from harness.recorder import Recorder
     from harness.summary import build_summary
+    from harness.timing_observer import TimingObserver
     from harness.vehicle_state import VehicleRun
+    from scenarios.ground_truth import RefStateRules
     from scenarios.sim import Simulation
     from scenarios.world import CameraSpec
 
@@ -99,8 +101,15 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
     world = sdef.build(params=params, seed=cfg.seed, physics_step_s=cfg.physics_step_s,
                        camera=CameraSpec(width=cam.width, height=cam.height, fovy_deg=cam.fovy_deg,
                                          mount_forward_m=cam.mount_forward_m,
-                                         mount_height_m=cam.mount_height_m),
+                                         mount_height_m=cam.mount_height_m, mount_lateral_m=cam.mount_lateral_m,
+                                         pitch_rad=math.radians(cam.pitch_deg), yaw_rad=math.radians(cam.yaw_deg)),
                        shadows=cam.shadows, reflections=cam.reflections)
+    lat_cfg = cfg.lockstep.latency
+    latency = (None if lat_cfg.kind == LatencyKind.NONE
+               else LatencyProfile(lat_cfg, seed=cfg.seed, vehicles=[v.name for v in world.egos]))
+    t = cfg.truth
+    rules = RefStateRules(comfort_decel_mps2=t.comfort_decel_mps2, stop_margin_m=t.stop_margin_m,
+                          slow_headway_s=t.slow_headway_s, slow_ttc_s=t.slow_ttc_s)
     clock = MonotonicClock()
     rx: queue.Queue[Received] = queue.Queue(maxsize=4096)
     mcap_path = out_dir / "run.mcap"
@@ -108,16 +117,25 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
     meta = {
         "name": cfg.name, "scenario": cfg.scenario.name, "scenario_params": params, "seed": cfg.seed,
         "config_hash": config_hash(cfg), "gl_backend": gl_backend, "versions": versions(),
+        "scenario_realized": world.realized,
+        "latency_profile": None if latency is None else latency.describe(),
     }
-    with Simulation(world) as sim:
+    with Simulation(world, rules=rules) as sim:
         sim.open_renderer()
         for name in sim.egos:  # first render compiles shaders; keep it out of the loop
-            sim.render(name)
+            first = sim.render(name)
+        if cfg.target.transport == Transport.CAN:
+            # The bus must carry the frames: check with a real frame of this run
+            # (+25 % for scenes busier than the first one) before anything starts.
+            size = len(encode_image(first, cfg.camera)[0])
+            notify(can_preflight(cfg, frame_bytes=int(size * 1.25)))
         vehicles: list[VehicleRun] = []
+        procs: list[TargetProcess] = []
         try:
             for i, name in enumerate(sim.egos):
-                link = open_link(cfg.target.transport.value, command=target_command(cfg), vehicle_id=i,
-                                 clock=clock, log_path=out_dir / f"target-{name}.log", rx_queue=rx)
+                link, proc = make_link(cfg, vehicle_id=i, vehicle=name, clock=clock, out_dir=out_dir, rx=rx)
+                if proc is not None:
+                    procs.append(proc)
                 vehicles.append(VehicleRun(name, i, link))
                 link.open(hello_timeout_s=cfg.target.startup_timeout_s)
             warmup = {v.name: [s for _ in range(SYNC_WARMUP_SAMPLES)
@@ -128,16 +146,18 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
                 "config": {"yaml_json": json.dumps(dump_config(cfg), sort_keys=True)},
             }) as rec:
                 register_all(rec, [v.name for v in vehicles])
+                timing = TimingObserver(cfg.timing, [v.name for v in vehicles], recorder=rec)
                 for name, samples in warmup.items():
                     for s in samples:
-                        rec.write_json(f"/{name}/clock_sync", {
-                            "seq": s.seq, "t1_ns": s.t1_ns, "t2_target_ns": s.t2_target_ns,
-                            "t3_target_ns": s.t3_target_ns, "t4_ns": s.t4_ns, "offset_ns": s.offset_ns,
-                            "delay_ns": s.delay_ns, "warmup": True}, log_time_ns=s.t4_ns, publish_time_ns=s.t1_ns)
-                loop = SimLoop(cfg, sim, vehicles, rx, rec, clock)
+                        rec.write_json(f"/{name}/clock_sync", sync_sample_json(s, warmup=True),
+                                       log_time_ns=s.t4_ns, publish_time_ns=s.t1_ns)
+                        timing.on_sync(name, s)
+                loop = SimLoop(cfg, sim, vehicles, rx, rec, clock, latency=latency)
+                loop.observers.append(timing)
                 if on_progress is not None:
                     loop.on_tick = lambda: on_progress(now_ns=clock.now_ns(), sim_time_s=sim.sim_time_ns / 1e9,
-                                                       duration_s=cfg.duration_s, vehicles=vehicles)
+                                                       duration_s=cfg.duration_s, vehicles=vehicles,
+                                                       anomalies=timing.anomaly_count)
                 restore = _install_stop_handlers(loop) if install_signal_handlers else None
                 try:
                     stats = loop.run()
@@ -146,9 +166,11 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
                         restore()
                 for v in vehicles:
                     v.link.close()
+                loop.collect_sync()  # answers that arrived while closing
+                timing.finish()
                 rec.flush()
                 rec_stats = rec.stats
-                summary = build_summary(loop=loop, stats=stats, recorder_stats={
+                summary = build_summary(loop=loop, stats=stats, timing=timing, recorder_stats={
                     "written": rec_stats.written, "dropped": rec_stats.dropped, "enqueued": rec_stats.enqueued},
                     meta=meta)
                 rec.add_metadata("summary", {"json": json.dumps(summary, sort_keys=True)})
@@ -158,7 +180,12 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
         finally:
             for v in vehicles:
                 v.link.close()
+            for p in procs:
+                p.close()
     summary_path.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    from harness.report import write_report
+
+    write_report(out_dir)
     return RunResult(out_dir, mcap_path, summary_path, summary)
 
 

@@ -5,18 +5,23 @@ from __future__ import annotations
 from typing import Any
 
 from harness.loop import LoopStats, SimLoop
+from harness.timing_observer import TimingObserver
 from harness.vehicle_state import VehicleRun
+from timing.anomaly import is_sane
 from timing.records import STAGES, FrameStatus
 from timing.stats import summarize_ns
 
 SCHEMA_VERSION = 1
 
 
-def vehicle_summary(v: VehicleRun, *, wall_s: float) -> dict[str, Any]:
+def vehicle_summary(v: VehicleRun, *, wall_s: float, timing: TimingObserver | None = None) -> dict[str, Any]:
     ok = [r for r in v.records if r.status == FrameStatus.OK]
+    # Exact percentiles over the recorded frames; absurd records (flagged as causality
+    # anomalies) are kept out so the summary never shows a negative latency.
+    sane = [r for r in ok if is_sane(r)[0]]
     stages: dict[str, Any] = {}
     for name in STAGES:
-        vals = [d[name] for r in ok if name in (d := r.stages_ns())]
+        vals = [d[name] for r in sane if name in (d := r.stages_ns())]
         stages[name] = summarize_ns(vals)
     frames = len(v.records)
     return {
@@ -32,6 +37,7 @@ def vehicle_summary(v: VehicleRun, *, wall_s: float) -> dict[str, Any]:
         "estimates_per_s": round(len(ok) / wall_s, 3) if wall_s > 0 else 0.0,
         "order_violations": sum(1 for r in ok if r.order_violations()),
         "latency_ms": stages,
+        **(timing.summary(v.name) if timing is not None else {}),
         "link": {k: val for k, val in v.link.stats.__dict__.items()},
         "target": None if v.link.hello is None else {
             "name": v.link.hello.target_name, "clock": v.link.hello.clock_id.name,
@@ -40,14 +46,14 @@ def vehicle_summary(v: VehicleRun, *, wall_s: float) -> dict[str, Any]:
 
 
 def build_summary(*, loop: SimLoop, stats: LoopStats, recorder_stats: dict[str, Any],
-                  meta: dict[str, Any]) -> dict[str, Any]:
+                  meta: dict[str, Any], timing: TimingObserver | None = None) -> dict[str, Any]:
     wall_s = max((stats.wall_end_ns - stats.wall_start_ns) / 1e9, 1e-9)
     sim_s = stats.sim_steps * loop.sim.step_ns / 1e9
     rtf = sim_s / wall_s
     realtime = loop.cfg.mode.value == "realtime"
     requested = loop.cfg.realtime_factor
     kept = (not realtime) or (rtf >= 0.95 * requested and stats.late_steps <= 0.01 * max(stats.sim_steps, 1))
-    vehicles = {v.name: vehicle_summary(v, wall_s=wall_s) for v in loop.vehicles}
+    vehicles = {v.name: vehicle_summary(v, wall_s=wall_s, timing=timing) for v in loop.vehicles}
     for name, s in vehicles.items():
         final_gap = loop.sim.ground_truth().egos
         s["outcome"] = {

@@ -1,16 +1,41 @@
-"""Ground truth records and the reference driving state.
+"""Ground-truth records and the reference driving state.
 
-The reference state is what a perfect driver would decide from true distances:
+Records (all frozen; positions m, velocities m/s, angles rad, times ns of sim time):
 
-* ``STOP`` when the gap to the nearest obstacle ahead in the ego's lane is at most
-  ``stop_distance = v^2 / (2 * comfort_decel) + stop_margin`` (metres, v in m/s);
-* ``SLOW`` when the gap is at most ``stop_distance + slow_headway_s * v``, or the
-  time to collision ``gap / v`` is at most ``slow_ttc_s``;
-* ``SAFE`` otherwise.
+* ``EntityState`` — the per-entity state record: id, name, class, position,
+  velocity, heading, size, sim time.
+* ``EgoTruth`` — one ego's view: the nearest obstacle in its path, the gap to it
+  along the ego's route, closing speed, time to collision, reference state.
+* ``VisibleBox`` / ``CameraTruth`` — per camera frame: every entity seen, its 2D box
+  from the segmentation image (occlusion-aware), visible pixels and visible fraction,
+  distance along the ego's path.
+* ``Collision`` — a contact between two entities, at its onset.
+* ``GroundTruth`` — one instant: all of the above but the camera boxes.
+
+``StateChanges`` turns a stream of ``GroundTruth`` into the record stream: every
+entity's initial state once, then an update for each entity whose state changed.
+
+The reference state is what a perfect driver would decide from true distances and
+speeds. With ``v`` the ego's speed, ``u`` the obstacle's speed along the ego's path
+(0 for a standing one; never counted below 0) and ``gap`` the distance from the
+ego's front to the obstacle's nearest face along the ego's route (metres):
+
+* ``stop_distance = max(0, v^2 - u^2) / (2 * comfort_decel) + stop_margin``:
+  the room needed to match the obstacle's speed braking at ``comfort_decel``;
+* ``STOP`` when ``gap <= stop_distance``;
+* ``SLOW`` when ``gap <= stop_distance + slow_headway_s * v``, or the time to
+  collision ``gap / (v - u)`` (closing only) is at most ``slow_ttc_s``;
+* ``SAFE`` otherwise, and whenever the path ahead is clear.
+
+An obstacle is in the ego's path when its footprint comes within half the ego's
+width of the line the ego would drive along its route at its present offset from it
+(the route is the ego's lane; straight ahead when it has none). The thresholds come
+from the run config's ``truth`` section.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -25,26 +50,35 @@ class RefState(IntEnum):
 
 @dataclass(frozen=True)
 class RefStateRules:
+    """Thresholds of the reference state (see the module docstring)."""
+
     comfort_decel_mps2: float = 4.0
     stop_margin_m: float = 5.0
     slow_headway_s: float = 2.0
     slow_ttc_s: float = 4.0
 
-    def decide(self, *, gap_m: float | None, speed_mps: float) -> RefState:
+    def stop_distance_m(self, speed_mps: float, obstacle_speed_mps: float = 0.0) -> float:
+        u = max(0.0, obstacle_speed_mps)
+        return max(0.0, speed_mps * speed_mps - u * u) / (2 * self.comfort_decel_mps2) + self.stop_margin_m
+
+    def decide(self, *, gap_m: float | None, speed_mps: float, obstacle_speed_mps: float = 0.0) -> RefState:
         if gap_m is None:
             return RefState.SAFE
-        stop = speed_mps * speed_mps / (2 * self.comfort_decel_mps2) + self.stop_margin_m
+        v = max(0.0, speed_mps)
+        stop = self.stop_distance_m(v, obstacle_speed_mps)
         if gap_m <= stop:
             return RefState.STOP
-        ttc = gap_m / speed_mps if speed_mps > 1e-3 else float("inf")
-        if gap_m <= stop + self.slow_headway_s * speed_mps or ttc <= self.slow_ttc_s:
+        closing = v - max(0.0, obstacle_speed_mps)
+        ttc = gap_m / closing if closing > 1e-3 else math.inf
+        if gap_m <= stop + self.slow_headway_s * v or ttc <= self.slow_ttc_s:
             return RefState.SLOW
         return RefState.SAFE
 
 
 @dataclass(frozen=True)
 class EntityState:
-    """One entity at one instant: position (m), velocity (m/s), heading (rad)."""
+    """One entity at one instant: position (m), velocity (m/s), heading (rad), its
+    bounding box (length, width, height m), its id (index in the world) and class."""
 
     name: str
     cls: str
@@ -54,30 +88,103 @@ class EntityState:
     vy_mps: float
     heading_rad: float
     size_m: tuple[float, float, float]
+    entity_id: int = -1
+    sim_time_ns: int = 0
+
+    def key(self) -> tuple[float, ...]:
+        """What "changed" compares: position to 0.1 mm, velocity to 0.1 mm/s,
+        heading to 1e-5 rad."""
+        return (round(self.x_m, 4), round(self.y_m, 4), round(self.vx_mps, 4), round(self.vy_mps, 4),
+                round(self.heading_rad, 5))
+
+    def to_json(self) -> dict[str, object]:
+        return {"id": self.entity_id, "name": self.name, "cls": self.cls, "x_m": self.x_m, "y_m": self.y_m,
+                "vx_mps": self.vx_mps, "vy_mps": self.vy_mps, "heading_rad": self.heading_rad,
+                "size_m": list(self.size_m), "sim_time_ns": self.sim_time_ns}
 
 
 @dataclass(frozen=True)
 class Collision:
-    """A contact between two entities that began at ``sim_time_ns``; ``force_n`` is
-    the normal force at onset."""
+    """A contact between two entities that began at ``sim_time_ns``: ``force_n`` is
+    the normal force at onset, ``closing_speed_mps`` their approach speed along the
+    contact normal, ``striker`` the one that moved into the other faster (None when
+    neither did)."""
 
     sim_time_ns: int
     a: str
     b: str
     force_n: float
+    closing_speed_mps: float = 0.0
+    striker: str | None = None
+
+    def to_json(self) -> dict[str, object]:
+        return {"sim_time_ns": self.sim_time_ns, "a": self.a, "b": self.b, "force_n": self.force_n,
+                "closing_speed_mps": self.closing_speed_mps, "striker": self.striker}
 
 
 @dataclass(frozen=True)
 class EgoTruth:
     """Truth from one ego vehicle's point of view: the gap (m, front bumper to the
-    obstacle's nearest face, ``None`` when the lane ahead is clear), the obstacle's
-    name, and the reference driving state."""
+    obstacle's nearest face along the ego's route; ``None`` when its path is clear),
+    the obstacle's name and speed along the route, time to collision (s, ``None``
+    when not closing), and the reference driving state."""
 
     vehicle: str
     gap_m: float | None
     obstacle: str | None
     speed_mps: float
     ref_state: RefState
+    obstacle_speed_mps: float = 0.0
+    ttc_s: float | None = None
+
+    def to_json(self) -> dict[str, object]:
+        return {"vehicle": self.vehicle, "gap_m": self.gap_m, "obstacle": self.obstacle,
+                "speed_mps": self.speed_mps, "ref_state": self.ref_state.name,
+                "obstacle_speed_mps": self.obstacle_speed_mps, "ttc_s": self.ttc_s}
+
+
+@dataclass(frozen=True)
+class VisibleBox:
+    """One entity seen by one camera. ``box_px`` = (x0, y0, x1, y1), pixel edges
+    (x1, y1 exclusive) of its visible pixels; ``visible_px`` their count;
+    ``visible_fraction`` = visible pixels / pixels of its unoccluded silhouette in
+    the image (the convex hulls of its geoms' projected boxes, clipped to the
+    image); ``truncated`` when that silhouette runs past the image border.
+    ``path_s_m`` is the distance along the ego's route from the ego's front to the
+    entity's nearest face (negative: behind), ``path_lateral_m`` its offset from the
+    ego's driving line (positive: left)."""
+
+    entity: str
+    entity_id: int
+    cls: str
+    box_px: tuple[int, int, int, int]
+    visible_px: int
+    visible_fraction: float
+    truncated: bool
+    path_s_m: float
+    path_lateral_m: float
+
+    def to_json(self) -> dict[str, object]:
+        return {"entity": self.entity, "id": self.entity_id, "cls": self.cls, "box_px": list(self.box_px),
+                "visible_px": self.visible_px, "visible_fraction": self.visible_fraction,
+                "truncated": self.truncated, "path_s_m": self.path_s_m, "path_lateral_m": self.path_lateral_m}
+
+
+@dataclass(frozen=True)
+class CameraTruth:
+    """What one ego's camera shows at ``sim_time_ns``, and the ego's own truth."""
+
+    vehicle: str
+    sim_time_ns: int
+    boxes: tuple[VisibleBox, ...]
+    ego: EgoTruth
+
+    def box(self, entity: str) -> VisibleBox | None:
+        return next((b for b in self.boxes if b.entity == entity), None)
+
+    def to_json(self) -> dict[str, object]:
+        return {"vehicle": self.vehicle, "sim_time_ns": self.sim_time_ns,
+                "boxes": [b.to_json() for b in self.boxes], "ego": self.ego.to_json()}
 
 
 @dataclass(frozen=True)
@@ -86,3 +193,31 @@ class GroundTruth:
     entities: tuple[EntityState, ...]
     egos: tuple[EgoTruth, ...]
     collisions: tuple[Collision, ...]  # those that began since the previous record
+
+    def entity(self, name: str) -> EntityState:
+        return next(e for e in self.entities if e.name == name)
+
+    def ego(self, name: str) -> EgoTruth:
+        return next(e for e in self.egos if e.vehicle == name)
+
+
+class StateChanges:
+    """The per-entity record stream: ``changes(gt)`` returns every entity the first
+    time, then only those whose state changed since they were last returned."""
+
+    def __init__(self) -> None:
+        self._last: dict[str, tuple[float, ...]] = {}
+
+    @property
+    def seen(self) -> bool:
+        """True once ``changes`` has returned the initial states."""
+        return bool(self._last)
+
+    def changes(self, gt: GroundTruth) -> tuple[EntityState, ...]:
+        out = []
+        for e in gt.entities:
+            k = e.key()
+            if self._last.get(e.name) != k:
+                self._last[e.name] = k
+                out.append(e)
+        return tuple(out)

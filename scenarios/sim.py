@@ -1,4 +1,12 @@
-"""The MuJoCo simulation of a world: physics, actuators, cameras, ground truth.
+"""The MuJoCo simulation of a world: physics, actuators, scripted motion, cameras,
+ground truth.
+
+Each physics step: scripted entities (mocap bodies) are placed at their script's
+pose for the step's start time, every ego's actuators advance (``VehicleBank``),
+MuJoCo steps, and new contacts between entities become ``Collision`` records. At a
+camera tick the kinematics are brought up to the current instant (``mj_kinematics``
+after the step leaves them one step behind), so images and ground truth show the
+same sim time.
 
 Call ``scenarios.gl.select_backend()`` before this module is imported (it imports
 ``mujoco``, which fixes its OpenGL backend at import).
@@ -12,10 +20,15 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from scenarios.ground_truth import Collision, EgoTruth, EntityState, GroundTruth, RefStateRules
-from scenarios.vehicle import VehicleLimits, VehicleState, step_command
+from scenarios.ground_truth import (CameraTruth, Collision, EgoTruth, EntityState, GroundTruth, RefStateRules,
+                                    VisibleBox)
+from scenarios.render import SceneRenderer
+from scenarios.silhouette import silhouette_area
+from scenarios.vehicle import VehicleBank, VehicleLimits, VehicleState
 from scenarios.world import VehicleSpec, WorldSpec, build_mjcf, camera_name
 from timing.errors import SimulationError
+
+_CHUNK_STEPS = 500  # scripted poses are computed this many physics steps at a time
 
 
 @dataclass(frozen=True)
@@ -28,6 +41,44 @@ class Intrinsics:
     cy: float
 
 
+def _contiguous(idx: np.ndarray) -> bool:
+    """True when ``idx`` is start, start + 3, start + 6, ... (one row of an x, y, yaw layout)."""
+    return not len(idx) or bool(np.all(idx == idx[0] + 3 * np.arange(len(idx))))
+
+
+class _ScriptTable:
+    """Poses and velocities of every scripted entity, a block of steps at a time."""
+
+    def __init__(self, specs: list[VehicleSpec], step_ns: int) -> None:
+        self.specs = specs
+        self.step_ns = step_ns
+        self.first = -1
+        n = len(specs)
+        self.pos = np.zeros((0, n, 3))
+        self.quat = np.zeros((0, n, 4))
+        self.vel = np.zeros((0, n, 2))
+
+    def row(self, step: int) -> int:
+        if not (self.first <= step < self.first + len(self.pos)):
+            self._fill(step)
+        return step - self.first
+
+    def _fill(self, step: int) -> None:
+        n = len(self.specs)
+        steps = np.arange(step, step + _CHUNK_STEPS, dtype=np.int64)
+        t = steps * self.step_ns / 1e9
+        self.pos = np.zeros((_CHUNK_STEPS, n, 3))
+        self.quat = np.zeros((_CHUNK_STEPS, n, 4))
+        self.vel = np.zeros((_CHUNK_STEPS, n, 2))
+        for j, spec in enumerate(self.specs):
+            assert spec.script is not None
+            st = spec.script.state_at(t)
+            self.pos[:, j, 0], self.pos[:, j, 1] = st.x_m, st.y_m
+            self.quat[:, j, 0], self.quat[:, j, 3] = np.cos(st.heading_rad / 2), np.sin(st.heading_rad / 2)
+            self.vel[:, j, 0], self.vel[:, j, 1] = st.vx_mps, st.vy_mps
+        self.first = step
+
+
 class Simulation:
     """Owns the MuJoCo model, data and renderer of one world. A context manager;
     ``close()`` is idempotent and safe on a half-built object.
@@ -38,7 +89,7 @@ class Simulation:
 
     def __init__(self, world: WorldSpec, *, limits: VehicleLimits | None = None,
                  rules: RefStateRules | None = None) -> None:
-        self._renderer: mujoco.Renderer | None = None
+        self._renderer: SceneRenderer | None = None
         self.world = world
         self.limits = limits or VehicleLimits()
         self.rules = rules or RefStateRules()
@@ -46,28 +97,70 @@ class Simulation:
             self.model = mujoco.MjModel.from_xml_string(build_mjcf(world))
         except ValueError as err:
             raise SimulationError(f"scenario world does not compile: {err}") from err
-        self.data = mujoco.MjData(self.model)
+        m = self.model
+        self.data = mujoco.MjData(m)
         self.step_ns = round(world.physics_step_s * 1e9)
         self.steps = 0
-        self.egos: tuple[str, ...] = tuple(v.name for v in world.vehicles if v.ego)
         self._specs: dict[str, VehicleSpec] = {v.name: v for v in world.vehicles}
-        self._state: dict[str, VehicleState] = {}
-        self._qpos: dict[str, int] = {}
-        self._dof: dict[str, int] = {}
-        self._act: dict[str, int] = {}
-        for name in self.egos:
-            jx = self.model.joint(f"{name}/x")
-            self._qpos[name] = int(jx.qposadr[0])
-            self._dof[name] = int(jx.dofadr[0])
-            self._act[name] = int(self.model.actuator(f"{name}/x").id)
-            self._state[name] = VehicleState(speed_mps=self._specs[name].speed_mps)
-        self._body_of_geom = {
-            int(g): self.model.body(int(self.model.geom_bodyid[g])).name for g in range(self.model.ngeom)
-        }
+        self._entity_index = {v.name: i for i, v in enumerate(world.vehicles)}
+        self.egos: tuple[str, ...] = tuple(v.name for v in world.vehicles if v.ego)
+        self._ego_index = {name: i for i, name in enumerate(self.egos)}
+        self._bank = VehicleBank(self.limits, [self._specs[n].speed_mps for n in self.egos])
+        qx = [int(m.joint(f"{n}/x").qposadr[0]) for n in self.egos]
+        dx = [int(m.joint(f"{n}/x").dofadr[0]) for n in self.egos]
+        ax = [int(m.actuator(f"{n}/x").id) for n in self.egos]
+        self._qx, self._qy, self._qyaw = (np.array(qx, int), np.array(qx, int) + 1, np.array(qx, int) + 2)
+        self._dx, self._dy = np.array(dx, int), np.array(dx, int) + 1
+        self._ax, self._ay, self._ayaw = (np.array(ax, int), np.array(ax, int) + 1, np.array(ax, int) + 2)
+        self._x0 = np.array([self._specs[n].x_m for n in self.egos])
+        self._y0 = np.array([self._specs[n].y_m for n in self.egos])
+        self._routes = {n: self._specs[n].route_path() for n in self.egos}
+        scripted = [v for v in world.vehicles if v.script is not None]
+        self._scripted = {v.name: j for j, v in enumerate(scripted)}
+        self._mocap = np.array([int(m.body_mocapid[m.body(v.name).id]) for v in scripted], int)
+        self._table = _ScriptTable(scripted, self.step_ns)
+        self._body_entity = np.full(m.nbody, -1, np.int32)
+        for v in world.vehicles:
+            self._body_entity[m.body(v.name).id] = self._entity_index[v.name]
+        self._geom_entity = self._body_entity[m.geom_bodyid]
+        self._entity_geoms: list[list[int]] = [[] for _ in world.vehicles]
+        for g in range(m.ngeom):
+            if self._geom_entity[g] >= 0:
+                self._entity_geoms[int(self._geom_entity[g])].append(g)
+        self._cam_id = {n: int(m.camera(camera_name(n)).id) for n in self.egos}
         self._active_contacts: set[tuple[str, str]] = set()
         self._new_collisions: list[Collision] = []
-        self._set_initial_velocities()
-        mujoco.mj_forward(self.model, self.data)
+        self._kin_step = -1
+        n = len(world.vehicles)
+        # (x, y, yaw) rows of the egos' joints, velocities and servo set points as strided
+        # views (cheaper than index arrays every step): build_mjcf lays each ego's three
+        # joints and actuators out one after the other.
+        layout = ((self.data.qpos, (self._qx, self._qy, self._qyaw)),
+                  (self.data.qvel, (self._dx, self._dy, self._dx + 2)),
+                  (self.data.ctrl, (self._ax, self._ay, self._ayaw)))
+        if not all(_contiguous(idx) for _, idxs in layout for idx in idxs):
+            raise SimulationError("ego joints and actuators are not laid out as (x, y, yaw) triples")
+        self._views = tuple(tuple(arr[int(idx[0])::3][: len(idx)] for idx in idxs)
+                            for arr, idxs in layout) if self.egos else ()
+        self._ego_ids = np.array([self._entity_index[e] for e in self.egos], int)
+        self._scripted_ids = np.array([self._entity_index[v.name] for v in scripted], int)
+        self._static_states = np.array([[v.x_m, v.y_m, v.yaw_rad, 0.0, 0.0] for v in world.vehicles],
+                                       float).T.copy() if n else np.zeros((5, 0))
+        self._half_l = np.array([v.size_m[0] / 2 for v in world.vehicles])
+        self._half_w = np.array([v.size_m[1] / 2 for v in world.vehicles])
+        self._others = [np.array([j for j in range(n) if j != i], int) for i in range(n)]
+        self._states_step = -1
+        self._states_cache: tuple[np.ndarray, ...] | None = None
+        self._rgb: dict[str, np.ndarray] = {}
+        self._seg: np.ndarray | None = None
+        for i, name in enumerate(self.egos):  # start headings and speeds
+            yaw = self._specs[name].yaw_rad
+            self.data.qpos[self._qyaw[i]] = yaw
+            v = self._specs[name].speed_mps
+            self.data.qvel[self._dx[i]], self.data.qvel[self._dy[i]] = v * math.cos(yaw), v * math.sin(yaw)
+        self._place_scripted(0)
+        mujoco.mj_forward(m, self.data)
+        self._kin_step = 0
 
     # -- physics -------------------------------------------------------------
 
@@ -75,62 +168,111 @@ class Simulation:
     def sim_time_ns(self) -> int:
         return self.steps * self.step_ns
 
-    def _set_initial_velocities(self) -> None:
-        for name in self.egos:
-            v = self._state[name].speed_mps
-            yaw = self._specs[name].yaw_rad
-            dof = self._dof[name]
-            self.data.qvel[dof:dof + 2] = (v * math.cos(yaw), v * math.sin(yaw))
-
     def set_control(self, vehicle: str, *, steering_rad: float, throttle: float, brake: float) -> None:
         """Set the actuator commands of an ego vehicle (applied from the next step)."""
-        st = self._state[vehicle]
-        st.cmd_steer_rad, st.cmd_throttle, st.cmd_brake = steering_rad, throttle, brake
+        self._bank.set_command(self._ego_index[vehicle], steering_rad=steering_rad, throttle=throttle, brake=brake)
+
+    def vehicle_state(self, vehicle: str) -> VehicleState:
+        """An ego's actuator state (speed set point, steering angle, commands)."""
+        return self._bank.state(self._ego_index[vehicle])
+
+    def set_pose(self, vehicle: str, *, x_m: float, y_m: float, yaw_rad: float) -> None:
+        """Move an ego vehicle (for tests and set-ups); its speed is kept."""
+        i = self._ego_index[vehicle]
+        q = self.data.qpos
+        q[self._qx[i]], q[self._qy[i]], q[self._qyaw[i]] = x_m - self._x0[i], y_m - self._y0[i], yaw_rad
+        mujoco.mj_forward(self.model, self.data)
+        self._states_step = -1
 
     def pose(self, vehicle: str) -> tuple[float, float, float]:
-        """(x m, y m, yaw rad) of a vehicle in the world."""
-        if vehicle in self._qpos:
-            a = self._qpos[vehicle]
-            spec = self._specs[vehicle]
-            return (spec.x_m + float(self.data.qpos[a]), spec.y_m + float(self.data.qpos[a + 1]),
-                    spec.yaw_rad + float(self.data.qpos[a + 2]))
+        """(x m, y m, yaw rad) of an entity in the world."""
+        i = self._ego_index.get(vehicle)
+        if i is not None:
+            q = self.data.qpos
+            return (float(self._x0[i] + q[self._qx[i]]), float(self._y0[i] + q[self._qy[i]]),
+                    float(q[self._qyaw[i]]))
+        j = self._scripted.get(vehicle)
+        if j is not None:
+            r = self._table.row(self.steps)
+            qw, qz = self._table.quat[r, j, 0], self._table.quat[r, j, 3]
+            return (float(self._table.pos[r, j, 0]), float(self._table.pos[r, j, 1]),
+                    float(2 * math.atan2(qz, qw)))
         spec = self._specs[vehicle]
         return spec.x_m, spec.y_m, spec.yaw_rad
 
+    def velocity(self, vehicle: str) -> tuple[float, float]:
+        """(vx, vy) m/s of an entity in the world."""
+        i = self._ego_index.get(vehicle)
+        if i is not None:
+            return float(self.data.qvel[self._dx[i]]), float(self.data.qvel[self._dy[i]])
+        j = self._scripted.get(vehicle)
+        if j is not None:
+            r = self._table.row(self.steps)
+            return float(self._table.vel[r, j, 0]), float(self._table.vel[r, j, 1])
+        return 0.0, 0.0
+
     def speed_mps(self, vehicle: str) -> float:
         """Forward speed (m/s) as the simulator has it."""
-        if vehicle not in self._dof:
-            return 0.0
-        d = self._dof[vehicle]
+        vx, vy = self.velocity(vehicle)
         yaw = self.pose(vehicle)[2]
-        return float(self.data.qvel[d] * math.cos(yaw) + self.data.qvel[d + 1] * math.sin(yaw))
+        return vx * math.cos(yaw) + vy * math.sin(yaw)
 
     def step(self) -> None:
         """Advance physics by one step (``world.physics_step_s``)."""
-        dt = self.world.physics_step_s
-        for name in self.egos:
-            speed, yaw_rate = step_command(self._state[name], self.limits,
-                                           measured_speed_mps=self.speed_mps(name), dt_s=dt)
-            yaw = self.pose(name)[2]
-            a = self._act[name]
-            self.data.ctrl[a:a + 3] = (speed * math.cos(yaw), speed * math.sin(yaw), yaw_rate)
-        mujoco.mj_step(self.model, self.data)
+        d = self.data
+        if len(self._mocap):
+            self._place_scripted(self.steps)
+        if self.egos:
+            qpos, qvel, ctrl = self._views
+            yaw = qpos[2]
+            c, s = np.cos(yaw), np.sin(yaw)
+            measured = qvel[0] * c
+            measured += qvel[1] * s
+            speed, yaw_rate = self._bank.step(measured, self.world.physics_step_s)
+            np.multiply(speed, c, out=ctrl[0])
+            np.multiply(speed, s, out=ctrl[1])
+            ctrl[2][:] = yaw_rate
+        mujoco.mj_step(self.model, d)
+        if d.ncon or self._active_contacts:
+            self._scan_contacts()
         self.steps += 1
-        self._scan_contacts()
+
+    def _place_scripted(self, step: int) -> None:
+        if len(self._mocap):
+            r = self._table.row(step)
+            self.data.mocap_pos[self._mocap] = self._table.pos[r]
+            self.data.mocap_quat[self._mocap] = self._table.quat[r]
+
+    def _sync_kinematics(self) -> None:
+        """Bring body, geom and camera poses to the present step (rendering and truth)."""
+        if self._kin_step != self.steps:
+            self._place_scripted(self.steps)
+            mujoco.mj_kinematics(self.model, self.data)
+            mujoco.mj_camlight(self.model, self.data)
+            self._kin_step = self.steps
 
     def _scan_contacts(self) -> None:
         now: set[tuple[str, str]] = set()
-        force = np.zeros(6)
+        names = [v.name for v in self.world.vehicles]
         for i in range(self.data.ncon):
             c = self.data.contact[i]
-            a = self._body_of_geom[int(c.geom1)]
-            b = self._body_of_geom[int(c.geom2)]
-            if a == b or a == "world" or b == "world":
+            ea, eb = int(self._geom_entity[c.geom1]), int(self._geom_entity[c.geom2])
+            if ea < 0 or eb < 0 or ea == eb:
                 continue
+            a, b = names[ea], names[eb]
             pair = (a, b) if a < b else (b, a)
             if pair not in self._active_contacts and pair not in now:
+                force = np.zeros(6)
                 mujoco.mj_contactForce(self.model, self.data, i, force)
-                self._new_collisions.append(Collision(self.sim_time_ns, pair[0], pair[1], float(abs(force[0]))))
+                n = c.frame[:3]  # from geom1 towards geom2
+                va, vb = self.velocity(a), self.velocity(b)
+                into_a = va[0] * n[0] + va[1] * n[1]      # a moving towards b
+                into_b = -(vb[0] * n[0] + vb[1] * n[1])   # b moving towards a
+                striker = None
+                if max(into_a, into_b) > 0.1:
+                    striker = a if into_a >= into_b else b
+                self._new_collisions.append(Collision(self.sim_time_ns, pair[0], pair[1], float(abs(force[0])),
+                                                      round(float(into_a + into_b), 4), striker))
             now.add(pair)
         self._active_contacts = now
 
@@ -142,61 +284,156 @@ class Simulation:
         return Intrinsics(fx=fy, fy=fy, cx=cam.width / 2, cy=cam.height / 2)
 
     def open_renderer(self) -> None:
+        """Start the renderer (once; ``render`` starts it when needed).
+
+        Raises:
+            SimulationError: OpenGL cannot start.
+        """
+        if self._renderer is not None:
+            return
         cam = self.world.camera
-        try:
-            self._renderer = mujoco.Renderer(self.model, cam.height, cam.width)
-        except Exception as err:  # mujoco raises bare RuntimeError/ImportError here
-            raise SimulationError(f"cannot start the MuJoCo renderer: {err}") from err
-        flags = self._renderer.scene.flags
-        flags[mujoco.mjtRndFlag.mjRND_SHADOW] = self.world.shadows
-        flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = self.world.reflections
-        self._buffers = {n: np.empty((cam.height, cam.width, 3), np.uint8) for n in self.egos}
+        self._renderer = SceneRenderer(self.model, width=cam.width, height=cam.height, shadows=self.world.shadows,
+                                       reflections=self.world.reflections, geom_entity=self._geom_entity)
+        self._rgb = {n: np.empty((cam.height, cam.width, 3), np.uint8) for n in self.egos}
+        self._seg = np.empty((cam.height, cam.width), np.int32)
 
     def render(self, vehicle: str) -> np.ndarray:
         """RGB8 image (height x width x 3) of ``vehicle``'s camera; the array is
         reused by the next render of the same camera."""
-        if self._renderer is None:
-            self.open_renderer()
+        self.open_renderer()
         assert self._renderer is not None
-        self._renderer.update_scene(self.data, camera=camera_name(vehicle))
-        return self._renderer.render(out=self._buffers[vehicle])
+        self._sync_kinematics()
+        return self._renderer.rgb(self.data, self._cam_id[vehicle], self._rgb[vehicle])
+
+    def segmentation(self, vehicle: str) -> np.ndarray:
+        """Entity id of each pixel of ``vehicle``'s camera (-1: road, sky, verge); the
+        array is reused by the next call."""
+        self.open_renderer()
+        assert self._renderer is not None and self._seg is not None
+        self._sync_kinematics()
+        return self._renderer.segment(self.data, self._cam_id[vehicle], self._seg)
+
+    def camera_truth(self, vehicle: str, *, min_visible_px: int = 1) -> CameraTruth:
+        """Every entity ``vehicle``'s camera shows now, from a segmentation render:
+        its box, visible pixels and fraction, and distance along the ego's route."""
+        seg = self.segmentation(vehicle)
+        n = len(self.world.vehicles)
+        counts = np.bincount(seg.ravel() + 1, minlength=n + 1)[1:]
+        me = self._entity_index[vehicle]
+        seen = [e for e in np.flatnonzero(counts >= min_visible_px).tolist() if e != me]
+        ego = self._ego_truth(vehicle)
+        if not seen:
+            return CameraTruth(vehicle, self.sim_time_ns, (), ego)
+        s_m, lat_m = self._path_coords(vehicle, seen)
+        cam = self._cam_id[vehicle]
+        intr = self.intrinsics()
+        w, h = self.world.camera.width, self.world.camera.height
+        boxes = []
+        for k, e in enumerate(seen):
+            mask = seg == e
+            rows = np.flatnonzero(mask.any(axis=1))
+            cols = np.flatnonzero(mask.any(axis=0))
+            area, truncated = 0.0, False
+            for g in self._entity_geoms[e]:
+                a, t = silhouette_area(self.data.geom_xpos[g], self.data.geom_xmat[g].reshape(3, 3),
+                                       self.model.geom_size[g], self.data.cam_xpos[cam],
+                                       self.data.cam_xmat[cam].reshape(3, 3), intr.fx, intr.fy, intr.cx, intr.cy,
+                                       w, h)
+                area += a
+                truncated = truncated or t
+            vis = int(counts[e])
+            spec = self.world.vehicles[e]
+            boxes.append(VisibleBox(spec.name, e, spec.cls.value,
+                                    (int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1), vis,
+                                    round(min(1.0, vis / area) if area > 0 else 1.0, 4), truncated,
+                                    round(float(s_m[k]), 4), round(float(lat_m[k]), 4)))
+        return CameraTruth(vehicle, self.sim_time_ns, tuple(boxes), ego)
 
     # -- ground truth --------------------------------------------------------
 
+    def _states(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(x, y, heading, vx, vy) of every entity at the present step (cached per step)."""
+        if self._states_step == self.steps and self._states_cache is not None:
+            return self._states_cache
+        n = len(self.world.vehicles)
+        st = self._static_states.copy() if n else np.zeros((5, 0))
+        if self.egos:
+            q, qv = self.data.qpos, self.data.qvel
+            st[0, self._ego_ids] = self._x0 + q[self._qx]
+            st[1, self._ego_ids] = self._y0 + q[self._qy]
+            st[2, self._ego_ids] = q[self._qyaw]
+            st[3, self._ego_ids] = qv[self._dx]
+            st[4, self._ego_ids] = qv[self._dy]
+        if len(self._scripted_ids):
+            r = self._table.row(self.steps)
+            st[0, self._scripted_ids] = self._table.pos[r, :, 0]
+            st[1, self._scripted_ids] = self._table.pos[r, :, 1]
+            st[2, self._scripted_ids] = 2 * np.arctan2(self._table.quat[r, :, 3], self._table.quat[r, :, 0])
+            st[3, self._scripted_ids] = self._table.vel[r, :, 0]
+            st[4, self._scripted_ids] = self._table.vel[r, :, 1]
+        self._states_cache = (st[0], st[1], st[2], st[3], st[4])
+        self._states_step = self.steps
+        return self._states_cache
+
     def ground_truth(self) -> GroundTruth:
-        ents = []
-        for v in self.world.vehicles:
-            x, y, yaw = self.pose(v.name)
-            if v.name in self._dof:
-                d = self._dof[v.name]
-                vx, vy = float(self.data.qvel[d]), float(self.data.qvel[d + 1])
-            else:
-                vx = vy = 0.0
-            ents.append(EntityState(v.name, "vehicle", x, y, vx, vy, yaw, v.size_m))
+        """Every entity's state, every ego's truth, and the collisions that began
+        since the previous call."""
+        self._sync_kinematics()
+        t = self.sim_time_ns
+        xs, ys, hs, vxs, vys = (a.tolist() for a in self._states())
+        ents = tuple(EntityState(v.name, v.cls.value, xs[i], ys[i], vxs[i], vys[i], hs[i], v.size_m, i, t)
+                     for i, v in enumerate(self.world.vehicles))
         egos = tuple(self._ego_truth(name) for name in self.egos)
         collisions, self._new_collisions = tuple(self._new_collisions), []
-        return GroundTruth(self.sim_time_ns, tuple(ents), egos, collisions)
+        return GroundTruth(t, ents, egos, collisions)
+
+    def _path_coords(self, vehicle: str, entities: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """(distance along the ego's route from its front to each entity's nearest
+        face, lateral offset of each from the ego's driving line) in metres."""
+        s, lat, _, _, _ = self._route_geometry(vehicle, np.asarray(entities, int))
+        return s, lat
+
+    def _route_geometry(self, vehicle: str, idx: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per entity in ``idx``: gap along the route (front bumper to nearest face),
+        lateral offset from the ego's line, half-extent across the route, speed
+        along the route, and centre-to-centre distance along the route."""
+        xs, ys, hs, vxs, vys = self._states()
+        route = self._routes[vehicle]
+        me = self._entity_index[vehicle]
+        px = np.append(xs[idx], xs[me])
+        py = np.append(ys[idx], ys[me])
+        ps, pl = route.project(px, py)
+        os_, ol, es, el = ps[:-1], pl[:-1], ps[-1], pl[-1]
+        _, _, rh = route.pose_at(os_)
+        dh = hs[idx] - rh
+        half_l, half_w = self._half_l[idx], self._half_w[idx]
+        c, s = np.abs(np.cos(dh)), np.abs(np.sin(dh))
+        along = half_l * c + half_w * s
+        across = half_l * s + half_w * c
+        gap = (os_ - es) - self._half_l[me] - along
+        speed_along = vxs[idx] * np.cos(rh) + vys[idx] * np.sin(rh)
+        return gap, ol - el, across, speed_along, os_ - es
 
     def _ego_truth(self, name: str) -> EgoTruth:
-        ex, ey, eyaw = self.pose(name)
-        spec = self._specs[name]
-        c, s = math.cos(eyaw), math.sin(eyaw)
-        best: tuple[float, str] | None = None
-        for other in self.world.vehicles:
-            if other.name == name:
-                continue
-            ox, oy, _ = self.pose(other.name)
-            fwd = (ox - ex) * c + (oy - ey) * s
-            lat = -(ox - ex) * s + (oy - ey) * c
-            if fwd <= 0 or abs(lat) > (spec.size_m[1] + other.size_m[1]) / 2:
-                continue
-            gap = fwd - spec.size_m[0] / 2 - other.size_m[0] / 2
-            if best is None or gap < best[0]:
-                best = (gap, other.name)
         speed = self.speed_mps(name)
-        gap_m = max(0.0, best[0]) if best else None
-        return EgoTruth(name, gap_m, best[1] if best else None, speed,
-                        self.rules.decide(gap_m=gap_m, speed_mps=speed))
+        me = self._entity_index[name]
+        others = self._others[me]
+        best: tuple[float, int, float] | None = None
+        if len(others):
+            gap, lat, across, u, ds = self._route_geometry(name, others)
+            ahead = np.flatnonzero((ds > 0) & (np.abs(lat) < self._half_w[me] + across))
+            if len(ahead):
+                k = int(ahead[np.argmin(gap[ahead])])
+                best = (max(0.0, float(gap[k])), int(others[k]), float(u[k]))
+        if best is None:
+            return EgoTruth(name, None, None, speed, self.rules.decide(gap_m=None, speed_mps=speed))
+        gap_m, e, u = best
+        closing = speed - max(0.0, u)
+        ttc = gap_m / closing if closing > 1e-3 else None
+        return EgoTruth(name, gap_m, self.world.vehicles[e].name, speed,
+                        self.rules.decide(gap_m=gap_m, speed_mps=speed, obstacle_speed_mps=u), round(u, 4),
+                        None if ttc is None else round(ttc, 4))
 
     # -- lifetime ------------------------------------------------------------
 

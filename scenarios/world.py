@@ -1,15 +1,46 @@
-"""World building: a scenario's road and vehicles as an MJCF string.
+"""World building: a scenario's roads and entities as an MJCF string.
 
-Coordinates: world x along the road, y to the left, z up; metres and radians.
-Vehicles drive towards +x; the right lane's centre is at ``y = -lane_width/2``.
-No MuJoCo import here: this module only writes XML, so it is cheap to test.
+Coordinates: world x east, y north (left of a car heading +x), z up; metres and
+radians. No MuJoCo import here: this module only writes XML, so it is cheap to test.
+
+Entities come in three kinds:
+
+* ego vehicles (``ego=True``): planar joints (x, y, yaw) driven by velocity servos,
+  a camera each, an AI target each;
+* scripted entities (``script`` set): MuJoCo mocap bodies that the simulation moves
+  every physics step along their ``Script`` (NPC cars, pedestrians); egos collide
+  with them;
+* static entities (neither): parked cars and obstacles, welded to the world.
+
+An entity's id is its index in ``WorldSpec.vehicles``; an ego's vehicle id (on the
+wire) is its index among the egos.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import Enum
+
+from scenarios.motion import Script
+from scenarios.path import Path
+from scenarios.road import GRASS_RGBA, MARKING_RGBA, ROAD_GROUP, ROAD_RGBA, RoadSpec, road_xml
+
+ENTITY_GROUP = 0
+EGO_RGBA = (0.1, 0.25, 0.8, 1.0)
+NPC_RGBA = (0.8, 0.1, 0.1, 1.0)
+# Saturated paints a colour-based detector can tell from verge, sky and road (no
+# green, cyan or blue hues): red, orange, yellow, magenta, purple, crimson, amber, pink.
+PAINTS: tuple[tuple[float, float, float, float], ...] = (
+    (0.8, 0.1, 0.1, 1.0), (0.95, 0.45, 0.05, 1.0), (0.9, 0.8, 0.1, 1.0), (0.8, 0.1, 0.7, 1.0),
+    (0.5, 0.15, 0.8, 1.0), (0.7, 0.05, 0.3, 1.0), (0.95, 0.65, 0.1, 1.0), (0.95, 0.35, 0.55, 1.0),
+)
+JACKET_RGBA = (1.0, 0.55, 0.0, 1.0)  # a pedestrian's high-visibility orange
+TROUSERS_RGBA = (0.25, 0.25, 0.27, 1.0)
+SKIN_RGBA = (0.85, 0.68, 0.55, 1.0)
+VEHICLE_SIZE_M = (4.5, 1.8, 1.4)
+PEDESTRIAN_SIZE_M = (0.45, 0.55, 1.75)
+CLEARANCE_M = 0.1  # vehicle underside above the road
 
 
 class EntityClass(str, Enum):
@@ -20,27 +51,63 @@ class EntityClass(str, Enum):
 
 @dataclass(frozen=True)
 class VehicleSpec:
-    """One vehicle in the world.
+    """One entity of the world (a vehicle, a pedestrian or an obstacle).
 
-    ``ego`` vehicles carry a camera and are driven by an AI target; others are static
-    (or scripted, later). Size is length x width x height in metres; ``speed_mps`` is
-    the initial forward speed.
+    Size is length x width x height in metres (its bounding box); ``speed_mps`` the
+    initial forward speed of an ego. A scripted entity takes its start pose and
+    speed from its script. ``route`` is the path an ego means to follow (its lane):
+    ground truth measures distances along it; default: straight ahead.
+    ``rgba`` defaults to blue for egos and red for the others.
     """
 
     name: str
-    x_m: float
-    y_m: float
+    x_m: float = 0.0
+    y_m: float = 0.0
     yaw_rad: float = 0.0
     ego: bool = False
     speed_mps: float = 0.0
-    rgba: tuple[float, float, float, float] = (0.8, 0.1, 0.1, 1.0)
-    size_m: tuple[float, float, float] = (4.5, 1.8, 1.4)
+    rgba: tuple[float, float, float, float] | None = None
+    size_m: tuple[float, float, float] = VEHICLE_SIZE_M
+    cls: EntityClass = EntityClass.VEHICLE
+    script: Script | None = None
+    route: Path | None = None
+
+    def __post_init__(self) -> None:
+        if self.ego and self.script is not None:
+            raise ValueError(f"{self.name}: an ego is driven by its target, it cannot have a script")
+        if self.script is not None:
+            x, y, h = self.script.pose0()
+            object.__setattr__(self, "x_m", x)
+            object.__setattr__(self, "y_m", y)
+            object.__setattr__(self, "yaw_rad", h)
+            object.__setattr__(self, "speed_mps", float(self.script.speed.initial_mps))
+
+    @property
+    def paint(self) -> tuple[float, float, float, float]:
+        if self.rgba is not None:
+            return self.rgba
+        return EGO_RGBA if self.ego else NPC_RGBA
+
+    def route_path(self) -> Path:
+        """The ego's intended path (straight ahead from its start pose by default)."""
+        if self.route is not None:
+            return self.route
+        return Path.straight(self.x_m, self.y_m, self.yaw_rad, 5000.0)
+
+
+EntitySpec = VehicleSpec
+
+
+def pedestrian(name: str, script: Script, *, rgba: tuple[float, float, float, float] = JACKET_RGBA) -> VehicleSpec:
+    """A scripted pedestrian: grey trousers, a jacket of ``rgba``, a head."""
+    return VehicleSpec(name, rgba=rgba, size_m=PEDESTRIAN_SIZE_M, cls=EntityClass.PEDESTRIAN, script=script)
 
 
 @dataclass(frozen=True)
 class CameraSpec:
-    """Camera mounted on each ego vehicle: vertical field of view (deg), mount
-    position from the vehicle centre (m) and pitch (rad, positive looks down)."""
+    """Camera mounted on each ego vehicle: image size (px), vertical field of view
+    (deg), mount position from the vehicle centre (m: forward, left, up), pitch (rad,
+    positive looks down) and yaw (rad, positive looks left)."""
 
     width: int = 320
     height: int = 240
@@ -48,38 +115,33 @@ class CameraSpec:
     mount_forward_m: float = 2.3
     mount_height_m: float = 1.3
     pitch_rad: float = 0.0
-
-
-@dataclass(frozen=True)
-class RoadSpec:
-    length_m: float = 400.0
-    lanes: int = 2
-    lane_width_m: float = 3.7
-    marking_width_m: float = 0.15
-    dash_m: float = 3.0
-    gap_m: float = 6.0
-    start_x_m: float = -20.0
+    mount_lateral_m: float = 0.0
+    yaw_rad: float = 0.0
 
 
 @dataclass(frozen=True)
 class WorldSpec:
-    road: RoadSpec
+    """Everything a simulation needs. ``realized`` records the values a scenario drew
+    from its seed (jittered speeds, timings), for the run's metadata.
+
+    Raises:
+        ConfigError: two entities overlap at their start poses, or names repeat.
+    """
+
+    roads: tuple[RoadSpec, ...]
     vehicles: tuple[VehicleSpec, ...]
     camera: CameraSpec
     physics_step_s: float = 0.002
     reflections: bool = False
     shadows: bool = False
+    realized: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         _check_no_overlap(self.vehicles)
 
-
-# Colours chosen so a classical detector can separate them: grey road, green verge,
-# white markings, blue sky, saturated vehicle paint.
-ROAD_RGBA = "0.32 0.32 0.34 1"
-GRASS_RGBA = "0.25 0.45 0.2 1"
-MARKING_RGBA = "0.95 0.95 0.95 1"
-EGO_RGBA = (0.1, 0.25, 0.8, 1.0)
+    @property
+    def egos(self) -> tuple[VehicleSpec, ...]:
+        return tuple(v for v in self.vehicles if v.ego)
 
 
 def _check_no_overlap(vehicles: tuple[VehicleSpec, ...]) -> None:
@@ -127,13 +189,11 @@ def camera_name(vehicle: str) -> str:
 
 def build_mjcf(world: WorldSpec) -> str:
     """Return the MJCF XML of ``world``."""
-    road = world.road
-    half_w = road.lanes * road.lane_width_m / 2
-    cx = road.start_x_m + road.length_m / 2
     cam = world.camera
     reflect = "0.2" if world.reflections else "0"
     parts: list[str] = [
         '<mujoco model="hil_world">',
+        '  <compiler angle="radian"/>',  # every euler in this file is radians (fovy stays degrees)
         f'  <option timestep="{world.physics_step_s:.9g}" integrator="implicitfast" gravity="0 0 -9.81"/>',
         "  <visual>",
         f'    <global offwidth="{max(640, cam.width)}" offheight="{max(480, cam.height)}"/>',
@@ -151,33 +211,17 @@ def build_mjcf(world: WorldSpec) -> str:
         "  </asset>",
         "  <worldbody>",
         f'    <light name="sun" directional="true" pos="0 0 50" dir="0.3 0.2 -1" castshadow="{str(world.shadows).lower()}" diffuse="0.5 0.5 0.5"/>',
-        '    <geom name="ground" type="plane" size="2000 2000 1" material="grass" contype="0" conaffinity="0"/>',
-        f'    <geom name="road" type="box" pos="{cx:.3f} 0 0.005" size="{road.length_m / 2:.3f} {half_w + 0.5:.3f} 0.005" material="road" contype="0" conaffinity="0"/>',
+        f'    <geom name="ground" type="plane" size="3000 3000 1" material="grass" group="{ROAD_GROUP}" contype="0" conaffinity="0"/>',
     ]
-    mw = road.marking_width_m / 2
-    # Solid edge lines, dashed lines between lanes.
-    for side, y in (("left", half_w), ("right", -half_w)):
-        parts.append(
-            f'    <geom name="edge_{side}" type="box" pos="{cx:.3f} {y:.3f} 0.011" '
-            f'size="{road.length_m / 2:.3f} {mw:.3f} 0.001" material="marking" contype="0" conaffinity="0"/>'
-        )
-    period = road.dash_m + road.gap_m
-    n_dash = int(road.length_m // period)
-    for lane in range(1, road.lanes):
-        y = -half_w + lane * road.lane_width_m
-        for k in range(n_dash):
-            x = road.start_x_m + k * period + road.dash_m / 2
-            parts.append(
-                f'    <geom name="dash_{lane}_{k}" type="box" pos="{x:.3f} {y:.3f} 0.011" '
-                f'size="{road.dash_m / 2:.3f} {mw:.3f} 0.001" material="marking" contype="0" conaffinity="0"/>'
-            )
+    for road in world.roads:
+        parts.extend(road_xml(road))
     for v in world.vehicles:
-        parts.extend(_vehicle_xml(v, cam))
+        parts.extend(_entity_xml(v, cam))
     parts.append("  </worldbody>")
-    actuators = [v for v in world.vehicles if v.ego]
-    if actuators:
+    egos = world.egos
+    if egos:
         parts.append("  <actuator>")
-        for v in actuators:
+        for v in egos:
             # Velocity servos track the bicycle model's commanded planar velocity;
             # their force limits let a collision really stop the car.
             for j in ("x", "y", "yaw"):
@@ -192,26 +236,46 @@ def build_mjcf(world: WorldSpec) -> str:
     return "\n".join(parts) + "\n"
 
 
-def _vehicle_xml(v: VehicleSpec, cam: CameraSpec) -> list[str]:
+def _rgba(c: tuple[float, ...]) -> str:
+    return " ".join(f"{v:.3g}" for v in c)
+
+
+def _entity_xml(v: VehicleSpec, cam: CameraSpec) -> list[str]:
     length, width, height = v.size_m
-    rgba = " ".join(f"{c:.3g}" for c in (EGO_RGBA if v.ego else v.rgba))
-    body = [f'    <body name="{v.name}" pos="{v.x_m:.4f} {v.y_m:.4f} 0" euler="0 0 {v.yaw_rad:.6f}">']
     if v.ego:
-        body += [
-            f'      <joint name="{v.name}/x" type="slide" axis="1 0 0" damping="0"/>',
-            f'      <joint name="{v.name}/y" type="slide" axis="0 1 0" damping="0"/>',
-            f'      <joint name="{v.name}/yaw" type="hinge" axis="0 0 1" damping="0"/>',
-        ]
-    # Body from 0.1 m (ground clearance) to the roof.
-    body.append(
-        f'      <geom name="{v.name}/body" type="box" pos="0 0 {0.1 + height / 2:.3f}" '
-        f'size="{length / 2:.3f} {width / 2:.3f} {height / 2:.3f}" rgba="{rgba}" mass="1500"/>'
-    )
+        # Unrotated body with world-axis slide joints; the sim sets the yaw joint to
+        # the start heading, so qpos is (dx, dy, yaw) in world axes for any heading.
+        body = [f'    <body name="{v.name}" pos="{v.x_m:.4f} {v.y_m:.4f} 0">',
+                f'      <joint name="{v.name}/x" type="slide" axis="1 0 0" damping="0"/>',
+                f'      <joint name="{v.name}/y" type="slide" axis="0 1 0" damping="0"/>',
+                f'      <joint name="{v.name}/yaw" type="hinge" axis="0 0 1" damping="0"/>']
+    else:
+        mocap = ' mocap="true"' if v.script is not None else ""
+        body = [f'    <body name="{v.name}" pos="{v.x_m:.4f} {v.y_m:.4f} 0" euler="0 0 {v.yaw_rad:.6f}"{mocap}>']
+    g = f'group="{ENTITY_GROUP}"'
+    if v.cls == EntityClass.PEDESTRIAN:
+        legs, torso = 0.9 / 1.75 * height, 0.6 / 1.75 * height
+        head = height - legs - torso
+        for part, z0, dz, rgba, scale in (("legs", 0.0, legs, TROUSERS_RGBA, 0.8), ("torso", legs, torso, v.paint, 1.0),
+                                          ("head", legs + torso, head, SKIN_RGBA, 0.45)):
+            body.append(
+                f'      <geom name="{v.name}/{part}" type="box" pos="0 0 {z0 + dz / 2:.3f}" '
+                f'size="{length * scale / 2:.3f} {width * scale / 2:.3f} {dz / 2:.3f}" rgba="{_rgba(rgba)}" '
+                f'mass="20" {g}/>'
+            )
+    else:
+        bottom = CLEARANCE_M if v.cls == EntityClass.VEHICLE else 0.0
+        body.append(
+            f'      <geom name="{v.name}/body" type="box" pos="0 0 {bottom + height / 2:.3f}" '
+            f'size="{length / 2:.3f} {width / 2:.3f} {height / 2:.3f}" rgba="{_rgba(v.paint)}" mass="1500" {g}/>'
+        )
     if v.ego:
         s, c = math.sin(cam.pitch_rad), math.cos(cam.pitch_rad)
+        sy, cy = math.sin(cam.yaw_rad), math.cos(cam.yaw_rad)
         body.append(
-            f'      <camera name="{camera_name(v.name)}" pos="{cam.mount_forward_m:.3f} 0 {cam.mount_height_m:.3f}" '
-            f'xyaxes="0 -1 0 {s:.6f} 0 {c:.6f}" fovy="{cam.fovy_deg:.4f}"/>'
+            f'      <camera name="{camera_name(v.name)}" pos="{cam.mount_forward_m:.3f} {cam.mount_lateral_m:.3f} '
+            f'{cam.mount_height_m:.3f}" xyaxes="{sy:.6f} {-cy:.6f} 0 {s * cy:.6f} {s * sy:.6f} {c:.6f}" '
+            f'fovy="{cam.fovy_deg:.4f}"/>'
         )
     body.append("    </body>")
     return body

@@ -13,6 +13,7 @@ import time
 from collections.abc import Sequence
 
 from adapters.messages import Control, DrivingState, Frame, Inference
+from timing.clock import Clock, MonotonicClock, OffsetClock
 
 
 class Echo:
@@ -39,6 +40,35 @@ class Echo:
         return self.result
 
 
+class _AbsurdClock:
+    """A broken target clock, for tests of what the harness does with absurd
+    timestamps: ``zero`` always reads 0, ``future`` jumps ~12 days ahead on every
+    7th reading (a constant far offset would only be another epoch), and
+    ``backwards`` runs backwards."""
+
+    def __init__(self, mode: str) -> None:
+        self.mode = mode
+        self._start = time.monotonic_ns()
+        self._reads = 0
+
+    def now_ns(self) -> int:
+        now = time.monotonic_ns()
+        self._reads += 1
+        if self.mode == "zero":
+            return 0
+        if self.mode == "future":
+            return now + 10**15 if self._reads % 7 == 0 else now
+        return self._start - (now - self._start)
+
+
+def _clock(a: argparse.Namespace) -> Clock:
+    if a.bad_stamps:
+        return _AbsurdClock(a.bad_stamps)
+    if a.clock_offset_s or a.clock_skew_ppm:
+        return OffsetClock(MonotonicClock(), offset_ns=int(a.clock_offset_s * 1e9), skew_ppm=a.clock_skew_ppm)
+    return MonotonicClock()
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m targets.echo", description=__doc__.splitlines()[0])
     p.add_argument("--infer-ms", type=float, default=0.0, help="busy time per frame (ms)")
@@ -47,12 +77,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--name", default="echo")
     p.add_argument("--exit-after-frames", type=int, default=None,
                    help="crash (exit 3) on the frame after this many: for failure tests")
+    p.add_argument("--clock-offset-s", type=float, default=0.0,
+                   help="stamp with a clock this far ahead of the host's (s): a target on another clock")
+    p.add_argument("--clock-skew-ppm", type=float, default=0.0, help="... running this much fast (ppm)")
+    p.add_argument("--bad-stamps", choices=("zero", "future", "backwards"), default=None,
+                   help="stamp with a broken clock: for tests of absurd timestamps")
     from adapters.sdk import add_transport_args, serve, transport_options
 
     add_transport_args(p)
     a = p.parse_args(argv)
     echo = Echo(infer_ms=a.infer_ms, throttle=a.throttle, brake=a.brake, exit_after_frames=a.exit_after_frames)
-    serve(echo.infer, target_name=a.name, transport=a.transport, **transport_options(a))
+    serve(echo.infer, target_name=a.name, transport=a.transport, clock=_clock(a), **transport_options(a))
     return 0
 
 

@@ -98,12 +98,14 @@ class SyncConfig:
 
 @dataclass(frozen=True)
 class SyncSample:
-    """One 4-timestamp exchange, integer ns (``t2``/``t3`` on the target clock)."""
+    """One 4-timestamp exchange, integer ns (``t2``/``t3`` on the target clock);
+    ``seq`` is the exchange's sequence number on the wire."""
 
     t1_ns: int
     t2_target_ns: int
     t3_target_ns: int
     t4_ns: int
+    seq: int = 0
 
     @property
     def offset_ns(self) -> float:

@@ -1,0 +1,71 @@
+"""Transport options of the ``target:`` section.
+
+Endpoints, commands and arguments may contain ``{vehicle_id}`` (the vehicle's index)
+and ``{port}`` (``zenoh.base_port + vehicle_id``), so one config drives one target
+per vehicle::
+
+    target:
+      transport: zenoh
+      command: ["{python}", "-m", "targets.cv_baseline", "--transport", "zenoh",
+                "--listen", "tcp/127.0.0.1:{port}", "--vehicle", "{vehicle_id}"]
+      zenoh: {connect: ["tcp/127.0.0.1:{port}"]}
+
+For ``zenoh`` and ``can`` the ``command`` is optional: empty means the target runs
+elsewhere (a board on the bench); given, the harness also starts it locally (a
+loopback test or a simulated device) and ends it after the run.
+"""
+
+from __future__ import annotations
+
+import sys
+from enum import Enum
+
+from pydantic import BaseModel, Field
+
+from harness.config_types import MODEL_CONFIG, Int
+
+
+class ZenohMode(str, Enum):
+    PEER = "peer"
+    CLIENT = "client"
+
+
+class Congestion(str, Enum):
+    BLOCK = "block"
+    DROP = "drop"
+
+
+class ZenohTargetConfig(BaseModel):
+    """Zenoh session of the harness. Multicast scouting stays off unless turned on;
+    ``tls`` keys pass through to ``transport/link/tls`` (see adapters/zenoh_transport)."""
+
+    model_config = MODEL_CONFIG
+
+    connect: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:{port}"])
+    listen: list[str] = Field(default_factory=list)
+    mode: ZenohMode = ZenohMode.PEER
+    key_prefix: str = Field("hil", min_length=1)
+    base_port: Int = Field(7447, ge=1, le=65535)
+    multicast_scouting: bool = False
+    congestion_control: Congestion = Congestion.BLOCK
+    lease_ms: Int = Field(1000, ge=100, le=60_000)
+    tls: dict[str, str | bool] | None = None
+
+
+class CanTargetConfig(BaseModel):
+    """CAN bus of the harness (python-can). ``interface``: socketcan, pcan, kvaser,
+    vector, slcan, or virtual (in-process, for tests). Bitrates in bit/s."""
+
+    model_config = MODEL_CONFIG
+
+    interface: str = "socketcan"
+    channel: str = "vcan0"
+    bitrate: Int = Field(500_000, ge=10_000, le=1_000_000)
+    data_bitrate: Int = Field(2_000_000, ge=100_000, le=12_000_000)
+    camera_over: str = Field("isotp", pattern="^(isotp|none)$")
+
+
+def substitute(text: str, *, vehicle_id: int, base_port: int) -> str:
+    """Fill ``{python}``, ``{vehicle_id}`` and ``{port}`` in one command word or endpoint."""
+    return (text.replace("{python}", sys.executable).replace("{vehicle_id}", str(vehicle_id))
+            .replace("{port}", str(base_port + vehicle_id)))

@@ -1,0 +1,114 @@
+"""Starting and reaching a run's targets: one link per vehicle, built from the
+``target:`` config, plus the locally started target process where the transport
+does not start one itself (zenoh and can with a ``command``)."""
+
+from __future__ import annotations
+
+import os
+import queue
+import signal
+import subprocess
+from pathlib import Path
+
+from adapters.link import Link, Received, open_link
+from harness.config import RunConfig, Transport
+from harness.config_target import substitute
+from timing.clock import Clock
+from timing.errors import TargetError
+
+
+class TargetProcess:
+    """A target program the harness started for a network transport. Ended by PID
+    (SIGTERM, then SIGKILL) on ``close()``, which is idempotent."""
+
+    def __init__(self, command: list[str], *, log_path: Path) -> None:
+        self.command = command
+        self._log = open(log_path, "ab")  # noqa: SIM115 (closed in close())
+        try:
+            self.proc: subprocess.Popen[bytes] | None = subprocess.Popen(
+                command, stdin=subprocess.DEVNULL, stdout=self._log, stderr=self._log,
+                env=dict(os.environ, PYTHONUNBUFFERED="1"), start_new_session=True)
+        except FileNotFoundError as err:
+            self._log.close()
+            raise TargetError(f"target command not found: {command[0]!r} (check target.command)") from err
+        except PermissionError as err:
+            self._log.close()
+            raise TargetError(f"target command is not executable: {command[0]!r}") from err
+
+    def close(self) -> None:
+        proc, self.proc = getattr(self, "proc", None), None
+        if proc is not None and proc.poll() is None:
+            try:
+                proc.wait(timeout=2.0)  # it got BYE; let it leave on its own
+            except subprocess.TimeoutExpired:
+                proc.send_signal(signal.SIGTERM)
+                try:
+                    proc.wait(timeout=3.0)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+        log = getattr(self, "_log", None)
+        if log is not None and not log.closed:
+            log.close()
+
+
+def target_command(cfg: RunConfig, *, vehicle_id: int = 0) -> list[str]:
+    """The configured command with ``args`` appended and placeholders filled."""
+    port = cfg.target.zenoh.base_port
+    return [substitute(w, vehicle_id=vehicle_id, base_port=port)
+            for w in [*cfg.target.command, *cfg.target.args]]
+
+
+def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, out_dir: Path,
+              rx: queue.Queue[Received]) -> tuple[Link, TargetProcess | None]:
+    """Build (not open) the link of one vehicle, starting its local target process
+    first where a network transport has a ``command``.
+
+    Raises:
+        TargetError: the command cannot be started.
+        TransportError / ConfigError: the transport options are unusable.
+    """
+    t = cfg.target
+    log = out_dir / f"target-{vehicle}.log"
+    if t.transport == Transport.LOCAL:
+        return open_link("local", command=target_command(cfg, vehicle_id=vehicle_id), vehicle_id=vehicle_id,
+                         clock=clock, log_path=log, rx_queue=rx), None
+    proc = TargetProcess(target_command(cfg, vehicle_id=vehicle_id), log_path=log) if t.command else None
+    try:
+        if t.transport == Transport.ZENOH:
+            z = t.zenoh
+            fill = [substitute(e, vehicle_id=vehicle_id, base_port=z.base_port) for e in z.connect]
+            listen = [substitute(e, vehicle_id=vehicle_id, base_port=z.base_port) for e in z.listen]
+            link = open_link("zenoh", vehicle_id=vehicle_id, clock=clock, connect=fill, listen=listen,
+                             mode=z.mode.value, key_prefix=z.key_prefix, multicast_scouting=z.multicast_scouting,
+                             congestion_control=z.congestion_control.value, lease_ms=z.lease_ms,
+                             tls=dict(z.tls) if z.tls else None, rx_queue=rx)
+        else:
+            c = t.can
+            link = open_link("can", vehicle_id=vehicle_id, clock=clock, interface=c.interface,
+                             channel=substitute(c.channel, vehicle_id=vehicle_id, base_port=0),
+                             bitrate=c.bitrate, data_bitrate=c.data_bitrate, camera_over=c.camera_over,
+                             rx_queue=rx)
+    except BaseException:
+        if proc is not None:
+            proc.close()
+        raise
+    return link, proc
+
+
+def can_preflight(cfg: RunConfig, *, frame_bytes: int) -> str:
+    """What the CAN bus carries for frames of ``frame_bytes`` (a rendered frame of
+    this run, encoded) at the configured bitrates, as one line for the user.
+
+    Raises:
+        ConfigError: ``camera.fps`` asks for more than the bus carries.
+    """
+    from adapters.can_capacity import bus_capacity
+
+    c = cfg.target.can
+    report = bus_capacity(bitrate=c.bitrate, data_bitrate=c.data_bitrate, fd=True, frame_bytes=frame_bytes,
+                          fps=cfg.camera.fps, camera_over=c.camera_over,
+                          sync_hz=cfg.timing.sync.burst / cfg.timing.sync.interval_s)
+    report.check()
+    return (f"CAN bus {c.bitrate // 1000}k/{c.data_bitrate // 1000}k: {frame_bytes / 1024:.1f} KB frames, "
+            f"at most {report.max_fps:.1f} fps; {cfg.camera.fps:g} fps loads the bus {report.load:.0%}")

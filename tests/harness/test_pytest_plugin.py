@@ -1,0 +1,104 @@
+"""The ``hil_run`` pytest fixture: a user's test runs a config and asserts a budget;
+an over-budget assertion says what, measured, budget, by how much."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from importlib.metadata import entry_points
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from harness.pytest_plugin import HilRunner, HilRunResult
+from tests.conftest import GL_BACKEND
+
+USER_TEST = '''
+import sys
+
+CONFIG = {
+    "name": "budget", "duration_s": 1.0,
+    "scenario": {"name": "stopped_car", "params": {"gap_m": 40.0, "ego_speed_mps": 6.0}},
+    "target": {"command": [sys.executable, "-m", "targets.echo", "--infer-ms", "5"]},
+}
+
+
+def test_within_budget(hil_run):
+    result = hil_run("cfg.yaml", overrides=["duration_s=1"])
+    assert (result.run_dir / "run.mcap").is_file() and result.summary["ended_by"] == "duration"
+    result.assert_budget(vehicle="ego0", stage="end_to_end", p99_ms=400)
+    result.assert_budget(stage="inference", p50_ms=50, max_ms=400)
+    result.assert_no_drops()
+
+
+def test_over_budget(hil_run):
+    result = hil_run(CONFIG)
+    result.assert_budget(vehicle="ego0", stage="inference", p50_ms=1.0)
+'''
+
+CFG_YAML = '''
+name: budget
+duration_s: 3.0
+scenario: {name: stopped_car, params: {gap_m: 40.0, ego_speed_mps: 6.0}}
+target: {command: ["{python}", "-m", "targets.echo", "--infer-ms", "5"]}
+'''
+
+
+def test_fixture_in_a_users_test_session(tmp_path: Path) -> None:
+    (tmp_path / "test_user.py").write_text(USER_TEST)
+    (tmp_path / "cfg.yaml").write_text(CFG_YAML)
+    registered = any(e.value == "harness.pytest_plugin" for e in entry_points(group="pytest11"))
+    plugin = [] if registered else ["-p", "harness.pytest_plugin"]  # installed: the entry point loads it
+    env = dict(os.environ, MUJOCO_GL=GL_BACKEND)
+    p = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *plugin,
+                        "--rootdir", str(tmp_path), str(tmp_path / "test_user.py")],
+                       cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120, check=False)
+    out = p.stdout + p.stderr
+    assert p.returncode == 1, out
+    assert "1 failed, 1 passed" in out, out
+    assert "latency budget exceeded:" in out, out
+    assert "ego0 inference p50 = " in out and "> budget 1.000 ms (over by" in out, out
+    assert "run folder: " in out, out
+
+
+def _result(e2e: dict[str, Any], *, dropped: int = 0) -> HilRunResult:
+    return HilRunResult(Path("/runs/x"), {"ended_by": "duration", "vehicles": {"ego0": {
+        "frames_sent": 100, "dropped": dropped, "drop_rate": dropped / 100,
+        "latency_ms": {"end_to_end": e2e, "transport": {"count": 0}}}}})
+
+
+def test_assert_budget_message() -> None:
+    r = _result({"count": 100, "p50_ms": 40.0, "p99_ms": 93.2, "max_ms": 120.0})
+    r.assert_budget(vehicle="ego0", stage="end_to_end", p50_ms=50, p99_ms=100)
+    with pytest.raises(AssertionError) as err:
+        r.assert_budget(vehicle="ego0", stage="end_to_end", p50_ms=50, p99_ms=80, max_ms=100)
+    msg = str(err.value)
+    assert "ego0 end_to_end p99 = 93.200 ms > budget 80.000 ms (over by 13.200 ms, +16.5 %, 100 frames)" in msg
+    assert "ego0 end_to_end max = 120.000 ms > budget 100.000 ms" in msg
+    assert "p50" not in msg and "/runs/x" in msg
+    with pytest.raises(AssertionError, match=r"no latency samples for ego0 transport \(stages with samples: "
+                                             r"end_to_end\)"):
+        r.assert_budget(stage="transport", p99_ms=1)
+    with pytest.raises(AssertionError, match=r"no vehicle 'ego9' in the run \(vehicles: ego0\)"):
+        r.assert_budget(vehicle="ego9", p99_ms=1)
+    with pytest.raises(TypeError, match="at least one budget"):
+        r.assert_budget(vehicle="ego0")
+
+
+def test_assert_no_drops_message() -> None:
+    _result({"count": 1, "p50_ms": 1.0}).assert_no_drops()
+    with pytest.raises(AssertionError, match=r"ego0: 3 of 100 frames dropped \(rate 0.0300 > 0.0000\)"):
+        _result({"count": 1, "p50_ms": 1.0}, dropped=3).assert_no_drops()
+    _result({"count": 1, "p50_ms": 1.0}, dropped=3).assert_drop_rate(0.05)
+
+
+def test_config_mistake_fails_the_test_in_one_line(tmp_path: Path) -> None:
+    runner = HilRunner(tmp_path)
+    with pytest.raises(pytest.fail.Exception) as err:
+        runner({"camera": {"fps": 0}})
+    assert "hil_run:" in str(err.value) and "camera.fps" in str(err.value)
+    assert err.value.pytrace is False
+    with pytest.raises(pytest.fail.Exception, match="config file not found"):
+        runner(tmp_path / "missing.yaml")

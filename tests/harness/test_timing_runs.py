@@ -1,0 +1,64 @@
+"""Timing analysis in whole runs against real targets with foreign clocks: offset by
+seconds and drifting, or broken (absurd stamps)."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from harness.config import parse_config
+from harness.run import execute, prepare_out_dir
+from tests.conftest import GL_BACKEND, read_mcap
+
+
+def _run(tmp_path, echo_args, **extra):
+    cfg = {"name": "timing", "duration_s": 3.0, "progress": False, "mode": "realtime",
+           "scenario": {"name": "stopped_car", "params": {"gap_m": 40.0, "ego_speed_mps": 4.0}},
+           "target": {"command": [sys.executable, "-m", "targets.echo", *echo_args]},
+           "timing": {"sync": {"interval_s": 0.25, "burst": 4}}, **extra}
+    return execute(parse_config(cfg), out_dir=prepare_out_dir(tmp_path / "r"), gl_backend=GL_BACKEND,
+                   install_signal_handlers=False)
+
+
+def test_offset_and_drifting_target_clock_is_mapped(tmp_path):
+    # The target's clock is 3.7 s ahead and runs 250 ppm fast; the harness must find
+    # the offset within its stated uncertainty, and the target-side durations (which
+    # need only the clock's rate) must come out at the known 5 ms inference.
+    result = _run(tmp_path, ["--clock-offset-s", "3.7", "--clock-skew-ppm", "250", "--infer-ms", "5"])
+    v = result.summary["vehicles"]["ego0"]
+    clock = v["clock"]
+    assert clock["synced"]
+    # True offset at the model's reference time: 3.7 s + 250 ppm of the time since the
+    # target started (a few seconds: at most ~2 ms).
+    assert abs(clock["offset_ns"] - 3.7e9) < 3e6
+    assert 150 < clock["skew_ppm"] < 350, clock  # 3 s of samples: a rough but sure-signed fit
+    inf = v["latency_ms"]["inference"]
+    # The spin is exactly 5 ms of host time; preemption can only lengthen a frame,
+    # so the shortest shows the measurement (250 ppm of 5 ms is 1.25 µs).
+    assert 5.0 <= inf["min_ms"] < 5.5
+    up, down = v["splits_ms"]["uplink"], v["splits_ms"]["downlink"]
+    assert up["count"] > 0 and down["count"] > 0
+    assert up["min_ms"] >= 0 and down["min_ms"] >= 0
+    # End to end is at least the inference, whatever the sync says.
+    assert v["latency_ms"]["end_to_end"]["min_ms"] >= inf["min_ms"]
+    # The clock state is recorded for Foxglove and reports.
+    states = [d for _, d in read_mcap(result.mcap_path)["/ego0/clock"]]
+    assert states and all(abs(s["offset_ns"] - 3.7e9) < 3e6 for s in states[-3:])
+
+
+@pytest.mark.parametrize("mode", ["zero", "future", "backwards"])
+def test_absurd_target_stamps_are_flagged_not_counted(tmp_path, mode):
+    result = _run(tmp_path, ["--bad-stamps", mode])
+    s = result.summary
+    assert s["ended_by"] == "duration"
+    v = s["vehicles"]["ego0"]
+    assert v["estimates_applied"] > 0  # control still applied: the harness judges time, not the car
+    assert v["anomalies"].get("causality", 0) >= 1
+    # Kept out of the statistics: nothing negative, nothing absurd in the summary.
+    for stage, st in v["latency_ms"].items():
+        if st.get("count"):
+            assert st["min_ms"] >= 0, (stage, st)
+            assert st["max_ms"] < 60_000, (stage, st)
+    events = [d for _, d in read_mcap(result.mcap_path)["/events"] if d["kind"] == "causality"]
+    assert events
