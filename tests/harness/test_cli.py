@@ -104,3 +104,11 @@ def test_stopped_run_finalizes_mcap(tmp_path, sig):
     msgs = read_mcap(mcap)
     assert msgs["/ego0/pipeline"], "nothing recorded"
     assert (out / "summary.json").exists() and log.exists()
+
+
+def test_clock_shows_synced_targets():
+    p = hil("clock", "hil_configs/demo.yaml", "--bursts", "2", "--set", "timing.sync.interval_s=0.1",
+            "--set", 'target.command=["{python}", "-m", "targets.echo", "--clock-offset-s", "2.5"]')
+    assert p.returncode == 0, p.stderr
+    assert "ego0" in p.stdout and "synced" in p.stdout
+    assert "+2500.0" in p.stdout.replace("\u202f", "")  # offset shown in ms: +2500.0xx ms

@@ -1,0 +1,293 @@
+"""The corner-case detector: what the AI believed against what was true.
+
+Each applied estimate is judged twice (DESIGN.md, "Two kinds of events"):
+
+* at ``t0`` against the truth of the frame it answers (what the camera showed):
+  wrong here means the **perception** was wrong;
+* at ``t_apply`` against the truth when its control took effect: right at ``t0``
+  but wrong here means **latency** made it wrong.
+
+Checks (positions in the camera-ground frame of PROTOCOL.md: x forward, y left):
+
+* ``position_error``: a matched object off by more than
+  ``pos_tol_m + pos_tol_rel * distance``;
+* ``missed_object``: a truth object the camera showed (at least
+  ``min_visible_px`` pixels and ``min_visible_fraction`` of it, within
+  ``max_range_m``) that no estimated object matches;
+* ``ghost_object``: an estimated object with no entity of its class within
+  ``ghost_gate_m + pos_tol_rel * distance``;
+* ``state_mismatch``: the driving state differs from the reference state;
+  severity by direction: believing SAFE where truth says STOP is critical, one
+  level less cautious is a warning, more cautious than truth is info;
+* ``collision_while_safe``: a collision while the last applied estimate said SAFE.
+
+Objects are matched by class and position with an optimal assignment (Hungarian,
+``scipy.optimize.linear_sum_assignment``). A mismatch must persist for
+``min_frames`` consecutive frames before it is reported, and is reported once per
+episode (it ends after ``clear_frames`` clean frames): flicker at a threshold is
+not a corner case, a lasting wrong belief is.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from enum import Enum
+
+import numpy as np
+
+from adapters.messages import DrivingState, Estimate
+from timing.anomaly import Severity
+
+_INF = 1e9
+
+
+class MismatchKind(str, Enum):
+    POSITION_ERROR = "position_error"
+    MISSED_OBJECT = "missed_object"
+    GHOST_OBJECT = "ghost_object"
+    STATE_MISMATCH = "state_mismatch"
+    COLLISION_WHILE_SAFE = "collision_while_safe"
+
+
+class Cause(str, Enum):
+    PERCEPTION = "perception"  # wrong at t0
+    LATENCY = "latency"        # right at t0, wrong at t_apply
+
+
+@dataclass(frozen=True)
+class TruthObject:
+    """An entity in the camera-ground frame at one instant. ``visible``: the camera
+    showed enough of it to demand a detection."""
+
+    name: str
+    cls: str
+    x_m: float
+    y_m: float
+    visible: bool = True
+
+    @property
+    def distance_m(self) -> float:
+        return math.hypot(self.x_m, self.y_m)
+
+
+@dataclass(frozen=True)
+class FrameTruth:
+    """Truth at one instant from one ego's point of view."""
+
+    sim_time_ns: int
+    objects: tuple[TruthObject, ...]
+    ref_state: DrivingState
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """Tolerances (m, frames). See the module docstring."""
+
+    pos_tol_m: float = 1.5
+    pos_tol_rel: float = 0.1
+    ghost_gate_m: float = 4.0
+    max_range_m: float = 50.0
+    min_visible_px: int = 40
+    min_visible_fraction: float = 0.25
+    min_frames: int = 3
+    clear_frames: int = 5
+
+
+@dataclass(frozen=True)
+class Mismatch:
+    """One corner-case event. ``frame_ids``: the frames of the episode so far (first
+    to the one that triggered the report); ``linked_anomalies``: timing anomalies of
+    those frames (``kind@frame``)."""
+
+    kind: MismatchKind
+    cause: Cause
+    vehicle: str
+    frame_ids: tuple[int, ...]
+    sim_time_ns: int
+    harness_time_ns: int
+    measured: float
+    threshold: float
+    unit: str
+    severity: Severity
+    entity: str | None = None
+    detail: str = ""
+    linked_anomalies: tuple[str, ...] = ()
+
+    def to_json(self) -> dict[str, object]:
+        return {"kind": f"mismatch.{self.kind.value}", "mismatch": self.kind.value, "cause": self.cause.value,
+                "vehicle": self.vehicle, "frame_ids": list(self.frame_ids), "sim_time_ns": self.sim_time_ns,
+                "harness_time_ns": self.harness_time_ns, "measured": self.measured, "threshold": self.threshold,
+                "unit": self.unit, "severity": self.severity.value, "entity": self.entity, "detail": self.detail,
+                "linked_anomalies": list(self.linked_anomalies)}
+
+
+_CLASS = {0: "unknown", 1: "vehicle", 2: "pedestrian", 3: "obstacle"}
+
+
+def nearest_point_in_camera_frame(*, ego_x: float, ego_y: float, ego_yaw: float, mount_forward_m: float,
+                                  mount_lateral_m: float, camera_yaw: float, x: float, y: float, yaw: float,
+                                  length: float, width: float) -> tuple[float, float]:
+    """The point of an entity's footprint (a rectangle) nearest to the camera, in the
+    camera-ground frame (m). World frame: x along the road, y left."""
+    c, s = math.cos(ego_yaw), math.sin(ego_yaw)
+    cam_x = ego_x + c * mount_forward_m - s * mount_lateral_m
+    cam_y = ego_y + s * mount_forward_m + c * mount_lateral_m
+    # Camera point in the entity's frame, clamped to its footprint.
+    ce, se = math.cos(yaw), math.sin(yaw)
+    dx, dy = cam_x - x, cam_y - y
+    lx, ly = ce * dx + se * dy, -se * dx + ce * dy
+    lx = min(max(lx, -length / 2), length / 2)
+    ly = min(max(ly, -width / 2), width / 2)
+    px, py = x + ce * lx - se * ly, y + se * lx + ce * ly
+    # Into the camera-ground frame.
+    heading = ego_yaw + camera_yaw
+    ch, sh = math.cos(heading), math.sin(heading)
+    rx, ry = px - cam_x, py - cam_y
+    return ch * rx + sh * ry, -sh * rx + ch * ry
+
+
+def match(est: Sequence[tuple[str, float, float]], truth: Sequence[TruthObject], *,
+          gate: callable) -> list[tuple[int, int]]:  # type: ignore[valid-type]
+    """Optimal class-respecting assignment of estimated ``(cls, x, y)`` to truth
+    objects; pairs farther apart than ``gate(truth_distance)`` are not matched."""
+    if not est or not truth:
+        return []
+    from scipy.optimize import linear_sum_assignment
+
+    cost = np.full((len(est), len(truth)), _INF)
+    for i, (cls, x, y) in enumerate(est):
+        for j, t in enumerate(truth):
+            if cls == t.cls:
+                d = math.hypot(x - t.x_m, y - t.y_m)
+                if d <= gate(t.distance_m):
+                    cost[i, j] = d
+    rows, cols = linear_sum_assignment(cost)
+    return [(int(i), int(j)) for i, j in zip(rows, cols) if cost[i, j] < _INF]
+
+
+@dataclass
+class _Episode:
+    frames: list[int] = field(default_factory=list)  # the current run of bad frames
+    reported: bool = False
+    clean: int = 0
+
+
+class CornerCaseDetector:
+    """Judges one vehicle's estimates; returns the mismatches to report."""
+
+    def __init__(self, vehicle: str, config: DetectorConfig | None = None) -> None:
+        self.vehicle = vehicle
+        self.cfg = config or DetectorConfig()
+        self._episodes: dict[tuple[MismatchKind, str | None], _Episode] = {}
+        self.last_state: DrivingState | None = None
+        self.last_state_right_at_t0 = True
+        self.counts: dict[str, int] = {}
+
+    def tolerance(self, distance_m: float) -> float:
+        return self.cfg.pos_tol_m + self.cfg.pos_tol_rel * distance_m
+
+    def judge(self, est: Estimate, *, at_t0: FrameTruth, at_apply: FrameTruth | None,
+              harness_time_ns: int) -> list[Mismatch]:
+        """Judge one applied estimate (see the module docstring)."""
+        found: dict[tuple[MismatchKind, str | None], tuple[Cause, float, float, str, Severity, str]] = {}
+        objs = [(_CLASS.get(int(o.cls), "unknown"), float(o.position_m[0]), float(o.position_m[1]))
+                for o in est.objects]
+        self._objects(objs, at_t0, at_apply, found)
+        self._state(est.state, at_t0, at_apply, found)
+        self.last_state = est.state
+        self.last_state_right_at_t0 = est.state == at_t0.ref_state
+        return self._episodes_update(found, frame_id=est.frame_id, sim_time_ns=at_t0.sim_time_ns,
+                                     harness_time_ns=harness_time_ns)
+
+    def on_collision(self, *, other: str, sim_time_ns: int, harness_time_ns: int, frame_id: int,
+                     force_n: float) -> list[Mismatch]:
+        """A collision of this vehicle: a mismatch when its last belief was SAFE."""
+        if self.last_state != DrivingState.SAFE:
+            return []
+        cause = Cause.LATENCY if self.last_state_right_at_t0 else Cause.PERCEPTION
+        m = Mismatch(MismatchKind.COLLISION_WHILE_SAFE, cause, self.vehicle, (frame_id,), sim_time_ns,
+                     harness_time_ns, force_n, 0.0, "N", Severity.CRITICAL, other,
+                     f"collided with {other} while the AI believed SAFE")
+        self.counts[m.kind.value] = self.counts.get(m.kind.value, 0) + 1
+        return [m]
+
+    # -- checks ------------------------------------------------------------------
+
+    def _objects(self, objs, at_t0: FrameTruth, at_apply: FrameTruth | None, found) -> None:
+        c = self.cfg
+        truth = [t for t in at_t0.objects if t.distance_m <= c.max_range_m * 1.5]
+        pairs = match(objs, truth, gate=lambda d: c.ghost_gate_m + c.pos_tol_rel * d)
+        matched_e = {i for i, _ in pairs}
+        matched_t = {j for _, j in pairs}
+        apply_by_name = {t.name: t for t in at_apply.objects} if at_apply is not None else {}
+        for i, j in pairs:
+            cls, x, y = objs[i]
+            t = truth[j]
+            err, tol = math.hypot(x - t.x_m, y - t.y_m), self.tolerance(t.distance_m)
+            if err > tol:
+                found[(MismatchKind.POSITION_ERROR, t.name)] = (
+                    Cause.PERCEPTION, err, tol, "m", Severity.WARNING,
+                    f"{t.name} believed at ({x:.1f}, {y:.1f}) m, truly at ({t.x_m:.1f}, {t.y_m:.1f}) m")
+                continue
+            ta = apply_by_name.get(t.name)
+            if ta is not None:
+                err_a, tol_a = math.hypot(x - ta.x_m, y - ta.y_m), self.tolerance(ta.distance_m)
+                if err_a > tol_a:
+                    found[(MismatchKind.POSITION_ERROR, t.name)] = (
+                        Cause.LATENCY, err_a, tol_a, "m", Severity.WARNING,
+                        f"{t.name} right at capture but {err_a:.2f} m off when control applied")
+        for j, t in enumerate(truth):
+            if j not in matched_t and t.visible and t.distance_m <= c.max_range_m:
+                found[(MismatchKind.MISSED_OBJECT, t.name)] = (
+                    Cause.PERCEPTION, t.distance_m, c.max_range_m, "m", Severity.WARNING,
+                    f"{t.cls} {t.name} visible at {t.distance_m:.1f} m not detected")
+        for i, (cls, x, y) in enumerate(objs):
+            if i not in matched_e:
+                d = math.hypot(x, y)
+                found[(MismatchKind.GHOST_OBJECT, f"{cls}@{round(d / 5) * 5:g}m")] = (
+                    Cause.PERCEPTION, d, 0.0, "m", Severity.WARNING,
+                    f"{cls} believed at ({x:.1f}, {y:.1f}) m where there is none")
+
+    def _state(self, state: DrivingState, at_t0: FrameTruth, at_apply: FrameTruth | None, found) -> None:
+        if state != at_t0.ref_state:
+            cause, truth = Cause.PERCEPTION, at_t0.ref_state
+        elif at_apply is not None and state != at_apply.ref_state:
+            cause, truth = Cause.LATENCY, at_apply.ref_state
+        else:
+            return
+        gap = int(truth) - int(state)  # >0: the AI was less cautious than the truth
+        sev = Severity.CRITICAL if gap >= 2 else Severity.WARNING if gap == 1 else Severity.INFO
+        found[(MismatchKind.STATE_MISMATCH, None)] = (
+            cause, float(int(state)), float(int(truth)), "state", sev,
+            f"AI said {state.name} where truth says {truth.name}")
+
+    def _episodes_update(self, found, *, frame_id: int, sim_time_ns: int, harness_time_ns: int) -> list[Mismatch]:
+        out: list[Mismatch] = []
+        for key, ep in list(self._episodes.items()):
+            if key not in found:
+                ep.clean += 1
+                ep.frames.clear()  # persistence counts consecutive frames
+                if ep.clean >= self.cfg.clear_frames:
+                    del self._episodes[key]
+        for key, (cause, measured, threshold, unit, sev, detail) in found.items():
+            ep = self._episodes.setdefault(key, _Episode())
+            ep.clean = 0
+            ep.frames.append(frame_id)
+            if not ep.reported and len(ep.frames) >= self.cfg.min_frames:
+                ep.reported = True
+                kind, entity = key
+                m = Mismatch(kind, cause, self.vehicle, tuple(ep.frames[-self.cfg.min_frames:]), sim_time_ns,
+                             harness_time_ns, round(measured, 4), round(threshold, 4), unit, sev, entity, detail)
+                self.counts[kind.value] = self.counts.get(kind.value, 0) + 1
+                out.append(m)
+        return out
+
+
+def link_anomalies(m: Mismatch, anomalies: Iterable[object], *, before_frames: int = 3) -> Mismatch:
+    """``m`` with the timing anomalies of its frames (and the few before) linked."""
+    lo, hi = min(m.frame_ids) - before_frames, max(m.frame_ids)
+    links = tuple(f"{a.kind.value.lower()}@{f}" for a in anomalies  # type: ignore[attr-defined]
+                  for f in a.frame_ids if lo <= f <= hi)  # type: ignore[attr-defined]
+    return m if not links else Mismatch(**{**m.__dict__, "linked_anomalies": links})
