@@ -37,9 +37,10 @@ def build_parser() -> argparse.ArgumentParser:
     sc = sub.add_parser("scenarios", help="list the scenarios with their parameters, ranges and defaults")
     sc.add_argument("name", nargs="?", default=None, help="show only this scenario")
     sc.add_argument("--json", action="store_true", help="machine-readable output")
-    from harness import clock_cmd
+    from harness import cases_cmd, clock_cmd
 
     clock_cmd.add_parser(sub)
+    cases_cmd.add_parsers(sub)
     t = sub.add_parser("target", help="serve an example AI target (on this host or a device)",
                        description="Serve an example AI target over a transport, e.g. on a remote host: "
                                    "hil target cv --transport zenoh --listen tcp/0.0.0.0:7447. Options after "
@@ -70,6 +71,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.command == "run":
             return _cmd_run(args)
+        if args.command in ("cases", "replay"):
+            from harness import cases_cmd
+
+            return cases_cmd.cmd_cases(args) if args.command == "cases" else cases_cmd.cmd_replay(args)
         if args.command == "clock":
             from harness import clock_cmd
 

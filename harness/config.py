@@ -34,6 +34,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
+from harness.config_cases import CornerCaseSettings, DetectorSettings
 from harness.config_target import CanTargetConfig, ZenohTargetConfig
 from harness.config_timing import TimingConfig
 from harness.config_types import MODEL_CONFIG, Float, Int
@@ -76,6 +77,7 @@ class Transport(str, Enum):
     LOCAL = "local"
     ZENOH = "zenoh"
     CAN = "can"
+    MIXED = "mixed"  # frames over zenoh (target.zenoh), everything else over CAN (target.can)
 
 
 class ScenarioConfig(BaseModel):
@@ -214,6 +216,8 @@ class RunConfig(BaseModel):
     truth: TruthConfig = Field(default_factory=TruthConfig)
     lockstep: LockstepConfig = Field(default_factory=LockstepConfig)
     timing: TimingConfig = Field(default_factory=TimingConfig)
+    detector: DetectorSettings = Field(default_factory=DetectorSettings)
+    corner_cases: CornerCaseSettings = Field(default_factory=CornerCaseSettings)
     progress: bool = True
 
     @model_validator(mode="after")

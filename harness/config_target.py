@@ -10,9 +10,19 @@ per vehicle::
                 "--listen", "tcp/127.0.0.1:{port}", "--vehicle", "{vehicle_id}"]
       zenoh: {connect: ["tcp/127.0.0.1:{port}"]}
 
-For ``zenoh`` and ``can`` the ``command`` is optional: empty means the target runs
-elsewhere (a board on the bench); given, the harness also starts it locally (a
-loopback test or a simulated device) and ends it after the run.
+For ``zenoh``, ``can`` and ``mixed`` the ``command`` is optional: empty means the
+target runs elsewhere (a board on the bench); given, the harness also starts it
+locally (a loopback test or a simulated device) and ends it after the run.
+
+A ``mixed`` target (a device that answers on CAN and takes its frames over Zenoh)
+uses both sections: frames go over ``zenoh`` and everything else, clock sync
+included, over ``can`` (whose ``camera_over`` it ignores: it is always ``none``)::
+
+    target:
+      transport: mixed
+      command: []
+      zenoh: {connect: ["tcp/192.168.1.20:7447"]}
+      can: {interface: socketcan, channel: can0}
 """
 
 from __future__ import annotations
@@ -54,7 +64,8 @@ class ZenohTargetConfig(BaseModel):
 
 class CanTargetConfig(BaseModel):
     """CAN bus of the harness (python-can). ``interface``: socketcan, pcan, kvaser,
-    vector, slcan, or virtual (in-process, for tests). Bitrates in bit/s."""
+    vector, slcan, or virtual (in-process, for tests). Bitrates in bit/s.
+    ``camera_over`` applies to ``transport: can``; a mixed target always uses ``none``."""
 
     model_config = MODEL_CONFIG
 

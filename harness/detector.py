@@ -25,7 +25,8 @@ Objects are matched by class and position with an optimal assignment (Hungarian,
 ``scipy.optimize.linear_sum_assignment``). A mismatch must persist for
 ``min_frames`` consecutive frames before it is reported, and is reported once per
 episode (it ends after ``clear_frames`` clean frames): flicker at a threshold is
-not a corner case, a lasting wrong belief is.
+not a corner case, a lasting wrong belief is. An episode whose severity rises
+(SAFE against SLOW, then against STOP) is reported again at the higher severity.
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ from adapters.messages import DrivingState, Estimate
 from timing.anomaly import Severity
 
 _INF = 1e9
+_RANK = {Severity.INFO: 0, Severity.WARNING: 1, Severity.CRITICAL: 2}
+REPEAT_COLLISION_NS = 2_000_000_000
 
 
 class MismatchKind(str, Enum):
@@ -170,7 +173,7 @@ def match(est: Sequence[tuple[str, float, float]], truth: Sequence[TruthObject],
 @dataclass
 class _Episode:
     frames: list[int] = field(default_factory=list)  # the current run of bad frames
-    reported: bool = False
+    reported: Severity | None = None  # severity last reported in this episode
     clean: int = 0
 
 
@@ -184,6 +187,7 @@ class CornerCaseDetector:
         self.last_state: DrivingState | None = None
         self.last_state_right_at_t0 = True
         self.counts: dict[str, int] = {}
+        self._collided: dict[str, int] = {}
 
     def tolerance(self, distance_m: float) -> float:
         return self.cfg.pos_tol_m + self.cfg.pos_tol_rel * distance_m
@@ -203,8 +207,12 @@ class CornerCaseDetector:
 
     def on_collision(self, *, other: str, sim_time_ns: int, harness_time_ns: int, frame_id: int,
                      force_n: float) -> list[Mismatch]:
-        """A collision of this vehicle: a mismatch when its last belief was SAFE."""
-        if self.last_state != DrivingState.SAFE:
+        """A collision of this vehicle: a mismatch when its last belief was SAFE. A
+        bounce (contact again with the same entity within ``REPEAT_COLLISION_NS``)
+        belongs to the same case."""
+        last = self._collided.get(other)
+        self._collided[other] = sim_time_ns
+        if self.last_state != DrivingState.SAFE or (last is not None and sim_time_ns - last < REPEAT_COLLISION_NS):
             return []
         cause = Cause.LATENCY if self.last_state_right_at_t0 else Cause.PERCEPTION
         m = Mismatch(MismatchKind.COLLISION_WHILE_SAFE, cause, self.vehicle, (frame_id,), sim_time_ns,
@@ -275,8 +283,9 @@ class CornerCaseDetector:
             ep = self._episodes.setdefault(key, _Episode())
             ep.clean = 0
             ep.frames.append(frame_id)
-            if not ep.reported and len(ep.frames) >= self.cfg.min_frames:
-                ep.reported = True
+            escalated = ep.reported is not None and _RANK[sev] > _RANK[ep.reported]
+            if (ep.reported is None and len(ep.frames) >= self.cfg.min_frames) or escalated:
+                ep.reported = sev
                 kind, entity = key
                 m = Mismatch(kind, cause, self.vehicle, tuple(ep.frames[-self.cfg.min_frames:]), sim_time_ns,
                              harness_time_ns, round(measured, 4), round(threshold, 4), unit, sev, entity, detail)

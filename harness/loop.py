@@ -216,6 +216,9 @@ class SimLoop:
         for v in self.vehicles:
             ct = self.sim.camera_truth(v.name, min_visible_px=self.cfg.truth.min_visible_px)
             t = self.clock.now_ns()
+            for ob in self.observers:
+                if hasattr(ob, "on_camera_truth"):
+                    ob.on_camera_truth(v.name, v.next_frame_id - 1, ct)
             self.rec.write_json(f"/{v.name}/truth", {"frame_id": v.next_frame_id - 1, **ct.to_json()},
                                 log_time_ns=t, publish_time_ns=t)
 
@@ -279,6 +282,9 @@ class SimLoop:
             sim_apply = self.sim.sim_time_ns
             v.last_applied_frame_id = m.frame_id
             status = FrameStatus.OK
+            for ob in self.observers:
+                if hasattr(ob, "on_apply"):
+                    ob.on_apply(v.name, m.frame_id, self.sim.truth_snapshot)
         else:
             status = FrameStatus.STALE
         rec = PipelineRecord(v.name, fl.frame_id, fl.sim_time_ns, fl.t0_ns, fl.t_tx_ns, status,

@@ -8,11 +8,12 @@ the loop stays about stepping, sending and applying.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Protocol
 
 from timing.sync import SyncSample
 from adapters.messages import Estimate
-from scenarios.ground_truth import GroundTruth
+from scenarios.ground_truth import CameraTruth, GroundTruth
 from timing.records import PipelineRecord
 
 
@@ -28,3 +29,14 @@ class RunObserver(Protocol):
 
     def on_tick(self, *, now_ns: int, sim_time_ns: int) -> None:
         """Called after every physics step (keep it cheap)."""
+
+
+class TruthObserver(RunObserver, Protocol):
+    """Optional extra hooks, for observers that judge estimates against truth."""
+
+    def on_camera_truth(self, vehicle: str, frame_id: int, truth: CameraTruth) -> None:
+        """What ``vehicle``'s camera showed in frame ``frame_id`` (at its capture)."""
+
+    def on_apply(self, vehicle: str, frame_id: int, truth_now: Callable[[], GroundTruth]) -> None:
+        """Frame ``frame_id``'s control was just applied; ``truth_now()`` gives the
+        world at this instant (call it only when needed: it costs)."""

@@ -84,6 +84,8 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
     from harness.loop import encode_image
     from harness.target_launch import TargetProcess, can_preflight, make_link
     from harness.channels import register_all, sync_sample_json
+    from harness.corner_cases import CaseRecorder
+    from harness.detector_observer import DetectorObserver
     from harness.config import LatencyKind
     from harness.latency import LatencyProfile
     from harness.loop import SimLoop
@@ -113,6 +115,7 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
     clock = MonotonicClock()
     rx: queue.Queue[Received] = queue.Queue(maxsize=4096)
     mcap_path = out_dir / "run.mcap"
+    (out_dir / "config.json").write_text(json.dumps(dump_config(cfg), indent=2, sort_keys=True) + "\n")
     summary_path = out_dir / "summary.json"
     meta = {
         "name": cfg.name, "scenario": cfg.scenario.name, "scenario_params": params, "seed": cfg.seed,
@@ -144,9 +147,14 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
             with Recorder(mcap_path, queue_size=cfg.recording.queue_size, compression="zstd", metadata={
                 "run": {k: json.dumps(val) if not isinstance(val, str) else val for k, val in meta.items()},
                 "config": {"yaml_json": json.dumps(dump_config(cfg), sort_keys=True)},
-            }) as rec:
+            }) as main_rec:
+                cc = cfg.corner_cases
+                rec = CaseRecorder(main_rec, out_dir, run_meta=meta, history_s=cc.history_s, after_s=cc.after_s,
+                                   trigger_kinds=set(cc.on_anomalies)) if cc.enabled else main_rec
                 register_all(rec, [v.name for v in vehicles])
                 timing = TimingObserver(cfg.timing, [v.name for v in vehicles], recorder=rec)
+                detector = (DetectorObserver(cfg.detector.to_config(), [v.name for v in vehicles], camera=cfg.camera,
+                                             recorder=rec, timing=timing) if cfg.detector.enabled else None)
                 for name, samples in warmup.items():
                     for s in samples:
                         rec.write_json(f"/{name}/clock_sync", sync_sample_json(s, warmup=True),
@@ -154,6 +162,8 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
                         timing.on_sync(name, s)
                 loop = SimLoop(cfg, sim, vehicles, rx, rec, clock, latency=latency)
                 loop.observers.append(timing)
+                if detector is not None:
+                    loop.observers.append(detector)
                 if on_progress is not None:
                     loop.on_tick = lambda: on_progress(now_ns=clock.now_ns(), sim_time_s=sim.sim_time_ns / 1e9,
                                                        duration_s=cfg.duration_s, vehicles=vehicles,
@@ -168,13 +178,19 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
                     v.link.close()
                 loop.collect_sync()  # answers that arrived while closing
                 timing.finish()
-                rec.flush()
-                rec_stats = rec.stats
-                summary = build_summary(loop=loop, stats=stats, timing=timing, recorder_stats={
+                if detector is not None:
+                    detector.finish()
+                if isinstance(rec, CaseRecorder):
+                    rec.close()  # writes the cases still open with what was recorded
+                main_rec.flush()
+                rec_stats = main_rec.stats
+                summary = build_summary(loop=loop, stats=stats, timing=timing, detector=detector, recorder_stats={
                     "written": rec_stats.written, "dropped": rec_stats.dropped, "enqueued": rec_stats.enqueued},
                     meta=meta)
-                rec.add_metadata("summary", {"json": json.dumps(summary, sort_keys=True)})
-            final = rec.stats
+                if isinstance(rec, CaseRecorder):
+                    summary["corner_cases"] = {"written": rec.cases_written, "errors": rec.errors}
+                main_rec.add_metadata("summary", {"json": json.dumps(summary, sort_keys=True)})
+            final = main_rec.stats
             summary["recorder"] = {"written": final.written, "dropped": final.dropped,
                                    "enqueued": final.enqueued, "bytes_written": final.bytes_written}
         finally:

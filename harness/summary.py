@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from harness.loop import LoopStats, SimLoop
+from harness.detector_observer import DetectorObserver
 from harness.timing_observer import TimingObserver
 from harness.vehicle_state import VehicleRun
 from timing.anomaly import is_sane
@@ -14,7 +15,8 @@ from timing.stats import summarize_ns
 SCHEMA_VERSION = 1
 
 
-def vehicle_summary(v: VehicleRun, *, wall_s: float, timing: TimingObserver | None = None) -> dict[str, Any]:
+def vehicle_summary(v: VehicleRun, *, wall_s: float, timing: TimingObserver | None = None,
+                    detector: DetectorObserver | None = None) -> dict[str, Any]:
     ok = [r for r in v.records if r.status == FrameStatus.OK]
     # Exact percentiles over the recorded frames; absurd records (flagged as causality
     # anomalies) are kept out so the summary never shows a negative latency.
@@ -38,6 +40,7 @@ def vehicle_summary(v: VehicleRun, *, wall_s: float, timing: TimingObserver | No
         "order_violations": sum(1 for r in ok if r.order_violations()),
         "latency_ms": stages,
         **(timing.summary(v.name) if timing is not None else {}),
+        **(detector.summary(v.name) if detector is not None else {}),
         "link": {k: val for k, val in v.link.stats.__dict__.items()},
         "target": None if v.link.hello is None else {
             "name": v.link.hello.target_name, "clock": v.link.hello.clock_id.name,
@@ -46,14 +49,15 @@ def vehicle_summary(v: VehicleRun, *, wall_s: float, timing: TimingObserver | No
 
 
 def build_summary(*, loop: SimLoop, stats: LoopStats, recorder_stats: dict[str, Any],
-                  meta: dict[str, Any], timing: TimingObserver | None = None) -> dict[str, Any]:
+                  meta: dict[str, Any], timing: TimingObserver | None = None,
+                  detector: DetectorObserver | None = None) -> dict[str, Any]:
     wall_s = max((stats.wall_end_ns - stats.wall_start_ns) / 1e9, 1e-9)
     sim_s = stats.sim_steps * loop.sim.step_ns / 1e9
     rtf = sim_s / wall_s
     realtime = loop.cfg.mode.value == "realtime"
     requested = loop.cfg.realtime_factor
     kept = (not realtime) or (rtf >= 0.95 * requested and stats.late_steps <= 0.01 * max(stats.sim_steps, 1))
-    vehicles = {v.name: vehicle_summary(v, wall_s=wall_s, timing=timing) for v in loop.vehicles}
+    vehicles = {v.name: vehicle_summary(v, wall_s=wall_s, timing=timing, detector=detector) for v in loop.vehicles}
     for name, s in vehicles.items():
         final_gap = loop.sim.ground_truth().egos
         s["outcome"] = {

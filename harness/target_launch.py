@@ -1,6 +1,6 @@
 """Starting and reaching a run's targets: one link per vehicle, built from the
 ``target:`` config, plus the locally started target process where the transport
-does not start one itself (zenoh and can with a ``command``)."""
+does not start one itself (zenoh, can and mixed with a ``command``)."""
 
 from __future__ import annotations
 
@@ -59,10 +59,26 @@ def target_command(cfg: RunConfig, *, vehicle_id: int = 0) -> list[str]:
             for w in [*cfg.target.command, *cfg.target.args]]
 
 
+def _zenoh_options(cfg: RunConfig, vehicle_id: int) -> dict[str, object]:
+    z = cfg.target.zenoh
+    return {"connect": [substitute(e, vehicle_id=vehicle_id, base_port=z.base_port) for e in z.connect],
+            "listen": [substitute(e, vehicle_id=vehicle_id, base_port=z.base_port) for e in z.listen],
+            "mode": z.mode.value, "key_prefix": z.key_prefix, "multicast_scouting": z.multicast_scouting,
+            "congestion_control": z.congestion_control.value, "lease_ms": z.lease_ms,
+            "tls": dict(z.tls) if z.tls else None}
+
+
+def _can_options(cfg: RunConfig, vehicle_id: int) -> dict[str, object]:
+    c = cfg.target.can
+    return {"interface": c.interface, "channel": substitute(c.channel, vehicle_id=vehicle_id, base_port=0),
+            "bitrate": c.bitrate, "data_bitrate": c.data_bitrate}
+
+
 def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, out_dir: Path,
               rx: queue.Queue[Received]) -> tuple[Link, TargetProcess | None]:
     """Build (not open) the link of one vehicle, starting its local target process
-    first where a network transport has a ``command``.
+    first where a network transport has a ``command``. A ``mixed`` target takes
+    frames over ``target.zenoh`` and answers over ``target.can``.
 
     Raises:
         TargetError: the command cannot be started.
@@ -76,19 +92,14 @@ def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, ou
     proc = TargetProcess(target_command(cfg, vehicle_id=vehicle_id), log_path=log) if t.command else None
     try:
         if t.transport == Transport.ZENOH:
-            z = t.zenoh
-            fill = [substitute(e, vehicle_id=vehicle_id, base_port=z.base_port) for e in z.connect]
-            listen = [substitute(e, vehicle_id=vehicle_id, base_port=z.base_port) for e in z.listen]
-            link = open_link("zenoh", vehicle_id=vehicle_id, clock=clock, connect=fill, listen=listen,
-                             mode=z.mode.value, key_prefix=z.key_prefix, multicast_scouting=z.multicast_scouting,
-                             congestion_control=z.congestion_control.value, lease_ms=z.lease_ms,
-                             tls=dict(z.tls) if z.tls else None, rx_queue=rx)
+            link = open_link("zenoh", vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
+                             **_zenoh_options(cfg, vehicle_id))
+        elif t.transport == Transport.MIXED:  # frames over target.zenoh, the rest over target.can
+            link = open_link("mixed", vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
+                             **_zenoh_options(cfg, vehicle_id), **_can_options(cfg, vehicle_id))
         else:
-            c = t.can
-            link = open_link("can", vehicle_id=vehicle_id, clock=clock, interface=c.interface,
-                             channel=substitute(c.channel, vehicle_id=vehicle_id, base_port=0),
-                             bitrate=c.bitrate, data_bitrate=c.data_bitrate, camera_over=c.camera_over,
-                             rx_queue=rx)
+            link = open_link("can", vehicle_id=vehicle_id, clock=clock, camera_over=t.can.camera_over, rx_queue=rx,
+                             **_can_options(cfg, vehicle_id))
     except BaseException:
         if proc is not None:
             proc.close()

@@ -20,15 +20,22 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from scenarios.ground_truth import (CameraTruth, Collision, EgoTruth, EntityState, GroundTruth, RefStateRules,
-                                    VisibleBox)
+from scenarios.ground_truth import (
+    CameraTruth,
+    Collision,
+    EgoTruth,
+    EntityState,
+    GroundTruth,
+    RefStateRules,
+    VisibleBox,
+)
+from scenarios.motion import ScriptTable
+from scenarios.path import Path
 from scenarios.render import SceneRenderer
-from scenarios.silhouette import silhouette_area
-from scenarios.vehicle import VehicleBank, VehicleLimits, VehicleState
+from scenarios.vehicle import EgoActuators, VehicleLimits, VehicleState
+from scenarios.visibility import pixel_boxes, silhouette_area
 from scenarios.world import VehicleSpec, WorldSpec, build_mjcf, camera_name
 from timing.errors import SimulationError
-
-_CHUNK_STEPS = 500  # scripted poses are computed this many physics steps at a time
 
 
 @dataclass(frozen=True)
@@ -39,44 +46,6 @@ class Intrinsics:
     fy: float
     cx: float
     cy: float
-
-
-def _contiguous(idx: np.ndarray) -> bool:
-    """True when ``idx`` is start, start + 3, start + 6, ... (one row of an x, y, yaw layout)."""
-    return not len(idx) or bool(np.all(idx == idx[0] + 3 * np.arange(len(idx))))
-
-
-class _ScriptTable:
-    """Poses and velocities of every scripted entity, a block of steps at a time."""
-
-    def __init__(self, specs: list[VehicleSpec], step_ns: int) -> None:
-        self.specs = specs
-        self.step_ns = step_ns
-        self.first = -1
-        n = len(specs)
-        self.pos = np.zeros((0, n, 3))
-        self.quat = np.zeros((0, n, 4))
-        self.vel = np.zeros((0, n, 2))
-
-    def row(self, step: int) -> int:
-        if not (self.first <= step < self.first + len(self.pos)):
-            self._fill(step)
-        return step - self.first
-
-    def _fill(self, step: int) -> None:
-        n = len(self.specs)
-        steps = np.arange(step, step + _CHUNK_STEPS, dtype=np.int64)
-        t = steps * self.step_ns / 1e9
-        self.pos = np.zeros((_CHUNK_STEPS, n, 3))
-        self.quat = np.zeros((_CHUNK_STEPS, n, 4))
-        self.vel = np.zeros((_CHUNK_STEPS, n, 2))
-        for j, spec in enumerate(self.specs):
-            assert spec.script is not None
-            st = spec.script.state_at(t)
-            self.pos[:, j, 0], self.pos[:, j, 1] = st.x_m, st.y_m
-            self.quat[:, j, 0], self.quat[:, j, 3] = np.cos(st.heading_rad / 2), np.sin(st.heading_rad / 2)
-            self.vel[:, j, 0], self.vel[:, j, 1] = st.vx_mps, st.vy_mps
-        self.first = step
 
 
 class Simulation:
@@ -105,7 +74,6 @@ class Simulation:
         self._entity_index = {v.name: i for i, v in enumerate(world.vehicles)}
         self.egos: tuple[str, ...] = tuple(v.name for v in world.vehicles if v.ego)
         self._ego_index = {name: i for i, name in enumerate(self.egos)}
-        self._bank = VehicleBank(self.limits, [self._specs[n].speed_mps for n in self.egos])
         qx = [int(m.joint(f"{n}/x").qposadr[0]) for n in self.egos]
         dx = [int(m.joint(f"{n}/x").dofadr[0]) for n in self.egos]
         ax = [int(m.actuator(f"{n}/x").id) for n in self.egos]
@@ -118,7 +86,7 @@ class Simulation:
         scripted = [v for v in world.vehicles if v.script is not None]
         self._scripted = {v.name: j for j, v in enumerate(scripted)}
         self._mocap = np.array([int(m.body_mocapid[m.body(v.name).id]) for v in scripted], int)
-        self._table = _ScriptTable(scripted, self.step_ns)
+        self._table = ScriptTable([v.script for v in scripted], self.step_ns)
         self._body_entity = np.full(m.nbody, -1, np.int32)
         for v in world.vehicles:
             self._body_entity[m.body(v.name).id] = self._entity_index[v.name]
@@ -132,16 +100,9 @@ class Simulation:
         self._new_collisions: list[Collision] = []
         self._kin_step = -1
         n = len(world.vehicles)
-        # (x, y, yaw) rows of the egos' joints, velocities and servo set points as strided
-        # views (cheaper than index arrays every step): build_mjcf lays each ego's three
-        # joints and actuators out one after the other.
-        layout = ((self.data.qpos, (self._qx, self._qy, self._qyaw)),
-                  (self.data.qvel, (self._dx, self._dy, self._dx + 2)),
-                  (self.data.ctrl, (self._ax, self._ay, self._ayaw)))
-        if not all(_contiguous(idx) for _, idxs in layout for idx in idxs):
-            raise SimulationError("ego joints and actuators are not laid out as (x, y, yaw) triples")
-        self._views = tuple(tuple(arr[int(idx[0])::3][: len(idx)] for idx in idxs)
-                            for arr, idxs in layout) if self.egos else ()
+        self._actuators = EgoActuators(self.limits, [self._specs[e].speed_mps for e in self.egos],
+                                       qpos=self.data.qpos, qvel=self.data.qvel, ctrl=self.data.ctrl,
+                                       qpos_x=qx, dof_x=dx, act_x=ax)
         self._ego_ids = np.array([self._entity_index[e] for e in self.egos], int)
         self._scripted_ids = np.array([self._entity_index[v.name] for v in scripted], int)
         self._static_states = np.array([[v.x_m, v.y_m, v.yaw_rad, 0.0, 0.0] for v in world.vehicles],
@@ -151,6 +112,7 @@ class Simulation:
         self._others = [np.array([j for j in range(n) if j != i], int) for i in range(n)]
         self._states_step = -1
         self._states_cache: tuple[np.ndarray, ...] | None = None
+        self._qvel_before = np.zeros(m.nv)
         self._rgb: dict[str, np.ndarray] = {}
         self._seg: np.ndarray | None = None
         for i, name in enumerate(self.egos):  # start headings and speeds
@@ -170,11 +132,12 @@ class Simulation:
 
     def set_control(self, vehicle: str, *, steering_rad: float, throttle: float, brake: float) -> None:
         """Set the actuator commands of an ego vehicle (applied from the next step)."""
-        self._bank.set_command(self._ego_index[vehicle], steering_rad=steering_rad, throttle=throttle, brake=brake)
+        self._actuators.set_command(self._ego_index[vehicle], steering_rad=steering_rad, throttle=throttle,
+                                    brake=brake)
 
     def vehicle_state(self, vehicle: str) -> VehicleState:
         """An ego's actuator state (speed set point, steering angle, commands)."""
-        return self._bank.state(self._ego_index[vehicle])
+        return self._actuators.state(self._ego_index[vehicle])
 
     def set_pose(self, vehicle: str, *, x_m: float, y_m: float, yaw_rad: float) -> None:
         """Move an ego vehicle (for tests and set-ups); its speed is kept."""
@@ -183,6 +146,10 @@ class Simulation:
         q[self._qx[i]], q[self._qy[i]], q[self._qyaw[i]] = x_m - self._x0[i], y_m - self._y0[i], yaw_rad
         mujoco.mj_forward(self.model, self.data)
         self._states_step = -1
+
+    def route(self, vehicle: str) -> Path:
+        """The path an ego means to follow (its lane): ground truth measures along it."""
+        return self._routes[vehicle]
 
     def pose(self, vehicle: str) -> tuple[float, float, float]:
         """(x m, y m, yaw rad) of an entity in the world."""
@@ -211,6 +178,13 @@ class Simulation:
             return float(self._table.vel[r, j, 0]), float(self._table.vel[r, j, 1])
         return 0.0, 0.0
 
+    def _velocity_before(self, vehicle: str) -> tuple[float, float]:
+        """Velocity at the start of the step being taken (before contact impulses)."""
+        i = self._ego_index.get(vehicle)
+        if i is None:
+            return self.velocity(vehicle)
+        return float(self._qvel_before[self._dx[i]]), float(self._qvel_before[self._dy[i]])
+
     def speed_mps(self, vehicle: str) -> float:
         """Forward speed (m/s) as the simulator has it."""
         vx, vy = self.velocity(vehicle)
@@ -222,16 +196,8 @@ class Simulation:
         d = self.data
         if len(self._mocap):
             self._place_scripted(self.steps)
-        if self.egos:
-            qpos, qvel, ctrl = self._views
-            yaw = qpos[2]
-            c, s = np.cos(yaw), np.sin(yaw)
-            measured = qvel[0] * c
-            measured += qvel[1] * s
-            speed, yaw_rate = self._bank.step(measured, self.world.physics_step_s)
-            np.multiply(speed, c, out=ctrl[0])
-            np.multiply(speed, s, out=ctrl[1])
-            ctrl[2][:] = yaw_rate
+        self._actuators.step(self.world.physics_step_s)
+        np.copyto(self._qvel_before, d.qvel)  # the speeds going into a contact
         mujoco.mj_step(self.model, d)
         if d.ncon or self._active_contacts:
             self._scan_contacts()
@@ -265,7 +231,7 @@ class Simulation:
                 force = np.zeros(6)
                 mujoco.mj_contactForce(self.model, self.data, i, force)
                 n = c.frame[:3]  # from geom1 towards geom2
-                va, vb = self.velocity(a), self.velocity(b)
+                va, vb = self._velocity_before(a), self._velocity_before(b)
                 into_a = va[0] * n[0] + va[1] * n[1]      # a moving towards b
                 into_b = -(vb[0] * n[0] + vb[1] * n[1])   # b moving towards a
                 striker = None
@@ -329,10 +295,7 @@ class Simulation:
         intr = self.intrinsics()
         w, h = self.world.camera.width, self.world.camera.height
         boxes = []
-        for k, e in enumerate(seen):
-            mask = seg == e
-            rows = np.flatnonzero(mask.any(axis=1))
-            cols = np.flatnonzero(mask.any(axis=0))
+        for k, (e, box) in enumerate(zip(seen, pixel_boxes(seg, seen))):
             area, truncated = 0.0, False
             for g in self._entity_geoms[e]:
                 a, t = silhouette_area(self.data.geom_xpos[g], self.data.geom_xmat[g].reshape(3, 3),
@@ -343,8 +306,7 @@ class Simulation:
                 truncated = truncated or t
             vis = int(counts[e])
             spec = self.world.vehicles[e]
-            boxes.append(VisibleBox(spec.name, e, spec.cls.value,
-                                    (int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1), vis,
+            boxes.append(VisibleBox(spec.name, e, spec.cls.value, box, vis,
                                     round(min(1.0, vis / area) if area > 0 else 1.0, 4), truncated,
                                     round(float(s_m[k]), 4), round(float(lat_m[k]), 4)))
         return CameraTruth(vehicle, self.sim_time_ns, tuple(boxes), ego)
@@ -386,6 +348,14 @@ class Simulation:
         egos = tuple(self._ego_truth(name) for name in self.egos)
         collisions, self._new_collisions = tuple(self._new_collisions), []
         return GroundTruth(t, ents, egos, collisions)
+
+    def truth_snapshot(self) -> GroundTruth:
+        """Every entity's state and every ego's truth now, without taking the new
+        collisions (they stay for the next ``ground_truth()``)."""
+        pending = self._new_collisions
+        gt = self.ground_truth()
+        self._new_collisions = pending
+        return GroundTruth(gt.sim_time_ns, gt.entities, gt.egos, ())
 
     def _path_coords(self, vehicle: str, entities: list[int]) -> tuple[np.ndarray, np.ndarray]:
         """(distance along the ego's route from its front to each entity's nearest
