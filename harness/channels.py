@@ -12,6 +12,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any
 
+from harness import foxglove_out
 from harness.recorder import Recorder
 from timing.sync import SyncSample
 
@@ -93,6 +94,7 @@ def register_all(rec: Recorder, vehicles: Iterable[str]) -> None:
     """Declare every JSON channel of a run."""
     rec.register_json_channel("/ground_truth", "hil.GroundTruth", GROUND_TRUTH)
     rec.register_json_channel("/events", "hil.Event", EVENT)
+    foxglove_out.register(rec)
     for v in vehicles:
         rec.register_json_channel(f"/{v}/estimate", "hil.Estimate", ESTIMATE)
         rec.register_json_channel(f"/{v}/pipeline", "hil.PipelineRecord", PIPELINE)

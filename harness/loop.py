@@ -29,6 +29,7 @@ import numpy as np
 
 from adapters.link import Received
 from adapters.messages import CameraInfo, ErrorMsg, Estimate, Heartbeat, ImageEncoding
+from harness import foxglove_out
 from harness.channels import sync_sample_json
 from harness.config import CameraConfig, Encoding, Mode, RunConfig
 from harness.latency import HeldControls, LatencyProfile
@@ -86,6 +87,7 @@ class SimLoop:
         self.held = None if self.latency is None else HeldControls(self.latency, step_ns=sim.step_ns)
         self._changes = StateChanges()
         self.observers: list[RunObserver] = []
+        self._ego_names = {v.name for v in vehicles}
         self.collisions: list[dict[str, object]] = []
         self.min_gap_m: dict[str, float] = {}
         self._next_sync_ns = 0
@@ -210,6 +212,7 @@ class SimLoop:
             "egos": [e.to_json() for e in gt.egos],
             "collisions": [c.to_json() for c in gt.collisions],
         }, log_time_ns=t, publish_time_ns=t)
+        foxglove_out.write(self.rec, gt, egos=self._ego_names, t_ns=t)
 
     def _record_camera_truth(self) -> None:
         """Per camera: the entities it shows (segmentation render), for the frame just sent."""

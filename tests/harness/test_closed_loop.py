@@ -60,6 +60,13 @@ def test_mcap_accounts_for_every_frame(tmp_path):
         assert img.shape == (240, 320, 3)
         assert d["format"] == "jpeg"
 
+    # Foxglove's 3D panel: every entity as a cube, each vehicle's pose as a transform.
+    scene = msgs["/scene"][0][1]
+    assert {e["id"] for e in scene["entities"]} == {"ego0", "car1"}
+    assert all(e["cubes"] and e["frame_id"] == "world" for e in scene["entities"])
+    tf = [d for _, d in msgs["/tf"] if d["child_frame_id"] == "ego0"]
+    assert len(tf) == v["frames_sent"] and tf[-1]["translation"]["x"] > tf[0]["translation"]["x"]
+
     # Ground truth at every camera tick, and the summary on disk matches.
     assert len(msgs["/ground_truth"]) == v["frames_sent"]
     on_disk = json.loads(result.summary_path.read_text())
