@@ -39,8 +39,8 @@ mapped onto it), not the harness clock, so it is not used.
 
 Camera frames are newest-wins: while one is in transmission, a newer frame replaces
 the one waiting (``CanLink.frames_superseded`` counts them; the harness sees them as
-dropped). ``camera_over="none"`` is a mixed target: frames travel over another
-transport (not implemented yet) and sending one here raises.
+dropped). ``camera_over="none"`` is a mixed target: frames travel over Zenoh
+(``adapters.mixed``) and sending one here raises.
 
 python-can's ``virtual`` interface works within one process and has no bit timing
 (``adapters.can_capacity`` gives a real bus's limits); ``udp_multicast`` is refused:

@@ -280,7 +280,7 @@ class Link(ABC):
     def _close_transport(self) -> None: ...
 
 
-TRANSPORTS = ("local", "zenoh", "can")
+TRANSPORTS = ("local", "zenoh", "can", "mixed")
 
 
 def open_link(transport: str, **options: object) -> Link:
@@ -299,6 +299,9 @@ def open_link(transport: str, **options: object) -> Link:
     if transport == "can":
         from adapters.can_transport import CanLink
         return CanLink(**options)  # type: ignore[arg-type]
+    if transport == "mixed":  # frames over zenoh, everything else over CAN
+        from adapters.mixed import MixedLink
+        return MixedLink(**options)  # type: ignore[arg-type]
     raise TransportError(f"unknown transport {transport!r}; valid: {', '.join(TRANSPORTS)}")
 
 

@@ -23,8 +23,6 @@ Needs only numpy and the chosen transport: no simulator, torch or harness code.
 from __future__ import annotations
 
 import argparse
-import os
-import socket
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -197,7 +195,7 @@ class Endpoint:
             self.stats.estimates_sent += 1
 
 
-TRANSPORTS = ("local", "zenoh", "can")
+TRANSPORTS = ("local", "zenoh", "can", "mixed")
 
 
 def add_transport_args(parser: argparse.ArgumentParser) -> None:
@@ -205,14 +203,15 @@ def add_transport_args(parser: argparse.ArgumentParser) -> None:
     options of each transport (ignored by the others)."""
     g = parser.add_argument_group("transport")
     g.add_argument("--transport", choices=TRANSPORTS, default="local",
-                   help="local: started by `hil run`; zenoh: network; can: CAN bus")
+                   help="local: started by `hil run`; zenoh: network; can: CAN bus; "
+                        "mixed: frames over zenoh, everything else on the CAN bus")
     g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
                    help="zenoh: endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)")
     g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                    help="zenoh: endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable)")
     g.add_argument("--mode", choices=("peer", "client"), default="peer", help="zenoh session mode")
     g.add_argument("--key-prefix", default="hil", help="zenoh: key expression prefix")
-    g.add_argument("--vehicle", type=int, default=0, help="vehicle id this target serves (zenoh, can)")
+    g.add_argument("--vehicle", type=int, default=0, help="vehicle id this target serves (zenoh, can, mixed)")
     g.add_argument("--interface", default="socketcan",
                    help="can: python-can interface (socketcan, pcan, kvaser, vector, slcan, virtual)")
     g.add_argument("--channel", default="vcan0", help="can: channel, e.g. vcan0, PCAN_USBBUS1")
@@ -228,6 +227,10 @@ def transport_options(args: argparse.Namespace) -> dict[str, object]:
     if args.transport == "can":
         return {"interface": args.interface, "channel": args.channel, "bitrate": args.bitrate,
                 "data_bitrate": args.data_bitrate, "vehicle_id": args.vehicle}
+    if args.transport == "mixed":  # the zenoh options for frames, the can options for the rest
+        return {"listen": list(args.listen), "connect": list(args.connect), "mode": args.mode,
+                "key_prefix": args.key_prefix, "interface": args.interface, "channel": args.channel,
+                "bitrate": args.bitrate, "data_bitrate": args.data_bitrate, "vehicle_id": args.vehicle}
     return {}
 
 
@@ -266,26 +269,15 @@ def serve(infer: InferFn, *, target_name: str, transport: str = "local", clock: 
         from adapters.can_transport import serve_endpoint as serve_can
         serve_can(ep, **transport_options)  # type: ignore[arg-type]
         return ep.stats
+    if transport == "mixed":
+        from adapters.mixed import serve_endpoint as serve_mixed
+        serve_mixed(ep, **transport_options)  # type: ignore[arg-type]
+        return ep.stats
     raise TransportError(f"unknown transport {transport!r}; valid: {', '.join(TRANSPORTS)}")
 
 
 def _serve_local(ep: Endpoint) -> None:
-    fd_text = os.environ.get("HIL_LOCAL_FD")
-    if not fd_text or not fd_text.isdigit():
-        raise TransportError("HIL_LOCAL_FD is not set: a local target is started by the harness "
-                             "(hil run), not by hand")
-    sock = socket.socket(fileno=int(fd_text))
-    try:
-        ep.start(sock.sendall)
-        while not ep.stopped:
-            try:
-                data = sock.recv(1 << 20)
-            except OSError:
-                break
-            t_rx = ep.clock.now_ns()
-            if not data:
-                break
-            ep.on_bytes(data, t_rx)
-    finally:
-        ep.join()
-        sock.close()
+    # The socket in HIL_LOCAL_FD, plus the shared-memory frame ring of HIL_LOCAL_SHM
+    # where the harness offers one (adapters.local, adapters.shm; stdlib only).
+    from adapters.local import serve_endpoint as serve_local
+    serve_local(ep)
