@@ -1,6 +1,6 @@
 """Sim-loop throughput against bare MuJoCo rendering of the same cameras.
 
-    .venv/bin/python bench/bench_sim.py [--vehicles 1 2 4 8 16] [--seconds 3] [--rounds 3]
+    .venv/bin/python bench/bench_sim.py [--vehicles 1 2 4 8 16] [--images 400] [--rounds 3]
 
 For each vehicle count N it builds the ``multi_vehicle`` scenario with N egos
 (320x240, 10 fps, physics step 2 ms: 50 physics steps per camera frame) and
@@ -17,7 +17,8 @@ measures, interleaved round by round so machine noise hits both alike:
 
 Printed as a markdown table of images per second (frames of all vehicles); the
 overhead is the loop's time per frame over the bare floor's. A vehicle count fits
-10 fps when the loop's frames/s reaches 10 * N. Medians of ``--rounds``.
+10 fps when the loop's frames/s reaches 10 * N. Each measurement renders about
+``--images`` images (at least 10 frames); medians of ``--rounds``. About 3 minutes.
 """
 
 from __future__ import annotations
@@ -35,25 +36,25 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from scenarios.gl import select_backend  # noqa: E402
+from scenarios.gl import select_backend
 
 select_backend()
 
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
+import mujoco
+import numpy as np
 
-import scenarios  # noqa: E402
-from adapters.link import LinkStats, Received  # noqa: E402
-from adapters.messages import Control, DrivingState, Estimate  # noqa: E402
-from harness.channels import register_all  # noqa: E402
-from harness.config import parse_config  # noqa: E402
-from harness.loop import SimLoop  # noqa: E402
-from harness.recorder import Recorder  # noqa: E402
-from harness.vehicle_state import VehicleRun  # noqa: E402
-from scenarios.road import ROAD_GROUP  # noqa: E402
-from scenarios.sim import Simulation  # noqa: E402
-from scenarios.world import CameraSpec, camera_name  # noqa: E402
-from timing.clock import MonotonicClock  # noqa: E402
+import scenarios
+from adapters.link import LinkStats, Received
+from adapters.messages import Control, DrivingState, Estimate
+from harness.channels import register_all
+from harness.config import parse_config
+from harness.loop import SimLoop
+from harness.recorder import Recorder
+from harness.vehicle_state import VehicleRun
+from scenarios.road import ROAD_GROUP
+from scenarios.sim import Simulation
+from scenarios.world import CameraSpec, camera_name
+from timing.clock import MonotonicClock
 
 FPS = 10.0
 STEP_S = 0.002
@@ -152,17 +153,18 @@ def loop(n: int, frames: int, *, boxes: bool, out: Path) -> float:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--vehicles", type=int, nargs="+", default=[1, 2, 4, 8, 16])
-    p.add_argument("--seconds", type=float, default=3.0, help="simulated seconds per measurement")
+    p.add_argument("--images", type=int, default=400, help="images per measurement (about)")
     p.add_argument("--rounds", type=int, default=3)
     a = p.parse_args(argv)
-    frames = round(a.seconds * FPS)
     print(f"MUJOCO_GL={os.environ.get('MUJOCO_GL')}, {os.cpu_count()} CPUs, 320x240, {FPS:g} fps, "
-          f"physics step {STEP_S * 1e3:g} ms, {frames} frames per measurement, median of {a.rounds} rounds\n")
+          f"physics step {STEP_S * 1e3:g} ms ({round(1 / (FPS * STEP_S))} steps per frame), "
+          f"~{a.images} images per measurement, median of {a.rounds} rounds\n")
     print("| vehicles | bare render img/s | loop img/s | overhead | bare render+seg img/s | loop+boxes img/s "
           "| overhead | 10 fps each fits (loop / loop+boxes) |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- |")
     with tempfile.TemporaryDirectory() as tmp:
         for n in a.vehicles:
+            frames = max(10, -(-a.images // n))
             res: dict[str, list[float]] = {"bare": [], "loop": [], "bare_seg": [], "loop_seg": []}
             for r in range(a.rounds):
                 res["bare"].append(bare(n, frames, seg=False))

@@ -53,6 +53,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     report.add_parser(sub)
     compare.add_parser(sub)
+    from harness.search import cli as search_cli
+
+    search_cli.add_parser(sub)
     return p
 
 
@@ -67,6 +70,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         import importlib
 
         return int(importlib.import_module(TARGETS[argv[1]]).main(argv[2:]) or 0)
+    if argv and argv[0] == "search":
+        # hil search SPEC ... / hil search merge|cases|report ...: parsed by harness.search.cli.
+        from harness.search import cli as search_cli
+
+        return search_cli.main(argv[1:])
     args = build_parser().parse_args(argv)
     try:
         if args.command == "run":

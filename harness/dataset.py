@@ -218,7 +218,7 @@ def _composed_world(rng: np.random.Generator, camera: CameraSpec) -> tuple[World
                       yaw_rad=float(lane0.pose_at(1.0)[2]), ego=True, route=lane0)
     placed: list[VehicleSpec] = []
     s_list: list[float] = []
-    n_cars, n_peds, n_obst = int(rng.poisson(3.0)), int(rng.poisson(1.0)), int(rng.poisson(0.7))
+    n_cars, n_peds, n_obst = int(rng.poisson(3.0)), int(rng.poisson(1.5)), int(rng.poisson(1.5))
     kinds = ["car"] * n_cars + ["ped"] * n_peds + ["obstacle"] * n_obst
     for i, kind in enumerate(kinds):
         for _ in range(20):  # tries to find a free spot
@@ -239,11 +239,11 @@ def _composed_world(rng: np.random.Generator, camera: CameraSpec) -> tuple[World
                 cls = EntityClass.PEDESTRIAN
                 rgba = (1.0, 0.55, 0.0, 1.0) if rng.random() < 0.5 else _paint(rng)
             else:
-                size = (float(rng.uniform(0.3, 0.9)), float(rng.uniform(0.3, 0.9)), float(rng.uniform(0.3, 0.8)))
+                size = (float(rng.uniform(0.3, 1.0)), float(rng.uniform(0.4, 1.0)), float(rng.uniform(0.4, 1.0)))
                 lat = float(rng.uniform(-1.5, 1.5)) if where < 0.7 else -_LANE_W / 2 - float(rng.uniform(0.3, 1.5))
                 dyaw = float(rng.uniform(-0.8, 0.8))
                 cls = EntityClass.OBSTACLE
-                grey = float(rng.uniform(0.35, 0.9))
+                grey = float(rng.uniform(0.6, 0.95))  # lighter than the road (0.32)
                 rgba = _paint(rng) if rng.random() < 0.6 else (grey, grey * 0.9, grey * 0.8, 1.0)
             bx, by, bh = (float(v) for v in lane0.pose_at(s))
             x, y = bx - lat * math.sin(bh), by + lat * math.cos(bh)
@@ -267,8 +267,8 @@ def _composed_samples(rng: np.random.Generator, n: int, camera: CameraSpec) -> I
         made = tries = 0
         while made < n and tries < 4 * n:
             tries += 1
-            if s_list and rng.random() < 0.7:  # something ahead, 3-60 m from the bumper
-                s = s_list[int(rng.integers(len(s_list)))] - 2.25 - float(rng.uniform(3.0, 60.0))
+            if s_list and rng.random() < 0.75:  # something ahead, 2-50 m from the bumper, mostly near
+                s = s_list[int(rng.integers(len(s_list)))] - 2.25 - 2.0 - 48.0 * float(rng.random()) ** 1.5
             else:
                 s = float(rng.uniform(5.0, lane0.length_m - 60.0))
             s = max(1.0, s)

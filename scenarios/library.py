@@ -14,7 +14,13 @@ import math
 
 import numpy as np
 
-from scenarios.motion import LaneChange, LateralProfile, Script, SpeedChange, SpeedProfile
+from scenarios.motion import (
+    LaneChange,
+    LateralProfile,
+    Script,
+    SpeedChange,
+    SpeedProfile,
+)
 from scenarios.params import Param
 from scenarios.path import Path
 from scenarios.registry import register
@@ -31,7 +37,7 @@ def _world(roads: tuple[RoadSpec, ...], vehicles: tuple[VehicleSpec, ...], camer
            physics_step_s: float, shadows: bool, reflections: bool, realized: dict[str, float]) -> WorldSpec:
     return WorldSpec(roads=roads, vehicles=vehicles, camera=camera, physics_step_s=physics_step_s,
                      shadows=shadows, reflections=reflections,
-                     realized={k: round(float(v), 6) for k, v in realized.items()})
+                     realized={k: float(v) for k, v in realized.items()})
 
 
 def _straight_road(length_m: float, *, start_x_m: float = -30.0, shoulder_m: float = 0.5) -> RoadSpec:
@@ -207,7 +213,7 @@ def multi_vehicle(*, params: dict[str, float], seed: int, camera: CameraSpec, ph
                   shadows: bool = False, reflections: bool = False) -> WorldSpec:
     rng = np.random.default_rng(seed)
     n = int(params["n_vehicles"])
-    n_cross = int(round(n * params["crossing_share"])) if n > 1 else 0
+    n_cross = round(n * params["crossing_share"]) if n > 1 else 0
     n_main = n - n_cross
     headway = params["headway_m"]
     per_lane = math.ceil(n_main / 2)

@@ -158,3 +158,41 @@ class Script:
     def pose0(self) -> tuple[float, float, float]:
         st = self.state_at(0.0)
         return float(st.x_m[0]), float(st.y_m[0]), float(st.heading_rad[0])
+
+
+class ScriptTable:
+    """Poses (position, quaternion) and velocities of many scripts on the physics-step
+    grid, computed ``chunk_steps`` steps at a time (vectorised) and looked up by step.
+
+    ``row(step)`` gives the row of ``pos`` (n_rows x n x 3), ``quat`` (w, x, y, z) and
+    ``vel`` (vx, vy) for time ``step * step_ns``.
+    """
+
+    def __init__(self, scripts: list[Script | None], step_ns: int, *, chunk_steps: int = 500) -> None:
+        self.scripts = scripts
+        self.step_ns = step_ns
+        self.chunk_steps = chunk_steps
+        self.first = -1
+        n = len(scripts)
+        self.pos = np.zeros((0, n, 3))
+        self.quat = np.zeros((0, n, 4))
+        self.vel = np.zeros((0, n, 2))
+
+    def row(self, step: int) -> int:
+        if not (self.first <= step < self.first + len(self.pos)):
+            self._fill(step)
+        return step - self.first
+
+    def _fill(self, step: int) -> None:
+        n, k = len(self.scripts), self.chunk_steps
+        t = np.arange(step, step + k, dtype=np.int64) * self.step_ns / 1e9
+        self.pos = np.zeros((k, n, 3))
+        self.quat = np.zeros((k, n, 4))
+        self.vel = np.zeros((k, n, 2))
+        for j, script in enumerate(self.scripts):
+            assert script is not None
+            st = script.state_at(t)
+            self.pos[:, j, 0], self.pos[:, j, 1] = st.x_m, st.y_m
+            self.quat[:, j, 0], self.quat[:, j, 3] = np.cos(st.heading_rad / 2), np.sin(st.heading_rad / 2)
+            self.vel[:, j, 0], self.vel[:, j, 1] = st.vx_mps, st.vy_mps
+        self.first = step

@@ -13,6 +13,7 @@ plain floats. No MuJoCo import here.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 
@@ -139,18 +140,37 @@ class Path:
 
     def project(self, x_m: float | np.ndarray, y_m: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(s, lateral) of the nearest path point to each (x, y): arc length and the
-        signed offset to the left of the path (metres)."""
+        signed offset to the left of the path (metres). Off either end the straight
+        continuation counts (s < 0 or s > length)."""
         px, py = np.asarray(x_m, dtype=np.float64), np.asarray(y_m, dtype=np.float64)
         px, py = np.broadcast_arrays(px, py)
         n = len(self.segments)
+        if n == 1 and abs(self.segments[0].curvature_per_m) <= _STRAIGHT:  # the common case: one line
+            c, s_ = math.cos(self.heading0_rad), math.sin(self.heading0_rad)
+            dx, dy = px - self.x0_m, py - self.y0_m
+            return dx * c + dy * s_, -dx * s_ + dy * c
         best_d = np.full(px.shape, np.inf)
         best_s = np.zeros(px.shape)
         best_l = np.zeros(px.shape)
-        for i in range(max(n, 1)):
+
+        def consider(s_at: np.ndarray) -> None:
+            nonlocal best_d, best_s, best_l
+            fx, fy, fh = self.pose_at(s_at)
+            ex, ey = px - fx, py - fy
+            d = np.hypot(ex, ey)
+            better = d < best_d
+            best_d = np.where(better, d, best_d)
+            best_s = np.where(better, s_at, best_s)
+            best_l = np.where(better, -ex * np.sin(fh) + ey * np.cos(fh), best_l)
+
+        # The straight continuations before the start and after the end.
+        c, s_ = math.cos(self.heading0_rad), math.sin(self.heading0_rad)
+        consider(np.minimum((px - self.x0_m) * c + (py - self.y0_m) * s_, 0.0))
+        L, (ex_, ey_, eh) = self.length_m, self.end_pose
+        consider(L + np.maximum((px - ex_) * math.cos(eh) + (py - ey_) * math.sin(eh), 0.0))
+        for i, seg in enumerate(self.segments):
             s0, x0, y0, h0 = self._starts[i]
-            seg = self.segments[i] if n else None
-            length = seg.length_m if seg else 0.0
-            k = seg.curvature_per_m if seg else 0.0
+            k, length = seg.curvature_per_m, seg.length_m
             c, s_ = math.cos(h0), math.sin(h0)
             if abs(k) <= _STRAIGHT:
                 u = (px - x0) * c + (py - y0) * s_
@@ -160,18 +180,7 @@ class Path:
                 h = np.arctan2(dx, -dy) if k > 0 else np.arctan2(-dx, dy)
                 mid = k * length / 2
                 u = (np.mod(h - h0 - mid + math.pi, 2 * math.pi) - math.pi + mid) / k
-            lo = -np.inf if i == 0 else 0.0
-            hi = np.inf if i >= n - 1 else length
-            u = np.clip(u, lo, hi)
-            if n <= 1 and abs(k) <= _STRAIGHT:  # one straight line: the foot is never clipped
-                return s0 + u, -(px - x0) * s_ + (py - y0) * c
-            fx, fy, fh = self.pose_at(s0 + u)
-            ex, ey = px - fx, py - fy
-            d = np.hypot(ex, ey)
-            better = d < best_d
-            best_d = np.where(better, d, best_d)
-            best_s = np.where(better, s0 + u, best_s)
-            best_l = np.where(better, -ex * np.sin(fh) + ey * np.cos(fh), best_l)
+            consider(s0 + np.clip(u, 0.0, length))
         return best_s, best_l
 
     def sample(self, step_m: float, *, s_from: float = 0.0, s_to: float | None = None) -> np.ndarray:
@@ -181,7 +190,7 @@ class Path:
         knots = [s_from, end] + [float(v) for v in self._starts[1:-1, 0] if s_from < v < end]
         knots = sorted(set(knots))
         out = [knots[0]]
-        for a, b in zip(knots, knots[1:]):
+        for a, b in itertools.pairwise(knots):
             k = max(1, math.ceil((b - a) / step_m - 1e-9))
             out.extend(a + (b - a) * np.arange(1, k + 1) / k)
         return np.array(out)

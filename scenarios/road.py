@@ -14,6 +14,7 @@ segmentation pass can leave the road out and physics never sees it.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -120,7 +121,7 @@ def _pieces(path: Path, s_from: float, s_to: float) -> list[tuple[float, float]]
         return []
     knots = path.sample(math.inf, s_from=s_from, s_to=s_to)
     out = []
-    for a, b in zip(knots, knots[1:]):
+    for a, b in itertools.pairwise(knots):
         k = float(path.curvature_at((a + b) / 2))
         m = 1 if abs(k) < 1e-12 else max(1, math.ceil((b - a) / CHORD_M))
         edges = np.linspace(a, b, m + 1)

@@ -5,6 +5,10 @@ and rate, acceleration, braking); the resulting planar velocity is the set point
 three MuJoCo velocity actuators (x, y, yaw), whose force limits let a collision
 really stop the car. Speed is read back from the simulator each step, so a blocked
 car does not keep a phantom speed.
+
+``step_command`` steps one vehicle, ``VehicleBank`` many at once (numpy), and
+``EgoActuators`` is what the simulation uses: it picks one of the two by the
+number of egos and writes the servos' set points every physics step.
 """
 
 from __future__ import annotations
@@ -105,3 +109,67 @@ class VehicleBank:
         np.minimum(v, lim.max_speed_mps, out=v)
         self.speed_mps = v
         return v, v * np.tan(self.steer_rad) * self._tan_over_l
+
+
+class EgoActuators:
+    """Every ego's actuator state, stepped each physics step into its velocity servos.
+
+    Works on the simulation's numpy arrays: ``qpos``/``qvel``/``ctrl`` with each
+    ego's (x, y, yaw) joints, dofs and servos at ``start + 0, 1, 2`` (``qpos_x``,
+    ``dof_x``, ``act_x``: the x entries, one per ego, 3 apart). With one or two egos
+    plain floats (``step_command``) beat numpy's per-call cost; with more, one
+    ``VehicleBank`` steps them all at once.
+    """
+
+    SCALAR_MAX = 2
+
+    def __init__(self, limits: VehicleLimits, initial_speeds_mps: list[float], *, qpos: np.ndarray,
+                 qvel: np.ndarray, ctrl: np.ndarray, qpos_x: list[int], dof_x: list[int], act_x: list[int]) -> None:
+        n = len(initial_speeds_mps)
+        self.limits, self.n = limits, n
+        self._q, self._qv, self._u = qpos, qvel, ctrl
+        self._idx = list(zip(qpos_x, dof_x, act_x))
+        self._scalar = [VehicleState(speed_mps=v) for v in initial_speeds_mps] if n <= self.SCALAR_MAX else None
+        self._bank = VehicleBank(limits, initial_speeds_mps)
+        self._views: tuple[tuple[np.ndarray, ...], ...] = ()
+        if n and self._scalar is None:
+            for name, idx in (("qpos", qpos_x), ("dofs", dof_x), ("actuators", act_x)):
+                if list(idx) != [idx[0] + 3 * i for i in range(n)]:
+                    raise ValueError(f"ego {name} are not laid out as consecutive (x, y, yaw) triples: {idx}")
+            # Strided views: cheaper every step than index arrays.
+            self._views = tuple(tuple(arr[start + k::3][:n] for k in range(3))
+                                for arr, start in ((qpos, qpos_x[0]), (qvel, dof_x[0]), (ctrl, act_x[0])))
+
+    def set_command(self, i: int, *, steering_rad: float, throttle: float, brake: float) -> None:
+        if self._scalar is not None:
+            st = self._scalar[i]
+            st.cmd_steer_rad, st.cmd_throttle, st.cmd_brake = steering_rad, throttle, brake
+        else:
+            self._bank.set_command(i, steering_rad=steering_rad, throttle=throttle, brake=brake)
+
+    def state(self, i: int) -> VehicleState:
+        if self._scalar is not None:
+            st = self._scalar[i]
+            return VehicleState(st.speed_mps, st.steer_rad, st.cmd_steer_rad, st.cmd_throttle, st.cmd_brake)
+        return self._bank.state(i)
+
+    def step(self, dt_s: float) -> None:
+        """Advance every ego's actuators by ``dt_s`` and write the servos' set points
+        (world-frame velocity, yaw rate) from the measured speeds and headings."""
+        if self._scalar is not None:
+            q, qv, u, lim = self._q, self._qv, self._u, self.limits
+            for st, (iq, iv, ia) in zip(self._scalar, self._idx):
+                yaw = float(q[iq + 2])
+                c, s = math.cos(yaw), math.sin(yaw)
+                speed, yaw_rate = step_command(st, lim, measured_speed_mps=float(qv[iv]) * c + float(qv[iv + 1]) * s,
+                                               dt_s=dt_s)
+                u[ia], u[ia + 1], u[ia + 2] = speed * c, speed * s, yaw_rate
+        elif self.n:
+            (_, _, yaw), (vx, vy, _), (ux, uy, uyaw) = self._views
+            c, s = np.cos(yaw), np.sin(yaw)
+            measured = vx * c
+            measured += vy * s
+            speed, yaw_rate = self._bank.step(measured, dt_s)
+            np.multiply(speed, c, out=ux)
+            np.multiply(speed, s, out=uy)
+            uyaw[:] = yaw_rate

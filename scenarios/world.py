@@ -24,7 +24,14 @@ from enum import Enum
 
 from scenarios.motion import Script
 from scenarios.path import Path
-from scenarios.road import GRASS_RGBA, MARKING_RGBA, ROAD_GROUP, ROAD_RGBA, RoadSpec, road_xml
+from scenarios.road import (
+    GRASS_RGBA,
+    MARKING_RGBA,
+    ROAD_GROUP,
+    ROAD_RGBA,
+    RoadSpec,
+    road_xml,
+)
 
 ENTITY_GROUP = 0
 EGO_RGBA = (0.1, 0.25, 0.8, 1.0)

@@ -1,4 +1,5 @@
-"""The unoccluded image area of a box: the denominator of a visible fraction.
+"""What a camera sees of each entity: pixel boxes from a segmentation image, and
+the unoccluded image area of a box (the denominator of a visible fraction).
 
 The silhouette of a convex solid seen by a pinhole camera is the convex hull of its
 projected vertices. The part of the box behind the camera's near plane is cut off
@@ -14,6 +15,18 @@ import numpy as np
 NEAR_M = 0.05
 _SIGNS = np.array([[(i & 1) * 2 - 1, (i >> 1 & 1) * 2 - 1, (i >> 2 & 1) * 2 - 1] for i in range(8)], float)
 _EDGES = [(a, a | bit) for a in range(8) for bit in (1, 2, 4) if not a & bit]
+
+
+def pixel_boxes(ids: np.ndarray, entities: list[int]) -> list[tuple[int, int, int, int]]:
+    """(x0, y0, x1, y1) pixel edges (x1, y1 exclusive) of each entity's pixels in an
+    entity-id image; every entity listed must have at least one pixel."""
+    out = []
+    for e in entities:
+        mask = ids == e
+        rows = np.flatnonzero(mask.any(axis=1))
+        cols = np.flatnonzero(mask.any(axis=0))
+        out.append((int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1))
+    return out
 
 
 def silhouette_area(pos: np.ndarray, mat: np.ndarray, half_size: np.ndarray, cam_pos: np.ndarray,

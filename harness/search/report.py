@@ -1,0 +1,207 @@
+"""``CAMPAIGN/summary.json`` and ``CAMPAIGN/report.html``.
+
+The page is self-contained (inline CSS and hand-written SVG; it loads nothing): the
+key figures, corner cases by cause and kind, scatter plots of the searched
+parameters two by two with every episode a dot (grey: no corner case; blue: timing
+only; orange: a perception mismatch; red: a latency mismatch; larger: a higher
+score; hover for its values), the case rate per parameter bin, the generations, the
+slowest and most anomalous episodes, and the cases with the command that replays
+each.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+from html import escape
+from pathlib import Path
+from typing import Any
+
+from harness import report_plots as rp
+from harness.search.db import DB_NAME, CampaignDB
+from harness.search.summary import build_summary, case_cause, episode_class
+from timing.errors import ConfigError
+
+SUMMARY_NAME = "summary.json"
+REPORT_NAME = "report.html"
+CLASS_COLOUR = {"none": "#bab0ac", "timing": "#4c78a8", "perception": "#f58518", "latency": "#e45756"}
+MAX_PLOTS = 6
+MAX_CASES_LISTED = 300
+_CSS = """
+body{font:14px/1.45 system-ui,sans-serif;margin:24px auto;max-width:1150px;color:#222;padding:0 16px}
+h1{font-size:22px;margin-bottom:2px}h2{font-size:18px;border-bottom:1px solid #ddd;padding-bottom:3px;margin-top:30px}
+table{border-collapse:collapse;margin:6px 0 12px}th,td{border:1px solid #ddd;padding:3px 8px;text-align:left;
+vertical-align:top}th{background:#f4f4f4}td.n{text-align:right;font-variant-numeric:tabular-nums}
+.muted{color:#777}.grid{display:flex;flex-wrap:wrap;gap:8px}code{font-size:12px}
+.warn{background:#fff4e0;border:1px solid #f0b860;padding:8px 12px;border-radius:4px}
+"""
+
+
+def write_outputs(folder: Path) -> dict[str, Any]:
+    """Compute the summary of the campaign in ``folder`` and write both files.
+
+    Raises:
+        ConfigError: not a campaign folder, or the files cannot be written.
+    """
+    with CampaignDB(folder / DB_NAME, readonly=True) as db:
+        summary = build_summary(db)
+        eps = db.episodes()
+        cases = db.cases()
+    try:
+        (folder / SUMMARY_NAME).write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+        (folder / REPORT_NAME).write_text(build_page(summary, eps, cases), encoding="utf-8")
+    except OSError as err:
+        raise ConfigError(f"{folder}: cannot write the summary: {err.strerror or err}") from err
+    return summary
+
+
+def _table(head: list[str], rows: list[list[str]], numeric_from: int = 1) -> str:
+    h = "".join(f"<th>{escape(c)}</th>" for c in head)
+    body = "".join("<tr>" + "".join(f'<td{" class=n" if i >= numeric_from else ""}>{c}</td>'
+                                    for i, c in enumerate(r)) + "</tr>" for r in rows)
+    return f"<table><tr>{h}</tr>{body}</table>"
+
+
+def _num(v: Any, digits: int = 3) -> str:
+    return "–" if not isinstance(v, (int, float)) or isinstance(v, bool) else f"{v:.{digits}f}".rstrip("0").rstrip(".")
+
+
+def _params(p: dict[str, float]) -> str:
+    return escape(", ".join(f"{k}={v:.4g}" for k, v in p.items()))
+
+
+def build_page(s: dict[str, Any], eps: list[dict[str, Any]], cases: list[dict[str, Any]]) -> str:
+    c = s["campaign"]
+    e = s["episodes"]
+    head = [
+        ("campaign", f"{escape(c['name'])} <code>{escape(c['id'])}</code>"),
+        ("scenario", escape(c["scenario"])),
+        ("strategy", escape(json.dumps(c["strategy"]))),
+        ("seed", str(c["seed"])),
+        ("episodes", (f"{e['ran']} of {e['planned']} ran ({escape(json.dumps(e['by_status']))})"
+                      + (f", {e['missing']} missing" if e["missing"] else ""))),
+        ("simulated", f"{_num(s['sim_s'], 1)} s, {_num(s['virtual_km'], 3)} virtual km"),
+        ("wall time", (f"{_num(s['wall_s'], 1)} s: {_num(s['episodes_per_min'], 1)} episodes/min, "
+                      f"{_num(s['km_per_h'], 2)} virtual km/h")),
+        ("corner cases", f"{s['cases']['total']} in {s['cases']['episodes_with_cases']} episodes"),
+    ]
+    parts = ["<table>" + "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in head) + "</table>"]
+    if not e["complete"]:
+        parts.append(f'<p class="warn">incomplete: {e["missing"]} episodes missing (first: '
+                     f'{", ".join(map(str, e["missing_first"]))}), statuses {escape(json.dumps(e["by_status"]))}</p>')
+    parts.append("<h2>Corner cases by cause and kind</h2>")
+    parts.append(_table(["cause", "cases"], [[k, str(v)] for k, v in s["cases"]["by_cause"].items()]))
+    parts.append(_table(["kind", "cases"], [[escape(k), str(v)] for k, v in s["cases"]["by_kind"].items()]))
+    parts.append("<h2>Where they cluster</h2>" + _legend() + '<div class="grid">'
+                 + "".join(_scatters(s, eps, cases)) + "</div>")
+    parts.append(_regions_table(s))
+    parts.append("<h2>Generations</h2>" + _table(
+        ["generation", "episodes", "with mismatch cases", "rate", "mean score", "origins"],
+        [[str(g["generation"]), str(g["episodes"]), str(g["with_mismatch_cases"]), _num(g["rate"]),
+          _num(g["mean_score"]), escape(json.dumps(g["origins"]))] for g in s["by_generation"]]))
+    for title, key in (("Most anomalous episodes", "most_anomalous"), ("Slowest episodes", "slowest")):
+        parts.append(f"<h2>{title}</h2>" + _table(
+            ["episode", "score", "cases", "anomalies", "min gap m", "wall s", "sim s", "params"],
+            [[f"<code>{escape(b['dir'])}</code>", _num(b["score"]), str(b["cases"]), str(b["anomalies"]),
+              _num(b["min_gap_m"]), _num(b["wall_s"], 2), _num(b["sim_s"], 2), _params(b["params"])]
+             for b in s[key]]))
+    if s["errors"]:
+        parts.append("<h2>Episodes that did not finish</h2>" + _table(
+            ["episode", "status", "why"], [[str(x["episode"]), x["status"], escape(str(x["error"]))]
+                                           for x in s["errors"]]))
+    parts.append(f"<h2>Cases ({len(cases)})</h2>" + _table(
+        ["episode", "case", "kind", "cause", "severity", "sim s", "summary", "replay"],
+        [[str(k["episode"]), str(k["case_id"]), escape(str(k["kind"])), case_cause(k), escape(str(k["severity"])),
+          _num((k["sim_time_ns"] or 0) / 1e9, 2), escape(str(k["summary"])),
+          f"<code>hil replay CAMPAIGN/{escape(k['episode_dir'])} {k['case_id']}</code>"]
+         for k in cases[:MAX_CASES_LISTED]], numeric_from=99))
+    if len(cases) > MAX_CASES_LISTED:
+        parts.append(f'<p class="muted">{len(cases) - MAX_CASES_LISTED} more in campaign.sqlite</p>')
+    return ("<!DOCTYPE html><html lang=en><head><meta charset=utf-8>"
+            f"<title>hil search: {escape(c['name'])}</title><style>{_CSS}</style></head><body>"
+            f"<h1>hil search: {escape(c['name'])}</h1>" + "".join(parts) + "</body></html>\n")
+
+
+def _legend() -> str:
+    items = [("none", "no corner case"), ("timing", "timing anomaly only"), ("perception", "perception mismatch"),
+             ("latency", "latency mismatch")]
+    return "<p>" + " &nbsp; ".join(f'<span style="color:{CLASS_COLOUR[k]}">&#9679;</span> {v}'
+                                   for k, v in items) + "</p>"
+
+
+def _scatters(s: dict[str, Any], eps: list[dict[str, Any]], cases: list[dict[str, Any]]) -> list[str]:
+    dims = s["campaign"]["dims"]
+    causes: dict[int, set[str]] = {}
+    for k in cases:
+        causes.setdefault(int(k["episode"]), set()).add(case_cause(k))
+    points = [(e, episode_class(causes.get(e["episode"], set()))) for e in eps]
+    if len(dims) == 1:
+        score_dim = {"name": "score", "lo": 0.0, "hi": max([p["score"] or 0.0 for p, _ in points] + [1.0]),
+                     "unit": ""}
+        return [_scatter(dims[0], score_dim, points)]
+    # The dimensions whose bins differ most in case rate first: that is where cases cluster.
+    def spread(d: dict[str, Any]) -> float:
+        rates = [b["rate"] for b in s["regions"].get(d["name"], {}).get("bins", []) if b["rate"] is not None]
+        return (max(rates) - min(rates)) if rates else 0.0
+    ranked = sorted(dims, key=spread, reverse=True)[:4]
+    return [_scatter(a, b, points) for a, b in itertools.islice(itertools.combinations(ranked, 2), MAX_PLOTS)]
+
+
+def _scatter(dx: dict[str, Any], dy: dict[str, Any], points: list[tuple[dict[str, Any], str]],
+             *, width: int = 360, height: int = 300) -> str:
+    left, right, top, bottom = 52, 12, 12, 40
+    pw, ph = width - left - right, height - top - bottom
+
+    def sx(v: float) -> float:
+        return left + (v - dx["lo"]) / ((dx["hi"] - dx["lo"]) or 1.0) * pw
+
+    def sy(v: float) -> float:
+        return top + ph - (v - dy["lo"]) / ((dy["hi"] - dy["lo"]) or 1.0) * ph
+
+    body = [f'<rect x="{left}" y="{top}" width="{pw}" height="{ph}" fill="#fafafa" stroke="#ccc"/>']
+    for t in rp.nice_ticks(dx["lo"], dx["hi"], 5):
+        body.append(f'<text x="{sx(t):.1f}" y="{top + ph + 14}" text-anchor="middle">{rp.fmt(t)}</text>')
+    for t in rp.nice_ticks(dy["lo"], dy["hi"], 5):
+        body.append(f'<line x1="{left}" x2="{left + pw}" y1="{sy(t):.1f}" y2="{sy(t):.1f}" stroke="#eee"/>'
+                    f'<text x="{left - 4}" y="{sy(t) + 4:.1f}" text-anchor="end">{rp.fmt(t)}</text>')
+    xl = f"{dx['name']} {dx.get('unit', '')}".strip()
+    yl = f"{dy['name']} {dy.get('unit', '')}".strip()
+    body.append(f'<text x="{left + pw / 2:.0f}" y="{height - 6}" text-anchor="middle">{escape(xl)}</text>'
+                f'<text transform="translate(12 {top + ph / 2:.0f}) rotate(-90)" text-anchor="middle">'
+                f"{escape(yl)}</text>")
+    order = {"none": 0, "timing": 1, "perception": 2, "latency": 3}
+    for e, cls in sorted(points, key=lambda p: order[p[1]]):  # cases drawn on top
+        x = e["params"].get(dx["name"])
+        y = e["score"] if dy["name"] == "score" else e["params"].get(dy["name"])
+        if x is None or y is None:
+            continue
+        r = 2.5 + min(5.0, math.sqrt(max(e["score"] or 0.0, 0.0)))
+        title = (f"e{e['episode']:05d} {cls} score {e['score']:g} cases {e['cases']} "
+                 + ", ".join(f"{k}={v:.4g}" for k, v in e["params"].items()))
+        body.append(f'<circle cx="{sx(x):.1f}" cy="{sy(y):.1f}" r="{r:.1f}" fill="{CLASS_COLOUR[cls]}" '
+                    f'fill-opacity="0.75" stroke="#333" stroke-width="0.4"><title>{escape(title)}</title></circle>')
+    return (f'<svg viewBox="0 0 {width} {height}" width="{width}" height="{height}" role="img" '
+            f'aria-label="{escape(xl)} against {escape(yl)}" font-family="system-ui,sans-serif" font-size="11">'
+            + "".join(body) + "</svg>")
+
+
+def _regions_table(s: dict[str, Any]) -> str:
+    rows = []
+    for name, r in s["regions"].items():
+        cells = []
+        for b in r["bins"]:
+            rate = "–" if b["rate"] is None else f"{b['with_cases']}/{b['episodes']}"
+            cells.append(rate)
+        hot = r["hot"]
+        hot_text = "–" if hot is None else f"[{hot['lo']:.4g}, {hot['hi']:.4g}]: {hot['rate']:.0%} (all: " \
+                                           f"{hot['overall_rate']:.0%})"
+        span = "–" if r["case_span"] is None else f"[{r['case_span'][0]:.4g}, {r['case_span'][1]:.4g}]"
+        edges = " | ".join(f"{b['lo']:.3g}–{b['hi']:.3g}" for b in r["bins"])
+        rows.append([escape(f"{name} {r['unit']}".strip()), escape(edges), " · ".join(cells), escape(hot_text),
+                     escape(span)])
+    return ("<h3>Episodes with a mismatch case per bin</h3>"
+            + _table(["dimension", "bins", "with cases / episodes", "densest bin", "cases found in"], rows, 99))
+
+
+__all__ = ["REPORT_NAME", "SUMMARY_NAME", "build_page", "write_outputs"]
