@@ -20,7 +20,6 @@ from __future__ import annotations
 import dataclasses
 import os
 import queue
-import signal
 import socket
 import subprocess
 import threading
@@ -30,6 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from adapters import protocol
+from adapters.process import end_process
 from adapters.link import Link, Received
 from adapters.messages import Hello, MsgType
 from adapters.shm import (DEFAULT_INLINE_BELOW, DEFAULT_SLOT_BYTES, DEFAULT_SLOTS, ENV_SHM, SHM_FRAMES,
@@ -230,18 +230,8 @@ class LocalLink(Link):
             except OSError:
                 pass
             sock.close()
-        proc = getattr(self, "_proc", None)
-        if proc is not None and proc.poll() is None:
-            # The target got BYE and EOF; give it a moment, then end it by PID.
-            try:
-                proc.wait(timeout=2.0)
-            except subprocess.TimeoutExpired:
-                proc.send_signal(signal.SIGTERM)
-                try:
-                    proc.wait(timeout=2.0)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+        # The target got BYE and EOF; give it a moment, then end it by PID.
+        end_process(getattr(self, "_proc", None))
         reader = getattr(self, "_reader", None)
         if reader is not None and reader is not threading.current_thread():
             reader.join(timeout=2.0)

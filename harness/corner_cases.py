@@ -211,6 +211,20 @@ class CaseRecorder:
             self._writer = None
 
 
+def query_cases(db: Path) -> list[dict[str, Any]]:
+    """Every row of table ``cases`` as it is stored, by sim time then id (read-only).
+
+    Raises:
+        sqlite3.Error: not a database, or no table ``cases``.
+    """
+    con = sqlite3.connect(f"{db.resolve().as_uri()}?mode=ro", uri=True)
+    try:
+        con.row_factory = sqlite3.Row
+        return [dict(r) for r in con.execute("SELECT * FROM cases ORDER BY sim_time_ns, id")]
+    finally:
+        con.close()
+
+
 def read_cases(run_dir: Path) -> tuple[list[dict[str, Any]], list[str]]:
     """The cases of a run, and one warning line per row that could not be read.
 
@@ -221,12 +235,7 @@ def read_cases(run_dir: Path) -> tuple[list[dict[str, Any]], list[str]]:
     if not db.is_file():
         raise ConfigError(f"{run_dir}: no {DB_NAME} (the run recorded no corner cases, or is not a run folder)")
     try:
-        con = sqlite3.connect(f"{db.resolve().as_uri()}?mode=ro", uri=True)
-        try:
-            con.row_factory = sqlite3.Row
-            raw = [dict(r) for r in con.execute("SELECT * FROM cases ORDER BY sim_time_ns, id")]
-        finally:
-            con.close()
+        raw = query_cases(db)
     except sqlite3.Error as err:
         raise ConfigError(f"{db}: not a corner-case database ({err})") from err
     rows, bad = [], []

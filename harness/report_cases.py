@@ -16,6 +16,7 @@ from html import escape
 from pathlib import Path
 from typing import Any
 
+from harness.corner_cases import query_cases
 from harness.run_folder import CORNER_DB_NAME, MCAP_NAME, RunData, camera_images
 
 MAX_ROWS = 500
@@ -40,12 +41,7 @@ def read_cases(db: Path) -> list[dict[str, Any]]:
     Raises:
         sqlite3.Error: not a database, no table ``cases``.
     """
-    con = sqlite3.connect(f"{db.resolve().as_uri()}?mode=ro", uri=True)
-    try:
-        con.row_factory = sqlite3.Row
-        rows = [dict(r) for r in con.execute("SELECT * FROM cases")]
-    finally:
-        con.close()
+    rows = query_cases(db)
 
     def key(r: dict[str, Any]) -> tuple[float, str]:
         t = r.get("sim_time_ns")

@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import os
 import queue
-import signal
 import subprocess
 from pathlib import Path
 
 from adapters.link import Link, Received, open_link
+from adapters.process import end_process
 from harness.config import RunConfig, Transport
 from harness.config_target import substitute
 from timing.clock import Clock
@@ -37,16 +37,7 @@ class TargetProcess:
 
     def close(self) -> None:
         proc, self.proc = getattr(self, "proc", None), None
-        if proc is not None and proc.poll() is None:
-            try:
-                proc.wait(timeout=2.0)  # it got BYE; let it leave on its own
-            except subprocess.TimeoutExpired:
-                proc.send_signal(signal.SIGTERM)
-                try:
-                    proc.wait(timeout=3.0)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+        end_process(proc, term_s=3.0)  # it got BYE; let it leave on its own first
         log = getattr(self, "_log", None)
         if log is not None and not log.closed:
             log.close()

@@ -1,0 +1,22 @@
+"""Ending a target process the harness started: by PID, politely first."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+
+
+def end_process(proc: subprocess.Popen[bytes] | None, *, grace_s: float = 2.0, term_s: float = 2.0) -> None:
+    """Wait ``grace_s`` for ``proc`` to leave on its own (it was told BYE), then
+    SIGTERM, then after ``term_s`` SIGKILL. Returns once it has exited."""
+    if proc is None or proc.poll() is not None:
+        return
+    try:
+        proc.wait(timeout=grace_s)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=term_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
