@@ -49,10 +49,11 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("name", choices=sorted(TARGETS), help="which example target")
     t.add_argument("target_args", nargs=argparse.REMAINDER, help="options for the target")
     # Each command lives in its own module: add_parser(sub) and cmd(args).
-    from harness import compare, report
+    from harness import compare, report, train
 
     report.add_parser(sub)
     compare.add_parser(sub)
+    train.add_parser(sub)
     from harness.search import cli as search_cli
 
     search_cli.add_parser(sub)
@@ -60,7 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # Example targets by name: module with a main(argv) -> int.
-TARGETS = {"cv": "targets.cv_baseline", "echo": "targets.echo"}
+TARGETS = {"cnn": "targets.cnn.target", "cv": "targets.cv_baseline", "echo": "targets.echo"}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -89,7 +90,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return clock_cmd.cmd(args)
         if args.command == "scenarios":
             return _cmd_scenarios(args)
-        if args.command in ("report", "compare"):
+        if args.command in ("report", "compare", "train"):
             import importlib
 
             return int(importlib.import_module(f"harness.{args.command}").cmd(args))

@@ -184,6 +184,9 @@ class LatencyConfig(BaseModel):
     max_ms: Float = Field(5_000.0, ge=0, le=60_000)
     path: str | None = None  # a recorded run's folder or its run.mcap
     stage: LatencyStage = LatencyStage.SIM_APPLY
+    # Each frame's control is lost on the link with this probability (seeded per
+    # vehicle and frame; constant/normal/lognormal profiles): a dropped frame.
+    drop_prob: Float = Field(0.0, ge=0, le=1)
 
 
 class LockstepConfig(BaseModel):
@@ -226,7 +229,7 @@ class RunConfig(BaseModel):
         if not _period_fits(fps, step):
             raise PydanticCustomError(_PERIOD_ERROR, _period_message(fps, step), {"fps": fps})
         lat = self.lockstep.latency
-        if lat.kind != LatencyKind.NONE and self.mode != Mode.LOCKSTEP:
+        if (lat.kind != LatencyKind.NONE or lat.drop_prob > 0) and self.mode != Mode.LOCKSTEP:
             raise PydanticCustomError(_RULE_ERROR, "mode: lockstep (a latency profile delays control in "
                                       "lockstep only; in realtime the target's own latency applies)",
                                       {"loc": ("lockstep", "latency", "kind"), "got": lat.kind.value})

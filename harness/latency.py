@@ -67,6 +67,8 @@ class LatencyProfile:
     def describe(self) -> dict[str, object]:
         c = self.cfg
         out: dict[str, object] = {"kind": c.kind.value}
+        if c.drop_prob > 0:
+            out["drop_prob"] = c.drop_prob
         if c.kind == LatencyKind.CONSTANT:
             out["ms"] = c.ms
         elif c.kind == LatencyKind.NORMAL:
@@ -80,13 +82,17 @@ class LatencyProfile:
     def delay(self, vehicle_index: int, frame_id: int) -> Delay:
         """The delay of frame ``frame_id`` of the ``vehicle_index``-th vehicle."""
         c = self.cfg
+        if c.kind == LatencyKind.RECORDED:
+            seq = self._recorded[self._vehicles[vehicle_index]]
+            return seq[frame_id % len(seq)][1]
+        if c.drop_prob > 0:
+            rng = np.random.default_rng([self._seed, vehicle_index, frame_id, 0xD0])
+            if rng.random() < c.drop_prob:
+                return Delay(None, FrameStatus.DROPPED)
         if c.kind == LatencyKind.NONE:
             return Delay(0)
         if c.kind == LatencyKind.CONSTANT:
             return Delay(round(c.ms * 1e6))
-        if c.kind == LatencyKind.RECORDED:
-            seq = self._recorded[self._vehicles[vehicle_index]]
-            return seq[frame_id % len(seq)][1]
         block = frame_id // _BLOCK
         key = vehicle_index * 1_000_000 + block
         draws = self._blocks.get(key)

@@ -107,7 +107,7 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
                                          pitch_rad=math.radians(cam.pitch_deg), yaw_rad=math.radians(cam.yaw_deg)),
                        shadows=cam.shadows, reflections=cam.reflections)
     lat_cfg = cfg.lockstep.latency
-    latency = (None if lat_cfg.kind == LatencyKind.NONE
+    latency = (None if lat_cfg.kind == LatencyKind.NONE and lat_cfg.drop_prob == 0
                else LatencyProfile(lat_cfg, seed=cfg.seed, vehicles=[v.name for v in world.egos]))
     t = cfg.truth
     rules = RefStateRules(comfort_decel_mps2=t.comfort_decel_mps2, stop_margin_m=t.stop_margin_m,

@@ -45,7 +45,8 @@ from harness.search.sampling import (
     generation_of,
     is_guided,
 )
-from harness.search.spec import Campaign, Shard
+from harness.search.shard import Shard
+from harness.search.spec import Campaign
 from timing.errors import ConfigError
 
 
@@ -120,7 +121,9 @@ def run_campaign(c: Campaign, *, out: Path, gl_backend: str, shard: Shard | None
 
     Raises:
         ConfigError: a bad ``out`` (see ``prepare_campaign_dir``), ``workers`` < 1, or
-            ``resume`` of a folder holding another campaign or another shard.
+            ``resume`` of a folder holding another campaign, or another shard (unless
+            ``shard`` is the whole campaign, which runs whatever is missing, e.g. from
+            a merge of the slices that finished).
     """
     if workers < 1:
         raise ConfigError(f"--workers {workers}: expected at least 1")
@@ -130,7 +133,7 @@ def run_campaign(c: Campaign, *, out: Path, gl_backend: str, shard: Shard | None
     with CampaignDB(out / DB_NAME) as db:
         db.init_campaign(c)
         others = {s["shard"] for s in db.shards()} - {str(shard)}
-        if others:
+        if others and shard.count > 1:  # the whole campaign (0/1) may finish a merge's missing episodes
             raise ConfigError(f"--out {out}: holds shard {', '.join(sorted(others))} of this campaign, not "
                               f"{shard}; resume with the same --shard")
         known = db.episodes()

@@ -98,7 +98,8 @@ def main(argv: Sequence[str]) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     from harness.search.campaign import run_campaign
     from harness.search.progress import CampaignProgress
-    from harness.search.spec import Shard, load_spec, parse_shard
+    from harness.search.shard import Shard, parse_shard
+    from harness.search.spec import load_spec
     from scenarios.gl import select_backend
     from timing.errors import ConfigError
 
@@ -196,7 +197,7 @@ def _cmd_cases(args: argparse.Namespace) -> int:
     console = _console()
     t = Table(title=f"{len(cases)} corner cases in {args.campaign}", title_justify="left")
     for col in ("episode", "case", "vehicle", "sim s", "kind", "cause", "severity", "replay"):
-        t.add_column(col, no_wrap=col in ("kind", "replay"))
+        t.add_column(col, no_wrap=col != "replay", overflow="fold")
     for k in cases:
         sim = k["sim_time_ns"]
         t.add_row(str(k["episode"]), str(k["case_id"]), str(k["vehicle"]),

@@ -16,7 +16,7 @@ from rich.progress import (
 )
 
 from harness.search.episode import EpisodeResult, Status
-from harness.search.spec import Shard
+from harness.search.shard import Shard
 
 
 class CampaignProgress:

@@ -56,9 +56,9 @@ def write_outputs(folder: Path) -> dict[str, Any]:
     return summary
 
 
-def _table(head: list[str], rows: list[list[str]], numeric_from: int = 1) -> str:
+def _table(head: list[str], rows: list[list[str]], numeric_from: int = 1, numeric_to: int = 99) -> str:
     h = "".join(f"<th>{escape(c)}</th>" for c in head)
-    body = "".join("<tr>" + "".join(f'<td{" class=n" if i >= numeric_from else ""}>{c}</td>'
+    body = "".join("<tr>" + "".join(f'<td{" class=n" if numeric_from <= i < numeric_to else ""}>{c}</td>'
                                     for i, c in enumerate(r)) + "</tr>" for r in rows)
     return f"<table><tr>{h}</tr>{body}</table>"
 
@@ -105,7 +105,7 @@ def build_page(s: dict[str, Any], eps: list[dict[str, Any]], cases: list[dict[st
             ["episode", "score", "cases", "anomalies", "min gap m", "wall s", "sim s", "params"],
             [[f"<code>{escape(b['dir'])}</code>", _num(b["score"]), str(b["cases"]), str(b["anomalies"]),
               _num(b["min_gap_m"]), _num(b["wall_s"], 2), _num(b["sim_s"], 2), _params(b["params"])]
-             for b in s[key]]))
+             for b in s[key]], numeric_to=7))
     if s["errors"]:
         parts.append("<h2>Episodes that did not finish</h2>" + _table(
             ["episode", "status", "why"], [[str(x["episode"]), x["status"], escape(str(x["error"]))]
@@ -165,8 +165,7 @@ def _scatter(dx: dict[str, Any], dy: dict[str, Any], points: list[tuple[dict[str
     for t in rp.nice_ticks(dy["lo"], dy["hi"], 5):
         body.append(f'<line x1="{left}" x2="{left + pw}" y1="{sy(t):.1f}" y2="{sy(t):.1f}" stroke="#eee"/>'
                     f'<text x="{left - 4}" y="{sy(t) + 4:.1f}" text-anchor="end">{rp.fmt(t)}</text>')
-    xl = f"{dx['name']} {dx.get('unit', '')}".strip()
-    yl = f"{dy['name']} {dy.get('unit', '')}".strip()
+    xl, yl = _label(dx["name"], dx.get("unit", "")), _label(dy["name"], dy.get("unit", ""))
     body.append(f'<text x="{left + pw / 2:.0f}" y="{height - 6}" text-anchor="middle">{escape(xl)}</text>'
                 f'<text transform="translate(12 {top + ph / 2:.0f}) rotate(-90)" text-anchor="middle">'
                 f"{escape(yl)}</text>")
@@ -186,6 +185,10 @@ def _scatter(dx: dict[str, Any], dy: dict[str, Any], points: list[tuple[dict[str
             + "".join(body) + "</svg>")
 
 
+def _label(name: str, unit: str) -> str:
+    return f"{name} ({unit})" if unit else name
+
+
 def _regions_table(s: dict[str, Any]) -> str:
     rows = []
     for name, r in s["regions"].items():
@@ -198,7 +201,7 @@ def _regions_table(s: dict[str, Any]) -> str:
                                            f"{hot['overall_rate']:.0%})"
         span = "–" if r["case_span"] is None else f"[{r['case_span'][0]:.4g}, {r['case_span'][1]:.4g}]"
         edges = " | ".join(f"{b['lo']:.3g}–{b['hi']:.3g}" for b in r["bins"])
-        rows.append([escape(f"{name} {r['unit']}".strip()), escape(edges), " · ".join(cells), escape(hot_text),
+        rows.append([escape(_label(name, r["unit"])), escape(edges), " · ".join(cells), escape(hot_text),
                      escape(span)])
     return ("<h3>Episodes with a mismatch case per bin</h3>"
             + _table(["dimension", "bins", "with cases / episodes", "densest bin", "cases found in"], rows, 99))

@@ -33,7 +33,6 @@ import copy
 import hashlib
 import json
 import math
-import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from enum import Enum
@@ -345,8 +344,7 @@ def _latency_dims(spec: SpecModel, source: str) -> list[Dim]:
         if key == "kind":
             continue
         if key not in allowed:
-            hint = (" (lockstep.latency has no drop probability yet: drops cannot be searched)"
-                    if "drop" in key else "")
+            hint = " (link drops are searched as drop_prob)" if "drop" in key else ""
             raise ConfigError(f"{source}: latency.{key}: not a searchable latency field; valid: kind, "
                               f"{', '.join(allowed)}{hint}")
         if given is not None and not (isinstance(given, list) and all(
@@ -386,42 +384,4 @@ def _latency_kind(spec: SpecModel, run: RunConfig, dims: list[Dim], source: str)
     return "normal" if lat_fields & {"std_ms", "min_ms", "max_ms"} else "constant"
 
 
-# --- shards ----------------------------------------------------------------------------
-
-_SHARD_RE = re.compile(r"^\s*(-?\d+)\s*/\s*(-?\d+)\s*$")
-
-
-@dataclass(frozen=True)
-class Shard:
-    """Slice ``index`` of ``count``: the episodes ``i`` with ``i % count == index``."""
-
-    index: int = 0
-    count: int = 1
-
-    def owns(self, episode: int) -> bool:
-        return episode % self.count == self.index
-
-    def __str__(self) -> str:
-        return f"{self.index}/{self.count}"
-
-
-def parse_shard(text: str) -> Shard:
-    """``"i/N"`` (0 <= i < N) as a Shard.
-
-    Raises:
-        ConfigError: not ``i/N``, ``N < 1``, or ``i`` outside ``0..N-1``.
-    """
-    m = _SHARD_RE.match(text or "")
-    if not m:
-        raise ConfigError(f"--shard {text!r}: expected i/N (this is slice i of N, 0 <= i < N), e.g. 0/4")
-    i, n = int(m[1]), int(m[2])
-    if n < 1:
-        raise ConfigError(f"--shard {text}: N = {n}; expected at least 1 slice (e.g. 0/1 for the whole campaign)")
-    if not (0 <= i < n):
-        raise ConfigError(f"--shard {text}: index {i} out of range; expected 0 <= i < {n} "
-                          f"(slices of {n} are numbered 0 to {n - 1})")
-    return Shard(i, n)
-
-
-__all__ = ["Campaign", "Dim", "ScoreSpec", "Shard", "StrategyKind", "StrategySpec", "load_spec",
-           "parse_shard", "resolve_spec"]
+__all__ = ["Campaign", "Dim", "ScoreSpec", "StrategyKind", "StrategySpec", "load_spec", "resolve_spec"]

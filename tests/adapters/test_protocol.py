@@ -14,11 +14,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from adapters.messages import (
-    Bye, CameraInfo, ClockId, Control, DetectedObject, DrivingState, ErrorMsg, Estimate,
+    Bye, CameraInfo, ClockId, Command, Control, DetectedObject, DrivingState, ErrorMsg, Estimate,
     Frame, Heartbeat, Hello, ImageEncoding, MsgType, ObjectClass, SyncRequest, SyncResponse,
 )
 from adapters.protocol import (
-    FLAG_PAYLOAD_CRC, ErrorCode, HEADER_SIZE, MAGIC, MAX_NAME_LEN, MAX_OBJECTS, MAX_PAYLOAD,
+    FLAG_PAYLOAD_CRC, MAX_COMMAND_LEN, ErrorCode, HEADER_SIZE, MAGIC, MAX_NAME_LEN, MAX_OBJECTS, MAX_PAYLOAD,
     STREAM_BUFFER_LIMIT, VERSION, Header, decode, decode_header, encode,
     encode_frame,
 )
@@ -75,6 +75,7 @@ messages = st.one_of(
     st.builds(Heartbeat, vehicle_id=u32, t_sender_ns=i64),
     st.builds(ErrorMsg, vehicle_id=u32, code=st.integers(0, 0xFFFF), message=utf8_within(1024)),
     st.builds(Bye, vehicle_id=u32, reason=utf8_within(256)),
+    st.builds(Command, vehicle_id=u32, seq=u64, text=utf8_within(MAX_COMMAND_LEN), t_sender_ns=i64),
 )
 
 
@@ -345,6 +346,19 @@ def test_error_and_bye_lengths():
     expect_error(patch(encode(ErrorMsg(1, 2, "x")), 66, "<H", 1025), 66, "msg_len")
     expect_error(patch(encode(Bye(1, "x")), 64, "<H", 257), 64, "reason_len")
     expect_error(patch(encode(Bye(1, "xy")), 64, "<H", 1), 64, "reason_len")
+
+
+def test_command_layout_and_lengths():
+    wire = encode(Command(3, 9, "swap detector cv", 42))
+    assert wire[:4] == MAGIC and wire[5] == MsgType.COMMAND == 9
+    assert struct.unpack_from("<Q", wire, 16)[0] == 9 and struct.unpack_from("<q", wire, 24)[0] == 42
+    assert struct.unpack_from("<H", wire, 64)[0] == 16 and wire[66:] == b"swap detector cv"
+    expect_error(patch(wire, 64, "<H", MAX_COMMAND_LEN + 1), 64, "text_len")
+    expect_error(patch(wire, 64, "<H", 3), 64, "text_len")
+    expect_error(patch(wire, 32, "<q", 1), 32, "ts1")
+    with pytest.raises(ProtocolError) as info:
+        encode(Command(3, 9, "x" * (MAX_COMMAND_LEN + 1)))
+    assert info.value.offset == 66
 
 
 def test_unused_header_slots_must_be_zero():

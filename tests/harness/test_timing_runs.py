@@ -62,3 +62,22 @@ def test_absurd_target_stamps_are_flagged_not_counted(tmp_path, mode):
             assert st["max_ms"] < 60_000, (stage, st)
     events = [d for _, d in read_mcap(result.mcap_path)["/events"] if d["kind"] == "causality"]
     assert events
+
+
+def test_lockstep_link_drops_are_seeded_and_counted(tmp_path):
+    # A lossy link in lockstep: each frame's control is lost with probability 0.3,
+    # the same frames for the same seed, every loss a counted drop.
+    def run(sub):
+        cfg = {"name": "lossy", "seed": 5, "mode": "lockstep", "duration_s": 3.0, "progress": False,
+               "scenario": {"name": "stopped_car", "params": {"gap_m": 40.0, "ego_speed_mps": 4.0}},
+               "target": {"command": [sys.executable, "-m", "targets.echo"]},
+               "lockstep": {"latency": {"kind": "constant", "ms": 20.0, "drop_prob": 0.3}}}
+        r = execute(parse_config(cfg), out_dir=prepare_out_dir(tmp_path / sub), gl_backend=GL_BACKEND,
+                    install_signal_handlers=False)
+        recs = sorted((d["frame_id"], d["status"]) for _, d in read_mcap(r.mcap_path)["/ego0/pipeline"])
+        return r.summary["vehicles"]["ego0"], recs
+
+    v, recs = run("a")
+    assert 60 * 0.15 < v["dropped"] < 60 * 0.45
+    assert v["dropped"] == sum(1 for _, s in recs if s == "dropped")
+    assert run("b")[1] == recs
