@@ -79,18 +79,19 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
         TargetError: a target could not start (before the loop; nothing recorded).
         SimulationError: the world cannot be built or rendered.
     """
+    # Imported here: these pull in mujoco, whose GL backend the caller chose first.
     import scenarios
     from adapters.link import Received
-    from harness.loop import encode_image
-    from harness.target_launch import TargetProcess, can_preflight, make_link
     from harness.channels import register_all, sync_sample_json
+    from harness.config import LatencyKind
     from harness.corner_cases import CaseRecorder
     from harness.detector_observer import DetectorObserver
-    from harness.config import LatencyKind
     from harness.latency import LatencyProfile
-    from harness.loop import SimLoop
+    from harness.loop import SimLoop, encode_image
     from harness.recorder import Recorder
+    from harness.report import write_report
     from harness.summary import build_summary
+    from harness.target_launch import TargetProcess, can_preflight, make_link
     from harness.timing_observer import TimingObserver
     from harness.vehicle_state import VehicleRun
     from scenarios.ground_truth import RefStateRules
@@ -199,8 +200,6 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
             for p in procs:
                 p.close()
     summary_path.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
-    from harness.report import write_report
-
     write_report(out_dir)
     return RunResult(out_dir, mcap_path, summary_path, summary)
 
