@@ -19,7 +19,7 @@ $(STAMP): pyproject.toml constraints.txt Makefile tools/check_system.sh
 	@bash tools/check_system.sh "$(PYTHON)"
 	@test -x $(BIN)/python || $$(bash tools/check_system.sh --print-python "$(PYTHON)") -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[dev]" -c constraints.txt
+	$(BIN)/python -m pip install --quiet -e ".[dev,ai]" -c constraints.txt
 	@$(BIN)/python -m scenarios.gl || bash tools/check_system.sh --gl-help
 	@touch $(STAMP)
 

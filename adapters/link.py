@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 from adapters import protocol
 from adapters.stream import StreamDecoder
-from adapters.messages import (Bye, CameraInfo, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
+from adapters.messages import (Bye, CameraInfo, Command, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
                                Message, SyncRequest,
                                SyncResponse)
 from timing.clock import Clock
@@ -78,6 +78,7 @@ class Link(ABC):
         self._peer_gone = threading.Event()
         self.peer_gone_reason: str | None = None
         self._sync_seq = 0
+        self._command_seq = 0
 
     # -- lifecycle -----------------------------------------------------------
 
@@ -168,6 +169,24 @@ class Link(ABC):
         req = SyncRequest(self.vehicle_id, self._sync_seq, self.clock.now_ns())
         self._send_checked(protocol.encode(req))
         return req
+
+    def send_command(self, text: str) -> Command:
+        """Send one COMMAND (a line of text for the target's control software, e.g.
+        ``"swap detector cv"``) stamped with the harness clock; returns it. The
+        target's reply, a ``Command`` with the same ``seq``, arrives through ``recv``.
+
+        Raises:
+            TransportError: the target's HELLO did not announce ``CAP_COMMANDS``, or
+                the peer is gone.
+            ProtocolError: ``text`` is over ``MAX_COMMAND_LEN`` bytes of UTF-8.
+        """
+        if self.hello is None or not self.hello.capabilities & protocol.CAP_COMMANDS:
+            name = self.hello.target_name if self.hello else "the target"
+            raise TransportError(f"{name} accepts no commands (its HELLO does not announce CAP_COMMANDS)")
+        self._command_seq += 1
+        cmd = Command(self.vehicle_id, self._command_seq, text, self.clock.now_ns())
+        self._send_checked(protocol.encode(cmd))
+        return cmd
 
     def sync_exchange(self, *, timeout_s: float = 0.5) -> SyncSample | None:
         """One blocking 4-timestamp exchange; None if no answer in ``timeout_s``."""

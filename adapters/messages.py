@@ -24,6 +24,7 @@ class MsgType(IntEnum):
     HEARTBEAT = 6
     ERROR = 7
     BYE = 8
+    COMMAND = 9
 
 
 class DrivingState(IntEnum):
@@ -190,10 +191,23 @@ class Bye:
     reason: str = ""
 
 
-Message = Hello | Frame | Estimate | SyncRequest | SyncResponse | Heartbeat | ErrorMsg | Bye
+@dataclass(frozen=True)
+class Command:
+    """A line of text for the control software of a target (harness -> target, e.g.
+    ``"swap detector cv"``), or the target's reply to it (target -> harness, same
+    ``seq``). Sent only to a target whose HELLO announced ``CAP_COMMANDS``
+    (``adapters.protocol``). ``t_sender_ns``: the sender's clock at send."""
+
+    vehicle_id: int
+    seq: int
+    text: str
+    t_sender_ns: int = 0
+
+
+Message = Hello | Frame | Estimate | SyncRequest | SyncResponse | Heartbeat | ErrorMsg | Bye | Command
 
 __all__ = [
-    "Bye", "CameraInfo", "ClockId", "Control", "DetectedObject", "DrivingState",
+    "Bye", "CameraInfo", "ClockId", "Command", "Control", "DetectedObject", "DrivingState",
     "ErrorMsg", "Estimate", "Frame", "Heartbeat", "Hello", "ImageEncoding",
     "Inference", "Message", "MsgType", "ObjectClass", "SyncRequest", "SyncResponse",
 ]

@@ -24,7 +24,7 @@ from enum import IntEnum
 from typing import Any
 
 from adapters.messages import (
-    Bye, CameraInfo, ClockId, Control, DetectedObject, DrivingState, ErrorMsg, Estimate,
+    Bye, CameraInfo, ClockId, Command, Control, DetectedObject, DrivingState, ErrorMsg, Estimate,
     Frame, Heartbeat, Hello, ImageEncoding, Message, MsgType, ObjectClass, SyncRequest,
     SyncResponse,
 )
@@ -39,6 +39,8 @@ MAX_OBJECTS = 256
 MAX_NAME_LEN = 64  # bytes of UTF-8
 MAX_ERROR_LEN = 1024  # bytes of UTF-8
 MAX_REASON_LEN = 256  # bytes of UTF-8
+MAX_COMMAND_LEN = 256  # bytes of UTF-8
+CAP_COMMANDS = 0x0000_0002  # HELLO capability bit 1: the target accepts COMMAND messages
 MAX_IMAGE_SIDE = 4096  # pixels
 FLAG_PAYLOAD_CRC = 0x0001
 KNOWN_FLAGS = FLAG_PAYLOAD_CRC
@@ -76,6 +78,7 @@ _ESTIMATE = struct.Struct("<BBHfff")
 _OBJECT = struct.Struct("<B3s8f")
 _ERROR = struct.Struct("<HH")
 _BYE = struct.Struct("<H")
+_COMMAND = struct.Struct("<H")
 _FRAME_FLOATS = ("fx", "fy", "cx", "cy", "mount_height_m", "pitch_rad", "ego_speed_mps")
 _BOX_NAMES = ("x0", "y0", "x1", "y1")
 _POS_NAMES = ("x", "y", "z")
@@ -85,6 +88,7 @@ _SLOTS = {
     MsgType.HELLO: (False, 0), MsgType.FRAME: (True, 3), MsgType.ESTIMATE: (True, 4),
     MsgType.SYNC_REQUEST: (True, 1), MsgType.SYNC_RESPONSE: (True, 3),
     MsgType.HEARTBEAT: (False, 1), MsgType.ERROR: (False, 0), MsgType.BYE: (False, 0),
+    MsgType.COMMAND: (True, 1),
 }
 
 
@@ -246,13 +250,18 @@ def _enc_bye(m: Bye) -> _Parts:
     return m.vehicle_id, 0, (0, 0, 0, 0), [_BYE.pack(len(text)), text]
 
 
+def _enc_command(m: Command) -> _Parts:
+    text = _utf8(m.text, "text", MAX_COMMAND_LEN, _P + 2)
+    return m.vehicle_id, m.seq, (_i64(m.t_sender_ns, "t_sender_ns", 24), 0, 0, 0), [_COMMAND.pack(len(text)), text]
+
+
 _ENCODERS: dict[type, tuple[MsgType, Callable[[Any], _Parts]]] = {
     Hello: (MsgType.HELLO, _enc_hello), Frame: (MsgType.FRAME, _enc_frame),
     Estimate: (MsgType.ESTIMATE, _enc_estimate),
     SyncRequest: (MsgType.SYNC_REQUEST, _enc_sync_request),
     SyncResponse: (MsgType.SYNC_RESPONSE, _enc_sync_response),
     Heartbeat: (MsgType.HEARTBEAT, _enc_heartbeat), ErrorMsg: (MsgType.ERROR, _enc_error),
-    Bye: (MsgType.BYE, _enc_bye),
+    Bye: (MsgType.BYE, _enc_bye), Command: (MsgType.COMMAND, _enc_command),
 }
 
 
@@ -497,10 +506,19 @@ def _dec_bye(mv: memoryview, h: Header) -> Bye:
     return Bye(vehicle_id=h.vehicle_id, reason=_text(mv, _P + _BYE.size, reason_len, "reason"))
 
 
+def _dec_command(mv: memoryview, h: Header) -> Command:
+    _need(h, _COMMAND.size)
+    (text_len,) = _COMMAND.unpack_from(mv, _P)
+    _length(text_len, MAX_COMMAND_LEN, _COMMAND.size, h, "text_len", _P)
+    return Command(vehicle_id=h.vehicle_id, seq=h.frame_id, text=_text(mv, _P + _COMMAND.size, text_len, "text"),
+                   t_sender_ns=h.ts[0])
+
+
 _DECODERS: dict[MsgType, Callable[[memoryview, Header], Any]] = {
     MsgType.HELLO: _dec_hello, MsgType.FRAME: _dec_frame, MsgType.ESTIMATE: _dec_estimate,
     MsgType.SYNC_REQUEST: _dec_sync_request, MsgType.SYNC_RESPONSE: _dec_sync_response,
     MsgType.HEARTBEAT: _dec_heartbeat, MsgType.ERROR: _dec_error, MsgType.BYE: _dec_bye,
+    MsgType.COMMAND: _dec_command,
 }
 
 
@@ -552,9 +570,9 @@ def decode(buf: bytes | bytearray | memoryview) -> Message:
 
 
 __all__ = [
-    "ESTIMATE_FIXED_SIZE", "FLAG_PAYLOAD_CRC", "FRAME_META_SIZE", "HEADER_SIZE",
+    "CAP_COMMANDS", "ESTIMATE_FIXED_SIZE", "FLAG_PAYLOAD_CRC", "FRAME_META_SIZE", "HEADER_SIZE",
     "HELLO_FIXED_SIZE", "KNOWN_FLAGS", "MAGIC", "MAX_ERROR_LEN", "MAX_IMAGE_SIDE",
-    "MAX_NAME_LEN", "MAX_OBJECTS", "MAX_PAYLOAD", "MAX_REASON_LEN", "OBJECT_SIZE",
+    "MAX_COMMAND_LEN", "MAX_NAME_LEN", "MAX_OBJECTS", "MAX_PAYLOAD", "MAX_REASON_LEN", "OBJECT_SIZE",
     "STREAM_BUFFER_LIMIT", "SUPPORTED_VERSIONS", "VERSION", "ErrorCode", "Header",
     "decode", "decode_header", "encode", "encode_frame",
 ]

@@ -31,12 +31,13 @@ import numpy as np
 
 from adapters import protocol
 from adapters.stream import StreamDecoder
-from adapters.messages import (Bye, ClockId, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
+from adapters.messages import (Bye, ClockId, Command, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
                                Inference, Message, SyncRequest, SyncResponse)
 from timing.clock import Clock, MonotonicClock
 from timing.errors import ProtocolError, TransportError
 
 InferFn = Callable[[Frame], Inference]
+CommandFn = Callable[[str], str]  # a COMMAND's text -> the reply's text
 
 
 @dataclass
@@ -47,6 +48,7 @@ class SdkStats:
     sync_answered: int = 0
     protocol_errors: int = 0
     infer_errors: int = 0
+    commands: int = 0
 
 
 def decode_image(frame: Frame) -> np.ndarray:
@@ -78,8 +80,13 @@ class Endpoint:
     """
 
     def __init__(self, infer: InferFn, *, target_name: str, clock: Clock | None = None,
-                 clock_id: ClockId = ClockId.MONOTONIC, clock_resolution_ns: int = 1) -> None:
+                 clock_id: ClockId = ClockId.MONOTONIC, clock_resolution_ns: int = 1,
+                 on_command: CommandFn | None = None) -> None:
+        """``on_command``: handles COMMAND texts (announced in HELLO as
+        ``protocol.CAP_COMMANDS``); called on the reader thread, so it must be quick
+        and thread-safe; its return value is the reply's text."""
         self.infer = infer
+        self.on_command = on_command
         self.clock = clock or MonotonicClock()
         self.stats = SdkStats()
         self.target_name = target_name
@@ -102,7 +109,12 @@ class Endpoint:
         self._send_raw = send
         self._worker = threading.Thread(target=self._work, name="infer", daemon=True)
         self._worker.start()
-        self.send(Hello(self.target_name, protocol.VERSION, self.clock_id, self.clock_resolution_ns, 0))
+        self.send(self.hello())
+
+    def hello(self) -> Hello:
+        """This endpoint's HELLO (capabilities: ``CAP_COMMANDS`` with ``on_command``)."""
+        caps = protocol.CAP_COMMANDS if self.on_command is not None else 0
+        return Hello(self.target_name, protocol.VERSION, self.clock_id, self.clock_resolution_ns, caps)
 
     @property
     def stopped(self) -> bool:
@@ -162,8 +174,23 @@ class Endpoint:
                     self.stats.frames_skipped += 1
                 self._pending = (item, t_rx)
                 self._cv.notify()
+        elif isinstance(item, Command):
+            self._on_command(item)
         elif isinstance(item, Bye):
             self.stop()
+
+    def _on_command(self, cmd: Command) -> None:
+        """Run the handler and reply with a COMMAND of the same ``seq``."""
+        self.stats.commands += 1
+        if self.on_command is None:
+            reply = "error: this target accepts no commands"
+        else:
+            try:
+                reply = str(self.on_command(cmd.text))
+            except Exception as err:  # the AI's bug must not kill the session
+                reply = f"error: {type(err).__name__}: {err}"
+        raw = reply.encode("utf-8")[:protocol.MAX_COMMAND_LEN]
+        self.send(Command(cmd.vehicle_id, cmd.seq, raw.decode("utf-8", "ignore"), self.clock.now_ns()))
 
     # -- inference worker --------------------------------------------------------
 
@@ -236,7 +263,7 @@ def transport_options(args: argparse.Namespace) -> dict[str, object]:
 
 def serve(infer: InferFn, *, target_name: str, transport: str = "local", clock: Clock | None = None,
           clock_id: ClockId = ClockId.MONOTONIC, clock_resolution_ns: int = 1,
-          **transport_options: object) -> SdkStats:
+          on_command: CommandFn | None = None, **transport_options: object) -> SdkStats:
     """Serve ``infer`` until the harness says BYE or the connection ends.
 
     Args:
@@ -244,6 +271,8 @@ def serve(infer: InferFn, *, target_name: str, transport: str = "local", clock: 
         target_name: reported in HELLO (at most 64 bytes of UTF-8).
         transport: one of ``TRANSPORTS``; ``"local"`` is a child of the harness.
         clock: the clock to stamp with (default: this host's monotonic clock).
+        on_command: optional handler of COMMAND messages (text in, reply text out),
+            for control software that takes commands during a run (model swaps).
         transport_options: passed to the transport (see its module).
 
     Returns:
@@ -255,7 +284,7 @@ def serve(infer: InferFn, *, target_name: str, transport: str = "local", clock: 
             harness).
     """
     ep = Endpoint(infer, target_name=target_name, clock=clock, clock_id=clock_id,
-                  clock_resolution_ns=clock_resolution_ns)
+                  clock_resolution_ns=clock_resolution_ns, on_command=on_command)
     if transport == "local":
         if transport_options:
             raise TransportError(f"the local transport takes no options; got {sorted(transport_options)}")

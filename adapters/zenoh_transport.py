@@ -359,7 +359,7 @@ def serve_endpoint(ep: Endpoint, *, listen: Sequence[str] = (), connect: Sequenc
     harness_gone = threading.Event()  # BYE from the harness, or its token went away
 
     def hello() -> Hello:
-        return Hello(ep.target_name, protocol.VERSION, ep.clock_id, ep.clock_resolution_ns, 0)
+        return ep.hello()
 
     def on_sample(sample: zenoh.Sample) -> None:
         t_rx = ep.clock.now_ns()

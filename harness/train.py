@@ -14,12 +14,15 @@ metrics say how long each step took.
 Metrics (``evaluate_detector``): AP50 is the area under the all-point interpolated
 precision-recall curve (PASCAL VOC 2010+) at IoU >= 0.5 per class, averaged over the
 classes present. A ground-truth box is *evaluated* when it is at least
-``EVAL_MIN_HEIGHT_PX`` = 8 px tall in the 320 x 240 frame (a car ~36 m away) and at
-least ``EVAL_MIN_VISIBLE`` = 30 % visible; smaller or mostly hidden ones are
-*ignored*: a detection that matches no evaluated box but lies mostly inside an
-ignored one (intersection over its own area >= 0.5, COCO's rule for crowd regions)
-is neither a hit nor a false positive, nor is one lower than the size floor (KITTI's
-rule for detections). Evaluated boxes are matched first (IoU >= 0.5, most confident
+``EVAL_MIN_HEIGHT_PX`` = 16 px tall in the 320 x 240 frame and at least
+``EVAL_MIN_VISIBLE`` = 30 % visible: KITTI's "moderate" floor (25 of 375 rows)
+scaled to 240 rows; 16 px is a car 18 m away, a pedestrian 23 m, a 0.7 m obstacle
+9 m (a car at 10 m/s needs 18.5 m to stop). AP at 8 px and 4 px floors is reported
+beside it (``by_min_height``). Smaller or mostly hidden boxes are *ignored*: a
+detection that matches no evaluated box but lies mostly inside an ignored one
+(intersection over its own area >= 0.5, COCO's rule for crowd regions) is neither a
+hit nor a false positive, nor is one lower than the size floor (KITTI's rule for
+detections). Evaluated boxes are matched first (IoU >= 0.5, most confident
 detection first, each box once). Steering error is the absolute difference from the
 expert's label, in rad, on every validation frame.
 """
@@ -41,12 +44,15 @@ from typing import Any
 import cv2
 import numpy as np
 
-EVAL_MIN_HEIGHT_PX = 8.0
+EVAL_MIN_HEIGHT_PX = 16.0
 EVAL_MIN_VISIBLE = 0.3
 TRAIN_MIN_VISIBLE_PX = 4
 IOU_MATCH = 0.5
 STEER_SCALE = 10.0  # loss units per rad
-DEFAULTS = {"train_frames": 3000, "val_frames": 500, "det_epochs": 30, "steer_epochs": 20, "batch": 32}
+# Pedestrians and obstacles are fewer (and pedestrians thinner) than vehicles: their
+# centres weigh more in the focal loss.
+CLASS_POS_WEIGHT = (1.0, 2.0, 1.5)
+DEFAULTS = {"train_frames": 3000, "val_frames": 600, "det_epochs": 40, "steer_epochs": 15, "batch": 32}
 
 
 @dataclass(frozen=True)
@@ -137,7 +143,8 @@ def _jitter(x: Any, gen: Any) -> Any:
 
 
 def detector_loss(out: Any, maps: Any) -> Any:
-    """CenterNet's focal loss on the heatmaps + L1 on log size and offset at centres."""
+    """CenterNet's focal loss on the heatmaps (positives weighted per class by
+    ``CLASS_POS_WEIGHT``) + L1 on log size and offset at centres."""
     import torch
     from torch.nn import functional as F
 
@@ -147,7 +154,8 @@ def detector_loss(out: Any, maps: Any) -> Any:
     p = torch.sigmoid(logit).clamp(1e-4, 1 - 1e-4)
     pos = heat.eq(1.0).float()
     neg_w = torch.pow(1 - heat, 4)
-    pos_loss = -(torch.log(p) * torch.pow(1 - p, 2) * pos).sum()
+    cls_w = torch.tensor(CLASS_POS_WEIGHT, dtype=out.dtype).view(1, nc, 1, 1)
+    pos_loss = -(torch.log(p) * torch.pow(1 - p, 2) * pos * cls_w).sum()
     neg_loss = -(torch.log(1 - p) * torch.pow(p, 2) * neg_w * (1 - pos)).sum()
     mask = maps[:, 7:8]
     n_pos = mask.sum().clamp(min=1.0)
@@ -176,7 +184,7 @@ def _loop(model: Any, n: int, batch_fn: Any, *, epochs: int, batch: int, lr: flo
             loss.backward()
             opt.step()
             sched.step()
-            total += float(loss) * len(idx)
+            total += float(loss.detach()) * len(idx)
         losses.append(total / n)
         log(f"{name}: epoch {epoch + 1}/{epochs} loss {losses[-1]:.4f} ({time.perf_counter() - t0:.0f} s)")
     model.eval()
@@ -189,7 +197,7 @@ def train_detector(data: Prepared, *, epochs: int, batch: int, seed: int, log: A
     from targets.cnn.models import Detector
 
     torch.manual_seed(seed)
-    model = Detector()
+    model = Detector().to(memory_format=torch.channels_last)  # ~25 % faster on CPU
 
     def batch_fn(idx: Any, gen: Any) -> Any:
         x = data.det[idx]
@@ -200,7 +208,7 @@ def train_detector(data: Prepared, *, epochs: int, batch: int, seed: int, log: A
             maps = maps.clone()
             x[flip] = x[flip].flip(-1)
             maps[flip] = torch.stack([_flip_maps(m) for m in maps[flip]])
-        return detector_loss(model(_jitter(x, gen)), maps)
+        return detector_loss(model(_jitter(x, gen).contiguous(memory_format=torch.channels_last)), maps)
 
     return model, _loop(model, len(data.det), batch_fn, epochs=epochs, batch=batch, lr=4e-3, seed=seed + 1,
                         log=log, name="detector")
@@ -327,11 +335,15 @@ def detect_all(model: Any, det_inputs: Any, frame_w: int = 320, frame_h: int = 2
 
 
 def evaluate_detector(model: Any, data: Prepared) -> dict[str, Any]:
-    """AP50 (module docstring) at three size floors: 8 px (the headline), 16 px, 4 px."""
+    """AP50 (module docstring) at the headline size floor (16 px), and the mean AP and
+    per-class AP at 8 px and 4 px floors."""
     dets = detect_all(model, data.det)
     gts = [s.boxes for s in data.samples]
     res = average_precision(dets, gts)
-    res["by_min_height"] = {str(h): average_precision(dets, gts, min_height_px=h)["map50"] for h in (4.0, 16.0)}
+    res["by_min_height"] = {}
+    for h in (8.0, 4.0):
+        r = average_precision(dets, gts, min_height_px=h)
+        res["by_min_height"][str(h)] = {"map50": r["map50"], **{k: v["ap50"] for k, v in r["classes"].items()}}
     return res
 
 
@@ -412,7 +424,7 @@ def train_all(out_dir: Path, *, seed: int = 0, data_dir: Path | None = None, thr
     steer_max = round(max(0.02, 3.0 * steer_metrics["sigma_p99_rad"]), 4)
     log(f"steering: validation MAE {steer_metrics['mae_rad']:.4f} rad; low-confidence above {steer_max} rad")
     counts = {split: _composition(s.samples) for split, s in (("train", train_data), ("val", val_data))}
-    common = {"seed": seed, "threads": threads, "batch": batch, "dataset": meta, "torch": torch.__version__}
+    common = {"seed": seed, "threads": threads, "batch": batch, "dataset": meta, "torch": str(torch.__version__)}
     models.save(det, out_dir / models.DETECTOR_FILE, {**common, "epochs": det_epochs, "metrics": det_metrics})
     models.save(steer, out_dir / models.STEERING_FILE, {**common, "epochs": steer_epochs,
                                                          "metrics": steer_metrics, "steer_error_max_rad": steer_max})
@@ -421,6 +433,8 @@ def train_all(out_dir: Path, *, seed: int = 0, data_dir: Path | None = None, thr
                "losses": {"detector": [round(x, 4) for x in det_losses],
                           "steering": [round(x, 5) for x in steer_losses]},
                "composition": counts, "timings_s": timings, **common,
+               "parameters": {"detector": sum(p.numel() for p in det.parameters()),
+                              "steering": sum(p.numel() for p in steer.parameters())},
                "epochs": {"detector": det_epochs, "steering": steer_epochs}}
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     (out_dir / "MODEL_CARD.md").write_text(model_card(metrics))
@@ -433,9 +447,17 @@ def _composition(samples: list[Any]) -> dict[str, Any]:
     for s in samples:
         by_source[s.source] = by_source.get(s.source, 0) + 1
         for b in s.boxes:
-            if b.box_px[3] - b.box_px[1] >= EVAL_MIN_HEIGHT_PX:
+            if b.box_px[3] - b.box_px[1] >= 8:
                 boxes[b.cls] = boxes.get(b.cls, 0) + 1
     return {"frames": len(samples), "by_source": by_source, "boxes_8px_or_taller": boxes}
+
+
+def _floors(d: dict[str, Any]) -> str:
+    parts = []
+    for h, r in d["by_min_height"].items():
+        per = ", ".join(f"{k} {v:.3f}" for k, v in r.items() if k != "map50")
+        parts.append(f"boxes >= {float(h):g} px mAP50 {r['map50']:.3f} ({per})")
+    return "; ".join(parts)
 
 
 def model_card(m: dict[str, Any]) -> str:
@@ -447,6 +469,8 @@ def model_card(m: dict[str, Any]) -> str:
     boxes = ", ".join(f"{k} {v}" for k, v in sorted(c["train"]["boxes_8px_or_taller"].items()))
     t = m["timings_s"]
     total = sum(t.values())
+    n_det, n_steer = (f"{m['parameters'][k]:,}" for k in ("detector", "steering"))
+    ped8 = d["by_min_height"]["8.0"].get("pedestrian", 0.0)
     return f"""# CNN target weights — model card
 
 Written by `hil train` (harness/train.py); do not edit by hand: rerun `hil train` to
@@ -457,8 +481,8 @@ same bits). Nothing is downloaded, at training or at run time.
 
 | file | net | parameters | input | output |
 | --- | --- | --- | --- | --- |
-| `detector.pt` | CenterNet-style single-shot detector, stride-32 encoder, merges to stride 4 | see `targets/cnn/models.py` | 160 x 120 RGB (whole frame) + row coordinate | per class heatmap, log box size, centre offset on a 40 x 30 grid |
-| `steering.pt` | PilotNet (Bojarski et al. 2016): normalisation, 5 conv, FC 100-50-10 | see `targets/cnn/models.py` | 66 x 200 YUV crop of the road below the horizon | steering (rad) and log of its expected error |
+| `detector.pt` | CenterNet-style single-shot detector, stride-32 encoder, merges to stride 4 | {n_det} | 160 x 120 RGB (whole frame) + row coordinate | per class heatmap, log box size, centre offset on a 40 x 30 grid |
+| `steering.pt` | PilotNet (Bojarski et al. 2016): normalisation, 5 conv, FC 100-50-10 | {n_steer} | 66 x 200 YUV crop of the road below the horizon | steering (rad) and log of its expected error |
 
 ## Data
 
@@ -486,8 +510,8 @@ Wall time on the machine that trained them: dataset {t.get('dataset_s', 0):.0f} 
 ## Metrics (validation split)
 
 Detector AP at IoU 0.5, evaluated boxes >= {d['min_height_px']:g} px tall and >= {d['min_visible']:.0%} visible
-(smaller or hidden ones ignored; harness/train.py says how): **mAP50 {d['map50']:.3f}**
-(boxes >= 4 px: {d['by_min_height']['4.0']:.3f}; >= 16 px: {d['by_min_height']['16.0']:.3f}).
+(KITTI's "moderate" floor scaled to 240 rows; smaller or hidden ones ignored;
+harness/train.py says how): **mAP50 {d['map50']:.3f}**. With lower floors: {_floors(d)}.
 
 | class | AP50 | evaluated boxes | max recall |
 | --- | --- | --- | --- |
@@ -508,7 +532,9 @@ Closed-loop results and inference times are measured by the tests
 Trained on this simulator's flat-shaded box vehicles, pedestrians and obstacles, one
 camera (60 deg vertical field of view, 1.3 m high, level), daylight without shadows:
 it knows nothing else. Obstacles are boxes 0.3-1 m on a side; ranges of obstacles rest
-on the ground contact of their box.
+on the ground contact of their box. The weak spot is far pedestrians: 8-16 px tall
+(23-45 m away), their dark trousers barely differ from the road, and AP50 for
+pedestrians falls to {ped8:.2f} with boxes down to 8 px.
 """
 
 
