@@ -109,6 +109,16 @@ class CameraConfig(BaseModel):
     yaw_deg: Float = Field(0.0, ge=-180, le=180)  # positive looks left
 
 
+class TargetCommand(BaseModel):
+    """One command, sent to every vehicle's target when sim time reaches ``at_s``."""
+
+    model_config = _MODEL_CONFIG
+
+    at_s: Float = Field(ge=0)
+    command: str = Field(min_length=1, max_length=256)
+    vehicle: str | None = None  # only this vehicle's target (default: all)
+
+
 class TargetConfig(BaseModel):
     """The AI target: how to reach it, how to start it, how long to wait for it.
 
@@ -125,6 +135,9 @@ class TargetConfig(BaseModel):
     args: list[str] = Field(default_factory=list)
     zenoh: ZenohTargetConfig = Field(default_factory=ZenohTargetConfig)
     can: CanTargetConfig = Field(default_factory=CanTargetConfig)
+    # Commands for the targets' control software at given sim times, e.g.
+    # [{at_s: 5.0, command: "swap detector cv"}] (targets announcing CAP_COMMANDS).
+    commands: list[TargetCommand] = Field(default_factory=list)
     startup_timeout_s: Float = Field(15.0, gt=0, le=300)
     # No estimate within this after t0: the frame counts as dropped.
     estimate_timeout_s: Float = Field(0.5, gt=0, le=60)

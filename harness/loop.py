@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 from adapters.link import Received
-from adapters.messages import CameraInfo, ErrorMsg, Estimate, Heartbeat, ImageEncoding
+from adapters.messages import CameraInfo, Command, ErrorMsg, Estimate, Heartbeat, ImageEncoding
 from harness import foxglove_out
 from harness.channels import sync_sample_json
 from harness.config import CameraConfig, Encoding, Mode, RunConfig
@@ -87,6 +87,7 @@ class SimLoop:
         self.held = None if self.latency is None else HeldControls(self.latency, step_ns=sim.step_ns)
         self._changes = StateChanges()
         self.observers: list[RunObserver] = []
+        self._next_command = 0
         self._ego_names = {v.name for v in vehicles}
         self.collisions: list[dict[str, object]] = []
         self.min_gap_m: dict[str, float] = {}
@@ -119,6 +120,7 @@ class SimLoop:
                     if lateness > LATE_TOLERANCE_NS:
                         st.late_steps += 1
                 if self.sim.steps % self.period == 0:
+                    self._send_commands()
                     self._capture_all()
                     if lockstep:
                         self._await_answers()
@@ -254,8 +256,31 @@ class SimLoop:
         elif isinstance(m, ErrorMsg):
             ev = {"kind": "target_error", "vehicle": v.name, "code": m.code, "message": m.message}
             self.rec.write_json("/events", ev, log_time_ns=r.t_rx_ns, publish_time_ns=r.t_rx_ns)
+        elif isinstance(m, Command):  # the target's reply to a command: the swap, on record
+            ev = {"kind": "target_command_reply", "vehicle": v.name, "seq": m.seq, "text": m.text,
+                  "t_target_ns": m.t_sender_ns}
+            self.rec.write_json("/events", ev, log_time_ns=r.t_rx_ns, publish_time_ns=r.t_rx_ns)
         elif isinstance(m, Heartbeat):
             pass
+
+    def _send_commands(self) -> None:
+        """Send the configured commands whose sim time has come (each once)."""
+        cmds = self.cfg.target.commands
+        while self._next_command < len(cmds) and cmds[self._next_command].at_s * 1e9 <= self.sim.sim_time_ns:
+            c = cmds[self._next_command]
+            self._next_command += 1
+            for v in self.vehicles:
+                if c.vehicle not in (None, v.name):
+                    continue
+                t = self.clock.now_ns()
+                try:
+                    sent = v.link.send_command(c.command)
+                    ev = {"kind": "target_command", "vehicle": v.name, "seq": sent.seq, "text": c.command,
+                          "sim_time_ns": self.sim.sim_time_ns}
+                except TransportError as err:
+                    ev = {"kind": "target_command_failed", "vehicle": v.name, "text": c.command,
+                          "detail": str(err), "sim_time_ns": self.sim.sim_time_ns}
+                self.rec.write_json("/events", ev, log_time_ns=t, publish_time_ns=t)
 
     def _on_estimate(self, v: VehicleRun, m: Estimate, t0p: int) -> None:
         fl = v.in_flight.pop(m.frame_id, None)

@@ -155,3 +155,26 @@ def test_served_over_zenoh_like_on_a_remote_host(tmp_path: Path):
     finally:
         end_process(proc, grace_s=10.0)
     assert "swap steering cnn -> cv after frame 3" in (tmp_path / "t.log").read_text()
+
+
+@pytest.mark.slow
+def test_a_configured_swap_is_recorded_in_the_run(tmp_path: Path):
+    # target.commands sends "swap detector cv" at 1 s of sim time; the command and the
+    # target's reply both land in the run's /events.
+    pytest.importorskip("torch")
+    from harness.config import load_config
+    from harness.run import execute, prepare_out_dir
+    from tests.conftest import GL_BACKEND, read_mcap
+
+    root = Path(__file__).resolve().parents[2]
+    cfg = load_config(root / "hil_configs/cnn.yaml", overrides=[
+        "duration_s=2", "progress=false", 'target.commands=[{at_s: 1.0, command: "swap detector cv"}]'])
+    result = execute(cfg, out_dir=prepare_out_dir(tmp_path / "r"), gl_backend=GL_BACKEND,
+                     install_signal_handlers=False)
+    events = [d for _, d in read_mcap(result.mcap_path)["/events"]]
+    sent = [e for e in events if e["kind"] == "target_command"]
+    replies = [e for e in events if e["kind"] == "target_command_reply"]
+    assert [(e["vehicle"], e["text"]) for e in sent] == [("ego0", "swap detector cv")]
+    assert sent[0]["sim_time_ns"] == 1_000_000_000
+    assert len(replies) == 1 and replies[0]["seq"] == sent[0]["seq"] and replies[0]["text"].startswith("ok")
+    assert "detector=cv" in replies[0]["text"]
