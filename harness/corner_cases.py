@@ -5,8 +5,9 @@ message goes to ``run.mcap`` and into a time-bounded history (the last
 ``history_s`` of harness time, all vehicles). A message on ``/events`` whose kind
 is a trigger (every ``mismatch.*``, plus the timing-anomaly kinds named in config)
 opens a case: once ``after_s`` more has been recorded (or the run ends), the window
-``[trigger − history_s, trigger + after_s]`` is written to
-``corner_cases/case-NNNN.mcap`` by a background thread, and a row goes to
+``[trigger − history_s, trigger + after_s]`` is cut from the history and, after the
+run (or once ``MAX_WAITING_WINDOWS`` wait), written to ``corner_cases/case-NNNN.mcap``
+by a background thread, and a row goes to
 ``corner_cases.sqlite`` (table ``cases``: run, scenario, seed, params, config hash,
 vehicle, sim time, kind, cause, severity, summary, window file), enough for
 ``hil replay`` to re-run it. Triggers within ``after_s`` of an open case of the
@@ -31,6 +32,7 @@ from harness.recorder import Recorder, RecorderStats
 from timing.errors import ConfigError
 
 DB_NAME = "corner_cases.sqlite"
+MAX_WAITING_WINDOWS = 32
 FOLDER = "corner_cases"
 
 SCHEMA = """
@@ -81,6 +83,7 @@ class CaseRecorder:
         self._open: list[_Case] = []
         self._next_id = 1
         self._jobs: queue.Queue[tuple[_Case, list[_Msg]] | None] = queue.Queue()
+        self._ready: list[tuple[_Case, list[_Msg]]] = []
         self._writer: threading.Thread | None = None
         self.cases_written = 0
         self.errors: list[str] = []
@@ -149,12 +152,21 @@ class CaseRecorder:
 
     def _dispatch(self, case: _Case) -> None:
         lo, hi = case.t_ns - self.history_ns, case.t_ns + self.after_ns
-        window = [m for m in self._history if lo <= m.log_ns <= hi]
+        self._ready.append((case, [m for m in self._history if lo <= m.log_ns <= hi]))
+        # Writing a window (JSON, base64, zstd) in a thread competes with the sim loop
+        # for the GIL (a 66 ms stall measured), so windows wait for the end of the run,
+        # unless so many wait that memory matters.
+        if len(self._ready) >= MAX_WAITING_WINDOWS:
+            self._start_writing()
+
+    def _start_writing(self) -> None:
         if self._writer is None:
             (self.run_dir / FOLDER).mkdir(exist_ok=True)
             self._writer = threading.Thread(target=self._write_loop, name="corner-cases", daemon=True)
             self._writer.start()
-        self._jobs.put((case, window))
+        for job in self._ready:
+            self._jobs.put(job)
+        self._ready.clear()
 
     def _write_loop(self) -> None:
         con = sqlite3.connect(self.run_dir / DB_NAME)
@@ -205,6 +217,8 @@ class CaseRecorder:
         for c in self._open:
             self._dispatch(c)
         self._open.clear()
+        if self._ready:
+            self._start_writing()
         if self._writer is not None:
             self._jobs.put(None)
             self._writer.join()

@@ -37,6 +37,9 @@ from dataclasses import dataclass, field
 from enum import Enum
 
 import numpy as np
+# Imported with the module, before a run starts: a first import inside the sim loop
+# stalled it for ~250 ms.
+from scipy.optimize import linear_sum_assignment
 
 from adapters.messages import DrivingState, Estimate
 from timing.anomaly import Severity
@@ -157,8 +160,6 @@ def match(est: Sequence[tuple[str, float, float]], truth: Sequence[TruthObject],
     objects; pairs farther apart than ``gate(truth_distance)`` are not matched."""
     if not est or not truth:
         return []
-    from scipy.optimize import linear_sum_assignment
-
     cost = np.full((len(est), len(truth)), _INF)
     for i, (cls, x, y) in enumerate(est):
         for j, t in enumerate(truth):

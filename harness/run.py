@@ -126,8 +126,10 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
     }
     with Simulation(world, rules=rules) as sim:
         sim.open_renderer()
-        for name in sim.egos:  # first render compiles shaders; keep it out of the loop
+        for name in sim.egos:  # first renders compile shaders; keep them out of the loop
             first = sim.render(name)
+            if cfg.truth.visible_boxes:
+                sim.camera_truth(name, min_visible_px=cfg.truth.min_visible_px)
         if cfg.target.transport == Transport.CAN:
             # The bus must carry the frames: check with a real frame of this run
             # (+25 % for scenes busier than the first one) before anything starts.
