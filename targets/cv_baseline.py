@@ -76,6 +76,19 @@ MAX_BRAKE_MPS2 = 8.0
 _EXCLUDED_HUES_DEG = ((75.0, 165.0), (185.0, 235.0))  # green verge, blue sky
 
 
+def ground_x(cam: CameraInfo, v: float, z_above_road_m: float) -> float | None:
+    """Forward distance (m) of the road-parallel plane ``z_above_road_m`` up, seen at
+    continuous image row ``v``; None when the ray misses it (at or above the horizon)."""
+    sp, cp = math.sin(cam.pitch_rad), math.cos(cam.pitch_rad)
+    b = (v - cam.cy) / cam.fy
+    den = sp + b * cp
+    drop = cam.mount_height_m - z_above_road_m
+    if abs(den) < 1e-9 or drop / den <= 0:
+        return None
+    t = drop / den
+    return t * (cp - b * sp)
+
+
 class CvBaseline:
     """The OpenCV baseline; ``infer`` is the function the SDK serves.
 
@@ -150,19 +163,6 @@ class CvBaseline:
         self._lane_rows = (int(rows[0]), int(rows[-1]) + 1) if rows.size else (0, 0)
         self._geom_key = key
 
-    @staticmethod
-    def _ground_x(cam: CameraInfo, v: float, z_above_road_m: float) -> float | None:
-        """Forward distance of the road-parallel line at ``z_above_road_m`` seen at
-        image row coordinate ``v`` (continuous), or None when the ray misses it."""
-        sp, cp = math.sin(cam.pitch_rad), math.cos(cam.pitch_rad)
-        b = (v - cam.cy) / cam.fy
-        den = sp + b * cp
-        drop = cam.mount_height_m - z_above_road_m
-        if abs(den) < 1e-9 or drop / den <= 0:
-            return None
-        t = drop / den
-        return t * (cp - b * sp)
-
     # -- detection -----------------------------------------------------------
 
     def _detect(self, img: np.ndarray, hsv: np.ndarray, cam: CameraInfo) -> list[DetectedObject]:
@@ -214,16 +214,16 @@ class CvBaseline:
         if top is not None and bottom is not None and bottom - top > 0.5:
             cands.append((cam.fy * VEHICLE_H_M / (bottom - top), (bottom - top) ** 2, 2))
         if bottom is not None and bottom - self._horizon_v > 0.5:
-            z = self._ground_x(cam, bottom, CLEARANCE_M)
+            z = ground_x(cam, bottom, CLEARANCE_M)
             if z is not None:
                 cands.append((z, (bottom - self._horizon_v) ** 2, 3))
         if top is not None and self._horizon_v - top > 0.5:
-            z = self._ground_x(cam, top, CLEARANCE_M + VEHICLE_H_M)
+            z = ground_x(cam, top, CLEARANCE_M + VEHICLE_H_M)
             if z is not None:
                 cands.append((z, (self._horizon_v - top) ** 2, 0))
         dist = _combine(cands)
         if y1 + 1 >= h_img:  # cut by the bottom border: no farther than the lowest road row
-            bound = self._ground_x(cam, float(h_img), CLEARANCE_M)
+            bound = ground_x(cam, float(h_img), CLEARANCE_M)
             if bound is not None:
                 dist = bound if dist is None else min(dist, bound)
         if dist is None or dist > self.max_range_m:

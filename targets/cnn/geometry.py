@@ -36,6 +36,7 @@ import math
 from dataclasses import dataclass
 
 from adapters.messages import CameraInfo, ObjectClass
+from targets.cv_baseline import ground_x  # one ground-plane projection for both AIs
 
 SIGMA_PX = 1.0  # box edge error assumed, px
 
@@ -62,19 +63,6 @@ PRIORS: dict[ObjectClass, SizePrior] = {
 def horizon_v(cam: CameraInfo) -> float:
     """Row (continuous px) of the horizon of a level road."""
     return cam.cy - cam.fy * math.tan(cam.pitch_rad)
-
-
-def ground_x(cam: CameraInfo, v: float, z_above_road_m: float) -> float | None:
-    """Forward distance (m) of the road-parallel plane ``z_above_road_m`` up, seen at
-    continuous row ``v``; None when the ray misses it (at or above the horizon)."""
-    sp, cp = math.sin(cam.pitch_rad), math.cos(cam.pitch_rad)
-    b = (v - cam.cy) / cam.fy
-    den = sp + b * cp
-    drop = cam.mount_height_m - z_above_road_m
-    if abs(den) < 1e-9 or drop / den <= 0:
-        return None
-    t = drop / den
-    return t * (cp - b * sp)
 
 
 def estimate_position(box_px: tuple[float, float, float, float], cls: ObjectClass, cam: CameraInfo,
