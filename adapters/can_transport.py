@@ -43,8 +43,8 @@ dropped). ``camera_over="none"`` is a mixed target: frames travel over Zenoh
 (``adapters.mixed``) and sending one here raises.
 
 python-can's ``virtual`` interface works within one process and has no bit timing
-(``adapters.can_capacity`` gives a real bus's limits); ``udp_multicast`` is refused:
-it sends every frame off this machine as IP multicast.
+(``adapters.can_capacity`` gives a real bus's limits). Only buses on this machine are
+accepted (``adapters.can_interfaces``): network interfaces would send frames off it.
 """
 
 from __future__ import annotations
@@ -63,24 +63,31 @@ from adapters.can_dbc import MAX_VEHICLE_ID, VEHICLE_MASK, Role
 from adapters.can_peer import HEARTBEAT_TIMEOUT_S, CanPeer, CanStats
 from adapters.link import Link, Received
 from adapters.messages import Bye, Hello, Message
+from adapters.can_interfaces import LOCAL_INTERFACES
 from timing.clock import Clock
 from timing.errors import ConfigError, ProtocolError, TransportError
 
 if TYPE_CHECKING:
     from adapters.sdk import Endpoint
 
-REFUSED_INTERFACES = {"udp_multicast": "it sends every CAN frame off this machine as IP multicast"}
-
-
 def check_interface(interface: str) -> None:
-    """Raise ``ConfigError`` for a refused or unknown python-can interface name."""
-    if interface in REFUSED_INTERFACES:
-        raise ConfigError(f"CAN interface {interface!r} is refused: {REFUSED_INTERFACES[interface]}. Use "
-                          f"'virtual' (in-process tests), 'socketcan' (vcan0, can0) or an adapter's "
-                          f"interface (pcan, kvaser, vector, ...)")
-    valid = sorted(set(can.VALID_INTERFACES) - set(REFUSED_INTERFACES))
-    if interface not in valid:
-        raise ConfigError(f"unknown CAN interface {interface!r}; valid: {', '.join(valid)}")
+    """Raise ``ConfigError`` unless ``interface`` is a local bus (``LOCAL_INTERFACES``)."""
+    if interface in LOCAL_INTERFACES:
+        return
+    valid = ", ".join(LOCAL_INTERFACES)
+    if interface not in can.VALID_INTERFACES:
+        raise ConfigError(f"unknown CAN interface {interface!r}; valid: {valid}")
+    raise ConfigError(f"CAN interface {interface!r} is refused: it is not a bus on this machine, and a network "
+                      f"interface would send CAN frames off this machine. Use 'virtual' (in-process tests), "
+                      f"'socketcan' (vcan0, can0) or an adapter's interface ({valid})")
+
+
+def interface_of(bus: can.BusABC) -> str | None:
+    """The python-can interface name of an open bus object, when python-can has one."""
+    from can.interfaces import BACKENDS
+
+    mod, cls = type(bus).__module__, type(bus).__name__
+    return next((name for name, (m, c) in BACKENDS.items() if mod.startswith(m) and c == cls), None)
 
 
 def _check_options(*, interface: str, vehicle_id: int, bitrate: int, data_bitrate: int, fd: bool) -> None:
@@ -127,7 +134,7 @@ class CanLink(Link):
     Args:
         vehicle_id: 0..65535, carried in every CAN id.
         clock: stamps sends and receipts (the harness clock).
-        interface, channel: python-can's (``udp_multicast`` is refused).
+        interface, channel: python-can's, a local bus (``LOCAL_INTERFACES``).
         bitrate, data_bitrate: nominal and CAN FD data bitrates, bit/s (socketcan
             takes them from ``ip link`` instead).
         fd: must be True (the transport's frames are CAN FD).
@@ -228,8 +235,8 @@ def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str =
         TransportError: the bus cannot be opened, or failed while serving.
     """
     _check_options(interface=interface, vehicle_id=vehicle_id, bitrate=bitrate, data_bitrate=data_bitrate, fd=True)
-    if bus is not None and type(bus).__module__.endswith("udp_multicast.bus"):
-        check_interface("udp_multicast")
+    if bus is not None and (name := interface_of(bus)) is not None:
+        check_interface(name)
     owns = bus is None
     if bus is None:
         bus = open_bus(interface=interface, channel=channel, bitrate=bitrate, data_bitrate=data_bitrate,

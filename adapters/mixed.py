@@ -82,7 +82,7 @@ class MixedLink(CanLink):
         vehicle_id: 0..65535 (the CAN id carries it).
         clock: the harness clock.
         interface, channel, bitrate, data_bitrate, fd, heartbeat_timeout_s: the CAN
-            half, as ``CanLink`` (``udp_multicast`` is refused).
+            half, as ``CanLink`` (a local bus only).
         connect, listen, mode, key_prefix, multicast_scouting, tls,
             congestion_control, lease_ms, shared_memory: the Zenoh half, as
             ``ZenohLink`` (multicast scouting off unless asked for).

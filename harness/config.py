@@ -260,10 +260,6 @@ class RunConfig(BaseModel):
         if self.target.transport == Transport.LOCAL and not self.target.command:
             raise PydanticCustomError(_RULE_ERROR, "the program to start: the local transport runs the "
                                       "target as a child process", {"loc": ("target", "command"), "got": []})
-        if self.target.transport in (Transport.CAN, Transport.MIXED) and self.target.can.interface == "udp_multicast":
-            raise PydanticCustomError(_RULE_ERROR, "a CAN interface on this machine (socketcan, pcan, kvaser, "
-                                      "vector, slcan, virtual); udp_multicast sends off the machine",
-                                      {"loc": ("target", "can", "interface"), "got": "udp_multicast"})
         return self
 
     @property

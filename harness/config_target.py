@@ -29,9 +29,11 @@ from __future__ import annotations
 
 import sys
 from enum import Enum
+from typing import Literal
 
 from pydantic import BaseModel, Field
 
+from adapters.can_interfaces import LOCAL_INTERFACES
 from harness.config_types import MODEL_CONFIG, Int
 
 
@@ -69,7 +71,7 @@ class CanTargetConfig(BaseModel):
 
     model_config = MODEL_CONFIG
 
-    interface: str = "socketcan"
+    interface: Literal[LOCAL_INTERFACES] = "socketcan"  # type: ignore[valid-type]  # buses on this machine
     channel: str = "vcan0"
     bitrate: Int = Field(500_000, ge=10_000, le=1_000_000)
     data_bitrate: Int = Field(2_000_000, ge=100_000, le=12_000_000)

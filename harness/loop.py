@@ -177,7 +177,7 @@ class SimLoop:
                 return
             rgb = self.sim.render(v.name)
             t0 = self.clock.now_ns()
-            data, enc = self._encode(rgb)
+            data, enc = encode_image(rgb, self.cfg.camera)
             frame_id = v.next_frame_id
             v.next_frame_id += 1
             try:
@@ -210,9 +210,6 @@ class SimLoop:
                         v.link.send_sync_request()
                 except TransportError:
                     pass
-
-    def _encode(self, rgb: np.ndarray) -> tuple[bytes, ImageEncoding]:
-        return encode_image(rgb, self.cfg.camera)
 
     def _record_truth(self, gt: GroundTruth) -> None:
         t = self.clock.now_ns()
@@ -369,7 +366,7 @@ class SimLoop:
                                                m.t_infer_end_target_ns, m.t_reply_target_ns, t0p), m)
 
     def _add_record(self, v: VehicleRun, rec: PipelineRecord, estimate: Estimate | None = None) -> None:
-        v.records.append(rec)
+        v.add(rec)
         for ob in self.observers:
             ob.on_record(v.name, rec, estimate)
         if rec.t0p_ns is not None and rec.status == FrameStatus.OK:

@@ -58,11 +58,11 @@ def build_summary(*, loop: SimLoop, stats: LoopStats, recorder_stats: dict[str, 
     requested = loop.cfg.realtime_factor
     kept = (not realtime) or (rtf >= 0.95 * requested and stats.late_steps <= 0.01 * max(stats.sim_steps, 1))
     vehicles = {v.name: vehicle_summary(v, wall_s=wall_s, timing=timing, detector=detector) for v in loop.vehicles}
+    final = {e.vehicle: e for e in loop.sim.truth_snapshot().egos}  # once, and without taking collisions
     for name, s in vehicles.items():
-        final_gap = loop.sim.ground_truth().egos
         s["outcome"] = {
             "min_gap_m": loop.min_gap_m.get(name),
-            "final_gap_m": next((e.gap_m for e in final_gap if e.vehicle == name), None),
+            "final_gap_m": final[name].gap_m if name in final else None,
             "final_speed_mps": round(loop.sim.speed_mps(name), 4),
             "collisions": sum(1 for c in loop.collisions if name in (c["a"], c["b"])),
         }

@@ -3,6 +3,7 @@ pipeline records and the live statistics shown while the run goes on."""
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
 
 from adapters.link import Link
@@ -34,5 +35,12 @@ class VehicleRun:
     e2e_window: RollingWindow = field(default_factory=RollingWindow)
     fps_meter: RateMeter = field(default_factory=RateMeter)
 
+    counts: Counter[FrameStatus] = field(default_factory=Counter)
+
+    def add(self, rec: PipelineRecord) -> None:
+        """Keep a settled frame's record (and its status count, for the live display)."""
+        self.records.append(rec)
+        self.counts[rec.status] += 1
+
     def count(self, status: FrameStatus) -> int:
-        return sum(1 for r in self.records if r.status == status)
+        return self.counts[status]
