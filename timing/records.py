@@ -3,6 +3,8 @@
 One ``PipelineRecord`` holds every timestamp of one frame's trip (see the timing
 table in DESIGN.md) and derives the stage durations that need no clock sync:
 
+* ``render``          = t0 − t_state (harness clock): from the camera's exposure
+  instant (the simulation reaching the frame's sim time) to the image being ready
 * ``capture_to_send`` = t_tx − t0 (harness clock)
 * ``end_to_end``      = t0' − t0 (harness clock)
 * ``to_apply``        = t_apply − t0 (harness clock)
@@ -33,7 +35,7 @@ class FrameStatus(str, Enum):
 
 
 STAGES: tuple[str, ...] = (
-    "capture_to_send", "transport", "target_queue", "inference", "target_total",
+    "render", "capture_to_send", "transport", "target_queue", "inference", "target_total",
     "apply_delay", "end_to_end", "to_apply",
 )
 
@@ -56,10 +58,13 @@ class PipelineRecord:
     t0p_ns: int | None = None
     t_apply_ns: int | None = None
     sim_time_apply_ns: int | None = None
+    t_state_ns: int | None = None
 
     def stages_ns(self) -> dict[str, int]:
         """Stage durations (ns) that this record can give, keyed by ``STAGES`` names."""
         out: dict[str, int] = {"capture_to_send": self.t_tx_ns - self.t0_ns}
+        if self.t_state_ns is not None:
+            out["render"] = self.t0_ns - self.t_state_ns
         if self.t0p_ns is not None:
             out["end_to_end"] = self.t0p_ns - self.t0_ns
         if self.t_apply_ns is not None:
@@ -82,7 +87,7 @@ class PipelineRecord:
         """Names of timestamp pairs that are out of order within one clock (each
         should be empty for a sane target; cross-clock order needs sync)."""
         bad = []
-        chain_h = [("t0", self.t0_ns), ("t_tx", self.t_tx_ns), ("t0'", self.t0p_ns),
+        chain_h = [("t_state", self.t_state_ns), ("t0", self.t0_ns), ("t_tx", self.t_tx_ns), ("t0'", self.t0p_ns),
                    ("t_apply", self.t_apply_ns)]
         chain_t = [("t_rx", self.t_rx_target_ns), ("t_infer_start", self.t_infer_start_target_ns),
                    ("t_infer_end", self.t_infer_end_target_ns), ("t_reply", self.t_reply_target_ns)]
