@@ -151,6 +151,9 @@ class LocalLink(Link):
                               f"(check target.command)") from err
         except PermissionError as err:
             raise TargetError(f"target command is not executable: {self.command[0]!r}") from err
+        except OSError as err:  # e.g. ENOEXEC: a script without '#!', a binary for another machine
+            raise TargetError(f"target command {self.command[0]!r} cannot be started: {err.strerror or err} "
+                              f"(a script needs a '#!' line; a program must be built for this machine)") from err
         finally:
             theirs.close()
             if self._ring is not None:

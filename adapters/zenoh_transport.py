@@ -65,6 +65,7 @@ from typing import TYPE_CHECKING
 from adapters import protocol
 from adapters.link import Link, Received
 from adapters.messages import Bye, Heartbeat, Hello, MsgType
+from adapters.zenoh_options import TLS_KEYS, endpoint_problem
 from timing.clock import Clock
 from timing.errors import ConfigError, TransportError
 
@@ -78,14 +79,6 @@ if TYPE_CHECKING:
 
 MODES = ("peer", "client")
 CONGESTION = MappingProxyType({"block": zenoh.CongestionControl.BLOCK, "drop": zenoh.CongestionControl.DROP})
-TLS_KEYS = (
-    "root_ca_certificate", "root_ca_certificate_base64",
-    "listen_certificate", "listen_certificate_base64",
-    "listen_private_key", "listen_private_key_base64",
-    "connect_certificate", "connect_certificate_base64",
-    "connect_private_key", "connect_private_key_base64",
-    "enable_mtls", "verify_name_on_connect", "close_link_on_expiration",
-)
 DEFAULT_LEASE_MS = 1000
 DEFAULT_KEEP_ALIVE = 4  # keep-alives per lease
 HELLO_POLL_S = 0.1  # harness HEARTBEAT period until HELLO
@@ -134,9 +127,9 @@ def _check_endpoints(name: str, endpoints: Sequence[str]) -> list[str]:
         raise ConfigError(f"{name}={endpoints!r}: expected a list of endpoints, e.g. [{endpoints!r}]")
     out = []
     for ep in endpoints:
-        proto, sep, addr = str(ep).partition("/")
-        if not sep or not proto or not addr:
-            raise ConfigError(f"{name}: endpoint {ep!r} is not PROTOCOL/ADDRESS, e.g. tcp/192.168.1.10:7447")
+        problem = endpoint_problem(ep)
+        if problem is not None:
+            raise ConfigError(f"{name}: endpoint {ep!r}: expected {problem}")
         out.append(str(ep))
     return out
 

@@ -34,6 +34,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
+from adapters.protocol import FRAME_META_SIZE, MAX_PAYLOAD
 from harness.config_cases import CornerCaseSettings, DetectorSettings
 from harness.config_target import CanTargetConfig, ZenohTargetConfig
 from harness.config_timing import TimingConfig
@@ -47,6 +48,7 @@ __all__ = [
 ]
 
 FPS_MAX = 240.0
+SEED_MAX = 2**63 - 1
 PHYSICS_STEP_MAX_S = 0.05
 _PERIOD_REL_TOL = 1e-9
 _PERIOD_ERROR = "camera_period"
@@ -220,7 +222,8 @@ class RunConfig(BaseModel):
     model_config = _MODEL_CONFIG
 
     name: str = Field("run", pattern=r"^[A-Za-z0-9_.-]+$")
-    seed: Int = Field(0, ge=0)
+    # At most a signed 64-bit integer: the corner-case index stores it as an SQLite INTEGER.
+    seed: Int = Field(0, ge=0, le=SEED_MAX)
     mode: Mode = Mode.REALTIME
     duration_s: Float = Field(20.0, gt=0, le=86400)
     realtime_factor: Float = Field(1.0, gt=0, le=100)
@@ -241,6 +244,14 @@ class RunConfig(BaseModel):
         fps, step = self.camera.fps, self.physics_step_s
         if not _period_fits(fps, step):
             raise PydanticCustomError(_PERIOD_ERROR, _period_message(fps, step), {"fps": fps})
+        cam = self.camera
+        if cam.encoding == Encoding.RAW and 3 * cam.width * cam.height + FRAME_META_SIZE > MAX_PAYLOAD:
+            most = (MAX_PAYLOAD - FRAME_META_SIZE) // 3
+            raise PydanticCustomError(_RULE_ERROR, f"a raw frame (3 bytes a pixel) within the wire's payload limit "
+                                      f"of {MAX_PAYLOAD // 2**20} MiB, at most {most} pixels (e.g. 2560x2048), "
+                                      f"but {cam.width}x{cam.height} needs {3 * cam.width * cam.height / 2**20:.1f} "
+                                      f"MiB; use camera.encoding: jpeg or a smaller image",
+                                      {"loc": ("camera", "width"), "got": cam.width})
         lat = self.lockstep.latency
         if (lat.kind != LatencyKind.NONE or lat.drop_prob > 0) and self.mode != Mode.LOCKSTEP:
             raise PydanticCustomError(_RULE_ERROR, "mode: lockstep (a latency profile delays control in "
@@ -509,14 +520,61 @@ def _model_at(loc: tuple[Any, ...]) -> type[BaseModel] | None:
 
 def _loc_text(loc: tuple[Any, ...]) -> str:
     text = ""
+    if loc and loc[-1] == "[key]":  # pydantic's marker for a bad mapping key: the key is named already
+        loc = loc[:-1]
     for part in loc:
         text += f"[{part}]" if isinstance(part, int) else (f".{part}" if text else str(part))
     return text or "<root>"
 
 
-def _short_repr(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= _GOT_MAX_CHARS else text[: _GOT_MAX_CHARS - 3] + "..."
+class _Enough(Exception):
+    """Raised inside ``_short_repr`` once the text is long enough."""
+
+
+def _short_repr(value: Any, *, limit: int = _GOT_MAX_CHARS) -> str:
+    """``repr(value)`` cut to ``limit`` characters, in work bounded by ``limit``.
+
+    A YAML alias bomb (each level a list of aliases of the level below) is a few
+    hundred bytes whose full ``repr`` would take minutes and gigabytes, so
+    containers are walked only until ``limit`` characters are out.
+    """
+    parts: list[str] = []
+    room = [limit + 1]
+
+    def emit(text: str) -> None:
+        parts.append(text[: room[0]])
+        room[0] -= len(text)
+        if room[0] <= 0:
+            raise _Enough
+
+    def walk(v: Any) -> None:
+        if isinstance(v, dict):
+            emit("{")
+            for i, (k, x) in enumerate(v.items()):
+                emit(", " if i else "")
+                walk(k)
+                emit(": ")
+                walk(x)
+            emit("}")
+        elif isinstance(v, (list, tuple)):
+            emit("[" if isinstance(v, list) else "(")
+            for i, x in enumerate(v):
+                emit(", " if i else "")
+                walk(x)
+            emit("]" if isinstance(v, list) else ")")
+        elif isinstance(v, str):
+            emit(repr(v[: limit + 2]) if len(v) > limit + 2 else repr(v))
+        elif isinstance(v, int) and not isinstance(v, bool) and v.bit_length() > 4 * limit:
+            emit(f"<integer of {v.bit_length()} bits>")  # repr of a huge int is slow, or refused
+        else:
+            emit(repr(v))
+
+    try:
+        walk(value)
+    except _Enough:
+        pass
+    text = "".join(parts)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _one_line(text: str) -> str:

@@ -29,12 +29,33 @@ from __future__ import annotations
 
 import sys
 from enum import Enum
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, Field
+from pydantic import AfterValidator, BaseModel, Field
 
 from adapters.can_interfaces import LOCAL_INTERFACES
+from adapters.zenoh_options import endpoint_problem, tls_key_problem
 from harness.config_types import MODEL_CONFIG, Int
+
+
+def _endpoint(value: str) -> str:
+    problem = endpoint_problem(value)
+    if problem is not None:
+        raise ValueError(problem)
+    return value
+
+
+def _tls_key(value: str) -> str:
+    problem = tls_key_problem(value)
+    if problem is not None:
+        raise ValueError(problem)
+    return value
+
+
+# Checked here, so that an endpoint Zenoh can never open (``zzz``, a missing port) or
+# an unknown TLS key is refused before the simulator or any target starts.
+ZenohEndpoint = Annotated[str, AfterValidator(_endpoint)]
+TlsKey = Annotated[str, AfterValidator(_tls_key)]
 
 
 class ZenohMode(str, Enum):
@@ -53,15 +74,15 @@ class ZenohTargetConfig(BaseModel):
 
     model_config = MODEL_CONFIG
 
-    connect: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:{port}"])
-    listen: list[str] = Field(default_factory=list)
+    connect: list[ZenohEndpoint] = Field(default_factory=lambda: ["tcp/127.0.0.1:{port}"])
+    listen: list[ZenohEndpoint] = Field(default_factory=list)
     mode: ZenohMode = ZenohMode.PEER
     key_prefix: str = Field("hil", min_length=1)
     base_port: Int = Field(7447, ge=1, le=65535)
     multicast_scouting: bool = False
     congestion_control: Congestion = Congestion.BLOCK
     lease_ms: Int = Field(1000, ge=100, le=60_000)
-    tls: dict[str, str | bool] | None = None
+    tls: dict[TlsKey, str | bool] | None = None
 
 
 class CanTargetConfig(BaseModel):

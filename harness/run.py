@@ -41,21 +41,18 @@ def default_out_dir(cfg: RunConfig, *, root: Path = Path("runs")) -> Path:
 
 
 def prepare_out_dir(out: Path) -> Path:
-    """Create the run folder; refuse to overwrite an earlier run.
+    """Create the run folder and claim it for this process (an exclusive lock file,
+    held until the process exits or ``harness.out_dir.release_out_dir``); refuse to
+    overwrite an earlier run or to share the folder with a concurrent one. The disk
+    is probed with real bytes (an empty file fits on a full disk).
 
     Raises:
-        ConfigError: the folder holds a run already or cannot be created.
+        ConfigError: one line: the folder holds a run already, another run holds
+            it, or it cannot be created or written (read-only, full).
     """
-    if (out / "run.mcap").exists():
-        raise ConfigError(f"--out {out}: holds a run already (run.mcap exists); choose another folder")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".write-test"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as err:
-        raise ConfigError(f"--out {out}: cannot write there: {err.strerror or err}") from err
-    return out
+    from harness.out_dir import claim_out_dir
+
+    return claim_out_dir(out)
 
 
 def versions() -> dict[str, str]:

@@ -34,6 +34,10 @@ class TargetProcess:
         except PermissionError as err:
             self._log.close()
             raise TargetError(f"target command is not executable: {command[0]!r}") from err
+        except OSError as err:  # e.g. ENOEXEC: a script without '#!', a binary for another machine
+            self._log.close()
+            raise TargetError(f"target command {command[0]!r} cannot be started: {err.strerror or err} "
+                              f"(a script needs a '#!' line; a program must be built for this machine)") from err
 
     def close(self) -> None:
         proc, self.proc = getattr(self, "proc", None), None
