@@ -299,7 +299,7 @@ class Link(ABC):
     def _close_transport(self) -> None: ...
 
 
-TRANSPORTS = ("local", "zenoh", "can", "mixed")
+TRANSPORTS = ("local", "zenoh", "can", "mixed", "tcp")
 
 
 def open_link(transport: str, **options: object) -> Link:
@@ -321,6 +321,9 @@ def open_link(transport: str, **options: object) -> Link:
     if transport == "mixed":  # frames over zenoh, everything else over CAN
         from adapters.mixed import MixedLink
         return MixedLink(**options)  # type: ignore[arg-type]
+    if transport == "tcp":  # the local transport's stream framing over TCP
+        from adapters.tcp import TcpLink
+        return TcpLink(**options)  # type: ignore[arg-type]
     raise TransportError(f"unknown transport {transport!r}; valid: {', '.join(TRANSPORTS)}")
 
 

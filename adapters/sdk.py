@@ -222,7 +222,7 @@ class Endpoint:
             self.stats.estimates_sent += 1
 
 
-TRANSPORTS = ("local", "zenoh", "can", "mixed")
+TRANSPORTS = ("local", "zenoh", "can", "mixed", "tcp")
 
 
 def add_transport_args(parser: argparse.ArgumentParser) -> None:
@@ -231,11 +231,14 @@ def add_transport_args(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("transport")
     g.add_argument("--transport", choices=TRANSPORTS, default="local",
                    help="local: started by `hil run`; zenoh: network; can: CAN bus; "
-                        "mixed: frames over zenoh, everything else on the CAN bus")
+                        "mixed: frames over zenoh, everything else on the CAN bus; "
+                        "tcp: one TCP connection (listen, or connect to the harness)")
     g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                   help="zenoh: endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)")
+                   help="zenoh: endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable); "
+                        "tcp: host:port to listen on for the harness (default 127.0.0.1:7600)")
     g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
-                   help="zenoh: endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable)")
+                   help="zenoh: endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable); "
+                        "tcp: host:port of a listening harness")
     g.add_argument("--mode", choices=("peer", "client"), default="peer", help="zenoh session mode")
     g.add_argument("--key-prefix", default="hil", help="zenoh: key expression prefix")
     g.add_argument("--vehicle", type=int, default=0, help="vehicle id this target serves (zenoh, can, mixed)")
@@ -258,6 +261,9 @@ def transport_options(args: argparse.Namespace) -> dict[str, object]:
         return {"listen": list(args.listen), "connect": list(args.connect), "mode": args.mode,
                 "key_prefix": args.key_prefix, "interface": args.interface, "channel": args.channel,
                 "bitrate": args.bitrate, "data_bitrate": args.data_bitrate, "vehicle_id": args.vehicle}
+    if args.transport == "tcp":  # the last --listen / --connect given
+        return {"listen": args.listen[-1] if args.listen else None,
+                "connect": args.connect[-1] if args.connect else None}
     return {}
 
 
@@ -301,6 +307,10 @@ def serve(infer: InferFn, *, target_name: str, transport: str = "local", clock: 
     if transport == "mixed":
         from adapters.mixed import serve_endpoint as serve_mixed
         serve_mixed(ep, **transport_options)  # type: ignore[arg-type]
+        return ep.stats
+    if transport == "tcp":
+        from adapters.tcp import serve_endpoint as serve_tcp
+        serve_tcp(ep, **transport_options)  # type: ignore[arg-type]
         return ep.stats
     raise TransportError(f"unknown transport {transport!r}; valid: {', '.join(TRANSPORTS)}")
 

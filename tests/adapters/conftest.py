@@ -20,7 +20,7 @@ import pytest
 from adapters.link import Link, open_link
 from timing.clock import MonotonicClock
 
-TRANSPORT_NAMES = ("local", "zenoh", "can")
+TRANSPORT_NAMES = ("local", "zenoh", "can", "tcp")
 
 
 @contextlib.contextmanager

@@ -1,0 +1,431 @@
+/* A reference AI target in C99 (libc and POSIX sockets only), written from
+ * PROTOCOL.md: HELLO, FRAME -> ESTIMATE, clock sync, heartbeats, COMMAND, BYE and
+ * the bad-message rules of section 8, over the local transport (the socket in
+ * HIL_LOCAL_FD, section 10.1) or TCP (section 10.5).
+ *
+ * The AI is deliberately trivial: STOP with full brake when the centre ninth of a
+ * raw image is dark (mean luma below a threshold), otherwise SAFE at throttle 0.3.
+ * A JPEG is not decoded (no library beyond libc): the protocol gives a target no way
+ * to ask for raw frames, so the target uses the compressed size as a stand-in for
+ * darkness (a dark, featureless picture compresses to few bytes per pixel). Use raw
+ * frames (camera.encoding: raw) to exercise the real rule.
+ *
+ *   hil_target [--transport local|tcp] [--listen HOST:PORT | --connect HOST:PORT]
+ *              [--name NAME] [--clock monotonic|realtime] [--dark LUMA] [--verbose]
+ */
+#define _POSIX_C_SOURCE 200809L
+#include "hilp.h"
+
+#include <errno.h>
+#include <netdb.h>
+#include <netinet/in.h>
+#include <netinet/tcp.h>
+#include <poll.h>
+#include <signal.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/socket.h>
+#include <time.h>
+#include <unistd.h>
+
+#define BUF_START (256u * 1024u)
+#define HEARTBEAT_IDLE_NS 1000000000LL /* send a HEARTBEAT after 1 s without sending */
+
+typedef struct {
+    int fd;
+    clockid_t clock;
+    uint8_t clock_id;
+    const char *name;
+    unsigned dark_luma;
+    int verbose;
+    uint32_t vehicle_id; /* of the last FRAME or SYNC_REQUEST; 0 before */
+    int stop;
+    int64_t last_send_ns;
+    /* receive buffer: bytes [0, len) held, decoding from 0 */
+    uint8_t *buf;
+    size_t len, cap;
+    int skipping; /* lost sync after a bad header: skip to the next magic silently */
+    /* counters */
+    unsigned long frames, estimates, dark, syncs, heartbeats, errors_sent, errors_received, bad, commands;
+    uint8_t out[HILP_HEADER + 1100]; /* every message this target sends fits */
+} session;
+
+static int64_t now_ns(const session *s) {
+    struct timespec ts;
+    clock_gettime(s->clock, &ts);
+    return (int64_t)ts.tv_sec * 1000000000LL + ts.tv_nsec;
+}
+
+/* Writes one whole message (loops on short writes); -1 when the peer is gone. */
+static int send_msg(session *s, hilp_header *h) {
+    size_t n = hilp_finish(s->out, h);
+    size_t done = 0;
+    while (done < n) {
+        ssize_t w = send(s->fd, s->out + done, n - done, MSG_NOSIGNAL);
+        if (w < 0 && errno == EINTR) continue;
+        if (w <= 0) { s->stop = 1; return -1; }
+        done += (size_t)w;
+    }
+    s->last_send_ns = now_ns(s);
+    return 0;
+}
+
+static void header_init(hilp_header *h, uint8_t type, uint32_t vehicle_id) {
+    memset(h, 0, sizeof *h);
+    h->version = HILP_VERSION;
+    h->type = type;
+    h->vehicle_id = vehicle_id;
+}
+
+/* A text payload: u16 length at payload offset `at`, the text right after it. */
+static size_t put_text(uint8_t *payload, size_t at, const char *text, size_t limit) {
+    size_t n = strlen(text);
+    if (n > limit) n = limit;
+    hilp_put16(payload + at, (uint16_t)n);
+    memcpy(payload + at + 2, text, n);
+    return at + 2 + n;
+}
+
+static void send_error(session *s, uint16_t code, const char *text) {
+    hilp_header h;
+    header_init(&h, HILP_ERROR, s->vehicle_id);
+    uint8_t *p = s->out + HILP_HEADER;
+    hilp_put16(p, code);
+    h.payload_len = (uint32_t)put_text(p, 2, text, HILP_MAX_ERROR);
+    s->errors_sent++;
+    send_msg(s, &h);
+}
+
+static void send_hello(session *s) {
+    struct timespec res;
+    clock_getres(s->clock, &res);
+    hilp_header h;
+    header_init(&h, HILP_HELLO, 0);
+    uint8_t *p = s->out + HILP_HEADER;
+    size_t n = strlen(s->name);
+    if (n > HILP_MAX_NAME) n = HILP_MAX_NAME;
+    p[0] = s->clock_id;
+    p[1] = 0;
+    hilp_put16(p + 2, (uint16_t)n);
+    hilp_put32(p + 4, (uint32_t)(res.tv_sec * 1000000000L + res.tv_nsec));
+    hilp_put32(p + 8, HILP_CAP_COMMANDS);
+    memcpy(p + 12, s->name, n);
+    h.payload_len = (uint32_t)(12 + n);
+    send_msg(s, &h);
+}
+
+/* The trivial AI: 1 when the picture's centre is dark. */
+static int centre_is_dark(const session *s, const hilp_frame *f) {
+    if (f->encoding == HILP_JPEG) /* opaque: few bytes per pixel stand in for dark */
+        return (double)f->image_len < 0.03 * f->width * f->height;
+    unsigned x0 = f->width / 3, x1 = f->width - f->width / 3, y0 = f->height / 3, y1 = f->height - f->height / 3;
+    unsigned long long sum = 0, n = 0;
+    int r = f->encoding == HILP_RGB8 ? 0 : 2, b = 2 - r;
+    for (unsigned y = y0; y < y1; y++)
+        for (unsigned x = x0; x < x1; x++) {
+            const uint8_t *px = f->image + ((size_t)y * f->width + x) * 3u;
+            sum += (77u * px[r] + 150u * px[1] + 29u * px[b]) >> 8;
+            n++;
+        }
+    return n > 0 && sum < (unsigned long long)s->dark_luma * n;
+}
+
+static void on_frame(session *s, const uint8_t *m, const hilp_header *fh, int64_t t_rx) {
+    hilp_frame f;
+    hilp_frame_view(m, &f);
+    s->frames++;
+    s->vehicle_id = fh->vehicle_id;
+    int64_t t_start = now_ns(s);
+    int dark = centre_is_dark(s, &f);
+    int64_t t_end = now_ns(s);
+    s->dark += (unsigned long)dark;
+    hilp_header h;
+    header_init(&h, HILP_ESTIMATE, fh->vehicle_id);
+    h.frame_id = fh->frame_id;
+    uint8_t *p = s->out + HILP_HEADER;
+    float steering = 0.0f, throttle = dark ? 0.0f : 0.3f, brake = dark ? 1.0f : 0.0f;
+    uint32_t u;
+    memset(p, 0, 16);
+    p[0] = dark ? HILP_STOP : HILP_SAFE;
+    memcpy(&u, &steering, 4); hilp_put32(p + 4, u);
+    memcpy(&u, &throttle, 4); hilp_put32(p + 8, u);
+    memcpy(&u, &brake, 4); hilp_put32(p + 12, u);
+    h.payload_len = 16;
+    h.ts[0] = t_rx;
+    h.ts[1] = t_start;
+    h.ts[2] = t_end;
+    h.ts[3] = now_ns(s); /* t_reply: handed to the transport right below */
+    if (send_msg(s, &h) == 0) s->estimates++;
+}
+
+static void on_command(session *s, const uint8_t *m, const hilp_header *ch) {
+    char text[HILP_MAX_COMMAND + 1], reply[HILP_MAX_COMMAND + 1];
+    size_t n = hilp_get16(m + 64);
+    memcpy(text, m + 66, n);
+    text[n] = '\0';
+    s->commands++;
+    unsigned v;
+    if (strcmp(text, "status") == 0)
+        snprintf(reply, sizeof reply, "ok frames=%lu estimates=%lu dark=%lu syncs=%lu bad=%lu dark_luma=%u",
+                 s->frames, s->estimates, s->dark, s->syncs, s->bad, s->dark_luma);
+    else if (sscanf(text, "dark %u", &v) == 1 && v <= 255) {
+        s->dark_luma = v;
+        snprintf(reply, sizeof reply, "ok dark_luma=%u", v);
+    } else
+        snprintf(reply, sizeof reply, "error: unknown command (this target takes: status, dark N)");
+    hilp_header h;
+    header_init(&h, HILP_COMMAND, ch->vehicle_id);
+    h.frame_id = ch->frame_id;
+    h.ts[0] = now_ns(s);
+    h.payload_len = (uint32_t)put_text(s->out + HILP_HEADER, 0, reply, HILP_MAX_COMMAND);
+    send_msg(s, &h);
+}
+
+/* One whole message that passed the header checks: m holds 64 + payload_len bytes. */
+static void on_message(session *s, const uint8_t *m, const hilp_header *h, int64_t t_rx) {
+    hilp_err e;
+    if (hilp_check_message(m, h, &e) != 0) {
+        s->bad++;
+        if (s->verbose) fprintf(stderr, "hil_target: bad message: %s\n", e.text);
+        if (h->type != HILP_ERROR) send_error(s, e.code, e.text); /* never answer an ERROR with an ERROR */
+        return;
+    }
+    switch (h->type) {
+    case HILP_SYNC_REQUEST: {
+        hilp_header r;
+        header_init(&r, HILP_SYNC_RESPONSE, h->vehicle_id);
+        s->vehicle_id = h->vehicle_id;
+        r.frame_id = h->frame_id;
+        r.ts[0] = h->ts[0]; /* t1, echoed */
+        r.ts[1] = t_rx;     /* t2: when the request's last byte arrived */
+        r.ts[2] = now_ns(s); /* t3: as late as possible, right before the send */
+        if (send_msg(s, &r) == 0) s->syncs++;
+        break;
+    }
+    case HILP_FRAME: on_frame(s, m, h, t_rx); break;
+    case HILP_HEARTBEAT: s->heartbeats++; break;
+    case HILP_ERROR:
+        s->errors_received++;
+        if (s->verbose) fprintf(stderr, "hil_target: harness error %u: %.*s\n", (unsigned)hilp_get16(m + 64),
+                                (int)hilp_get16(m + 66), (const char *)(m + 68));
+        break;
+    case HILP_BYE: s->stop = 1; break;
+    case HILP_COMMAND: on_command(s, m, h); break;
+    default: { /* HELLO, ESTIMATE, SYNC_RESPONSE: well formed, but not for a target */
+        char text[96];
+        snprintf(text, sizeof text, "message type %u is not sent to a target (at byte offset 5)", (unsigned)h->type);
+        s->bad++;
+        send_error(s, HILP_E_UNEXPECTED, text);
+    }
+    }
+}
+
+static long find_magic(const uint8_t *p, size_t from, size_t len) {
+    for (size_t i = from; i + 4 <= len; i++)
+        if (p[i] == 'H' && p[i + 1] == 'I' && p[i + 2] == 'L' && p[i + 3] == 'P') return (long)i;
+    return -1;
+}
+
+/* A bad header: report once, then resume at the next magic after its first byte. */
+static size_t resync(session *s, size_t pos, const hilp_err *e) {
+    s->bad++;
+    if (s->verbose) fprintf(stderr, "hil_target: bad header: %s\n", e->text);
+    send_error(s, e->code, e->text);
+    s->skipping = 1;
+    long found = find_magic(s->buf, pos + 1, s->len);
+    if (found >= 0) return (size_t)found;
+    return s->len >= 3 && s->len - 3 > pos + 1 ? s->len - 3 : pos + 1;
+}
+
+/* Decodes every whole message held (section 8's stream rules); keeps the rest. */
+static void drain(session *s, int64_t t_rx) {
+    size_t pos = 0;
+    while (!s->stop) {
+        size_t avail = s->len - pos;
+        if (avail < 4) break;
+        if (memcmp(s->buf + pos, "HILP", 4) != 0) {
+            if (s->skipping) {
+                long found = find_magic(s->buf, pos + 1, s->len);
+                pos = found >= 0 ? (size_t)found : s->len - 3;
+                continue;
+            }
+            hilp_err e;
+            hilp_header h;
+            hilp_decode_header(s->buf + pos, &h, &e); /* fails on the magic: fills e */
+            pos = resync(s, pos, &e);
+            continue;
+        }
+        if (avail < HILP_HEADER) break;
+        hilp_header h;
+        hilp_err e;
+        if (hilp_decode_header(s->buf + pos, &h, &e) != 0) {
+            pos = resync(s, pos, &e);
+            continue;
+        }
+        s->skipping = 0;
+        size_t total = HILP_HEADER + (size_t)h.payload_len;
+        if (avail < total) {
+            if (total > s->cap) { /* grow once to the announced size (at most 64 + 16 MiB) */
+                memmove(s->buf, s->buf + pos, avail);
+                s->len = avail;
+                pos = 0;
+                uint8_t *grown = realloc(s->buf, total);
+                if (!grown) { fprintf(stderr, "hil_target: out of memory\n"); s->stop = 1; return; }
+                s->buf = grown;
+                s->cap = total;
+            }
+            break;
+        }
+        on_message(s, s->buf + pos, &h, t_rx);
+        pos += total;
+    }
+    memmove(s->buf, s->buf + pos, s->len - pos);
+    s->len -= pos;
+}
+
+static void serve(session *s) {
+    send_hello(s);
+    while (!s->stop) {
+        struct pollfd pfd = {s->fd, POLLIN, 0};
+        int r = poll(&pfd, 1, 250);
+        if (r < 0 && errno == EINTR) continue;
+        if (r < 0) break;
+        if (r == 0) {
+            if (now_ns(s) - s->last_send_ns >= HEARTBEAT_IDLE_NS) {
+                hilp_header h;
+                header_init(&h, HILP_HEARTBEAT, s->vehicle_id);
+                h.ts[0] = now_ns(s);
+                send_msg(s, &h);
+            }
+            continue;
+        }
+        /* drain() leaves less than one whole message (and grows the buffer to the
+         * size a header announces), so there is always room to read into. */
+        ssize_t n = recv(s->fd, s->buf + s->len, s->cap - s->len, 0);
+        int64_t t_rx = now_ns(s); /* the read that completes a message stamps it */
+        if (n < 0 && errno == EINTR) continue;
+        if (n <= 0) break; /* end of stream: the harness has gone */
+        s->len += (size_t)n;
+        drain(s, t_rx);
+    }
+}
+
+static int split_address(const char *text, char *host, size_t host_size, const char **port) {
+    if (strncmp(text, "tcp/", 4) == 0) text += 4;
+    const char *colon = strrchr(text, ':');
+    if (!colon || colon == text || (size_t)(colon - text) >= host_size || !colon[1]) return -1;
+    memcpy(host, text, (size_t)(colon - text));
+    host[colon - text] = '\0';
+    if (host[0] == '[' && host[strlen(host) - 1] == ']') {
+        memmove(host, host + 1, strlen(host));
+        host[strlen(host) - 1] = '\0';
+    }
+    *port = colon + 1;
+    return 0;
+}
+
+/* A connected TCP socket: accept one harness on `listen_at`, or dial `connect_to`
+ * (retrying for 30 s). -1 with a message on stderr on failure. */
+static int tcp_open(const char *listen_at, const char *connect_to) {
+    char host[256];
+    const char *port;
+    const char *addr = connect_to ? connect_to : listen_at;
+    if (split_address(addr, host, sizeof host, &port) != 0) {
+        fprintf(stderr, "hil_target: bad address %s: expected host:port, e.g. 127.0.0.1:7600\n", addr);
+        return -1;
+    }
+    struct addrinfo hints, *ai = NULL;
+    memset(&hints, 0, sizeof hints);
+    hints.ai_socktype = SOCK_STREAM;
+    hints.ai_flags = connect_to ? 0 : AI_PASSIVE;
+    int rc = getaddrinfo(host, port, &hints, &ai);
+    if (rc != 0) {
+        fprintf(stderr, "hil_target: cannot resolve %s: %s\n", addr, gai_strerror(rc));
+        return -1;
+    }
+    int fd = -1, one = 1;
+    if (connect_to) {
+        for (int attempt = 0; attempt < 600 && fd < 0; attempt++) {
+            fd = socket(ai->ai_family, ai->ai_socktype, ai->ai_protocol);
+            if (fd >= 0 && connect(fd, ai->ai_addr, ai->ai_addrlen) != 0) {
+                close(fd);
+                fd = -1;
+                struct timespec pause = {0, 50000000L};
+                nanosleep(&pause, NULL);
+            }
+        }
+        if (fd < 0) fprintf(stderr, "hil_target: cannot connect to %s: %s\n", addr, strerror(errno));
+    } else {
+        int ls = socket(ai->ai_family, ai->ai_socktype, ai->ai_protocol);
+        if (ls >= 0) setsockopt(ls, SOL_SOCKET, SO_REUSEADDR, &one, sizeof one);
+        if (ls < 0 || bind(ls, ai->ai_addr, ai->ai_addrlen) != 0 || listen(ls, 1) != 0) {
+            fprintf(stderr, "hil_target: cannot listen on %s: %s\n", addr, strerror(errno));
+        } else {
+            fprintf(stderr, "hil_target: listening on %s\n", addr);
+            fd = accept(ls, NULL, NULL);
+        }
+        if (ls >= 0) close(ls);
+    }
+    freeaddrinfo(ai);
+    if (fd >= 0) setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
+    return fd;
+}
+
+static int usage(const char *why) {
+    fprintf(stderr, "hil_target: %s\nusage: hil_target [--transport local|tcp] [--listen HOST:PORT | "
+                    "--connect HOST:PORT] [--name NAME] [--clock monotonic|realtime] [--dark LUMA] [--verbose]\n",
+            why);
+    return 2;
+}
+
+int main(int argc, char **argv) {
+    const char *transport = "local", *listen_at = "127.0.0.1:7600", *connect_to = NULL;
+    session s;
+    memset(&s, 0, sizeof s);
+    s.clock = CLOCK_MONOTONIC;
+    s.clock_id = HILP_CLOCK_MONOTONIC;
+    s.name = "c-reference";
+    s.dark_luma = 40;
+    for (int i = 1; i < argc; i++) {
+        const char *a = argv[i], *v = i + 1 < argc ? argv[i + 1] : NULL;
+        if (strcmp(a, "--verbose") == 0) { s.verbose = 1; continue; }
+        if (!v) return usage("an option is missing its value");
+        i++;
+        if (strcmp(a, "--transport") == 0) transport = v;
+        else if (strcmp(a, "--listen") == 0) listen_at = v;
+        else if (strcmp(a, "--connect") == 0) connect_to = v;
+        else if (strcmp(a, "--name") == 0) s.name = v;
+        else if (strcmp(a, "--dark") == 0) s.dark_luma = (unsigned)strtoul(v, NULL, 10);
+        else if (strcmp(a, "--clock") == 0) {
+            if (strcmp(v, "monotonic") == 0) { s.clock = CLOCK_MONOTONIC; s.clock_id = HILP_CLOCK_MONOTONIC; }
+            else if (strcmp(v, "realtime") == 0) { s.clock = CLOCK_REALTIME; s.clock_id = HILP_CLOCK_REALTIME; }
+            else return usage("--clock takes monotonic or realtime");
+        } else return usage("unknown option");
+    }
+    signal(SIGPIPE, SIG_IGN);
+    if (strcmp(transport, "local") == 0) {
+        const char *fd_text = getenv("HIL_LOCAL_FD");
+        if (!fd_text || !*fd_text) {
+            fprintf(stderr, "hil_target: HIL_LOCAL_FD is not set: a local target is started by the harness\n");
+            return 2;
+        }
+        s.fd = atoi(fd_text);
+    } else if (strcmp(transport, "tcp") == 0) {
+        s.fd = tcp_open(listen_at, connect_to);
+        if (s.fd < 0) return 1;
+    } else
+        return usage("--transport takes local or tcp");
+    s.cap = BUF_START;
+    s.buf = malloc(s.cap);
+    if (!s.buf) return 1;
+    s.last_send_ns = now_ns(&s);
+    serve(&s);
+    fprintf(stderr, "hil_target: frames=%lu estimates=%lu dark=%lu syncs=%lu heartbeats=%lu bad=%lu "
+                    "errors_sent=%lu errors_received=%lu commands=%lu\n",
+            s.frames, s.estimates, s.dark, s.syncs, s.heartbeats, s.bad, s.errors_sent, s.errors_received,
+            s.commands);
+    free(s.buf);
+    close(s.fd);
+    return 0;
+}
