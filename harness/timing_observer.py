@@ -1,12 +1,20 @@
 """Timing analysis of a run: clock sync per target, cross-clock stage splits,
 timing anomalies and streaming stage statistics.
 
-Records are analysed in completion order, each once the sync has a sample newer
-than its ``t0'`` (so a split is mapped with a model that already knows about any
-clock step before it); a record whose ``[t_tx, t0']`` overlaps a detected clock
-step window gets no cross-clock split (its mapping is unknowable) rather than a
-false causality alarm. When sync is lost, records older than ``lost_after_s`` are
-analysed with what is known, so the queue stays bounded.
+Records are analysed in completion order, each once the sync has *accepted* a
+sample newer than its ``t0'`` and holds no unconfirmed outlier (so a split is mapped
+with a model that already knows about any clock step before it). A record whose
+``[t_tx, t0']`` overlaps a detected clock step's window (last good sample before it
+→ its detection) gets no cross-clock split: its mapping is unknowable, and the old
+mapping put splits far outside their stated bound (issue 12). A record wholly
+before a step is mapped with the model from before it. Such records, and those
+whose mapped stamps break causality, are left out of the split statistics and
+counted (``splits_excluded``). When sync is lost, records older than
+``lost_after_s`` are analysed with what is known, so the queue stays bounded.
+
+The frame-rate floor counts estimates by their receipt time ``t0'`` over windows
+that are complete: a window ends before the oldest record still waiting for a
+sync sample, and at least ``handoff_margin_ns`` before now while no record flows.
 
 Writes ``/<vehicle>/clock`` (the sync state after each sample) and every anomaly
 to ``/events`` (``kind`` is the anomaly kind's lower-case name).
@@ -16,7 +24,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 from adapters.messages import Estimate
 from harness.config_timing import TimingConfig
@@ -24,12 +32,31 @@ from harness.recorder import Recorder
 from scenarios.ground_truth import GroundTruth
 from timing.anomaly import Anomaly, AnomalyDetector
 from timing.histogram import StageHistograms
-from timing.pipeline import split_stages
+from timing.pipeline import Split, causality_violations, split_stages
 from timing.records import PipelineRecord
 from timing.stats import summarize_ns
 from timing.sync import ClockSync, SyncEvent, SyncEventKind, SyncSample, SyncState
 
 TICK_NS = 100_000_000
+HANDOFF_MARGIN_NS = 500_000_000  # an estimate is handed over well within this after t0'
+
+
+class SplitRow(NamedTuple):
+    """One frame's cross-clock split as reported (signed value and bound, ns)."""
+
+    frame_id: int
+    value_ns: int
+    uncertainty_ns: int
+
+
+@dataclass(frozen=True)
+class _StepWindow:
+    """A detected clock step: the last good sample before it, its detection (harness
+    ns), and the model that held before it."""
+
+    since_ns: int
+    detected_ns: int
+    before: SyncState
 
 
 @dataclass
@@ -38,9 +65,10 @@ class _VehicleTiming:
     detector: AnomalyDetector
     hist: StageHistograms = field(default_factory=StageHistograms)
     pending: deque[PipelineRecord] = field(default_factory=deque)
-    step_windows: list[tuple[int, int]] = field(default_factory=list)
-    last_sample_t4: int | None = None
-    splits: dict[str, list[tuple[int, int]]] = field(default_factory=lambda: {"uplink": [], "downlink": []})
+    step_windows: list[_StepWindow] = field(default_factory=list)
+    last_handed_t0p_ns: int | None = None
+    splits: dict[str, list[SplitRow]] = field(default_factory=lambda: {"uplink": [], "downlink": []})
+    excluded: dict[str, int] = field(default_factory=dict)
     anomalies: list[Anomaly] = field(default_factory=list)
     sync_events: dict[str, int] = field(default_factory=dict)
     sim_time_ns: int = 0
@@ -49,8 +77,13 @@ class _VehicleTiming:
 class TimingObserver:
     """A ``RunObserver``; ``summary()`` gives the per-vehicle timing figures."""
 
-    def __init__(self, cfg: TimingConfig, vehicles: list[str], *, recorder: Recorder) -> None:
+    def __init__(self, cfg: TimingConfig, vehicles: list[str], *, recorder: Recorder,
+                 handoff_margin_ns: int = HANDOFF_MARGIN_NS) -> None:
+        """``handoff_margin_ns``: the longest the loop takes to hand a received
+        estimate over; frame-rate windows closer to now than that are judged only
+        once a record has shown them complete."""
         self.cfg = cfg
+        self.handoff_margin_ns = handoff_margin_ns
         self.rec = recorder
         self.lost_after_ns = int(cfg.sync.lost_after_s * 1e9)
         sync_cfg = cfg.sync.to_sync_config()
@@ -67,9 +100,14 @@ class TimingObserver:
 
     def on_sync(self, vehicle: str, sample: SyncSample) -> None:
         vt = self.v[vehicle]
+        before = vt.sync.state()
         events = vt.sync.add(sample)
+        for ev in events:
+            if ev.kind == SyncEventKind.CLOCK_STEP:
+                since = ev.since_ns if ev.since_ns is not None else before.last_sample_ns
+                vt.step_windows.append(_StepWindow(since if since is not None else 0, ev.harness_time_ns,
+                                                   before))
         self._sync_events(vehicle, vt, events)
-        vt.last_sample_t4 = sample.t4_ns
         st = vt.sync.state()
         if st.samples_used:
             self.rec.write_json(f"/{vehicle}/clock", _state_json(st), log_time_ns=sample.t4_ns,
@@ -79,6 +117,8 @@ class TimingObserver:
     def on_record(self, vehicle: str, rec: PipelineRecord, estimate: Estimate | None) -> None:
         vt = self.v[vehicle]
         vt.pending.append(rec)
+        if rec.t0p_ns is not None:
+            vt.last_handed_t0p_ns = max(vt.last_handed_t0p_ns or 0, rec.t0p_ns)
         self._flush(vehicle, vt, now_ns=rec.t0p_ns or rec.t_tx_ns)
 
     def on_tick(self, *, now_ns: int, sim_time_ns: int) -> None:
@@ -87,40 +127,75 @@ class TimingObserver:
         self._next_tick_ns = now_ns + TICK_NS
         for name, vt in self.v.items():
             self._sync_events(name, vt, vt.sync.check(now_ns))
-            self._emit(name, vt, vt.detector.on_tick(now_ns, sim_time_ns))
             self._flush(name, vt, now_ns=now_ns)
+            self._emit(name, vt, vt.detector.on_tick(now_ns, sim_time_ns,
+                                                     complete_until_ns=self._complete_until(vt, now_ns)))
+
+    def _complete_until(self, vt: _VehicleTiming, now_ns: int) -> int:
+        """Harness instant up to which every received estimate has been analysed:
+        before the oldest record still pending, and no later than the newest
+        handed-over ``t0'`` or ``now − handoff_margin_ns`` (receipt order is
+        completion order, so a newer ``t0'`` shows all older ones are in)."""
+        horizon = max(vt.last_handed_t0p_ns or 0, now_ns - self.handoff_margin_ns)
+        waiting = [r.t0p_ns for r in vt.pending if r.t0p_ns is not None]
+        return min(horizon, min(waiting) - 1) if waiting else horizon
 
     # -- analysis -------------------------------------------------------------
 
     def _sync_events(self, vehicle: str, vt: _VehicleTiming, events: list[SyncEvent]) -> None:
         for ev in events:
             vt.sync_events[ev.kind.value] = vt.sync_events.get(ev.kind.value, 0) + 1
-            if ev.kind == SyncEventKind.CLOCK_STEP and ev.since_ns is not None:
-                vt.step_windows.append((ev.since_ns, ev.harness_time_ns))
         self._emit(vehicle, vt, vt.detector.on_sync_events(events, sim_time_ns=vt.sim_time_ns))
 
     def _flush(self, vehicle: str, vt: _VehicleTiming, *, now_ns: int, force: bool = False) -> None:
+        st = vt.sync.state()
+        covered_ns = st.last_sample_ns if st.samples_used and not vt.sync.unconfirmed else None
         while vt.pending:
             rec = vt.pending[0]
-            mapped_ready = rec.t0p_ns is None or (vt.last_sample_t4 is not None and vt.last_sample_t4 > rec.t0p_ns)
+            mapped_ready = rec.t0p_ns is None or (covered_ns is not None and covered_ns > rec.t0p_ns)
             too_old = now_ns - (rec.t0p_ns or rec.t_tx_ns) > self.lost_after_ns
             if not (mapped_ready or too_old or force):
                 return
             vt.pending.popleft()
-            self._analyse(vehicle, vt, rec)
+            self._analyse(vehicle, vt, rec, covered=mapped_ready)
 
-    def _analyse(self, vehicle: str, vt: _VehicleTiming, rec: PipelineRecord) -> None:
+    def _mapper(self, vt: _VehicleTiming, rec: PipelineRecord, *, covered: bool) -> tuple[SyncState | None, str]:
+        """The model that maps ``rec``'s target stamps, or ``None`` and why not."""
         st = vt.sync.state()
-        in_step = any(a <= (rec.t0p_ns or rec.t_tx_ns) and rec.t_tx_ns <= b for a, b in vt.step_windows)
-        mapper = st if st.samples_used and not in_step else None
+        if not st.samples_used:
+            return None, ""
+        lo, hi = rec.t_tx_ns, rec.t0p_ns or rec.t_tx_ns
+        for w in vt.step_windows:
+            if w.since_ns <= hi and lo <= w.detected_ns:
+                return None, "clock_step"  # the step may lie anywhere in its window
+            if hi < w.since_ns:
+                return (w.before if w.before.samples_used else None), ""
+        if not covered and vt.sync.unconfirmed:
+            return None, "unconfirmed_sync"  # maybe a step not yet confirmed
+        return st, ""
+
+    def _analyse(self, vehicle: str, vt: _VehicleTiming, rec: PipelineRecord, *, covered: bool = True) -> None:
+        mapper, why = self._mapper(vt, rec, covered=covered)
         splits = split_stages(rec, mapper) if mapper is not None else None
         anomalies = vt.detector.on_record(rec, splits=splits, mapper=mapper)
         self._emit(vehicle, vt, anomalies)
-        if vt.hist.record_record(rec) and splits is not None:
-            for name in ("uplink", "downlink"):
-                if name in splits:
-                    vt.splits[name].append((splits[name].value_ns, splits[name].uncertainty_ns))
-                    vt.hist.record(name, splits[name].value_ns)
+        if not vt.hist.record_record(rec):
+            return
+        if mapper is None:
+            if why and rec.t_rx_target_ns is not None and rec.t0p_ns is not None:
+                vt.excluded[why] = vt.excluded.get(why, 0) + 1
+            return
+        assert splits is not None
+        if "uplink" not in splits:
+            return
+        if causality_violations(rec, mapper):  # the mapping is wrong here: no honest split
+            vt.excluded["causality"] = vt.excluded.get("causality", 0) + 1
+            return
+        for name in ("uplink", "downlink"):
+            sp: Split = splits[name]
+            vt.splits[name].append(SplitRow(rec.frame_id, sp.value_ns, sp.uncertainty_ns))
+            if sp.value_ns >= 0:  # the streaming histograms hold only non-negative values
+                vt.hist.record(name, sp.value_ns)
 
     def _emit(self, vehicle: str, vt: _VehicleTiming, anomalies: list[Anomaly]) -> None:
         for a in anomalies:
@@ -145,32 +220,50 @@ class TimingObserver:
         p = self.v[vehicle].hist.percentiles_ms("end_to_end")
         return p.get(f"p{q:g}_ms") if p.get("count") else None  # type: ignore[return-value]
 
+    def splits(self, vehicle: str) -> dict[str, list[SplitRow]]:
+        """Every reported cross-clock split of ``vehicle``, in analysis order."""
+        return {name: list(rows) for name, rows in self.v[vehicle].splits.items()}
+
     def summary(self, vehicle: str) -> dict[str, Any]:
         vt = self.v[vehicle]
         st = vt.sync.state()
-        splits: dict[str, Any] = {}
-        for name, vals in vt.splits.items():
-            s = summarize_ns(v for v, _ in vals)
-            if vals:
-                s["uncertainty_p50_ms"] = round(float(sorted(u for _, u in vals)[len(vals) // 2]) / 1e6, 4)
-                s["uncertainty_max_ms"] = round(max(u for _, u in vals) / 1e6, 4)
-            splits[name] = s
+        splits: dict[str, Any] = {name: _split_summary(rows) for name, rows in vt.splits.items()}
         counts: dict[str, int] = {}
         for a in vt.anomalies:
             counts[a.kind.value.lower()] = counts.get(a.kind.value.lower(), 0) + 1
         return {
             "clock": {
                 "synced": st.synced, "offset_ns": st.offset_ns if st.samples_used else None,
+                "ref_ns": st.ref_ns if st.samples_used else None,
                 "skew_ppm": round(st.skew_ppm, 3), "skew_uncertainty_ppm": round(st.skew_uncertainty_ppm, 3),
                 "uncertainty_ns": st.uncertainty_ns if st.samples_used else None, "delay_ns": st.delay_ns,
                 "samples_used": st.samples_used, "events": dict(vt.sync_events),
                 "rejected": dict(getattr(vt.sync, "rejected", {})),
             },
             "splits_ms": splits,
+            "splits_excluded": {k: vt.excluded.get(k, 0) for k in SPLIT_EXCLUSIONS},
             "streaming_ms": vt.hist.summary_ms(),
             "anomalies": counts,
             "records_excluded": vt.detector.excluded,
         }
+
+
+SPLIT_EXCLUSIONS = ("clock_step", "unconfirmed_sync", "causality")
+
+
+def _split_summary(rows: list[SplitRow]) -> dict[str, Any]:
+    """Exact statistics of signed split values (ms), with the bound of the smallest
+    and largest, and how many came out negative (each within its bound)."""
+    s: dict[str, Any] = summarize_ns(r.value_ns for r in rows)
+    if rows:
+        unc = sorted(r.uncertainty_ns for r in rows)
+        lo, hi = min(rows, key=lambda r: r.value_ns), max(rows, key=lambda r: r.value_ns)
+        s["uncertainty_p50_ms"] = round(unc[len(unc) // 2] / 1e6, 4)
+        s["uncertainty_max_ms"] = round(unc[-1] / 1e6, 4)
+        s["min_uncertainty_ms"] = round(lo.uncertainty_ns / 1e6, 4)
+        s["max_uncertainty_ms"] = round(hi.uncertainty_ns / 1e6, 4)
+        s["negative"] = sum(1 for r in rows if r.value_ns < 0)
+    return s
 
 
 def _state_json(st: SyncState) -> dict[str, Any]:

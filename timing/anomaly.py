@@ -10,7 +10,11 @@ once per *episode*, on entering it, and re-armed only after recovery:
   deadline miss, and a late reply flagged out of order is not also a spike;
 * jitter (robust std of end-to-end over a window) — re-armed below
   ``jitter_rearm`` × limit;
-* frame-rate floor (``on_tick``) — re-armed at ``frame_rate_rearm`` × floor;
+* frame-rate floor (``on_tick``) — re-armed at ``frame_rate_rearm`` × floor. The
+  rate counts estimates by their own receipt time ``t0'`` over windows that are
+  complete: a window is judged only once every estimate in it can have been
+  handed over (``complete_until_ns``), so analysis that waits for a newer clock
+  sample never reads as a missing frame rate;
 * mapped-timestamp causality (bad sync) — re-armed by a consistent record.
 
 So a single injected spike is flagged exactly once and a clean run flags nothing.
@@ -21,6 +25,7 @@ timed out). Durations are integer ns in, milliseconds in the anomalies.
 
 from __future__ import annotations
 
+from bisect import bisect_right, insort
 from collections import deque
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -59,6 +64,10 @@ class Severity(str, Enum):
 SEVERITY: Mapping[AnomalyKind, Severity] = MappingProxyType({
     k: Severity.CRITICAL if k in (AnomalyKind.DEADLINE_MISS, AnomalyKind.FRAME_RATE_FLOOR)
     else Severity.WARNING for k in AnomalyKind})
+
+FRAME_RATE_STEP_NS = 100_000_000  # the frame-rate windows are judged every 100 ms
+MAX_JUDGED_WINDOWS = 100_000       # per on_tick call; older ones are skipped (bounded work)
+MAX_ARRIVALS = 1 << 16             # receipt times kept without a tick
 
 _SYNC_KINDS: Mapping[SyncEventKind, AnomalyKind] = MappingProxyType({
     SyncEventKind.CLOCK_STEP: AnomalyKind.CLOCK_STEP,
@@ -223,8 +232,9 @@ class AnomalyDetector:
         self._in_spike: dict[str, bool] = {}
         self._in_miss: dict[str, bool] = {}
         self._in_jitter = self._in_floor = self._in_causal = False
-        self._arrivals: deque[int] = deque()
+        self._arrivals: list[int] = []  # t0' of estimates not yet out of every window, sorted
         self._start_ns: int | None = None
+        self._next_judge_ns: int | None = None
         self._recent: dict[int, _Seen] = {}
         self._max_frame: int | None = None
 
@@ -243,6 +253,10 @@ class AnomalyDetector:
         anomaly and is left out of every baseline (counted in ``excluded``)."""
         ok, why = is_sane(rec, self.thresholds)
         at = rec.t0p_ns if rec.t0p_ns is not None else rec.t_tx_ns
+        if rec.t0p_ns is not None and rec.t0p_ns > 0:
+            insort(self._arrivals, rec.t0p_ns)  # it arrived, whatever its target stamps say
+            if len(self._arrivals) > MAX_ARRIVALS:  # never ticked: keep memory bounded
+                del self._arrivals[:MAX_ARRIVALS // 2]
         mk = _Where((rec.frame_id,), rec.sim_time_ns, at)
         if not ok:
             self.excluded += 1
@@ -283,28 +297,45 @@ class AnomalyDetector:
                                       detail=ev.detail))
         return out
 
-    def on_tick(self, now_ns: int, sim_time_ns: int | None = None) -> list[Anomaly]:
-        """Periodic check (harness time ns): estimate rate over the window below the
-        floor, flagged once per episode; judged only once a full window has passed
-        since the first record or tick."""
+    def on_tick(self, now_ns: int, sim_time_ns: int | None = None, *,
+                complete_until_ns: int | None = None) -> list[Anomaly]:
+        """Periodic check (harness time ns): the estimate rate below the floor,
+        flagged once per episode.
+
+        Windows of ``frame_rate_window_s`` are judged every ``FRAME_RATE_STEP_NS``
+        on a fixed grid, each counting the estimates whose ``t0'`` lies in it, and
+        only once the window is complete: it ends at or before
+        ``complete_until_ns`` (default ``now_ns``: the caller hands every estimate
+        over as it arrives), so every estimate in it has been seen. The first
+        window starts at the first record's ``t0`` or the first tick. An anomaly's
+        ``harness_time_ns`` is the end of the window that fell below the floor;
+        ``sim_time_ns`` is the caller's (when judged)."""
         t = self.thresholds
         if self._start_ns is None:
             self._start_ns = now_ns
         window_ns = int(t.frame_rate_window_s * 1e9)
-        while self._arrivals and self._arrivals[0] <= now_ns - window_ns:
-            self._arrivals.popleft()
-        if now_ns - self._start_ns < window_ns:
-            return []
-        rate = len(self._arrivals) / t.frame_rate_window_s
-        if self._in_floor:
-            self._in_floor = rate < t.frame_rate_floor_hz * t.frame_rate_rearm
-            return []
-        if rate >= t.frame_rate_floor_hz:
-            return []
-        self._in_floor = True
-        return [self._make(AnomalyKind.FRAME_RATE_FLOOR, _Where((), sim_time_ns, now_ns),
-                           measured=rate, threshold=t.frame_rate_floor_hz, unit="Hz",
-                           detail=f"{len(self._arrivals)} estimates in {t.frame_rate_window_s} s")]
+        if self._next_judge_ns is None:
+            self._next_judge_ns = self._start_ns + window_ns
+        end_ns = now_ns if complete_until_ns is None else min(complete_until_ns, now_ns)
+        if end_ns - self._next_judge_ns > MAX_JUDGED_WINDOWS * FRAME_RATE_STEP_NS:  # a huge jump
+            skip = (end_ns - self._next_judge_ns) // FRAME_RATE_STEP_NS - MAX_JUDGED_WINDOWS
+            self._next_judge_ns += skip * FRAME_RATE_STEP_NS
+        out: list[Anomaly] = []
+        while self._next_judge_ns <= end_ns:
+            e = self._next_judge_ns
+            self._next_judge_ns += FRAME_RATE_STEP_NS
+            n = bisect_right(self._arrivals, e) - bisect_right(self._arrivals, e - window_ns)
+            rate = n / t.frame_rate_window_s
+            if self._in_floor:
+                self._in_floor = rate < t.frame_rate_floor_hz * t.frame_rate_rearm
+            elif rate < t.frame_rate_floor_hz:
+                self._in_floor = True
+                out.append(self._make(AnomalyKind.FRAME_RATE_FLOOR, _Where((), sim_time_ns, e),
+                                      measured=rate, threshold=t.frame_rate_floor_hz, unit="Hz",
+                                      detail=f"{n} estimates received in the {t.frame_rate_window_s} s "
+                                             "before this instant"))
+        del self._arrivals[:bisect_right(self._arrivals, self._next_judge_ns - window_ns)]
+        return out
 
     # --- pieces -------------------------------------------------------------------
 
@@ -312,10 +343,6 @@ class AnomalyDetector:
         """Stale, duplicate and out-of-order estimates, each frame flagged once."""
         assert rec.t0p_ns is not None
         t0p, fid, out = rec.t0p_ns, rec.frame_id, []
-        window_ns = int(self.thresholds.frame_rate_window_s * 1e9)
-        self._arrivals.append(t0p)
-        while self._arrivals[0] < t0p - window_ns:
-            self._arrivals.popleft()
         newest = self._max_frame
         unit = "frames"
         if rec.status is FrameStatus.STALE:

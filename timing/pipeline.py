@@ -8,10 +8,13 @@ need the target clock mapped onto the harness clock:
 * ``uplink``   = map(t_rx) − t_tx
 * ``downlink`` = t0' − map(t_reply)
 
-each with the mapping's error bound. Both truths lie in ``[0, t0' − t_tx]``, so an
-estimate outside that range is clipped into it (this never increases the error) and
-the uncertainty is capped at the range. A mapped timestamp earlier than its cause by
-more than its uncertainty is a causality violation (``causality_violations``).
+each with its error bound. The value is the signed mapped difference, never
+clamped: a split of −0.05 ± 0.2 ms is reported as such (clamping it to 0 would
+hide the mapping error it shows and bias every statistic). Both truths lie in
+``[0, t0' − t_tx]``, so the bound is the farthest point of that range that lies
+within the mapping's own bound; it is never wider than the mapping's. A mapped
+timestamp earlier than its cause by more than its uncertainty is a causality
+violation (``causality_violations``) and its split keeps the mapping's bound.
 All values are integer nanoseconds.
 """
 
@@ -92,8 +95,18 @@ def split_stages(rec: PipelineRecord, sync: Mapper | None) -> dict[str, Split]:
     span = max(rec.t0p_ns - rec.t_tx_ns, 0)
     for name, raw, u in (("uplink", rx.value_ns - rec.t_tx_ns, rx.uncertainty_ns),
                          ("downlink", rec.t0p_ns - reply.value_ns, reply.uncertainty_ns)):
-        out[name] = Split(min(max(raw, 0), span), min(u, span))
+        out[name] = Split(raw, _bound(raw, u, span))
     return out
+
+
+def _bound(value_ns: int, uncertainty_ns: int, span_ns: int) -> int:
+    """Error bound (ns) of a signed split ``value_ns ± uncertainty_ns`` whose truth
+    also lies in ``[0, span_ns]``: the distance to the farthest point of both
+    ranges' intersection, or the mapping's bound if they do not meet."""
+    lo, hi = max(value_ns - uncertainty_ns, 0), min(value_ns + uncertainty_ns, span_ns)
+    if lo > hi:
+        return uncertainty_ns
+    return max(value_ns - lo, hi - value_ns)
 
 
 def causality_violations(rec: PipelineRecord, mapper: Mapper | None) -> list[Violation]:

@@ -280,6 +280,13 @@ class ClockSync:
         """The current model as a frozen, self-mapping snapshot."""
         return self._state
 
+    @property
+    def unconfirmed(self) -> int:
+        """Samples inconsistent with the model that wait for the next ones to tell a
+        wild sample from a clock step (0 when none): while any wait, the model may
+        not hold after the last accepted sample."""
+        return len(self._pending)
+
     def to_harness(self, t_target_ns: int) -> Mapped:
         """Map a target timestamp onto the harness clock. Raises NotSyncedError."""
         return self._state.to_harness(t_target_ns)

@@ -111,16 +111,32 @@ def test_sync_state_never_touches_sync_free_stages():
     assert causality_violations(rec, good) == []
 
 
-def test_splits_are_clipped_into_the_physical_range_never_negative():
-    rec = PipelineRecord("ego", 1, 0, 1_000 * MS, 1_000 * MS + 10 * US, FrameStatus.OK,
-                         5_000 * MS, 5_001 * MS, 5_002 * MS, 5_003 * MS, 1_004 * MS, 1_005 * MS)
-    off_by_10ms = SyncState(offset_ns=3_999 * MS - 10 * MS, ref_ns=1_000 * MS, uncertainty_ns=20 * MS,
-                            samples_used=3)
-    splits = split_stages(rec, off_by_10ms)
-    span = rec.t0p_ns - rec.t_tx_ns
-    for name in CROSS_CLOCK_STAGES:
-        assert 0 <= splits[name].value_ns <= span
-        assert splits[name].uncertainty_ns <= span
+def test_splits_are_signed_never_clamped_and_their_bound_holds_the_truth():
+    """Issue 12 defect 3: a downlink whose mapped value came out negative was shown
+    as exactly 0.000 ms though its truth was ≥ 0.19 ms. The signed value is kept; the
+    bound, tightened by the physical range [0, t0' − t_tx], still holds the truth."""
+    t_tx, t0p = 1_000 * MS, 1_004 * MS
+    true_rx, true_reply = t_tx + 300 * US, t0p - 190 * US  # uplink 0.30 ms, downlink 0.19 ms
+    offset = 4_000 * MS
+    rec = PipelineRecord("ego", 1, 0, t_tx - 10 * US, t_tx, FrameStatus.OK, true_rx + offset,
+                         true_rx + offset + 100 * US, true_reply + offset - 30 * US, true_reply + offset,
+                         t0p, t0p + 100 * US)
+    for error_ns, u_ns in ((400 * US, 500 * US), (-400 * US, 450 * US), (-400 * US, 500 * US), (0, 50 * US), (2 * MS, 2_100 * US)):
+        # the model's offset is off by error_ns (maps target stamps error_ns early)
+        state = SyncState(offset_ns=offset + error_ns, ref_ns=t_tx, uncertainty_ns=u_ns, samples_used=3)
+        splits = split_stages(rec, state)
+        for name, truth in (("uplink", 300 * US), ("downlink", 190 * US)):
+            sp = splits[name]
+            mapped = state.to_harness(rec.t_rx_target_ns if name == "uplink" else rec.t_reply_target_ns)
+            raw = mapped.value_ns - t_tx if name == "uplink" else t0p - mapped.value_ns
+            assert sp.value_ns == raw, (name, error_ns)  # signed, as mapped
+            assert abs(sp.value_ns - truth) <= sp.uncertainty_ns <= mapped.uncertainty_ns, (name, error_ns)
+    # an offset 0.4 ms too small maps the reply 0.4 ms late: the downlink is
+    # −0.21 ms ± 0.5, reported as that (not as 0), and no causality violation
+    late = SyncState(offset_ns=offset - 400 * US, ref_ns=t_tx, uncertainty_ns=500 * US, samples_used=3)
+    off = split_stages(rec, late)["downlink"]
+    assert -215 * US < off.value_ns < -205 * US and off.uncertainty_ns >= 400 * US
+    assert causality_violations(rec, late) == []
 
 
 @pytest.mark.parametrize("status", [FrameStatus.DROPPED, FrameStatus.PENDING])
