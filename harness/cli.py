@@ -1,8 +1,8 @@
 """The ``hil`` command line.
 
-Exit codes: 0 success; 1 the run ended early (target died, interrupted); 2 a user
-mistake (bad config, missing file, target that cannot start) with a one-line
-message and no traceback.
+Exit codes: 0 success; 1 the run ended early (target died, interrupted) or part of
+its outputs could not be written (a corner case); 2 a user mistake (bad config,
+missing file, target that cannot start) with a one-line message and no traceback.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from harness import __version__
-from timing.errors import HilError
+from timing.errors import ConfigError, HilError
 
 EXIT_OK, EXIT_EARLY, EXIT_USAGE = 0, 1, 2
 
@@ -49,11 +49,12 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("name", choices=sorted(TARGETS), help="which example target")
     t.add_argument("target_args", nargs=argparse.REMAINDER, help="options for the target")
     # Each command lives in its own module: add_parser(sub) and cmd(args).
-    from harness import compare, report, train
+    from harness import calibrate, compare, report, train
 
     report.add_parser(sub)
     compare.add_parser(sub)
     train.add_parser(sub)
+    calibrate.add_parser(sub)
     from harness.search import cli as search_cli
 
     search_cli.add_parser(sub)
@@ -70,7 +71,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         # Everything after the name belongs to the target (including --help).
         import importlib
 
-        return int(importlib.import_module(TARGETS[argv[1]]).main(argv[2:]) or 0)
+        return int(importlib.import_module(TARGETS[argv[1]]).main(argv[2:], prog=f"hil target {argv[1]}") or 0)
+    if argv[:1] == ["target"] and (len(argv) == 1 or argv[1] in ("-h", "--help")):
+        print(_target_help(), end="", file=sys.stdout if len(argv) > 1 else sys.stderr)
+        return EXIT_OK if len(argv) > 1 else EXIT_USAGE
     if argv and argv[0] == "search":
         # hil search SPEC ... / hil search merge|cases|report ...: parsed by harness.search.cli.
         from harness.search import cli as search_cli
@@ -90,7 +94,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return clock_cmd.cmd(args)
         if args.command == "scenarios":
             return _cmd_scenarios(args)
-        if args.command in ("report", "compare", "train"):
+        if args.command in ("report", "compare", "train", "calibrate"):
             import importlib
 
             return int(importlib.import_module(f"harness.{args.command}").cmd(args))
@@ -101,6 +105,56 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("hil: interrupted before the run started; nothing recorded", file=sys.stderr)
         return EXIT_EARLY
     return EXIT_USAGE  # pragma: no cover - argparse requires a command
+
+
+# One line per example target for ``hil target --help``.
+_TARGET_SUMMARIES = {
+    "cnn": "the paper's two-CNN AI in torch (detector + steering net, baseline fallback)",
+    "cv": "the classical OpenCV baseline (colour-blob detection, pinhole ranging, lane keeping)",
+    "echo": "a fixed answer after a set busy time: the transport and timing floor",
+}
+
+
+def _target_help() -> str:
+    from adapters.sdk import TRANSPORTS
+
+    names, transports = "|".join(sorted(TARGETS)), "|".join(TRANSPORTS)
+    lines = [f"usage: hil target {{{names}}} [--transport {transports}] [options of the target]", "",
+             "Serve an example AI target over a transport, e.g. on a remote host or device:",
+             "  hil target cv --transport zenoh --listen tcp/0.0.0.0:7447", "",
+             "targets:"]
+    lines += [f"  {name:<6} {_TARGET_SUMMARIES.get(name, '')}" for name in sorted(TARGETS)]
+    lines += ["", "Each target's own options: hil target NAME --help (e.g. hil target cv --help)."]
+    return "\n".join(lines) + "\n"
+
+
+def run_exit_code(summary: dict[str, object]) -> int:
+    """``hil run``'s exit code for a finished run: 1 when it ended early or a corner
+    case could not be written (``summary["corner_cases"]["errors"]``), else 0."""
+    cases = summary.get("corner_cases")
+    if summary.get("ended_by") != "duration":
+        return EXIT_EARLY
+    if isinstance(cases, dict) and cases.get("errors"):
+        return EXIT_EARLY
+    return EXIT_OK
+
+
+def realtime_warning(realtime: dict[str, object], *, sim_steps: int) -> str | None:
+    """What was not kept when a real-time run fell behind, and what to do; None when
+    it kept real time (or ran in lockstep)."""
+    if realtime.get("kept_realtime", True):
+        return None
+    achieved, requested = float(realtime["achieved_factor"]), float(realtime["requested_factor"])  # type: ignore[arg-type]
+    late, tol = int(realtime["late_steps"]), float(realtime.get("late_tolerance_ms", 10.0))  # type: ignore[call-overload, arg-type]
+    worst = float(realtime.get("max_lateness_ms", 0.0))  # type: ignore[arg-type]
+    if achieved < 0.95 * requested:
+        what = (f"the simulation ran at {achieved:.2f}x wall-clock speed where {requested:g}x was asked "
+                f"({late} of {sim_steps} physics steps more than {tol:g} ms late, worst {worst:.0f} ms)")
+    else:
+        what = (f"{late} of {sim_steps} physics steps ran more than {tol:g} ms late (worst {worst:.0f} ms), "
+                f"though the run as a whole kept pace ({achieved:.2f}x)")
+    return (f"real time was not kept: {what}; latencies were measured on a late simulation. Close other "
+            f"programs, lower camera.fps, the image size or the number of vehicles, or use mode: lockstep")
 
 
 def _cmd_scenarios(args: argparse.Namespace) -> int:
@@ -124,7 +178,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, overrides=args.overrides)
     import scenarios  # validate scenario and parameters before starting anything
 
-    scenarios.get(cfg.scenario.name).resolve(cfg.scenario.params)
+    try:
+        scenarios.get(cfg.scenario.name).resolve(cfg.scenario.params)
+    except ConfigError as err:
+        raise ConfigError(f"{err}{_scenario_switch_hint(args.overrides, str(err))}") from err
     out = prepare_out_dir(args.out or default_out_dir(cfg))
     console = make_console()
     backend = select_backend()
@@ -135,17 +192,29 @@ def _cmd_run(args: argparse.Namespace) -> int:
                          notify=console.print)
     s = result.summary
     console.print(final_table(s))
-    if not s["realtime"]["kept_realtime"]:
-        console.print(f"[yellow]warning: real time was not kept: achieved factor "
-                      f"{s['realtime']['achieved_factor']:.2f} of {s['realtime']['requested_factor']:g}, "
-                      f"{s['realtime']['late_steps']} late physics steps[/yellow]")
+    warning = realtime_warning(s["realtime"], sim_steps=round(s["sim_time_s"] / cfg.physics_step_s))
+    if warning is not None:
+        console.print(f"[yellow]warning: {warning}[/yellow]", markup=True, highlight=False)
     console.print(f"run.mcap:     {result.mcap_path}")
     console.print(f"summary.json: {result.summary_path}")
     console.print(f"report.html:  {result.out_dir / 'report.html'}")
     if s["ended_by"] != "duration":
         console.print(f"[red]run ended early: {s['ended_by']}[/red] (what was recorded is kept)")
-        return EXIT_EARLY
-    return EXIT_OK
+    errors = (s.get("corner_cases") or {}).get("errors") or []
+    if errors:
+        console.print(f"[red]{len(errors)} corner case(s) could not be written[/red] "
+                      f"(summary.json corner_cases.errors): {errors[0]}", highlight=False)
+    return run_exit_code(s)
+
+
+def _scenario_switch_hint(overrides: Sequence[str], message: str) -> str:
+    """A hint when ``--set scenario.name=X`` kept the config's parameters of another scenario."""
+    switched = [o.partition("=")[2].strip() for o in overrides if o.replace(" ", "").startswith("scenario.name=")]
+    if not switched or "unknown parameter" not in message:
+        return ""
+    name = switched[-1]
+    return (f" (the config's scenario.params belong to its own scenario: add --set 'scenario.params={{}}', "
+            f"or pick the scenario with its parameters: --set 'scenario={{name: {name}, params: {{}}}}')")
 
 
 if __name__ == "__main__":

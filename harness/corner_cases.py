@@ -177,8 +177,8 @@ class CaseRecorder:
                 try:
                     self._write_case(con, case, window)
                     self.cases_written += 1
-                except (OSError, ConfigError, sqlite3.Error) as err:
-                    self.errors.append(f"case {case.id}: {err}")
+                except Exception as err:  # noqa: BLE001 - any failure must reach the summary, not end the thread
+                    self.errors.append(f"case {case.id}: {type(err).__name__}: {err}")
         finally:
             con.close()
 

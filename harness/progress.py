@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+from rich import box
 from rich.console import Console
 from rich.live import Live
 from rich.table import Table
@@ -19,6 +20,15 @@ def make_console() -> Console:
     if not console.is_terminal:
         console.width = max(console.width, 120)
     return console
+
+
+def _table(title: str, headers: tuple[str, ...]) -> Table:
+    """A right-aligned table narrow enough for 80 columns: each header's words are
+    stacked (``e2e`` / ``p99`` / ``ms``) so no header is cut to ``e2e…``."""
+    t = Table(title=title, title_justify="left", box=box.SIMPLE_HEAD, padding=0, show_edge=False)
+    for col in headers:
+        t.add_column("\n".join(col.split()), justify="right", no_wrap=True)
+    return t
 
 
 def _ms(x: float | None) -> str:
@@ -52,9 +62,8 @@ class Progress:
         if self._live is None or now_ns - self._last_ns < self.refresh_ns:
             return
         self._last_ns = now_ns
-        t = Table(title=f"sim {sim_time_s:6.2f} / {duration_s:g} s", title_justify="left")
-        for col in ("vehicle", "frames", "fps", "e2e p50 ms", "e2e p99 ms", "dropped", "anomalies"):
-            t.add_column(col, justify="right")
+        t = _table(f"sim {sim_time_s:6.2f} / {duration_s:g} s",
+                   ("vehicle", "frames", "fps", "e2e p50 ms", "e2e p99 ms", "dropped", "anomalies"))
         for v in vehicles:
             t.add_row(v.name, str(v.next_frame_id), f"{v.fps_meter.rate_hz(now_ns):.1f}",
                       _ms(v.e2e_window.percentile_ms(50)), _ms(v.e2e_window.percentile_ms(99)),
@@ -66,10 +75,8 @@ def final_table(summary: dict[str, Any]) -> Table:
     rt = summary["realtime"]
     title = (f"{summary['name']}: {summary['sim_time_s']:.2f} s simulated in {summary['wall_time_s']:.2f} s "
              f"({rt['mode']}, real-time factor {rt['achieved_factor']:.2f}, late steps {rt['late_steps']})")
-    t = Table(title=title, title_justify="left")
-    for col in ("vehicle", "frames", "applied", "dropped", "fps", "e2e p50", "e2e p99", "e2e max",
-                "min gap m", "collisions"):
-        t.add_column(col, justify="right")
+    t = _table(title, ("vehicle", "frames", "applied", "dropped", "fps", "e2e p50 ms", "e2e p99 ms",
+                       "e2e max ms", "min gap m", "collisions"))
     for name, v in summary["vehicles"].items():
         e2e = v["latency_ms"]["end_to_end"]
         gap = v["outcome"]["min_gap_m"]

@@ -395,10 +395,10 @@ def _clip01(x: float) -> float:
     return 0.0 if x < 0 else 1.0 if x > 1 else x
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None, *, prog: str = "python -m targets.cv_baseline") -> int:
     """Serve the baseline through the target SDK; 2 when the transport is unusable
     (for example when started by hand rather than by the harness)."""
-    p = argparse.ArgumentParser(prog="python -m targets.cv_baseline",
+    p = argparse.ArgumentParser(prog=prog,
                                 description="A classical OpenCV driving AI served over the target SDK.")
     p.add_argument("--cruise-speed", type=float, default=10.0, help="speed to hold when the lane is clear (m/s)")
     p.add_argument("--name", default="cv-baseline", help="target name reported in HELLO")

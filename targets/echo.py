@@ -69,8 +69,8 @@ def _clock(a: argparse.Namespace) -> Clock:
     return MonotonicClock()
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m targets.echo", description=__doc__.splitlines()[0])
+def main(argv: Sequence[str] | None = None, *, prog: str = "python -m targets.echo") -> int:
+    p = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
     p.add_argument("--infer-ms", type=float, default=0.0, help="busy time per frame (ms)")
     p.add_argument("--throttle", type=float, default=0.0)
     p.add_argument("--brake", type=float, default=0.0)

@@ -241,10 +241,10 @@ def _iou(a: Sequence[float], b: Sequence[float]) -> float:
     return inter / union if union > 0 else 0.0
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None, *, prog: str = "python -m targets.cnn") -> int:
     """Serve the CNN target through the target SDK; 2 when the transport is unusable
     (started by hand rather than by the harness) or the weights are missing."""
-    p = argparse.ArgumentParser(prog="python -m targets.cnn",
+    p = argparse.ArgumentParser(prog=prog,
                                 description="The two-CNN driving AI served over the target SDK.")
     p.add_argument("--detector", choices=commands.MODELS, default="cnn", help="object detector to start with")
     p.add_argument("--steering", choices=commands.MODELS, default="cnn", help="steering model to start with")

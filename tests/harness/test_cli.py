@@ -112,3 +112,59 @@ def test_clock_shows_synced_targets():
     assert p.returncode == 0, p.stderr
     assert "ego0" in p.stdout and "synced" in p.stdout
     assert "+2500.0" in p.stdout.replace("\u202f", "")  # offset shown in ms: +2500.0xx ms
+
+
+# --- a newcomer's first hour (issue 14, items 14, 17, 18) ----------------------------
+
+
+def test_target_help_lists_the_targets():
+    p = hil("target", "--help")
+    assert p.returncode == 0, p.stderr
+    assert "usage: hil target {cnn|cv|echo}" in p.stdout and "hil target cv --transport zenoh" in p.stdout
+    bare = hil("target")
+    assert bare.returncode == 2 and "usage: hil target" in bare.stderr and "Traceback" not in bare.stderr
+
+
+@pytest.mark.parametrize("name", ["cv", "echo"])
+def test_target_name_help_names_the_hil_command(name):
+    p = hil("target", name, "--help")
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.startswith(f"usage: hil target {name} ") and "--transport" in p.stdout
+
+
+def test_switching_scenario_by_name_says_how_to_reset_its_params(tmp_path):
+    p = hil("run", "hil_configs/demo.yaml", "--set", "scenario.name=cut_in", "--out", str(tmp_path / "r"))
+    assert_one_line_error(p, "gap_m", "unknown parameter of scenario 'cut_in'", "--set 'scenario.params={}'")
+
+
+def test_final_table_fits_80_columns_without_cut_headers():
+    from rich.console import Console
+
+    from harness.progress import final_table
+
+    s = {"name": "demo", "sim_time_s": 15.0, "wall_time_s": 15.2,
+         "realtime": {"mode": "realtime", "achieved_factor": 1.0, "late_steps": 1900},
+         "vehicles": {"ego0": {"frames_sent": 300, "estimates_applied": 299, "dropped": 1, "frames_per_s": 19.9,
+                               "latency_ms": {"end_to_end": {"p50_ms": 12.3, "p99_ms": 40.1, "max_ms": 62.0}},
+                               "outcome": {"min_gap_m": 5.2, "collisions": 0}}}}
+    console = Console(width=80, record=True, force_terminal=False)
+    console.print(final_table(s))
+    text = console.export_text()
+    assert "…" not in text, text
+    for word in ("vehicle", "frames", "applied", "dropped", "fps", "e2e", "p50", "p99", "max", "gap", "collisions",
+                 "ego0", "300", "299", "19.9", "12.3", "40.1", "62.0", "5.20"):
+        assert word in text, (word, text)
+    assert max(len(line.rstrip()) for line in text.splitlines()) <= 80
+
+
+def test_realtime_warning_says_what_was_not_kept():
+    from harness.cli import realtime_warning
+
+    rt = {"mode": "realtime", "requested_factor": 1.0, "achieved_factor": 1.0, "late_steps": 1900,
+          "late_tolerance_ms": 10.0, "max_lateness_ms": 62.0, "kept_realtime": False}
+    text = realtime_warning(rt, sim_steps=7500)
+    assert text is not None and "factor 1.00 of 1" not in text
+    assert "1900 of 7500 physics steps ran more than 10 ms late (worst 62 ms)" in text and "lockstep" in text
+    slow = realtime_warning(dict(rt, achieved_factor=0.5), sim_steps=7500)
+    assert slow is not None and "0.50x wall-clock speed where 1x was asked" in slow
+    assert realtime_warning(dict(rt, kept_realtime=True), sim_steps=7500) is None

@@ -1,0 +1,33 @@
+"""A corner case that cannot be written is never lost silently: the error reaches
+``CaseRecorder.errors`` (then the summary), and ``hil run`` exits 1 (issue 14, item 8)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from harness.cli import EXIT_EARLY, EXIT_OK, run_exit_code
+from harness.corner_cases import CaseRecorder
+from harness.recorder import Recorder
+
+
+def test_an_unexpected_error_writing_a_case_is_reported(tmp_path: Path):
+    # A seed beyond SQLite's INTEGER (the config refuses it now; a hand-made meta
+    # still must not kill the writer thread and leave "written: 0, errors: []").
+    meta = {"name": "r", "scenario": "stopped_car", "seed": 2**70, "config_hash": "x"}
+    with Recorder(tmp_path / "run.mcap") as rec:
+        cases = CaseRecorder(rec, tmp_path, run_meta=meta, history_s=0.5, after_s=0.1, trigger_kinds=set())
+        cases.register_json_channel("/events", "event", {"type": "object"})
+        cases.write_json("/events", {"kind": "mismatch.state_mismatch", "vehicle": "ego0", "sim_time_ns": 1},
+                         log_time_ns=1_000_000_000, publish_time_ns=1)
+        cases.write_json("/events", {"kind": "note"}, log_time_ns=2_000_000_000, publish_time_ns=2)
+        cases.close()
+    assert cases.cases_written == 0
+    assert len(cases.errors) == 1 and "OverflowError" in cases.errors[0], cases.errors
+
+
+def test_case_errors_make_the_run_exit_1():
+    summary = {"ended_by": "duration", "corner_cases": {"written": 1, "errors": []}}
+    assert run_exit_code(summary) == EXIT_OK
+    summary["corner_cases"]["errors"] = ["case 2: OverflowError: Python int too large to convert to SQLite INTEGER"]
+    assert run_exit_code(summary) == EXIT_EARLY
+    assert run_exit_code({"ended_by": "stopped by SIGTERM"}) == EXIT_EARLY
