@@ -34,6 +34,8 @@ class DetectorSettings(BaseModel):
     min_visible_fraction: Float = Field(0.25, ge=0, le=1)
     min_frames: Int = Field(3, ge=1, le=1000)
     clear_frames: Int = Field(5, ge=1, le=1000)
+    near_miss_m: Float = Field(1.0, ge=0, le=100)        # late reaction: a gap under this is a near miss
+    avoid_decel_mps2: Float = Field(4.0, gt=0, le=20)    # late reaction: "could still stop" at this decel
 
     def to_config(self) -> DetectorConfig:
         return DetectorConfig(**self.model_dump(exclude={"enabled"}))

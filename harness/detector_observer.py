@@ -1,8 +1,12 @@
 """Runs the corner-case detector inside a run (a ``RunObserver`` with the truth hooks).
 
-Truth at ``t0`` comes from the camera tick of the frame (every entity's position in
-the camera-ground frame; "visible" from the segmentation boxes); truth at
-``t_apply`` from a snapshot taken when its control is applied. A mismatch is written
+Truth at ``t0`` comes from the ground truth of the frame's camera instant (every
+entity's position in the camera-ground frame; "visible" from the segmentation boxes;
+the ego's route truth); truth at ``t_apply`` from a snapshot taken when its control
+is applied, of that ego only and of the entities it had in range at ``t0``: the work
+per estimate does not grow with the number of vehicles (``truth_now`` is called with
+``egos=(vehicle,)`` where it takes that keyword). Ground truths are kept by sim time
+(bounded) so that a camera truth rendered late still meets its own instant. A mismatch is written
 to ``/events`` (kind ``mismatch.<kind>``) ``link_delay_s`` after it is found, once
 the timing analysis of its frames is done, with those frames' timing anomalies
 linked; the corner-case recorder picks it up from there.
@@ -11,6 +15,8 @@ linked; the corner-case recorder picks it up from there.
 from __future__ import annotations
 
 import math
+import inspect
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -19,12 +25,14 @@ from adapters.messages import DrivingState, Estimate
 from harness.config import CameraConfig
 from harness.detector import (CornerCaseDetector, DetectorConfig, FrameTruth, Mismatch, TruthObject,
                               link_anomalies, nearest_point_in_camera_frame)
+from harness.late_reaction import EgoView
 from harness.timing_observer import TimingObserver
 from scenarios.ground_truth import CameraTruth, EntityState, GroundTruth
 from timing.records import FrameStatus, PipelineRecord
 from timing.sync import SyncSample
 
 _KEEP_FRAMES = 200  # truth kept for frames in flight (bounded)
+_KEEP_TRUTHS = 64   # ground truths kept by sim time, for camera truths rendered late (bounded)
 
 
 @dataclass
@@ -44,22 +52,29 @@ class DetectorObserver:
         self.timing = timing
         self.delay_ns = int(link_delay_s * 1e9)
         self.v = {name: _VehicleJudge(CornerCaseDetector(name, cfg)) for name in vehicles}
-        self._gt: GroundTruth | None = None
+        self._gts: OrderedDict[int, GroundTruth] = OrderedDict()
+        self._takes_egos: dict[object, bool] = {}
+        self._last_ns = 0  # the latest harness time seen (ns)
         self._pending: list[tuple[int, Mismatch]] = []
         self.mismatches: list[Mismatch] = []
 
     # -- truth ------------------------------------------------------------------
 
-    def _frame_truth(self, vehicle: str, gt: GroundTruth, visible: set[str] | None) -> FrameTruth:
+    def _frame_truth(self, vehicle: str, gt: GroundTruth, visible: set[str] | None, *,
+                     only: set[str] | None = None) -> FrameTruth:
+        """``vehicle``'s view of ``gt``: every other entity (or those named in
+        ``only``) in its camera-ground frame, its reference state and route truth."""
         me = next((e for e in gt.entities if e.name == vehicle), None)
         ego = next((e for e in gt.egos if e.vehicle == vehicle), None)
         objs = []
         if me is not None:
             for e in gt.entities:
-                if e.name != vehicle:
+                if e.name != vehicle and (only is None or e.name in only):
                     objs.append(self._in_camera(me, e, visible is None or e.name in visible))
-        ref = DrivingState(int(ego.ref_state)) if ego is not None else DrivingState.SAFE
-        return FrameTruth(gt.sim_time_ns, tuple(objs), ref)
+        if ego is None:
+            return FrameTruth(gt.sim_time_ns, tuple(objs), DrivingState.SAFE)
+        view = EgoView(gt.sim_time_ns, ego.gap_m, ego.obstacle, ego.speed_mps, ego.obstacle_speed_mps)
+        return FrameTruth(gt.sim_time_ns, tuple(objs), DrivingState(int(ego.ref_state)), view)
 
     def _in_camera(self, me: EntityState, e: EntityState, visible: bool) -> TruthObject:
         x, y = nearest_point_in_camera_frame(
@@ -71,7 +86,15 @@ class DetectorObserver:
     # -- observer hooks ------------------------------------------------------------
 
     def on_truth(self, gt: GroundTruth, *, t_ns: int) -> None:
-        self._gt = gt
+        self._last_ns = max(self._last_ns, t_ns)
+        self._gts[gt.sim_time_ns] = gt
+        while len(self._gts) > _KEEP_TRUTHS:
+            self._gts.popitem(last=False)
+        for e in gt.egos:
+            vj = self.v.get(e.vehicle)
+            if vj is not None:
+                vj.detector.on_ego_truth(EgoView(gt.sim_time_ns, e.gap_m, e.obstacle, e.speed_mps,
+                                                 e.obstacle_speed_mps))
         for c in gt.collisions:
             for name in (c.a, c.b):
                 if name in self.v:
@@ -82,20 +105,39 @@ class DetectorObserver:
                         self._pending.append((t_ns + self.delay_ns, m))
 
     def on_camera_truth(self, vehicle: str, frame_id: int, truth: CameraTruth) -> None:
-        if self._gt is None or vehicle not in self.v:
+        vj = self.v.get(vehicle)
+        gt = self._gts.get(truth.sim_time_ns)
+        if gt is None:  # not its exact instant: the latest one before it
+            gt = next((g for t, g in reversed(self._gts.items()) if t <= truth.sim_time_ns), None)
+        if gt is None or vj is None:
             return
         c = self.cfg
         visible = {b.entity for b in truth.boxes
                    if b.visible_px >= c.min_visible_px and b.visible_fraction >= c.min_visible_fraction}
-        vj = self.v[vehicle]
-        vj.at_t0[frame_id] = self._frame_truth(vehicle, self._gt, visible)
+        vj.at_t0[frame_id] = self._frame_truth(vehicle, gt, visible)
         _trim(vj.at_t0, frame_id)
 
-    def on_apply(self, vehicle: str, frame_id: int, truth_now: Callable[[], GroundTruth]) -> None:
+    def on_apply(self, vehicle: str, frame_id: int, truth_now: Callable[..., GroundTruth]) -> None:
         vj = self.v.get(vehicle)
-        if vj is not None and frame_id in vj.at_t0:
-            vj.at_apply[frame_id] = self._frame_truth(vehicle, truth_now(), None)
-            _trim(vj.at_apply, frame_id)
+        t0 = vj.at_t0.get(frame_id) if vj is not None else None
+        if vj is None or t0 is None:
+            return
+        gt = truth_now(egos=(vehicle,)) if self._accepts_egos(truth_now) else truth_now()
+        # Only what the t0 judgement can compare: the entities it had in range.
+        near = {o.name for o in t0.objects if o.distance_m <= self.cfg.max_range_m * 1.5}
+        vj.at_apply[frame_id] = self._frame_truth(vehicle, gt, None, only=near)
+        _trim(vj.at_apply, frame_id)
+
+    def _accepts_egos(self, fn: Callable[..., GroundTruth]) -> bool:
+        key = getattr(fn, "__func__", fn)
+        known = self._takes_egos.get(key)
+        if known is None:
+            try:
+                known = "egos" in inspect.signature(fn).parameters
+            except (TypeError, ValueError):
+                known = False
+            self._takes_egos[key] = known
+        return known
 
     def on_record(self, vehicle: str, rec: PipelineRecord, estimate: Estimate | None) -> None:
         vj = self.v.get(vehicle)
@@ -107,7 +149,9 @@ class DetectorObserver:
             return  # truth for this frame was not taken (truth.visible_boxes off)
         ta = vj.at_apply.pop(rec.frame_id, None)
         now = rec.t_apply_ns or rec.t0p_ns or rec.t0_ns
-        for m in vj.detector.judge(estimate, at_t0=t0, at_apply=ta, harness_time_ns=now):
+        self._last_ns = max(self._last_ns, now)
+        lat = rec.t_apply_ns - rec.t0_ns if rec.t_apply_ns is not None else None
+        for m in vj.detector.judge(estimate, at_t0=t0, at_apply=ta, harness_time_ns=now, latency_ns=lat):
             self._pending.append((now + self.delay_ns, m))
 
     def on_sync(self, vehicle: str, sample: SyncSample) -> None:
@@ -118,6 +162,9 @@ class DetectorObserver:
             self._emit(lambda due: due <= now_ns)
 
     def finish(self) -> None:
+        for vj in self.v.values():
+            for m in vj.detector.finish(harness_time_ns=self._last_ns):
+                self._pending.append((self._last_ns, m))
         self._emit(lambda due: True)
 
     def _emit(self, ready: Callable[[int], bool]) -> None:
