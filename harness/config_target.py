@@ -99,6 +99,25 @@ class CanTargetConfig(BaseModel):
     camera_over: str = Field("isotp", pattern="^(isotp|none)$")
 
 
+class TcpMode(str, Enum):
+    CONNECT = "connect"  # the target listens; the harness dials it
+    LISTEN = "listen"  # the harness listens; the target dials in
+
+
+class TcpTargetConfig(BaseModel):
+    """TCP connection of the harness (adapters/tcp.py, PROTOCOL.md section 10.5).
+    ``address`` is host:port, ``{port}`` being ``base_port + vehicle_id``; loopback
+    unless given otherwise. ``kernel_stamps``: stamp receipt with the kernel's receive
+    time (SO_TIMESTAMPNS) rather than when the reader thread woke."""
+
+    model_config = MODEL_CONFIG
+
+    mode: TcpMode = TcpMode.CONNECT
+    address: str = Field("127.0.0.1:{port}", pattern=r"^(tcp/)?(\[[0-9A-Fa-f:.]+\]|[^:\s\[\]]+):(\{port\}|[0-9]{1,5})$")
+    base_port: Int = Field(7600, ge=1, le=65535)
+    kernel_stamps: bool = True
+
+
 def substitute(text: str, *, vehicle_id: int, base_port: int) -> str:
     """Fill ``{python}``, ``{vehicle_id}`` and ``{port}`` in one command word or endpoint."""
     return (text.replace("{python}", sys.executable).replace("{vehicle_id}", str(vehicle_id))

@@ -49,7 +49,7 @@ class TargetProcess:
 
 def target_command(cfg: RunConfig, *, vehicle_id: int = 0) -> list[str]:
     """The configured command with ``args`` appended and placeholders filled."""
-    port = cfg.target.zenoh.base_port
+    port = cfg.target.tcp.base_port if cfg.target.transport == Transport.TCP else cfg.target.zenoh.base_port
     return [substitute(w, vehicle_id=vehicle_id, base_port=port)
             for w in [*cfg.target.command, *cfg.target.args]]
 
@@ -89,6 +89,10 @@ def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, ou
         if t.transport == Transport.ZENOH:
             link = open_link("zenoh", vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
                              **_zenoh_options(cfg, vehicle_id))
+        elif t.transport == Transport.TCP:  # target.tcp: {mode: address}, as adapters.tcp.TcpLink takes it
+            tc = t.tcp
+            link = open_link("tcp", vehicle_id=vehicle_id, clock=clock, rx_queue=rx, kernel_stamps=tc.kernel_stamps,
+                             **{tc.mode.value: substitute(tc.address, vehicle_id=vehicle_id, base_port=tc.base_port)})
         elif t.transport == Transport.MIXED:  # frames over target.zenoh, the rest over target.can
             link = open_link("mixed", vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
                              **_zenoh_options(cfg, vehicle_id), **_can_options(cfg, vehicle_id))
