@@ -36,7 +36,7 @@ from pydantic_core import PydanticCustomError
 
 from adapters.protocol import FRAME_META_SIZE, MAX_PAYLOAD
 from harness.config_cases import CornerCaseSettings, DetectorSettings
-from harness.config_target import CanTargetConfig, ZenohTargetConfig
+from harness.config_target import CanTargetConfig, TcpTargetConfig, ZenohTargetConfig
 from harness.config_timing import TimingConfig
 from harness.config_types import MODEL_CONFIG, Float, Int
 from timing.errors import ConfigError
@@ -80,6 +80,7 @@ class Transport(str, Enum):
     ZENOH = "zenoh"
     CAN = "can"
     MIXED = "mixed"  # frames over zenoh (target.zenoh), everything else over CAN (target.can)
+    TCP = "tcp"  # one TCP connection (target.tcp)
 
 
 class ScenarioConfig(BaseModel):
@@ -137,6 +138,7 @@ class TargetConfig(BaseModel):
     args: list[str] = Field(default_factory=list)
     zenoh: ZenohTargetConfig = Field(default_factory=ZenohTargetConfig)
     can: CanTargetConfig = Field(default_factory=CanTargetConfig)
+    tcp: TcpTargetConfig = Field(default_factory=TcpTargetConfig)
     # Commands for the targets' control software at given sim times, e.g.
     # [{at_s: 5.0, command: "swap detector cv"}] (targets announcing CAP_COMMANDS).
     commands: list[TargetCommand] = Field(default_factory=list)
