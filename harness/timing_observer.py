@@ -22,8 +22,9 @@ to ``/events`` (``kind`` is the anomaly kind's lower-case name).
 
 from __future__ import annotations
 
+from bisect import bisect_right
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
 from adapters.messages import Estimate
@@ -39,6 +40,7 @@ from timing.sync import ClockSync, SyncEvent, SyncEventKind, SyncSample, SyncSta
 
 TICK_NS = 100_000_000
 HANDOFF_MARGIN_NS = 500_000_000  # an estimate is handed over well within this after t0'
+TICK_MEMORY = 600                # ticks remembered to date frame-rate anomalies (60 s)
 
 
 class SplitRow(NamedTuple):
@@ -91,6 +93,7 @@ class TimingObserver:
             name: _VehicleTiming(ClockSync(sync_cfg), AnomalyDetector(name, cfg.thresholds_for(name)))
             for name in vehicles}
         self._next_tick_ns = 0
+        self._ticks: deque[tuple[int, int]] = deque(maxlen=TICK_MEMORY)  # (harness ns, sim ns)
 
     # -- observer hooks -------------------------------------------------------
 
@@ -125,11 +128,18 @@ class TimingObserver:
         if now_ns < self._next_tick_ns:
             return
         self._next_tick_ns = now_ns + TICK_NS
+        self._ticks.append((now_ns, sim_time_ns))
         for name, vt in self.v.items():
             self._sync_events(name, vt, vt.sync.check(now_ns))
             self._flush(name, vt, now_ns=now_ns)
-            self._emit(name, vt, vt.detector.on_tick(now_ns, sim_time_ns,
-                                                     complete_until_ns=self._complete_until(vt, now_ns)))
+            found = vt.detector.on_tick(now_ns, sim_time_ns, complete_until_ns=self._complete_until(vt, now_ns))
+            self._emit(name, vt, [replace(a, sim_time_ns=self._sim_time_at(a.harness_time_ns)) for a in found])
+
+    def _sim_time_at(self, t_ns: int) -> int | None:
+        """Sim time (ns) at harness instant ``t_ns`` (a frame-rate window's end, up to
+        a few seconds back), from the ticks: the last tick at or before it."""
+        i = bisect_right(self._ticks, (t_ns, 2**63)) - 1
+        return self._ticks[i][1] if i >= 0 else None
 
     def _complete_until(self, vt: _VehicleTiming, now_ns: int) -> int:
         """Harness instant up to which every received estimate has been analysed:

@@ -123,7 +123,8 @@ class Thresholds:
             frame budget; robust, so one spike reads as a spike, not as jitter).
         jitter_rearm: the jitter episode ends below this fraction of the limit.
         frame_rate_floor_hz: estimates per second over ``frame_rate_window_s``
-            (default 10 Hz over 2 s, the paper's floor); re-armed at
+            (default 10 Hz over 2 s, the paper's floor), counted by receipt time
+            ``t0'`` over complete windows (see ``on_tick``); re-armed at
             ``frame_rate_rearm`` × floor.
         spike_k, spike_floor_ms, spike_window, spike_min_baseline, spike_stages: a
             spike is a value above median + max(k × 1.4826 × MAD, floor) of the last

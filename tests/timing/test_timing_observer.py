@@ -59,6 +59,11 @@ def test_real_rate_drop_trips_the_floor_once_per_episode(tmp_path, sc):
     ob, _ = observe(tmp_path, sc)
     (rate,) = floors(ob)
     assert rate < 10.0
+    (a,) = [a for a in ob.v["ego"].anomalies if a.kind is AnomalyKind.FRAME_RATE_FLOOR]
+    # dated at the end of the window that fell below the floor, sim time at that instant
+    assert a.sim_time_ns is not None and abs(a.sim_time_ns - (a.harness_time_ns - START_NS)) <= 100 * MS
+    if sc.seed == 7:  # within the stall's first 2.5 s: found as soon as the window is complete
+        assert 8_000 * MS < a.harness_time_ns - START_NS < 10_500 * MS
 
 
 def test_detector_judges_only_complete_windows_by_receipt_time():
