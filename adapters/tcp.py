@@ -90,7 +90,8 @@ class TcpStats:
     """Counters only this transport has (the shared ones are in ``LinkStats``)."""
 
     kernel_stamps: int = 0  # reads stamped with the kernel's receive time
-    fallback_stamps: int = 0  # reads without it, stamped when the reader woke
+    fallback_stamps: int = 0  # reads without it, stamped when the reader woke (the kernel turns
+    # stamping on a moment after the first socket asks, so a first read may lack it)
     wake_delay_max_ns: int = 0  # longest time from the kernel's receipt to the reader waking
     heartbeats_sent: int = 0
 

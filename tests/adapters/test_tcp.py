@@ -1,0 +1,146 @@
+"""The tcp transport beyond the conformance suite: addresses, either side listening,
+kernel receive stamps, heartbeats and failures to connect."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import pytest
+
+from adapters import protocol
+from adapters.messages import ClockId, Heartbeat, Hello
+from adapters.stream import StreamDecoder
+from adapters.tcp import RealtimeMapper, TcpLink, parse_address, recv_stamped, serve_endpoint
+from tests.adapters.pair_tcp import tcp_echo
+from tests.adapters.pair_zenoh import free_port
+from tests.adapters.test_conformance import next_estimate, send_frame
+from timing.clock import MonotonicClock, OffsetClock
+from timing.errors import TransportError
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("127.0.0.1:7600", ("127.0.0.1", 7600)), ("tcp/10.0.0.5:80", ("10.0.0.5", 80)),
+    ("[::1]:9000", ("::1", 9000)), ("localhost:1", ("localhost", 1)),
+])
+def test_addresses(text, expected):
+    assert parse_address(text) == expected
+
+
+@pytest.mark.parametrize("text", ["127.0.0.1", ":7600", "host:0", "host:65536", "host:port", ""])
+def test_bad_addresses_name_the_field(text):
+    with pytest.raises(TransportError, match=r"connect=.*expected host:port"):
+        parse_address(text, field="connect")
+
+
+def test_connect_or_listen_not_both():
+    with pytest.raises(TransportError, match="not both"):
+        TcpLink(vehicle_id=0, clock=MonotonicClock(), connect="127.0.0.1:1", listen="127.0.0.1:2")
+    with pytest.raises(TransportError, match="not both"):
+        serve_endpoint(None, listen="127.0.0.1:1", connect="127.0.0.1:2")  # type: ignore[arg-type]
+
+
+def test_no_target_is_a_transport_error_naming_the_address():
+    port = free_port()  # nothing listens there
+    link = TcpLink(vehicle_id=0, clock=MonotonicClock(), connect=f"127.0.0.1:{port}")
+    t = time.monotonic()
+    with pytest.raises(TransportError, match=rf"cannot connect to the target at 127.0.0.1:{port} within 0.5 s"):
+        link.open(hello_timeout_s=0.5)
+    assert time.monotonic() - t < 3
+    link.close()
+
+
+def test_harness_listens_and_the_target_dials_in(tmp_path):
+    address = f"127.0.0.1:{free_port()}"
+    link = TcpLink(vehicle_id=0, clock=MonotonicClock(), listen=address)
+    assert link.start_listening()[1] == int(address.split(":")[1])
+    with tcp_echo(tmp_path / "t.log", ["--throttle", "0.5"], connect=address):
+        try:
+            hello = link.open(hello_timeout_s=20)
+            assert hello.target_name == "echo"
+            send_frame(link, 3)
+            est, _ = next_estimate(link)
+            assert est.frame_id == 3 and est.control.throttle == 0.5
+            assert link.tcp_stats.kernel_stamps >= 1  # (a first read may precede stamping)
+        finally:
+            link.close()
+
+
+def test_kernel_stamp_is_the_arrival_not_the_late_read():
+    """Bytes that wait 50 ms in the socket before the read keep the kernel's arrival
+    time: t0' does not move with the reader's wake-up."""
+    clock = MonotonicClock()
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        a = socket.create_connection(server.getsockname()[:2])
+        b, _ = server.accept()
+        with a, b:
+            b.setsockopt(socket.SOL_SOCKET, 35, 1)  # SO_TIMESTAMPNS
+            buf = bytearray(1000)
+            for _ in range(1000):  # the kernel turns stamping on a moment later (deferred work)
+                a.sendall(b"w")
+                if recv_stamped(b, memoryview(buf))[1] is not None:
+                    break
+            t_send = clock.now_ns()
+            a.sendall(b"x" * 100)
+            time.sleep(0.05)  # the late reader under test, not a wait for an event
+            n, kernel_ns = recv_stamped(b, memoryview(buf))
+            t_read = clock.now_ns()
+    assert n == 100 and kernel_ns is not None
+    t_rx, _now = RealtimeMapper(clock).map(kernel_ns)
+    where = f"send->kernel {(t_rx - t_send) / 1e6:.3f} ms, kernel->read {(t_read - t_rx) / 1e6:.3f} ms"
+    assert t_send <= t_rx + 200_000, where  # the paired clock reads are good to well under 0.2 ms
+    assert t_rx - t_send < 20_000_000, where  # arrival, even with a preempted sender on a busy machine
+    assert t_read - t_rx >= 45_000_000, where  # ... not the read 50 ms later
+
+
+def test_mapping_follows_the_links_clock():
+    skewed = OffsetClock(MonotonicClock(), offset_ns=3_000_000_000, skew_ppm=0.0)
+    now, offset = RealtimeMapper(skewed).now_pair()
+    assert abs(now - (time.time_ns() + offset)) < 1_000_000  # realtime + offset is that clock
+
+
+def test_idle_harness_sends_heartbeats():
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        port = server.getsockname()[1]
+        got: list[object] = []
+        done = threading.Event()
+
+        def fake_target() -> None:  # a real peer: says HELLO, then reads what comes
+            conn, _ = server.accept()
+            with conn:
+                conn.sendall(protocol.encode(Hello("raw", protocol.VERSION, ClockId.MONOTONIC, 1)))
+                dec = StreamDecoder()
+                conn.settimeout(3.0)
+                while not any(isinstance(m, Heartbeat) for m in got):
+                    data = conn.recv(4096)
+                    if not data:
+                        break
+                    got.extend(dec.feed(data))
+            done.set()
+
+        t = threading.Thread(target=fake_target, daemon=True)
+        t.start()
+        link = TcpLink(vehicle_id=2, clock=MonotonicClock(), connect=f"127.0.0.1:{port}", heartbeat_idle_s=0.1)
+        t0 = time.monotonic()
+        link.open(hello_timeout_s=5)
+        assert done.wait(3.0)
+        link.close()
+    beats = [m for m in got if isinstance(m, Heartbeat)]
+    assert beats and beats[0].vehicle_id == 2 and time.monotonic() - t0 < 3.0
+    assert link.tcp_stats.heartbeats_sent >= 1
+
+
+def test_target_closing_marks_the_link_gone(tmp_path):
+    address = f"127.0.0.1:{free_port()}"
+    with tcp_echo(tmp_path / "t.log", ["--exit-after-frames", "0"], listen=address):
+        link = TcpLink(vehicle_id=0, clock=MonotonicClock(), connect=address)
+        link.open(hello_timeout_s=20)
+        send_frame(link, 0)  # the echo target dies on it
+        deadline = time.monotonic() + 1.0
+        while link.alive and time.monotonic() < deadline:
+            link.recv(timeout_s=0.02)
+        assert not link.alive and "closed" in (link.peer_gone_reason or "")
+        with pytest.raises(TransportError, match="gone"):
+            send_frame(link, 1)
+        link.close()
