@@ -1,4 +1,5 @@
-"""``hil cases RUN`` lists a run's corner cases; ``hil replay RUN CASE_ID`` re-runs
+"""``hil cases RUN`` lists a run's corner cases (``--window ID`` cuts a case's window
+out of run.mcap into ``corner_cases/case-NNNN.mcap``); ``hil replay RUN CASE_ID`` re-runs
 one in lockstep with the same scenario, seed and parameters and the run's recorded
 per-frame latencies, and says whether the mismatch comes back.
 
@@ -26,6 +27,9 @@ REPRODUCE_WINDOW_S = 1.0
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     c = sub.add_parser("cases", help="list a run's corner cases")
     c.add_argument("run", type=Path, help="a run folder")
+    c.add_argument("--window", type=int, action="append", default=None, metavar="ID",
+                   help="write case ID's window (its sim-time range of run.mcap, its vehicle's channels) to "
+                        "corner_cases/case-ID.mcap; repeatable")
     r = sub.add_parser("replay", help="re-run a corner case in lockstep and say whether it reproduces")
     r.add_argument("run", type=Path, help="a run folder")
     r.add_argument("case_id", type=int, help="the case id (see hil cases RUN)")
@@ -40,17 +44,32 @@ def _run_dir(path: Path) -> Path:
     return path
 
 
+def _window(r: dict) -> str:
+    """Where a case's data is: its own file, or run.mcap and the sim-time range."""
+    path = Path(str(r["mcap_path"])).name
+    lo, hi = r.get("window_start_ns"), r.get("window_end_ns")
+    if path == "run.mcap" and isinstance(lo, int) and isinstance(hi, int):
+        return f"run.mcap @ {lo / 1e9:.2f}-{hi / 1e9:.2f} s"
+    return path
+
+
 def cmd_cases(args: argparse.Namespace) -> int:
+    from harness.case_windows import write_case_windows
+
     run = _run_dir(args.run)
-    rows, bad = read_cases(run)
     console = make_console()
+    if args.window:
+        errors = write_case_windows(run, case_ids=sorted(set(args.window)), limit=len(set(args.window)))
+        for line in errors:
+            console.print(f"[yellow]warning: {line}[/yellow]")
+    rows, bad = read_cases(run)
     t = Table(title=f"{len(rows)} corner cases in {run}", title_justify="left")
     for col in ("id", "vehicle", "sim s", "kind", "cause", "severity", "summary", "window"):
         t.add_column(col, no_wrap=col in ("kind", "window"))
     for r in rows:
         t.add_row(str(r["id"]), r["vehicle"], f"{r['sim_time_ns'] / 1e9:.2f}" if r["sim_time_ns"] >= 0 else "-",
                   r["kind"].removeprefix("mismatch."), r.get("cause") or "-", r.get("severity") or "-",
-                  r["summary"], Path(r["mcap_path"]).name)
+                  r["summary"], _window(r))
     console.print(t)
     for line in bad:
         console.print(f"[yellow]warning: {line}[/yellow]")

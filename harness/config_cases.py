@@ -5,7 +5,8 @@
     detector: {pos_tol_m: 1.5, pos_tol_rel: 0.1, max_range_m: 50, min_frames: 3}
     corner_cases:
       history_s: 10          # kept before each trigger
-      after_s: 2             # and after it
+      after_s: 2             # and after it (sim time); triggers this close join one case
+      windows: 16            # case windows cut out of run.mcap after the run (the rest refer to it)
       on_anomalies: [deadline_miss, sync_lost, clock_step]   # besides every mismatch
 """
 
@@ -47,6 +48,7 @@ class CornerCaseSettings(BaseModel):
     enabled: bool = True
     history_s: Float = Field(10.0, gt=0, le=600)
     after_s: Float = Field(2.0, ge=0, le=600)
+    windows: Int = Field(16, ge=0, le=1000)
     on_anomalies: list[str] = Field(default_factory=lambda: ["deadline_miss", "sync_lost", "clock_step"])
 
     @field_validator("on_anomalies")

@@ -1,28 +1,38 @@
-"""Corner cases: the history that led to each one, kept and indexed.
+"""Corner cases: each one a reference into the run's own recording, indexed.
 
 ``CaseRecorder`` stands in front of the run's ``Recorder`` (same methods): every
-message goes to ``run.mcap`` and into a time-bounded history (the last
-``history_s`` of harness time, all vehicles). A message on ``/events`` whose kind
-is a trigger (every ``mismatch.*``, plus the timing-anomaly kinds named in config)
-opens a case: once ``after_s`` more has been recorded (or the run ends), the window
-``[trigger − history_s, trigger + after_s]`` is cut from the history and, after the
-run (or once ``MAX_WAITING_WINDOWS`` wait), written to ``corner_cases/case-NNNN.mcap``
-by a background thread, and a row goes to
-``corner_cases.sqlite`` (table ``cases``: run, scenario, seed, params, config hash,
-vehicle, sim time, kind, cause, severity, summary, window file), enough for
-``hil replay`` to re-run it. Triggers within ``after_s`` of an open case of the
-same vehicle and kind join it instead of opening another.
+message goes to ``run.mcap`` unchanged. During the run it only notes the triggers: a
+message on ``/events`` whose kind is a trigger (every ``mismatch.*``, plus the
+timing-anomaly kinds named in config) — a few fields each, at most ``max_triggers``
+of them (the rest counted in ``triggers_dropped`` and reported in ``errors``).
+Nothing else is kept: no history, no images; memory is bounded whatever the run
+length, and nothing is written to disk beside ``run.mcap`` until :meth:`close`.
+
+At :meth:`close` the triggers become cases, grouped in **sim time**: triggers of
+one vehicle, one kind and one cause (``perception``, ``latency``; none for timing
+anomalies) whose sim times are at most ``after_s`` apart form one case (one lasting
+mismatch, its escalations and its repeats are one case; a perception and a latency
+mismatch never share one). Cases are numbered by first sim time, then vehicle,
+kind and cause: the same run gives the same cases on any machine. A case's severity
+is the highest of its events; its event (the one shown and replayed) is the first
+at that severity. One row per case goes to ``corner_cases.sqlite`` (table
+``cases``: run, scenario, seed, params, config hash, vehicle, sim time, kind,
+cause, severity, summary, event, the number of events, and the window
+``[first − history_s, last + after_s]`` in sim time), enough for ``hil replay`` to
+re-run it. The window refers to ``run.mcap`` (``mcap_path``); after the run,
+:func:`harness.case_windows.write_case_windows` can cut it out into
+``corner_cases/case-NNNN.mcap`` (bounded in number).
+
+An event without a sim time (clock-sync anomalies) takes the sim time of the
+latest ``/ground_truth`` written before it.
 """
 
 from __future__ import annotations
 
 import json
-import queue
 import sqlite3
-import threading
-from collections import deque
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,8 +42,10 @@ from harness.recorder import Recorder, RecorderStats
 from timing.errors import ConfigError
 
 DB_NAME = "corner_cases.sqlite"
-MAX_WAITING_WINDOWS = 32
 FOLDER = "corner_cases"
+RUN_MCAP = "run.mcap"
+MAX_TRIGGERS = 4096  # triggers noted per run (a few hundred bytes each): bounded memory
+_RANK = {"info": 0, "warning": 1, "critical": 2}
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS cases (
@@ -41,81 +53,118 @@ CREATE TABLE IF NOT EXISTS cases (
     run TEXT NOT NULL, scenario TEXT NOT NULL, seed INTEGER NOT NULL, params TEXT NOT NULL,
     config_hash TEXT NOT NULL, vehicle TEXT NOT NULL, sim_time_ns INTEGER NOT NULL,
     harness_time_ns INTEGER NOT NULL, kind TEXT NOT NULL, cause TEXT, severity TEXT,
-    summary TEXT NOT NULL, event TEXT NOT NULL, mcap_path TEXT NOT NULL, messages INTEGER NOT NULL
+    summary TEXT NOT NULL, event TEXT NOT NULL, mcap_path TEXT NOT NULL, messages INTEGER NOT NULL,
+    events INTEGER NOT NULL DEFAULT 1, sim_end_ns INTEGER, window_start_ns INTEGER, window_end_ns INTEGER
 )
 """
 
 
-@dataclass
-class _Case:
-    id: int
+@dataclass(frozen=True)
+class Trigger:
+    """One event that opens or joins a case (times in ns)."""
+
     vehicle: str
     kind: str
-    event: dict[str, Any]
-    t_ns: int
-    due_ns: int
-    joined: int = 0
+    cause: str | None
+    sim_time_ns: int
+    harness_time_ns: int
+    severity: str | None
+    event: Mapping[str, Any]
 
 
 @dataclass
-class _Msg:
-    op: str  # "json" | "image" | "raw"
-    topic: str
-    log_ns: int
-    pub_ns: int
-    args: tuple[Any, ...]
-    kwargs: dict[str, Any] = field(default_factory=dict)
+class Case:
+    """Triggers of one vehicle, kind and cause, each within ``after_s`` sim time of
+    the previous one."""
+
+    id: int
+    triggers: list[Trigger]
+
+    @property
+    def first(self) -> Trigger:
+        return self.triggers[0]
+
+    @property
+    def main(self) -> Trigger:
+        """The first trigger at the case's highest severity."""
+        return max(self.triggers, key=lambda t: _RANK.get(str(t.severity), -1))
+
+    @property
+    def sim_end_ns(self) -> int:
+        return self.triggers[-1].sim_time_ns
+
+
+def group_cases(triggers: list[Trigger], *, join_ns: int) -> list[Case]:
+    """Cases from triggers, grouped and numbered in sim time (see the module
+    docstring); the result does not depend on the order of ``triggers``."""
+    by_key: dict[tuple[str, str, str], list[Trigger]] = {}
+    for t in triggers:
+        by_key.setdefault((t.vehicle, t.kind, t.cause or ""), []).append(t)
+    groups: list[list[Trigger]] = []
+    for ts in by_key.values():
+        # Sim time, then what does not depend on the machine (never harness time).
+        ts.sort(key=lambda t: (t.sim_time_ns, -_RANK.get(str(t.severity), -1), str(t.event.get("entity")),
+                               str(t.event.get("detail"))))
+        cur = [ts[0]]
+        for t in ts[1:]:
+            if t.sim_time_ns - cur[-1].sim_time_ns <= join_ns:
+                cur.append(t)
+            else:
+                groups.append(cur)
+                cur = [t]
+        groups.append(cur)
+    groups.sort(key=lambda g: (g[0].sim_time_ns, g[0].vehicle, g[0].kind, g[0].cause or ""))
+    return [Case(i, g) for i, g in enumerate(groups, 1)]
 
 
 class CaseRecorder:
-    """A ``Recorder`` stand-in that also keeps corner cases (see module docstring)."""
+    """A ``Recorder`` stand-in that also notes corner cases (see module docstring).
+
+    ``history_s``/``after_s``: the window kept before the first and after the last
+    trigger of a case, in sim time (s); ``after_s`` also joins triggers into a case.
+    """
 
     def __init__(self, rec: Recorder, run_dir: Path, *, run_meta: Mapping[str, Any], history_s: float,
-                 after_s: float, trigger_kinds: set[str]) -> None:
+                 after_s: float, trigger_kinds: set[str], max_triggers: int = MAX_TRIGGERS) -> None:
         self.rec = rec
         self.run_dir = run_dir
         self.meta = dict(run_meta)
         self.history_ns = int(history_s * 1e9)
         self.after_ns = int(after_s * 1e9)
         self.triggers = set(trigger_kinds)
-        self._history: deque[_Msg] = deque()
-        self._schemas: dict[str, tuple[str, Mapping[str, Any]]] = {}
-        self._open: list[_Case] = []
-        self._next_id = 1
-        self._jobs: queue.Queue[tuple[_Case, list[_Msg]] | None] = queue.Queue()
-        self._ready: list[tuple[_Case, list[_Msg]]] = []
-        self._writer: threading.Thread | None = None
+        self.max_triggers = max_triggers
+        self._noted: list[Trigger] = []
+        self._sim_ns = 0  # sim time of the latest /ground_truth written
+        self.triggers_dropped = 0
         self.cases_written = 0
         self.errors: list[str] = []
-        self._last_ns = 0
+        self.cases: list[Case] = []
+        self._closed = False
 
     # -- Recorder interface ------------------------------------------------------
 
     def register_json_channel(self, topic: str, schema_name: str, schema: Mapping[str, Any]) -> None:
         self.rec.register_json_channel(topic, schema_name, schema)
-        self._schemas[topic] = (schema_name, schema)
 
     def write_json(self, topic: str, obj: Mapping[str, Any], *, log_time_ns: int, publish_time_ns: int) -> bool:
         ok = self.rec.write_json(topic, obj, log_time_ns=log_time_ns, publish_time_ns=publish_time_ns)
-        self._keep(_Msg("json", topic, log_time_ns, publish_time_ns, (obj,)))
         if topic == "/events":
             self._maybe_trigger(obj, log_time_ns)
+        elif topic == "/ground_truth":
+            t = obj.get("sim_time_ns")
+            if isinstance(t, int):
+                self._sim_ns = max(self._sim_ns, t)
         return ok
 
     def write_image(self, topic: str, data: bytes, *, fmt: str, frame_id: str, log_time_ns: int,
                     publish_time_ns: int) -> bool:
-        ok = self.rec.write_image(topic, data, fmt=fmt, frame_id=frame_id, log_time_ns=log_time_ns,
-                                  publish_time_ns=publish_time_ns)
-        self._keep(_Msg("image", topic, log_time_ns, publish_time_ns, (data,), {"fmt": fmt, "frame_id": frame_id}))
-        return ok
+        return self.rec.write_image(topic, data, fmt=fmt, frame_id=frame_id, log_time_ns=log_time_ns,
+                                    publish_time_ns=publish_time_ns)
 
     def write_raw_image(self, topic: str, pixels: np.ndarray, *, encoding: str, frame_id: str, log_time_ns: int,
                         publish_time_ns: int) -> bool:
-        ok = self.rec.write_raw_image(topic, pixels, encoding=encoding, frame_id=frame_id,
-                                      log_time_ns=log_time_ns, publish_time_ns=publish_time_ns)
-        self._keep(_Msg("raw", topic, log_time_ns, publish_time_ns, (pixels.copy(),),
-                        {"encoding": encoding, "frame_id": frame_id}))
-        return ok
+        return self.rec.write_raw_image(topic, pixels, encoding=encoding, frame_id=frame_id,
+                                        log_time_ns=log_time_ns, publish_time_ns=publish_time_ns)
 
     def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
         self.rec.add_metadata(name, data)
@@ -129,100 +178,65 @@ class CaseRecorder:
 
     # -- cases -------------------------------------------------------------------
 
-    def _keep(self, m: _Msg) -> None:
-        self._history.append(m)
-        self._last_ns = max(self._last_ns, m.log_ns)
-        horizon = self._last_ns - self.history_ns - self.after_ns
-        while self._history and self._history[0].log_ns < horizon:
-            self._history.popleft()
-        while self._open and self._open[0].due_ns <= self._last_ns:
-            self._dispatch(self._open.pop(0))
-
     def _maybe_trigger(self, ev: Mapping[str, Any], t_ns: int) -> None:
         kind = str(ev.get("kind", ""))
         if not (kind.startswith("mismatch.") or kind in self.triggers):
             return
-        vehicle = str(ev.get("vehicle", ""))
-        for c in self._open:
-            if c.vehicle == vehicle and c.kind == kind:
-                c.joined += 1
-                return
-        self._open.append(_Case(self._next_id, vehicle, kind, dict(ev), t_ns, t_ns + self.after_ns))
-        self._next_id += 1
+        if len(self._noted) >= self.max_triggers:
+            self.triggers_dropped += 1
+            return
+        sim = ev.get("sim_time_ns")
+        cause = ev.get("cause")
+        sev = ev.get("severity")
+        self._noted.append(Trigger(str(ev.get("vehicle", "")), kind, cause if isinstance(cause, str) else None,
+                                   sim if isinstance(sim, int) else self._sim_ns, t_ns,
+                                   sev if isinstance(sev, str) else None, dict(ev)))
 
-    def _dispatch(self, case: _Case) -> None:
-        lo, hi = case.t_ns - self.history_ns, case.t_ns + self.after_ns
-        self._ready.append((case, [m for m in self._history if lo <= m.log_ns <= hi]))
-        # Writing a window (JSON, base64, zstd) in a thread competes with the sim loop
-        # for the GIL (a 66 ms stall measured), so windows wait for the end of the run,
-        # unless so many wait that memory matters.
-        if len(self._ready) >= MAX_WAITING_WINDOWS:
-            self._start_writing()
-
-    def _start_writing(self) -> None:
-        if self._writer is None:
-            (self.run_dir / FOLDER).mkdir(exist_ok=True)
-            self._writer = threading.Thread(target=self._write_loop, name="corner-cases", daemon=True)
-            self._writer.start()
-        for job in self._ready:
-            self._jobs.put(job)
-        self._ready.clear()
-
-    def _write_loop(self) -> None:
-        con = sqlite3.connect(self.run_dir / DB_NAME)
+    def close(self) -> None:
+        """Group the triggers into cases and write their rows (idempotent). A case
+        that cannot be written is an entry in ``errors``, never raised."""
+        if self._closed:
+            return
+        self._closed = True
+        if self.triggers_dropped:
+            self.errors.append(f"{self.triggers_dropped} corner-case triggers beyond the first "
+                               f"{self.max_triggers} were not noted")
+        self.cases = group_cases(self._noted, join_ns=self.after_ns)
+        self._noted = []
+        if not self.cases:
+            return
+        try:
+            con = sqlite3.connect(self.run_dir / DB_NAME)
+        except sqlite3.Error as err:
+            self.errors.append(f"{self.run_dir / DB_NAME}: {err}")
+            return
         try:
             con.execute(SCHEMA)
-            while (job := self._jobs.get()) is not None:
-                case, window = job
+            for case in self.cases:
                 try:
-                    self._write_case(con, case, window)
+                    self._write_row(con, case)
+                    con.commit()
                     self.cases_written += 1
-                except Exception as err:  # noqa: BLE001 - any failure must reach the summary, not end the thread
+                except Exception as err:  # noqa: BLE001 - any failure must reach the summary
                     self.errors.append(f"case {case.id}: {type(err).__name__}: {err}")
         finally:
             con.close()
 
-    def _write_case(self, con: sqlite3.Connection, case: _Case, window: list[_Msg]) -> None:
-        rel = f"{FOLDER}/case-{case.id:04d}.mcap"
-        ev = case.event
-        summary = str(ev.get("detail") or ev.get("kind"))
-        if case.joined:
-            summary += f" (+{case.joined} more within {self.after_ns / 1e9:g} s)"
-        with Recorder(self.run_dir / rel, queue_size=len(window) + 16, compression="zstd", metadata={
-            "case": {"id": str(case.id), "kind": case.kind, "vehicle": case.vehicle, "event": json.dumps(ev)},
-            "run": {k: v if isinstance(v, str) else json.dumps(v) for k, v in self.meta.items()},
-        }) as out:
-            for topic, (name, schema) in self._schemas.items():
-                out.register_json_channel(topic, name, schema)
-            for m in window:
-                kw = dict(m.kwargs, log_time_ns=m.log_ns, publish_time_ns=m.pub_ns)
-                if m.op == "json":
-                    out.write_json(m.topic, *m.args, **kw)
-                elif m.op == "image":
-                    out.write_image(m.topic, *m.args, **kw)
-                else:
-                    out.write_raw_image(m.topic, *m.args, **kw)
-        sim_ns = ev.get("sim_time_ns")
+    def _write_row(self, con: sqlite3.Connection, case: Case) -> None:
+        first, main = case.first, case.main
+        n = len(case.triggers)
+        summary = str(main.event.get("detail") or main.kind)
+        if n > 1:
+            summary += f" ({n} events over {(case.sim_end_ns - first.sim_time_ns) / 1e9:.2f} s of sim time)"
         con.execute(
             "INSERT INTO cases (id, run, scenario, seed, params, config_hash, vehicle, sim_time_ns, harness_time_ns,"
-            " kind, cause, severity, summary, event, mcap_path, messages) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+            " kind, cause, severity, summary, event, mcap_path, messages, events, sim_end_ns, window_start_ns,"
+            " window_end_ns) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
             (case.id, str(self.meta.get("name")), str(self.meta.get("scenario")), int(self.meta.get("seed", 0)),
              json.dumps(self.meta.get("scenario_params", {}), sort_keys=True), str(self.meta.get("config_hash")),
-             case.vehicle, int(sim_ns) if isinstance(sim_ns, int) else -1, case.t_ns, case.kind,
-             ev.get("cause"), ev.get("severity"), summary, json.dumps(ev, default=str), rel, len(window)))
-        con.commit()
-
-    def close(self) -> None:
-        """Write every open case with what was recorded, then finish the index."""
-        for c in self._open:
-            self._dispatch(c)
-        self._open.clear()
-        if self._ready:
-            self._start_writing()
-        if self._writer is not None:
-            self._jobs.put(None)
-            self._writer.join()
-            self._writer = None
+             first.vehicle, first.sim_time_ns, first.harness_time_ns, first.kind, first.cause, main.severity,
+             summary, json.dumps(main.event, default=str), RUN_MCAP, 0, n, case.sim_end_ns,
+             max(0, first.sim_time_ns - self.history_ns), case.sim_end_ns + self.after_ns))
 
 
 def query_cases(db: Path) -> list[dict[str, Any]]:
