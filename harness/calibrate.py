@@ -24,8 +24,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from harness.calibrate_checks import (Check, FaultCheck, RunData, clock_checks, duration_checks, fault_checks,
-                                      load_truth, overhead)
+from harness.calibrate_checks import (Cause, Check, FaultCheck, Other, RunData, clock_checks, duration_checks,
+                                      fault_checks, load_truth, overhead)
 from harness.config import RunConfig, Transport, dump_config, load_config, parse_config
 from timing.errors import ConfigError
 
@@ -41,11 +41,15 @@ class Calibration:
     transport: str
     checks: list[Check] = field(default_factory=list)
     faults: list[FaultCheck] = field(default_factory=list)
-    notes: list[str] = field(default_factory=list)
-    others_explained: bool = True
+    others: list[Other] = field(default_factory=list)
     overhead: dict[str, Any] = field(default_factory=dict)
     run_ok: bool = True
     run_note: str = ""
+
+    @property
+    def others_explained(self) -> bool:
+        """No anomaly that the truth does not show (no false alarm, nothing flagged twice)."""
+        return all(o.cause is not Cause.FALSE for o in self.others)
 
     @property
     def passed(self) -> bool:
@@ -55,7 +59,8 @@ class Calibration:
     def to_json(self) -> dict[str, Any]:
         return {"passed": self.passed, "transport": self.transport, "run_ok": self.run_ok,
                 "run_note": self.run_note, "checks": [asdict(c) for c in self.checks],
-                "faults": [asdict(f) for f in self.faults], "other_anomalies": self.notes,
+                "faults": [asdict(f) for f in self.faults],
+                "other_anomalies": [{**asdict(o), "cause": o.cause.value} for o in self.others],
                 "others_explained": self.others_explained, "overhead": self.overhead}
 
 
@@ -127,7 +132,7 @@ def evaluate(out_dir: Path, *, transport: str, vehicle: str = "ego0") -> Calibra
     if summary.get("ended_by") != "duration":
         cal.run_ok, cal.run_note = False, f"the run ended early: {summary.get('ended_by')}"
     cal.checks = clock_checks(truth, run) + duration_checks(truth, run)
-    cal.faults, cal.notes, cal.others_explained = fault_checks(truth, run)
+    cal.faults, cal.others = fault_checks(truth, run)
     cal.overhead = overhead(truth, run, clock_sync_samples=n_sync, wall_s=float(summary.get("wall_time_s", 0.0)))
     return cal
 
@@ -168,9 +173,9 @@ def render(cal: Calibration) -> str:
         at = "" if f.frame_id is None else f" at frame {f.frame_id}"
         lines.append(f"  {f.fault + at:<34} {', '.join(f.flagged_by) or 'not flagged':<40} "
                      f"{'ok' if f.ok else 'FAIL'}" + (f"  ({f.note})" if f.note else ""))
-    if cal.notes:
-        lines.append("anomalies not injected:")
-        lines += [f"  {n}" for n in cal.notes]
+    if cal.others:
+        lines.append("anomalies not injected (judged against the truth):")
+        lines += [f"  {o}" for o in cal.others]
     o = cal.overhead
     if o:
         def q(d: dict[str, Any]) -> str:

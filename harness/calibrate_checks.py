@@ -21,15 +21,18 @@ import json
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from enum import Enum
 from typing import Any
 
 import numpy as np
 
+from timing.anomaly import AnomalyKind
 from timing.errors import ConfigError
 
 RESOLUTION_NS = 1  # the reference clock's resolution
 ROUNDING_MS = 1e-4  # summary.json rounds milliseconds to 4 decimals
 QUANTILES = (("min", 0.0), ("p50", 50.0), ("p90", 90.0), ("p99", 99.0), ("max", 100.0))
+TIMING_KINDS = frozenset(k.value for k in AnomalyKind)
 # An anomaly kind a fault of each sort may be flagged as (either, exactly once).
 FAULT_KINDS: Mapping[str, tuple[str, ...]] = {
     "spike": ("latency_spike", "deadline_miss"), "drop": ("dropped_frame",),
@@ -164,6 +167,31 @@ def per_frame_check(name: str, errors_ns: Sequence[int], bounds_ns: Sequence[int
                  bad == 0, "ms", f"worst frame; {note}")
 
 
+class Cause(str, Enum):
+    """Where the truth puts an anomaly that was not injected."""
+
+    TARGET = "target"    # the target really was late or skipped a frame
+    LINK = "link"        # the frame or reply really took long on the way
+    HARNESS = "harness"  # the harness's own delay (render to send, receipt stamping)
+    UNKNOWN = "unknown"  # real, over many frames (jitter)
+    FALSE = "false"      # the truth shows nothing there: a false alarm
+
+
+@dataclass(frozen=True)
+class Other:
+    """An anomaly that was not injected, judged against the truth."""
+
+    label: str
+    kind: str
+    frame_ids: tuple[int, ...]
+    cause: Cause
+    text: str
+
+    def __str__(self) -> str:
+        verdict = "FALSE ALARM" if self.cause is Cause.FALSE else f"real ({self.cause.value})"
+        return f"{self.label}: {verdict}: {self.text}"
+
+
 @dataclass
 class RunData:
     """What the harness reported for one vehicle: its summary and MCAP topics."""
@@ -296,15 +324,20 @@ def _frames_of(ev: Mapping[str, Any]) -> set[int]:
     return ids
 
 
+def _is_protocol(ev: Mapping[str, Any]) -> bool:
+    kind = str(ev.get("kind", ""))
+    return "protocol" in kind or "malformed" in kind
+
+
 def _label(ev: Mapping[str, Any]) -> str:
     fr = sorted(_frames_of(ev))
     return f"{ev['kind']}@{','.join(map(str, fr))}" if fr else str(ev["kind"])
 
 
-def fault_checks(truth: Truth, run: RunData) -> tuple[list[FaultCheck], list[str], bool]:
-    """Each injected fault flagged exactly once; each other timing anomaly judged
-    against the truth. Returns (fault rows, notes on the others, others all explained)."""
-    events = [e for e in run.events if not str(e.get("kind", "")).startswith("mismatch")]
+def fault_checks(truth: Truth, run: RunData) -> tuple[list[FaultCheck], list[Other]]:
+    """Each injected fault flagged exactly once; each other timing anomaly or protocol
+    error judged against the truth. Returns (fault rows, the other anomalies)."""
+    events = [e for e in run.events if e.get("kind") in TIMING_KINDS or _is_protocol(e)]
     used: set[int] = set()
     rows: list[FaultCheck] = []
 
@@ -329,7 +362,7 @@ def fault_checks(truth: Truth, run: RunData) -> tuple[list[FaultCheck], list[str
             rows[-1] = FaultCheck(rows[-1].fault, rows[-1].frame_id, rows[-1].flagged_by, rows[-1].ok,
                                   (rows[-1].note + " " if rows[-1].note else "")
                                   + f"measured {step['measured']:+.3f} ms, injected {truth.step_ns / 1e6:+.3f} ms")
-    proto = [i for i, e in enumerate(events) if "protocol" in str(e["kind"]) or "malformed" in str(e["kind"])]
+    proto = [i for i, e in enumerate(events) if _is_protocol(e)]
     counted = int((run.summary.get("link") or {}).get("protocol_errors", 0))
     for j, m in enumerate(truth.malformed):
         hit = [proto[j]] if j < len(proto) else []
@@ -341,8 +374,7 @@ def fault_checks(truth: Truth, run: RunData) -> tuple[list[FaultCheck], list[str
         used.update(proto)
         rows.append(FaultCheck("malformed", None, tuple(_label(events[i]) for i in proto), False,
                                f"{len(proto)} protocol-error events for {len(truth.malformed)} malformed messages"))
-    notes, explained = _others(truth, run, [e for i, e in enumerate(events) if i not in used])
-    return rows, notes, explained
+    return rows, _others(truth, run, [e for i, e in enumerate(events) if i not in used])
 
 
 def _true_stage_ns(stage: str, tl: Mapping[str, Any], rec: Mapping[str, Any]) -> int | None:
@@ -361,69 +393,69 @@ def _true_stage_ns(stage: str, tl: Mapping[str, Any], rec: Mapping[str, Any]) ->
 
 
 def _latency_truth(e: Mapping[str, Any], tl: Mapping[str, Any], rec: Mapping[str, Any],
-                   nominal_ns: int) -> tuple[str, bool]:
-    """Whether a spike or deadline miss that was not injected really happened: the
-    stage's true value at or above the limit the detector applied, and where the
-    time went (capture → send, uplink, target beyond its inference, receipt lag)."""
+                   nominal_ns: int) -> tuple[str, Cause]:
+    """Whether a spike or deadline miss that was not injected really happened (the
+    stage's true value at or above the limit the detector applied) and where most of
+    the time went: capture → send or receipt lag (the harness), uplink (the link),
+    target beyond its inference (the target)."""
     stage = str(e.get("stage") or "end_to_end")
     true = _true_stage_ns(stage, tl, rec)
     limit = e.get("threshold")
     if true is None or limit is None:
-        return "FALSE ALARM? the truth has no value for this frame", False
+        return "the truth has no value for this frame", Cause.FALSE
     parts = {"capture→send": rec["t_tx_ns"] - rec["t0_ns"], "uplink": tl["rx_mono_ns"] - rec["t_tx_ns"],
              "target beyond its inference": tl["send_mono_ns"] - tl["rx_mono_ns"] - nominal_ns,
              "receipt lag": rec["t0p_ns"] - tl["send_mono_ns"]}
     top = max(parts, key=lambda k: parts[k])
     where = ", ".join(f"{k} {v / 1e6:.1f}" for k, v in parts.items())
     if true / 1e6 >= float(limit) - 1e-3:
-        return f"real, not injected: true {stage} {true / 1e6:.3f} ms ≥ limit {float(limit):.3f} ms; {where} ms; " \
-               f"most in {top}", True
-    return f"FALSE ALARM: true {stage} {true / 1e6:.3f} ms < limit {float(limit):.3f} ms; {where} ms", False
+        cause = {"uplink": Cause.LINK, "target beyond its inference": Cause.TARGET}.get(top, Cause.HARNESS)
+        return f"true {stage} {true / 1e6:.3f} ms ≥ limit {float(limit):.3f} ms; {where} ms; most in {top}", cause
+    return f"true {stage} {true / 1e6:.3f} ms < limit {float(limit):.3f} ms; {where} ms", Cause.FALSE
 
 
-def _others(truth: Truth, run: RunData, events: list[dict[str, Any]]) -> tuple[list[str], bool]:
-    """Anomalies that were not injected: real (the truth shows it) or false alarms."""
-    notes, ok = [], True
+def _dropped_truth(fid: int, truth: Truth, recs: Mapping[int, Mapping[str, Any]]) -> tuple[str, Cause]:
+    tl = truth.frames.get(fid)
+    if fid in truth.skipped:
+        return "the target skipped it (a newer frame came during inference)", Cause.TARGET
+    if tl is None:
+        return "the target never received it", Cause.LINK
+    if tl.get("send_mono_ns") is None:
+        return "never answered", Cause.TARGET
+    if fid in recs and recs[fid].get("t0p_ns") is None:
+        return "answered, but not received within the timeout", Cause.HARNESS
+    return "the truth shows it answered in time", Cause.FALSE
+
+
+def _rate_truth(e: Mapping[str, Any], truth: Truth) -> tuple[str, Cause]:
+    end, hz = int(e["harness_time_ns"]), float(e.get("threshold") or 0.0)
+    window_s = 2.0  # the detector's default window
+    sent = sum(1 for tl in truth.frames.values()
+               if tl.get("send_mono_ns") is not None and end - window_s * 1e9 < tl["send_mono_ns"] <= end)
+    text = f"the target sent {sent} estimates in the {window_s:g} s before (floor {hz:g}/s)"
+    return text, Cause.TARGET if sent < hz * window_s else Cause.FALSE
+
+
+def _others(truth: Truth, run: RunData, events: list[dict[str, Any]]) -> list[Other]:
+    """Anomalies that were not injected: real (the truth shows it, and where the time
+    went) or false alarms (the truth shows nothing there, or flagged twice)."""
+    out: list[Other] = []
     recs = {int(r["frame_id"]): r for r in run.pipeline}
     nominal = int(truth.faults.get("infer_ns", 0))
     seen: set[tuple[str, tuple[int, ...]]] = set()
     for e in events:
         kind, fids = e["kind"], sorted(_frames_of(e))
-        why = None
+        text, cause = "the truth shows nothing here", Cause.FALSE
         if fids and (kind, tuple(fids)) in seen:
-            ok = False
-            notes.append(f"{_label(e)}: FLAGGED AGAIN (one event per frame and kind)")
-            continue
-        seen.add((kind, tuple(fids)))
-        if kind == "dropped_frame" and fids:
-            fid = fids[0]
-            tl = truth.frames.get(fid)
-            if fid in truth.skipped:
-                why = "real: the target skipped it (a newer frame came during inference)"
-            elif tl is None:
-                why = "real: the target never received it"
-            elif tl.get("send_mono_ns") is None:
-                why = "real: never answered"
-            elif fid in recs and recs[fid].get("t0p_ns") is None:
-                why = "real: answered after the timeout"
+            text = "flagged again (one event per frame and kind)"
+        elif kind == "dropped_frame" and fids:
+            text, cause = _dropped_truth(fids[0], truth, recs)
         elif kind in ("latency_spike", "deadline_miss") and fids and fids[0] in truth.frames and fids[0] in recs:
-            why, real = _latency_truth(e, truth.frames[fids[0]], recs[fids[0]], nominal)
-            if not real:
-                ok = False
+            text, cause = _latency_truth(e, truth.frames[fids[0]], recs[fids[0]], nominal)
         elif kind == "jitter":
-            why = "real: end-to-end varied (not injected)"
+            text, cause = "end-to-end varied over the window (not injected)", Cause.UNKNOWN
         elif kind == "frame_rate_floor" and e.get("harness_time_ns") is not None:
-            end, hz = int(e["harness_time_ns"]), float(e.get("threshold") or 0.0)
-            window_s = float(truth.faults.get("rate_window_s", 2.0))
-            sent = sum(1 for tl in truth.frames.values()
-                       if tl.get("send_mono_ns") is not None and end - window_s * 1e9 < tl["send_mono_ns"] <= end)
-            if sent < hz * window_s:
-                why = f"real: the target sent {sent} estimates in the {window_s:g} s before"
-            else:
-                why = f"FALSE ALARM: the target sent {sent} estimates in the {window_s:g} s before (floor {hz:g}/s)"
-                ok = False
-        if why is None:
-            ok = False
-            why = "FALSE ALARM: the truth shows nothing here"
-        notes.append(f"{_label(e)}: {why}")
-    return notes, ok
+            text, cause = _rate_truth(e, truth)
+        seen.add((kind, tuple(fids)))
+        out.append(Other(_label(e), kind, tuple(fids), cause, text))
+    return out
