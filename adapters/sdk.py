@@ -160,7 +160,11 @@ class Endpoint:
         """Handle one decoded message; returns quickly (never waits for inference)."""
         if isinstance(item, ProtocolError):
             self.stats.protocol_errors += 1
-            self.send(ErrorMsg(self._vehicle_id, protocol.ErrorCode.MALFORMED, str(item)[:1000]))
+            # PROTOCOL.md section 9: a version this target does not speak gets
+            # UNSUPPORTED_VERSION (decode_header's only failure at offset 4 that says so).
+            version = item.offset == 4 and "unsupported protocol version" in str(item)
+            code = protocol.ErrorCode.UNSUPPORTED_VERSION if version else protocol.ErrorCode.MALFORMED
+            self.send(ErrorMsg(self._vehicle_id, code, str(item)[:1000]))
             return
         if isinstance(item, SyncRequest):
             t3 = self.clock.now_ns()

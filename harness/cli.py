@@ -55,6 +55,9 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_parser(sub)
     train.add_parser(sub)
     calibrate.add_parser(sub)
+    from harness import target_check
+
+    target_check.add_parser(sub)
     from harness.search import cli as search_cli
 
     search_cli.add_parser(sub)
@@ -94,6 +97,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return clock_cmd.cmd(args)
         if args.command == "scenarios":
             return _cmd_scenarios(args)
+        if args.command == "target-check":
+            from harness import target_check
+
+            return target_check.cmd(args)
         if args.command in ("report", "compare", "train", "calibrate"):
             import importlib
 
