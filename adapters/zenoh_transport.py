@@ -83,6 +83,7 @@ DEFAULT_LEASE_MS = 1000
 DEFAULT_KEEP_ALIVE = 4  # keep-alives per lease
 HELLO_POLL_S = 0.1  # harness HEARTBEAT period until HELLO
 BYE_LINGER_S = 1.0  # how long a stopping target waits for the harness to leave after its BYE
+CLOSE_TIMEOUT_S = 2.0  # how long closing a session may take (s) before it is left to finish alone
 _RETRY = MappingProxyType({"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 2})
 _WILDCARD_CHARS = frozenset("*$?#")
 
@@ -120,6 +121,7 @@ class ZenohStats:
     put_failures: int = 0
     duplicate_hellos: int = 0
     heartbeats_sent: int = 0
+    close_failures: int = 0  # session closes that timed out or raised (see close_session)
 
 
 def _check_endpoints(name: str, endpoints: Sequence[str]) -> list[str]:
@@ -189,6 +191,28 @@ def make_config(**options: object) -> zenoh.Config:
         except zenoh.ZError as err:
             raise ConfigError(f"zenoh config {key}={value!r} rejected: {err}") from err
     return cfg
+
+
+def close_session(session: zenoh.Session, *, timeout_s: float = 2.0) -> str | None:
+    """Close ``session`` in a daemon thread and wait at most ``timeout_s`` (s) for it.
+
+    Returns None when it closed in time, else why not (it is left closing in the
+    background). Never raises: closing must not cost a run its outputs.
+    """
+    failure: list[str] = []
+
+    def run() -> None:
+        try:
+            session.close()
+        except Exception as err:  # noqa: BLE001 - zenoh.ZError and whatever the binding raises
+            failure.append(f"zenoh session close failed: {type(err).__name__}: {err}")
+
+    t = threading.Thread(target=run, name="zenoh-close", daemon=True)
+    t.start()
+    t.join(timeout_s)
+    if t.is_alive():
+        return f"zenoh session close took over {timeout_s:g} s (a frozen peer?); left closing in the background"
+    return failure[0] if failure else None
 
 
 def _open_session(cfg: zenoh.Config, where: str) -> zenoh.Session:
@@ -326,7 +350,13 @@ class ZenohLink(Link):
         session, self._session = getattr(self, "_session", None), None
         self._publisher, self._entities = None, []
         if session is not None and not session.is_closed():
-            session.close()  # undeclares everything and flushes; without it exit can hang
+            # Undeclares everything and flushes; without it exit can hang. Bounded:
+            # a frozen peer made it block ~10 s and then raise "close operation timed
+            # out", which cost a run its summary.
+            reason = close_session(session, timeout_s=CLOSE_TIMEOUT_S)
+            if reason is not None:
+                self.zenoh_stats.close_failures += 1
+                self.stats.last_error = reason
 
 
 def serve_endpoint(ep: Endpoint, *, listen: Sequence[str] = (), connect: Sequence[str] = (), mode: str = "peer",
@@ -416,5 +446,5 @@ def serve_endpoint(ep: Endpoint, *, listen: Sequence[str] = (), connect: Sequenc
             signal.signal(signal.SIGTERM, old_term)
         ep.join()
         entities.clear()
-        session.close()
+        close_session(session, timeout_s=CLOSE_TIMEOUT_S)  # bounded: the harness may be frozen
 
