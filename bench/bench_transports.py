@@ -10,7 +10,8 @@ in the calling thread, to ``targets.echo``'s logic (answers at once), for a raw 
 image (230 400 bytes, a 230 504-byte FRAME message) and a JPEG (q85, ~12 KB):
 
 * local (child process; frames through the shared-memory ring where negotiated, and
-  with ``shm=False`` for comparison), zenoh (target process on 127.0.0.1), can
+  with ``shm=False`` for comparison), zenoh and tcp (target process on 127.0.0.1; tcp also
+  to the C reference target of targets/c, built here when ``cc`` is present), can
   (python-can ``virtual`` bus, target in a thread of this process: it has no bit
   timing, and in-process only; JPEG only), mixed (frames over zenoh, the rest over the
   virtual CAN bus; device in a thread of this process).
@@ -18,6 +19,7 @@ image (230 400 bytes, a 230 504-byte FRAME message) and a JPEG (q85, ~12 KB):
 Raw floors, two processes each, the same message bytes out and an 80-byte answer
 back (an ESTIMATE's size), timed the same way:
 
+* a TCP loopback connection (``TCP_NODELAY``), the same loop as the socketpair;
 * zenoh put/subscribe ping-pong (callback subscribers, explicit tcp/127.0.0.1, no
   scouting, Zenoh's shared memory at its default, as the transport uses it);
 * a Unix socketpair (``sendall`` / ``recv_into`` the known length);
@@ -90,6 +92,10 @@ def child_main(kind: str, args: list[str]) -> None:
                     return
                 got += k
             sock.sendall(REPLY)
+    elif kind == "tcp":  # the socketpair floor's loop, on a TCP loopback connection
+        tsock = socket.create_connection(("127.0.0.1", int(args[0])))
+        tsock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        child_main("sock", [str(tsock.fileno())])
     elif kind == "handoff":
         sock = socket.socket(fileno=int(args[0]))
         cv, box = threading.Condition(), []
@@ -183,6 +189,30 @@ def raw_socketpair(payload: bytes) -> Iterator[RoundTrip]:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
     proc = spawn_child("sock", theirs.fileno(), pass_fds=(theirs.fileno(),))
     theirs.close()
+    msg = len(payload).to_bytes(8, "little") + payload
+
+    def once() -> int:
+        t = time.perf_counter_ns()
+        ours.sendall(msg)
+        got = 0
+        while got < len(REPLY):
+            got += len(ours.recv(len(REPLY) - got))
+        return time.perf_counter_ns() - t
+    try:
+        yield once
+    finally:
+        ours.shutdown(socket.SHUT_RDWR)
+        ours.close()
+        end(proc)
+
+
+@contextlib.contextmanager
+def raw_tcp(payload: bytes) -> Iterator[RoundTrip]:
+    """The socketpair floor over a TCP loopback connection (TCP_NODELAY both ends)."""
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        proc = spawn_child("tcp", server.getsockname()[1])
+        ours, _ = server.accept()
+    ours.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     msg = len(payload).to_bytes(8, "little") + payload
 
     def once() -> int:
@@ -314,6 +344,43 @@ def zenoh_link() -> Iterator[Link]:
     try:
         with opened(open_link("zenoh", vehicle_id=0, clock=MonotonicClock(),
                               connect=[f"tcp/127.0.0.1:{port}"])) as link:
+            yield link
+    finally:
+        end(proc)
+
+
+@contextlib.contextmanager
+def tcp_link() -> Iterator[Link]:
+    address = f"127.0.0.1:{free_port()}"
+    proc = subprocess.Popen([sys.executable, "-m", "targets.echo", "--transport", "tcp", "--listen", address],
+                            cwd=ROOT, stdin=subprocess.DEVNULL)
+    try:
+        with opened(open_link("tcp", vehicle_id=0, clock=MonotonicClock(), connect=address)) as link:
+            yield link
+    finally:
+        end(proc)
+
+
+def c_target() -> Path | None:
+    """The C reference target (targets/c), built into a temporary folder with the
+    system compiler; None where there is no ``cc``/``make`` or the build fails."""
+    import shutil
+    import tempfile
+
+    if shutil.which("cc") is None or shutil.which("make") is None:
+        return None
+    out = Path(tempfile.mkdtemp(prefix="bench-c-target-"))
+    proc = subprocess.run(["make", "-s", "-C", str(ROOT / "targets" / "c"), f"BUILD={out}"], capture_output=True)
+    return out / "hil_target" if proc.returncode == 0 else None
+
+
+@contextlib.contextmanager
+def tcp_c_link(exe: Path) -> Iterator[Link]:
+    address = f"127.0.0.1:{free_port()}"
+    proc = subprocess.Popen([str(exe), "--transport", "tcp", "--listen", address], stdin=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        with opened(open_link("tcp", vehicle_id=0, clock=MonotonicClock(), connect=address)) as link:
             yield link
     finally:
         end(proc)
@@ -474,18 +541,25 @@ def main(argv: list[str] | None = None) -> int:
         for enc, data, _ in cols:
             add("raw: zenoh put/subscribe", enc, stack.enter_context(raw_zenoh(msg[enc])))
             add("raw: Unix socketpair", enc, stack.enter_context(raw_socketpair(msg[enc])))
+            add("raw: TCP loopback", enc, stack.enter_context(raw_tcp(msg[enc])))
             add("raw: shared memory + pipe", enc, stack.enter_context(raw_shm(msg[enc])))
         handoff = stack.enter_context(raw_handoff())
         add("raw: hand-off floor (32 B, 2 thread hand-offs)", ImageEncoding.RGB8, handoff)
         local = stack.enter_context(local_link())
         local_inline = stack.enter_context(local_link(shm=False))
         zlink = stack.enter_context(zenoh_link())
+        tlink = stack.enter_context(tcp_link())
+        c_exe = c_target()
+        tclink = stack.enter_context(tcp_c_link(c_exe)) if c_exe is not None else None
         clink = stack.enter_context(can_link())
         mlink = stack.enter_context(mixed_link())
         for enc, data, _ in cols:
             add("local (default)", enc, link_round_trip(local, data, enc))
             add("local, inline (shm=False)", enc, link_round_trip(local_inline, data, enc))
             add("zenoh", enc, link_round_trip(zlink, data, enc))
+            add("tcp (kernel receive stamps)", enc, link_round_trip(tlink, data, enc))
+            if tclink is not None:
+                add("tcp to the C reference target", enc, link_round_trip(tclink, data, enc))
             add("mixed (zenoh + virtual CAN, device in-process)", enc, link_round_trip(mlink, data, enc))
         add("can (virtual bus, device in-process)", ImageEncoding.JPEG,
             link_round_trip(clink, jpeg, ImageEncoding.JPEG))
@@ -509,12 +583,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {name} | " + " | ".join(cells) + " |")
 
     def ratio(num: str, den: str, enc: ImageEncoding) -> str:
-        if enc not in rows[num] or enc not in rows[den]:
+        if num not in rows or enc not in rows[num] or enc not in rows[den]:
             return "–"
         return f"{rows[num][enc].pct(50) / rows[den][enc].pct(50):.2f}"
 
     checks = [
         ("zenoh / raw zenoh", "zenoh", "raw: zenoh put/subscribe", 1.25),
+        ("tcp / raw TCP loopback", "tcp (kernel receive stamps)", "raw: TCP loopback", 1.5),
+        ("tcp to the C target / raw TCP loopback", "tcp to the C reference target", "raw: TCP loopback", 1.5),
         ("local / raw shared memory + pipe", "local (default)", "raw: shared memory + pipe", 2.0),
         ("local / raw Unix socketpair", "local (default)", "raw: Unix socketpair", None),
         ("local (default) / local inline", "local (default)", "local, inline (shm=False)", None),
