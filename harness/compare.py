@@ -1,88 +1,62 @@
 """``hil compare BASELINE RUN``: the latency regression gate.
 
-Compares two runs' ``summary.json`` (each argument a run folder or the file) and
-exits 1 when RUN is worse than BASELINE beyond a tolerance, 0 otherwise, 2 on bad
-input (missing, truncated or foreign file; bad tolerances).
+Compares two runs (each argument a run folder or its ``summary.json``) and exits 1
+when RUN is worse than BASELINE, 0 otherwise, 2 on bad input (missing, truncated or
+foreign file; bad tolerances).
 
-Checked for every vehicle and stage of the baseline (``vehicles.V.latency_ms.S``):
+Two runs of one build never give the same figures, so the gate compares the
+distributions of their **per-frame samples** (``/<vehicle>/pipeline`` in each
+``run.mcap``, see ``harness.compare_samples``) and asks, for every vehicle and stage
+of the baseline and each of ``p1`` (the floor), ``p50``, ``p99`` and ``std``
+(jitter), plus each vehicle's drop rate, how sure it is that the figure grew by more
+than its allowance ``max(rel × baseline, abs)`` (``harness.compare_tolerances``):
+a circular block bootstrap of both runs' frames gives the standard error of the
+change, the run-to-run noise (what one pair cannot show: the machine's load changing
+between the runs) is added to it, and ``P(worse)`` is the probability that the true
+growth exceeds the allowance (``timing.gate``). A check fails only when ``P(worse)
+≥ 1 − α/m``: α (default 0.05) is the chance that a comparison of an unchanged build
+fails at all, split over its m checks (Bonferroni). A tiny change fails never (it is
+within its allowance), however sure; a large one fails only when the samples show it
+beyond the noise. The table gives each change with its 95 % interval and
+``P(worse)``. A figure that surely fell by more than its allowance is ``better``
+(information).
 
-=============  ==========================  ===============================
-metric         may grow by                 flags
-=============  ==========================  ===============================
-``p50``        max(10 %, 0.5 ms)           ``--p50-rel``, ``--p50-abs-ms``
-``p99``        max(20 %, 2 ms)             ``--p99-rel``, ``--p99-abs-ms``
-``std``        max(25 %, 1 ms) (jitter)    ``--std-rel``, ``--std-abs-ms``
-``drop_rate``  +0.01 absolute, per vehicle ``--drop-rate-abs``
-=============  ==========================  ===============================
+Where a run has no usable ``run.mcap`` (only a ``summary.json``), its figures are
+compared as points, as the gate did before: ``p50``/``p99``/``std`` fail when they
+exceed ``baseline + allowance``; the table says ``point`` for those.
 
-The limit is ``baseline + max(rel × baseline, abs)``. A value that falls by more than
-that allowance is reported as ``better`` (information, not a failure). A vehicle or
-stage of the baseline missing in RUN (or without samples there) is a regression; one
-new in RUN is information. A RUN that ended early (``ended_by`` not ``duration``) is
-a regression. Different scenario, seed or config hash are noted, not failed.
-
-``--tolerances FILE.yaml`` sets any of these, and per-stage overrides; flags win over
-the file, the file over the defaults::
-
-    p50: {rel: 0.10, abs_ms: 0.5}
-    p99: {rel: 0.20, abs_ms: 2.0}
-    std: {rel: 0.25, abs_ms: 1.0}
-    drop_rate: {abs: 0.01}
-    stages:                       # per stage, any of p50 / p99 / std
-      transport: {p99: {abs_ms: 5.0}}
-    skip_stages: [apply_delay]    # not checked
-    only_stages: [end_to_end]     # check these alone (same as --stage, repeatable)
+Always: a vehicle or stage of the baseline missing in RUN (or without samples there)
+is a regression; one new in RUN is information. A RUN that ended early (``ended_by``
+not ``duration``) is a regression. Different scenario, seed or config hash are
+noted, not failed.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 from enum import Enum
-from pathlib import Path
 from typing import Any
 
-import yaml
+import numpy as np
 
-from harness.run_folder import load_summary
+from harness.compare_samples import RunSamples, VehicleSamples, load_run
+from harness.compare_tolerances import (
+    LATENCY_METRICS,
+    Tolerance,
+    Tolerances,
+    add_tolerance_args,
+    load_tolerances,
+    parse_tolerances,
+    tolerances_from_args,
+)
 from timing.errors import ConfigError
+from timing.gate import DEFAULT_RESAMPLES, Metric, Shift, compare_metric
 from timing.records import STAGES
 
-LATENCY_METRICS = ("p50", "p99", "std")
+POINT_METRICS = ("p50", "p99", "std")  # what summary.json holds of LATENCY_METRICS
 EXIT_OK, EXIT_REGRESSION = 0, 1
-
-
-@dataclass(frozen=True)
-class Tolerance:
-    """How much a value may grow: ``rel`` (fraction of the baseline) or ``abs`` (ms,
-    or a rate for drop_rate), whichever allows more."""
-
-    rel: float
-    abs: float
-
-    def allowance(self, baseline: float) -> float:
-        return max(self.rel * abs(baseline), self.abs)
-
-
-@dataclass(frozen=True)
-class Tolerances:
-    """The gate's tolerances (defaults in the module docstring)."""
-
-    p50: Tolerance = Tolerance(0.10, 0.5)
-    p99: Tolerance = Tolerance(0.20, 2.0)
-    std: Tolerance = Tolerance(0.25, 1.0)
-    drop_rate: Tolerance = Tolerance(0.0, 0.01)
-    stages: Mapping[str, Mapping[str, Tolerance]] = field(default_factory=dict)
-    only_stages: tuple[str, ...] = ()
-    skip_stages: tuple[str, ...] = ()
-
-    def for_stage(self, metric: str, stage: str) -> Tolerance:
-        return self.stages.get(stage, {}).get(metric, getattr(self, metric))
-
-    def checks_stage(self, stage: str) -> bool:
-        return stage not in self.skip_stages and (not self.only_stages or stage in self.only_stages)
 
 
 class Verdict(str, Enum):
@@ -98,10 +72,39 @@ class Verdict(str, Enum):
         return self in (Verdict.REGRESSION, Verdict.MISSING)
 
 
+class Method(str, Enum):
+    """How a check was judged: from per-frame samples, or two summary figures."""
+
+    SAMPLES = "samples"
+    POINT = "point"
+    NONE = "-"
+
+
+@dataclass(frozen=True)
+class GateSettings:
+    """``alpha``: chance that a comparison of an unchanged build fails (split over its
+    checks); ``resamples`` per bootstrap; ``seed`` of the bootstrap (same inputs,
+    same verdict); ``confidence`` of the interval shown."""
+
+    alpha: float = 0.05
+    resamples: int = DEFAULT_RESAMPLES
+    seed: int = 0
+    confidence: float = 0.95
+
+    def check(self) -> None:
+        """Raises ConfigError naming the bad setting."""
+        if not 0 < self.alpha < 1:
+            raise ConfigError(f"--alpha: got {self.alpha:g}; expected a number between 0 and 1")
+        if self.resamples < 100:
+            raise ConfigError(f"--resamples: got {self.resamples}; expected at least 100")
+
+
 @dataclass(frozen=True)
 class Check:
-    """One compared figure. ``limit``: the largest passing value; ``None`` where no
-    limit applies."""
+    """One compared figure. ``limit``: baseline + allowance (``None`` where no limit
+    applies). Judged from samples: ``ci`` (interval of the change at the settings'
+    confidence), ``p_worse`` (probability that it grew beyond the allowance) and
+    ``need`` (the ``p_worse`` at which it fails)."""
 
     vehicle: str
     stage: str
@@ -111,92 +114,10 @@ class Check:
     limit: float | None
     verdict: Verdict
     note: str = ""
-
-
-# --- tolerances ------------------------------------------------------------------------
-
-
-def _tolerance(node: Any, base: Tolerance, where: str, source: str, *, abs_key: str) -> Tolerance:
-    if not isinstance(node, dict):
-        raise ConfigError(f"{source}: tolerances error at {where}: got {node!r}; expected a mapping "
-                          f"with rel and/or {abs_key}")
-    out = base
-    for k, v in node.items():
-        if k not in ("rel", abs_key):
-            raise ConfigError(f"{source}: tolerances error at {where}: unknown key {k!r} "
-                              f"(valid keys: rel, {abs_key})")
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or v < 0:
-            raise ConfigError(f"{source}: tolerances error at {where}.{k}: got {v!r}; expected a number >= 0")
-        out = dataclasses.replace(out, **{"rel" if k == "rel" else "abs": float(v)})
-    return out
-
-
-def _stage_list(v: Any, where: str, source: str) -> tuple[str, ...]:
-    if not isinstance(v, list) or not all(isinstance(s, str) for s in v):
-        raise ConfigError(f"{source}: tolerances error at {where}: got {v!r}; expected a list of stage names")
-    return tuple(v)
-
-
-def parse_tolerances(data: Any, *, source: str = "<tolerances>", base: Tolerances | None = None) -> Tolerances:
-    """Tolerances from a parsed YAML mapping, over ``base`` (default: the defaults).
-
-    Raises:
-        ConfigError: one line naming the key path and the bad value.
-    """
-    tol = base or Tolerances()
-    if data is None:
-        return tol
-    if not isinstance(data, dict):
-        raise ConfigError(f"{source}: tolerances error at <root>: got {data!r}; expected a mapping")
-    valid = (*LATENCY_METRICS, "drop_rate", "stages", "only_stages", "skip_stages")
-    for key, node in data.items():
-        if key in LATENCY_METRICS:
-            tol = dataclasses.replace(tol, **{key: _tolerance(node, getattr(tol, key), key, source, abs_key="abs_ms")})
-        elif key == "drop_rate":
-            tol = dataclasses.replace(tol, drop_rate=_tolerance(node, tol.drop_rate, key, source, abs_key="abs"))
-        elif key in ("only_stages", "skip_stages"):
-            tol = dataclasses.replace(tol, **{key: _stage_list(node, key, source)})
-        elif key == "stages":
-            if not isinstance(node, dict):
-                raise ConfigError(f"{source}: tolerances error at stages: got {node!r}; expected a mapping "
-                                  "of stage name to {p50|p99|std: {rel, abs_ms}}")
-            stages = {k: dict(v) for k, v in tol.stages.items()}
-            for stage, per in node.items():
-                if not isinstance(per, dict):
-                    raise ConfigError(f"{source}: tolerances error at stages.{stage}: got {per!r}; expected a "
-                                      "mapping of p50/p99/std to {rel, abs_ms}")
-                for metric, t in per.items():
-                    if metric not in LATENCY_METRICS:
-                        raise ConfigError(f"{source}: tolerances error at stages.{stage}: unknown metric "
-                                          f"{metric!r} (valid: {', '.join(LATENCY_METRICS)})")
-                    stages.setdefault(stage, {})[metric] = _tolerance(
-                        t, tol.for_stage(metric, stage), f"stages.{stage}.{metric}", source, abs_key="abs_ms")
-            tol = dataclasses.replace(tol, stages=stages)
-        else:
-            raise ConfigError(f"{source}: tolerances error: unknown key {key!r} (valid keys: {', '.join(valid)})")
-    return tol
-
-
-def load_tolerances(path: str | Path, *, base: Tolerances | None = None) -> Tolerances:
-    """Read a tolerances YAML file (format in the module docstring).
-
-    Raises:
-        ConfigError: missing or unreadable file, bad YAML, or a bad value.
-    """
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"{p}: tolerances file not found") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"{p}: cannot read tolerances file: {getattr(err, 'strerror', None) or err}") from err
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise ConfigError(f"{p}: YAML syntax error{where}: {getattr(err, 'problem', None) or err}") from err
-    return parse_tolerances(data, source=str(p), base=base)
+    method: Method = Method.NONE
+    ci: tuple[float, float] | None = None
+    p_worse: float | None = None
+    need: float | None = None
 
 
 # --- comparing ---------------------------------------------------------------------------
@@ -213,6 +134,7 @@ def _num(d: Mapping[str, Any], key: str) -> float | None:
 
 def _judge(vehicle: str, stage: str, metric: str, base: float | None, run: float | None,
            tol: Tolerance) -> Check:
+    """A point check: ``run`` against ``baseline + allowance``."""
     if base is None and run is None:
         return Check(vehicle, stage, metric, None, None, None, Verdict.NO_DATA, "no samples on either side")
     if base is None:
@@ -227,13 +149,33 @@ def _judge(vehicle: str, stage: str, metric: str, base: float | None, run: float
         verdict = Verdict.BETTER
     else:
         verdict = Verdict.OK
-    return Check(vehicle, stage, metric, base, run, limit, verdict)
+    return Check(vehicle, stage, metric, base, run, limit, verdict, method=Method.POINT)
 
 
-def compare(baseline: Mapping[str, Any], run: Mapping[str, Any], tol: Tolerances | None = None) -> list[Check]:
-    """Every check of ``run`` against ``baseline`` (two parsed summary.json)."""
+@dataclass
+class _Pending:
+    at: int            # index in the check list
+    shift: Shift
+
+
+def _shift(base: np.ndarray, run: np.ndarray, metric: Metric, tol: Tolerance, noise: float,
+           settings: GateSettings, rng: np.random.Generator) -> Shift:
+    allowed = tol.allowance(metric.of(np.asarray(base, np.float64)))
+    return compare_metric(base, run, metric, allowed=allowed, confidence=settings.confidence,
+                          run_noise_rel=noise, resamples=settings.resamples, rng=rng)
+
+
+def compare(baseline: Mapping[str, Any], run: Mapping[str, Any], tol: Tolerances | None = None, *,
+            base_samples: RunSamples | None = None, run_samples: RunSamples | None = None,
+            settings: GateSettings | None = None) -> list[Check]:
+    """Every check of ``run`` against ``baseline`` (two parsed summary.json), judged
+    from the per-frame samples where both runs have them for a vehicle, else as
+    points (see the module docstring)."""
     tol = tol or Tolerances()
+    settings = settings or GateSettings()
+    rng = np.random.default_rng(settings.seed)
     checks: list[Check] = []
+    pending: list[_Pending] = []
     ended = run.get("ended_by")
     if ended is not None and ended != "duration":
         checks.append(Check("(run)", "-", "ended_by", None, None, None, Verdict.REGRESSION, f"ended early: {ended}"))
@@ -247,7 +189,15 @@ def compare(baseline: Mapping[str, Any], run: Mapping[str, Any], tol: Tolerances
             checks.append(Check(vehicle, "-", "vehicle", None, None, None, Verdict.NEW, "vehicle new in the run"))
             continue
         b, r = bv[vehicle] or {}, rv[vehicle] or {}
-        checks.append(_judge(vehicle, "-", "drop_rate", _num(b, "drop_rate"), _num(r, "drop_rate"), tol.drop_rate))
+        xb = base_samples.vehicles.get(vehicle) if base_samples is not None else None
+        xr = run_samples.vehicles.get(vehicle) if run_samples is not None else None
+        if xb is not None and xr is not None and xb.dropped.size and xr.dropped.size:
+            pending.append(_Pending(len(checks), _shift(xb.dropped, xr.dropped, Metric.MEAN, tol.drop_rate, 0.0,
+                                                         settings, rng)))
+            checks.append(Check(vehicle, "-", "drop_rate", None, None, None, Verdict.OK))
+        else:
+            checks.append(_judge(vehicle, "-", "drop_rate", _num(b, "drop_rate"), _num(r, "drop_rate"),
+                                 tol.drop_rate))
         bl, rl = b.get("latency_ms") or {}, r.get("latency_ms") or {}
         for stage in _stage_order(list(bl) + [s for s in rl if s not in bl]):
             if not tol.checks_stage(stage):
@@ -259,10 +209,32 @@ def compare(baseline: Mapping[str, Any], run: Mapping[str, Any], tol: Tolerances
             if stage not in bl:
                 checks.append(Check(vehicle, stage, "stage", None, None, None, Verdict.NEW, "stage new in the run"))
                 continue
-            for metric in LATENCY_METRICS:
+            sb, sr = _stage_samples(xb, stage), _stage_samples(xr, stage)
+            if sb is not None and sr is not None:
+                for metric in LATENCY_METRICS:
+                    pending.append(_Pending(len(checks), _shift(sb, sr, Metric(metric), tol.for_stage(metric, stage),
+                                                                 tol.noise_of(metric), settings, rng)))
+                    checks.append(Check(vehicle, stage, metric, None, None, None, Verdict.OK))
+                continue
+            for metric in POINT_METRICS:
                 checks.append(_judge(vehicle, stage, metric, _num(bl[stage] or {}, f"{metric}_ms"),
                                      _num(rl[stage] or {}, f"{metric}_ms"), tol.for_stage(metric, stage)))
+    need = 1.0 - settings.alpha / max(len(pending), 1)
+    for p in pending:
+        s = p.shift
+        verdict = (Verdict.REGRESSION if s.p_worse >= need else Verdict.BETTER if s.p_better >= need
+                   else Verdict.OK)
+        checks[p.at] = replace(checks[p.at], baseline=s.base, run=s.run, limit=s.base + s.allowed, verdict=verdict,
+                               method=Method.SAMPLES, ci=(s.ci_lo, s.ci_hi), p_worse=s.p_worse, need=need,
+                               note=f"{s.n_base}/{s.n_run} frames")
     return checks
+
+
+def _stage_samples(x: VehicleSamples | None, stage: str) -> np.ndarray | None:
+    if x is None:
+        return None
+    a = x.stages_ms.get(stage)
+    return a if a is not None and a.size else None
 
 
 def differences(baseline: Mapping[str, Any], run: Mapping[str, Any]) -> list[str]:
@@ -296,7 +268,23 @@ def _change(c: Check) -> str:
     return f"{d:+.3f} ms ({rel})"
 
 
-def render(checks: Sequence[Check], *, failures_only: bool = False) -> Any:
+def _interval(c: Check) -> str:
+    if c.ci is None:
+        return "point" if c.method is Method.POINT else "–"
+    lo, hi = c.ci
+    if c.metric == "drop_rate":
+        return f"{lo * 100:+.2f} .. {hi * 100:+.2f} pp"
+    return f"{lo:+.3f} .. {hi:+.3f}"
+
+
+def _sure(c: Check) -> str:
+    if c.p_worse is None:
+        return "–"
+    p = c.p_worse * 100
+    return "<0.1 %" if p < 0.1 else ">99.9 %" if p > 99.9 else f"{p:.1f} %"
+
+
+def render(checks: Sequence[Check], *, failures_only: bool = False, confidence: float = 0.95) -> Any:
     """A rich table of ``checks``."""
     from rich.table import Table
 
@@ -304,13 +292,14 @@ def render(checks: Sequence[Check], *, failures_only: bool = False) -> Any:
              Verdict.NEW: "cyan", Verdict.NO_DATA: "dim", Verdict.OK: ""}
     t = Table(title="latency regression check (RUN against BASELINE)", title_justify="left")
     for col, just in (("vehicle", "left"), ("stage", "left"), ("metric", "left"), ("baseline", "right"),
-                      ("run", "right"), ("change", "right"), ("limit", "right"), ("verdict", "left")):
+                      ("run", "right"), ("change", "right"), (f"{confidence * 100:g} % interval", "right"),
+                      ("limit", "right"), ("P(worse)", "right"), ("verdict", "left")):
         t.add_column(col, justify=just)  # type: ignore[arg-type]
     for c in checks:
         if failures_only and not c.verdict.fails:
             continue
         t.add_row(c.vehicle, c.stage, c.metric, _value(c.metric, c.baseline), _value(c.metric, c.run), _change(c),
-                  "–" if c.limit is None else f"≤ {_value(c.metric, c.limit)}",
+                  _interval(c), "–" if c.limit is None else f"≤ {_value(c.metric, c.limit)}", _sure(c),
                   f"[{style[c.verdict]}]{c.verdict.value}[/]" if style[c.verdict] else c.verdict.value)
     return t
 
@@ -318,48 +307,21 @@ def render(checks: Sequence[Check], *, failures_only: bool = False) -> Any:
 def add_parser(sub: Any) -> None:
     """Register ``hil compare`` on the CLI's subparsers."""
     p = sub.add_parser("compare", help="fail (exit 1) when RUN's latency regressed against BASELINE",
-                       description="Compare two runs' summary.json with tolerances; exit 1 on any regression. "
-                                   "Defaults: p50 may grow by max(10%, 0.5 ms), p99 by max(20%, 2 ms), "
-                                   "std by max(25%, 1 ms), drop_rate by 0.01.")
+                       description="Compare two runs' per-frame latencies (from run.mcap) and exit 1 when one "
+                                   "grew beyond its allowance with confidence: block bootstrap plus run-to-run "
+                                   "noise, alpha split over the checks. Allowances: p1 and p50 max(10%, 0.5 ms), "
+                                   "p99 max(20%, 2 ms), std max(25%, 1 ms), drop_rate 0.01.")
     p.add_argument("baseline", help="the reference run folder or its summary.json")
     p.add_argument("run", help="the run to check (folder or summary.json)")
-    p.add_argument("--tolerances", type=Path, default=None, metavar="FILE.yaml",
-                   help="tolerances YAML: p50/p99/std {rel, abs_ms}, drop_rate {abs}, stages, "
-                        "skip_stages, only_stages (README); the flags below win over it")
-    for metric, rel, abs_ms in (("p50", 0.10, 0.5), ("p99", 0.20, 2.0), ("std", 0.25, 1.0)):
-        p.add_argument(f"--{metric}-rel", type=float, default=None, metavar="FRACTION",
-                       help=f"{metric} may grow by this fraction of the baseline (default {rel:g})")
-        p.add_argument(f"--{metric}-abs-ms", type=float, default=None, metavar="MS",
-                       help=f"... or by this many ms, whichever is larger (default {abs_ms:g})")
-    p.add_argument("--drop-rate-abs", type=float, default=None, metavar="RATE",
-                   help="drop rate may grow by this much, absolute (default 0.01)")
-    p.add_argument("--stage", action="append", default=[], metavar="NAME",
-                   help="check only this stage (repeatable; default all)")
+    add_tolerance_args(p)
+    p.add_argument("--alpha", type=float, default=0.05, metavar="P",
+                   help="chance that comparing an unchanged build fails, split over the checks (default 0.05)")
+    p.add_argument("--resamples", type=int, default=DEFAULT_RESAMPLES, metavar="N",
+                   help=f"bootstrap resamples per check (default {DEFAULT_RESAMPLES})")
+    p.add_argument("--seed", type=int, default=0, help="bootstrap seed (default 0: same runs, same verdict)")
+    p.add_argument("--point", action="store_true",
+                   help="compare the summaries' figures as points (no samples, no statistics)")
     p.add_argument("--failures-only", action="store_true", help="list only the failing checks")
-
-
-def tolerances_from_args(args: argparse.Namespace) -> Tolerances:
-    """Defaults, then ``--tolerances``, then the flags.
-
-    Raises:
-        ConfigError: bad file, or a negative flag value.
-    """
-    tol = load_tolerances(args.tolerances) if args.tolerances is not None else Tolerances()
-    for metric in LATENCY_METRICS:
-        t = getattr(tol, metric)
-        rel, abs_ms = getattr(args, f"{metric}_rel"), getattr(args, f"{metric}_abs_ms")
-        for flag, v in ((f"--{metric}-rel", rel), (f"--{metric}-abs-ms", abs_ms)):
-            if v is not None and v < 0:
-                raise ConfigError(f"{flag}: got {v:g}; expected a number >= 0")
-        tol = dataclasses.replace(tol, **{metric: Tolerance(t.rel if rel is None else rel,
-                                                            t.abs if abs_ms is None else abs_ms)})
-    if args.drop_rate_abs is not None:
-        if args.drop_rate_abs < 0:
-            raise ConfigError(f"--drop-rate-abs: got {args.drop_rate_abs:g}; expected a number >= 0")
-        tol = dataclasses.replace(tol, drop_rate=Tolerance(tol.drop_rate.rel, args.drop_rate_abs))
-    if args.stage:
-        tol = dataclasses.replace(tol, only_stages=tuple(args.stage))
-    return tol
 
 
 def cmd(args: argparse.Namespace) -> int:
@@ -367,15 +329,29 @@ def cmd(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     tol = tolerances_from_args(args)
-    baseline = load_summary(args.baseline)
-    run = load_summary(args.run)
-    checks = compare(baseline, run, tol)
+    settings = GateSettings(alpha=args.alpha, resamples=args.resamples, seed=args.seed)
+    settings.check()
+    baseline, xb = load_run(args.baseline)
+    run, xr = load_run(args.run)
+    if args.point:
+        xb = xr = RunSamples({}, "--point")
+    checks = compare(baseline, run, tol, base_samples=xb, run_samples=xr, settings=settings)
     console = Console()
     if not console.is_terminal:
-        console.width = max(console.width, 120)
+        console.width = max(console.width, 150)
     for note in differences(baseline, run):
         console.print(f"[yellow]note: {note}[/yellow]")
-    console.print(render(checks, failures_only=args.failures_only))
+    for name, x in (("baseline", xb), ("run", xr)):
+        if x.note and not args.point:
+            console.print(f"[yellow]note: {name}: {x.note}: its figures are compared as points[/yellow]")
+    console.print(render(checks, failures_only=args.failures_only, confidence=settings.confidence))
+    judged = [c for c in checks if c.method is Method.SAMPLES]
+    if judged:
+        need = judged[0].need or 1.0
+        console.print(f"{len(judged)} checks judged from per-frame samples: each fails only when P(worse) ≥ "
+                      f"{need * 100:.2f} % (alpha {settings.alpha:g} over {len(judged)} checks), counting "
+                      "run-to-run noise of " + ", ".join(f"{m} {tol.noise_of(m) * 100:g} %" for m in LATENCY_METRICS)
+                      + f"; {settings.resamples} block-bootstrap resamples, seed {settings.seed}")
     failed = [c for c in checks if c.verdict.fails]
     if failed:
         names = ", ".join(f"{c.vehicle} {c.stage} {c.metric}".replace(" - ", " ") for c in failed[:8])
@@ -386,5 +362,5 @@ def cmd(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-__all__ = ["Check", "Tolerance", "Tolerances", "Verdict", "add_parser", "cmd", "compare", "differences",
-           "load_tolerances", "parse_tolerances", "render", "tolerances_from_args"]
+__all__ = ["Check", "GateSettings", "Method", "Tolerance", "Tolerances", "Verdict", "add_parser", "cmd", "compare",
+           "differences", "load_run", "load_tolerances", "parse_tolerances", "render", "tolerances_from_args"]
