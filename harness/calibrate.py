@@ -92,10 +92,14 @@ def calibration_config(cfg: RunConfig, *, truth_path: Path, transport: Transport
     if REFERENCE_MODULE not in tgt["command"]:
         raise ConfigError(f"target.command: calibrate runs the reference target ({REFERENCE_MODULE}), "
                           f"got {tgt['command']!r}")
-    args = [a for a in tgt["args"] if a not in ("--transport",)]
-    args += ["--truth", str(truth_path)]
-    if kind == Transport.ZENOH.value and "--listen" not in tgt["command"] + args:
-        args += ["--transport", "zenoh", "--listen", "tcp/127.0.0.1:{port}", "--vehicle", "{vehicle_id}"]
+    args = list(tgt["args"]) + ["--truth", str(truth_path)]
+    given = tgt["command"] + args
+    if kind == Transport.ZENOH.value and "--transport" not in given:
+        # The reference target meets the harness at the configured endpoint: it listens
+        # where the harness connects (or connects where the harness listens).
+        z = tgt["zenoh"]
+        side = ["--connect", z["listen"][0]] if z["listen"] else ["--listen", (z["connect"] or ["tcp/127.0.0.1:{port}"])[0]]
+        args += ["--transport", "zenoh", *side, "--vehicle", "{vehicle_id}", "--key-prefix", z["key_prefix"]]
     tgt["args"] = args
     data["progress"] = False
     return parse_config(data, source="calibrate")

@@ -117,8 +117,15 @@ def test_only_the_reference_target_is_calibrated(tmp_path):
     with pytest.raises(ConfigError, match="targets.reference"):
         calibration_config(demo, truth_path=tmp_path / TRUTH_FILE)
     cfg = calibration_config(load_config(CONFIG), truth_path=tmp_path / TRUTH_FILE, transport=Transport.ZENOH)
-    assert cfg.target.transport == Transport.ZENOH
-    assert cfg.target.args[-6:-4] == ["--transport", "zenoh"] and str(tmp_path / TRUTH_FILE) in cfg.target.args
+    assert cfg.target.transport == Transport.ZENOH and str(tmp_path / TRUTH_FILE) in cfg.target.args
+    args = " ".join(cfg.target.args)
+    assert "--transport zenoh --listen tcp/127.0.0.1:{port}" in args  # where the harness connects
+    assert cfg.target.zenoh.connect == ["tcp/127.0.0.1:{port}"]
+    # A harness that listens: the reference target connects to it, at the configured endpoint.
+    listening = load_config(CONFIG, overrides=["target.transport=zenoh", "target.zenoh.connect=[]",
+                                               'target.zenoh.listen=["tcp/127.0.0.1:7999"]'])
+    args = " ".join(calibration_config(listening, truth_path=tmp_path / TRUTH_FILE).target.args)
+    assert "--connect tcp/127.0.0.1:7999" in args and "--listen" not in args
 
 
 @pytest.mark.parametrize("argv, says", [
