@@ -24,8 +24,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from harness.calibrate_checks import (Cause, Check, FaultCheck, Other, RunData, clock_checks, duration_checks,
-                                      fault_checks, load_truth, overhead)
+from harness.calibrate_checks import Check, RunData, clock_checks, duration_checks, load_truth, overhead
+from harness.calibrate_faults import Cause, FaultCheck, Other, fault_checks
 from harness.config import RunConfig, Transport, dump_config, load_config, parse_config
 from timing.errors import ConfigError
 

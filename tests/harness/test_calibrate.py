@@ -16,7 +16,8 @@ from pathlib import Path
 import pytest
 
 from harness.calibrate import TRUTH_FILE, Calibration, calibrate, calibration_config
-from harness.calibrate_checks import Cause, RunData, Truth, fault_checks, load_truth, quantile_checks
+from harness.calibrate_checks import RunData, Truth, load_truth, quantile_checks
+from harness.calibrate_faults import Cause, fault_checks
 from harness.config import Transport, load_config
 from tests.conftest import GL_BACKEND, read_mcap
 from timing.errors import ConfigError
