@@ -254,6 +254,8 @@ class ReferenceEndpoint(Endpoint):
         self.send(replace(est, t_reply_target_ns=self.iclock.at(send)))
         self.stats.estimates_sent += 1
         line["send_mono_ns"] = send
+        line["inference_ns"] = line["infer_end_mono_ns"] - line["infer_start_mono_ns"]
+        line["turnaround_ns"] = send - line["rx_mono_ns"]
         self.log.write(line)
 
 
