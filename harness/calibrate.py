@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from harness.calibrate_checks import Check, RunData, clock_checks, duration_checks, load_truth, overhead
-from harness.calibrate_faults import Cause, FaultCheck, Other, fault_checks
+from harness.calibrate_faults import Cause, FaultCheck, Other, fault_checks, kind_table
 from harness.config import RunConfig, Transport, dump_config, load_config, parse_config
 from timing.errors import ConfigError
 
@@ -61,6 +61,7 @@ class Calibration:
                 "run_note": self.run_note, "checks": [asdict(c) for c in self.checks],
                 "faults": [asdict(f) for f in self.faults],
                 "other_anomalies": [{**asdict(o), "cause": o.cause.value} for o in self.others],
+                "anomaly_kinds": kind_table(self.faults, self.others),
                 "others_explained": self.others_explained, "overhead": self.overhead}
 
 
@@ -178,6 +179,12 @@ def render(cal: Calibration) -> str:
         at = "" if f.frame_id is None else f" at frame {f.frame_id}"
         lines.append(f"  {f.fault + at:<34} {', '.join(f.flagged_by) or 'not flagged':<40} "
                      f"{'ok' if f.ok else 'FAIL'}" + (f"  ({f.note})" if f.note else ""))
+    lines.append(f"{'anomaly kind':<20} {'injected':>8} {'flagged there':>13} {'real elsewhere':>14} "
+                 f"{'false alarms':>12}")
+    for kind, row in kind_table(cal.faults, cal.others).items():
+        bad = row["flagged_where_injected"] != row["injected"] or row["false_alarms"]
+        lines.append(f"{kind:<20} {row['injected']:>8} {row['flagged_where_injected']:>13} "
+                     f"{row['real_elsewhere']:>14} {row['false_alarms']:>12}" + ("  FAIL" if bad else ""))
     if cal.others:
         lines.append("anomalies not injected (judged against the truth):")
         lines += [f"  {o}" for o in cal.others]

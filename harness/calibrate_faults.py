@@ -67,6 +67,28 @@ def _frames_of(ev: Mapping[str, Any]) -> set[int]:
     return ids
 
 
+PROTOCOL_KIND = "protocol_error"
+
+
+def kind_table(faults: Iterable[FaultCheck], others: Iterable[Other]) -> dict[str, dict[str, int]]:
+    """Per anomaly kind: faults injected, flags where injected, real flags elsewhere
+    (by cause) and false alarms. Every kind of ``AnomalyKind`` is listed."""
+    table = {k: {"injected": 0, "flagged_where_injected": 0, "real_elsewhere": 0, "false_alarms": 0}
+             for k in sorted(TIMING_KINDS) + [PROTOCOL_KIND]}
+    for f in faults:
+        base = f.fault.split(" ")[0]
+        kinds = FAULT_KINDS.get(base, (PROTOCOL_KIND,))
+        got = [lab.split("@")[0] for lab in f.flagged_by]
+        kind = next((k for k in got if k in table), kinds[0])
+        table[kind]["injected"] += 1
+        table[kind]["flagged_where_injected"] += len(got)
+    for o in others:
+        row = table.setdefault(o.kind, {"injected": 0, "flagged_where_injected": 0, "real_elsewhere": 0,
+                                        "false_alarms": 0})
+        row["false_alarms" if o.cause is Cause.FALSE else "real_elsewhere"] += 1
+    return table
+
+
 def _is_protocol(ev: Mapping[str, Any]) -> bool:
     kind = str(ev.get("kind", ""))
     return "protocol" in kind or "malformed" in kind

@@ -17,7 +17,7 @@ import pytest
 
 from harness.calibrate import TRUTH_FILE, Calibration, calibrate, calibration_config
 from harness.calibrate_checks import RunData, Truth, load_truth, quantile_checks
-from harness.calibrate_faults import Cause, fault_checks
+from harness.calibrate_faults import Cause, fault_checks, kind_table
 from harness.config import Transport, load_config
 from tests.conftest import GL_BACKEND, read_mcap
 from timing.errors import ConfigError
@@ -73,9 +73,13 @@ def test_fault_flagged_twice_or_never_fails():
     truth.frames[3]["send_mono_ns"] = None
     twice = [{"kind": "dropped_frame", "frame_id": 3}, {"kind": "dropped_frame", "frame_ids": [3]},
              {"kind": "latency_spike", "frame_ids": [5]}]
-    rows, _ = fault_checks(truth, _run(twice))
+    rows, others = fault_checks(truth, _run(twice))
     assert [(r.fault, r.ok) for r in rows] == [("spike", True), ("drop", False)]
     assert rows[1].note == "flagged more than once"
+    table = kind_table(rows, others)
+    assert table["dropped_frame"] == {"injected": 1, "flagged_where_injected": 2, "real_elsewhere": 0,
+                                      "false_alarms": 0}
+    assert table["latency_spike"]["flagged_where_injected"] == 1 and table["sync_lost"]["injected"] == 0
     rows, _ = fault_checks(truth, _run(twice[1:2]))
     assert [(r.fault, r.ok, r.note) for r in rows] == [("spike", False, "missed"), ("drop", True, "")]
 
