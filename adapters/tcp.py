@@ -169,6 +169,7 @@ class TcpLink(Link):
         self.tcp_stats = TcpStats()
         self._mapper = RealtimeMapper(clock)
         self._send_lock = threading.Lock()
+        self._state_lock = threading.Lock()
         self._connected = threading.Event()
         self._stop = threading.Event()
         self._deadline = 0.0
@@ -234,11 +235,12 @@ class TcpLink(Link):
 
     def _establish(self) -> socket.socket | None:
         """The connection, retried until the open deadline; None when closed or late."""
+        listener = self._listener  # close() may clear the attribute meanwhile
         while not self._stop.is_set() and time.monotonic() < self._deadline:
             try:
-                if self._listener is not None:
+                if listener is not None:
                     try:
-                        sock, _peer = self._listener.accept()
+                        sock, _peer = listener.accept()
                     except TimeoutError:
                         continue
                     sock.settimeout(None)
@@ -272,12 +274,17 @@ class TcpLink(Link):
 
     def _read_loop(self) -> None:
         sock = self._establish()
-        if self._listener is not None:  # one target per link: stop listening
-            self._listener.close()
+        listener = self._listener
+        if listener is not None:  # one target per link: stop listening
+            listener.close()
         if sock is None:
             self._mark_gone(self._connect_error or "no connection")
             return
-        self._sock = sock
+        with self._state_lock:
+            if self._stop.is_set():  # closed while connecting
+                sock.close()
+                return
+            self._sock = sock
         self._last_send = time.monotonic()
         self._connected.set()
         if self.heartbeat_idle_s > 0:
@@ -332,8 +339,9 @@ class TcpLink(Link):
             raise TransportError(f"cannot send to the tcp target: {err}") from err
 
     def _close_transport(self) -> None:
-        self._stop.set()
-        sock, self._sock = self._sock, None
+        with self._state_lock:  # not the send lock: a blocked send must not hold up close
+            self._stop.set()
+            sock, self._sock = self._sock, None
         if sock is not None:
             try:
                 sock.shutdown(socket.SHUT_RDWR)

@@ -144,3 +144,26 @@ def test_target_closing_marks_the_link_gone(tmp_path):
         with pytest.raises(TransportError, match="gone"):
             send_frame(link, 1)
         link.close()
+
+
+@pytest.mark.parametrize("mode", ["listen", "connect"])
+def test_close_while_waiting_for_the_target(mode, monkeypatch):
+    """close() from another thread while the reader still waits to connect or accept:
+    open() gives up at once and the reader ends without an exception."""
+    failures: list[BaseException] = []
+    monkeypatch.setattr(threading, "excepthook", lambda args: failures.append(args.exc_value))
+    link = TcpLink(vehicle_id=0, clock=MonotonicClock(), **{mode: f"127.0.0.1:{free_port()}"})
+    outcome: list[BaseException] = []
+    opener = threading.Thread(target=lambda: outcome.append(pytest.raises(Exception, link.open,
+                                                                          hello_timeout_s=10).value))
+    opener.start()
+    deadline = time.monotonic() + 5
+    while link._reader is None and time.monotonic() < deadline:  # noqa: SLF001 - the reader is running
+        opener.join(0.01)
+    t = time.monotonic()
+    link.close()
+    opener.join(5)
+    assert not opener.is_alive() and time.monotonic() - t < 3
+    assert link._reader is not None and not link._reader.is_alive()  # noqa: SLF001
+    assert outcome and isinstance(outcome[0], (TransportError,)), outcome
+    assert failures == []
