@@ -4,6 +4,7 @@ kernel receive stamps, heartbeats and failures to connect."""
 from __future__ import annotations
 
 import socket
+import sys
 import threading
 import time
 
@@ -167,3 +168,39 @@ def test_close_while_waiting_for_the_target(mode, monkeypatch):
     assert link._reader is not None and not link._reader.is_alive()  # noqa: SLF001
     assert outcome and isinstance(outcome[0], (TransportError,)), outcome
     assert failures == []
+
+
+def _late_reader_round_trip(link: TcpLink, hold_s: float) -> tuple[int, int, int]:
+    """Send a frame, then keep the GIL in this thread for ``hold_s`` so the link's
+    reader cannot run; returns (t_tx, the estimate's t0', when the spin ended), ns."""
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(1.0)  # no forced GIL hand-over while we spin
+    try:
+        t_tx = send_frame(link, 1)
+        end = time.monotonic_ns() + int(hold_s * 1e9)
+        while time.monotonic_ns() < end:
+            pass
+        t_end = link.clock.now_ns()
+    finally:
+        sys.setswitchinterval(old)
+    _est, t0p = next_estimate(link)
+    return t_tx, t0p, t_end
+
+
+@pytest.mark.parametrize("stamps", [True, False])
+def test_t0p_does_not_wait_for_the_reader_thread(stamps, tmp_path):
+    address = f"127.0.0.1:{free_port()}"
+    with tcp_echo(tmp_path / "t.log", [], listen=address):
+        link = TcpLink(vehicle_id=0, clock=MonotonicClock(), connect=address, kernel_stamps=stamps,
+                       heartbeat_idle_s=0)
+        try:
+            link.open(hello_timeout_s=20)
+            send_frame(link, 0)  # warm up both sides (and the kernel's stamping)
+            next_estimate(link)
+            t_tx, t0p, t_end = _late_reader_round_trip(link, 0.3)
+        finally:
+            link.close()
+    if stamps:  # the kernel's receipt: long before this thread let the reader run
+        assert t0p < t_end - 100_000_000, (t0p - t_tx) / 1e6
+    else:  # stamped when the reader woke: after the spin
+        assert t0p >= t_end - 5_000_000, (t0p - t_tx) / 1e6
