@@ -112,8 +112,9 @@ def read_run(out_dir: Path, vehicle: str) -> tuple[RunData, int]:
 
     summary = json.loads((out_dir / "summary.json").read_text(encoding="utf-8"))
     topics: dict[str, list[dict[str, Any]]] = {}
+    wanted = ["/events", f"/{vehicle}/pipeline", f"/{vehicle}/clock", f"/{vehicle}/clock_sync"]
     with open(out_dir / "run.mcap", "rb") as f:
-        for _schema, channel, message in make_reader(f).iter_messages(log_time_order=True):
+        for _schema, channel, message in make_reader(f).iter_messages(topics=wanted, log_time_order=True):
             topics.setdefault(channel.topic, []).append(json.loads(message.data))
     events = [e for e in topics.get("/events", []) if e.get("vehicle") in (None, vehicle)]
     run = RunData(summary["vehicles"][vehicle], topics.get(f"/{vehicle}/pipeline", []),
