@@ -7,6 +7,7 @@ import socket
 import sys
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
@@ -204,3 +205,15 @@ def test_t0p_does_not_wait_for_the_reader_thread(stamps, tmp_path):
         assert t0p < t_end - 100_000_000, (t0p - t_tx) / 1e6
     else:  # stamped when the reader woke: after the spin
         assert t0p >= t_end - 5_000_000, (t0p - t_tx) / 1e6
+
+
+def test_config_address_is_checked_before_the_run():
+    from harness.config import load_config
+    from timing.errors import ConfigError
+
+    root = Path(__file__).resolve().parents[2]
+    cfg = load_config(root / "hil_configs" / "tcp.yaml", overrides=["target.tcp.mode=listen",
+                                                                    "target.tcp.address=0.0.0.0:7700"])
+    assert cfg.target.transport.value == "tcp" and cfg.target.tcp.mode.value == "listen"
+    with pytest.raises(ConfigError, match=r"target\.tcp\.address: got 'nohost'"):
+        load_config(root / "hil_configs" / "tcp.yaml", overrides=["target.tcp.address=nohost"])

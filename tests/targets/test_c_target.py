@@ -26,6 +26,7 @@ from timing.clock import MonotonicClock
 
 pytestmark = pytest.mark.skipif(c_build.unavailable() is not None, reason=str(c_build.unavailable()))
 
+ROOT = Path(__file__).resolve().parents[2]
 CAM = CameraInfo(277.0, 277.0, 160.0, 120.0, 1.3)
 W, H = 64, 48
 
@@ -210,9 +211,10 @@ def test_real_run(transport, tmp_path, monkeypatch):
         monkeypatch.setenv(k, v)  # the harness starts the target with this environment
     exe = str(c_build.build().asan)
     cfg_path = tmp_path / "c.yaml"
-    cfg_path.write_text("name: c-target\nduration_s: 2\n")
-    overrides = ["progress=false", "camera.encoding=raw", f"target.transport={transport}"]
-    if transport == "tcp":
+    cfg_path.write_text("name: c-target\n")
+    overrides = ["duration_s=2", "progress=false", "camera.encoding=raw", f"target.transport={transport}"]
+    if transport == "tcp":  # the shipped example, its Python target swapped for the C one
+        cfg_path = ROOT / "hil_configs" / "tcp.yaml"
         overrides += [f"target.tcp.base_port={_free_port()}",
                       f'target.command=["{exe}", "--transport", "tcp", "--listen", "127.0.0.1:{{port}}"]']
     else:
