@@ -240,3 +240,53 @@ def test_real_run(transport, tmp_path, monkeypatch):
     log = (tmp_path / "r" / "target-ego0.log").read_text()
     assert "frames=40 estimates=40" in log, log
     assert c_build.sanitizer_report(log) is None, log
+
+
+def test_large_frames_and_oversized_lengths(tmp_path):
+    """A 640x480 frame (more than the target's first buffer) is answered; a header
+    announcing more than MAX_PAYLOAD is refused at offset 12 before any allocation;
+    an idle target sends HEARTBEATs."""
+    from adapters.messages import Heartbeat
+
+    big = bytearray(protocol.encode(SyncRequest(4, 1, 5)))
+    big[12:16] = (protocol.MAX_PAYLOAD + 1).to_bytes(4, "little")
+    with c_link("tcp", tmp_path) as (link, _log):
+        link.send_frame(frame_id=7, sim_time_ns=0, t0_ns=link.clock.now_ns(), width=640, height=480,
+                        encoding=ImageEncoding.RGB8, camera=CAM, ego_speed_mps=0.0, data=bytes(640 * 480 * 3))
+        est = next_of(link, Estimate)
+        assert (est.frame_id, est.state) == (7, DrivingState.STOP)
+        link.send_raw(_header(big))
+        err = next_of(link, ErrorMsg)
+        assert "exceeds MAX_PAYLOAD" in err.message and "(at byte offset 12)" in err.message
+        frame(link, 8, value=200)
+        assert next_of(link, Estimate).frame_id == 8
+        hb = next_of(link, Heartbeat, timeout_s=3.0)  # after 1 s without sending
+        assert hb.vehicle_id == 4 and hb.t_sender_ns > est.t_reply_target_ns
+
+
+def test_random_bytes_never_break_the_target(tmp_path):
+    """Fuzz the stream decoder under the sanitizers: random bytes, random bytes after
+    magics, and headers with valid CRCs over random fields; the session goes on."""
+    import random
+
+    rng = random.Random(16)
+    chunks = []
+    for _ in range(300):
+        kind = rng.randrange(3)
+        if kind == 0:
+            chunks.append(rng.randbytes(rng.randrange(1, 300)))
+        elif kind == 1:
+            chunks.append(b"HILP" + rng.randbytes(rng.randrange(0, 120)))
+        else:  # a header that passes the CRC, with random type, lengths and slots
+            h = bytearray(b"HILP\x01" + rng.randbytes(59))
+            h[5] = rng.randrange(0, 11)
+            h[6:8] = rng.choice([b"\x00\x00", b"\x01\x00"])
+            h[12:16] = rng.randrange(0, 200).to_bytes(4, "little")
+            chunks.append(_header(h) + rng.randbytes(int.from_bytes(h[12:16], "little")))
+    with c_link("local", tmp_path) as (link, log):
+        for c in chunks:
+            link.send_raw(c)
+        link.send_raw(bytes(3))  # never a magic: the next message starts clean
+        frame(link, 77)
+        assert next_of(link, Estimate, timeout_s=10).frame_id == 77
+        assert link.alive
