@@ -1,7 +1,8 @@
 /* A reference AI target in C99 (libc and POSIX sockets only), written from
  * PROTOCOL.md: HELLO, FRAME -> ESTIMATE, clock sync, heartbeats, COMMAND, BYE and
  * the bad-message rules of section 8, over the local transport (the socket in
- * HIL_LOCAL_FD, section 10.1) or TCP (section 10.5).
+ * HIL_LOCAL_FD, section 10.1) or TCP (section 10.5). On TCP, t_rx and t2 are the
+ * kernel's receive times (SO_TIMESTAMPNS), mapped onto the target's clock.
  *
  * The AI is deliberately trivial: STOP with full brake when the centre ninth of a
  * raw image is dark (mean luma below a threshold), otherwise SAFE at throttle 0.3.
@@ -26,8 +27,13 @@
 #include <stdlib.h>
 #include <string.h>
 #include <sys/socket.h>
+#include <sys/uio.h>
 #include <time.h>
 #include <unistd.h>
+
+#if defined(SO_TIMESTAMPNS) && !defined(SCM_TIMESTAMPNS)
+#define SCM_TIMESTAMPNS SO_TIMESTAMPNS /* the control message carries the option's number */
+#endif
 
 #define BUF_START (256u * 1024u)
 #define HEARTBEAT_IDLE_NS 1000000000LL /* send a HEARTBEAT after 1 s without sending */
@@ -48,6 +54,7 @@ typedef struct {
     int skipping; /* lost sync after a bad header: skip to the next magic silently */
     /* counters */
     unsigned long frames, estimates, dark, syncs, heartbeats, errors_sent, errors_received, bad, commands;
+    unsigned long kernel_stamps; /* reads stamped with the kernel's receive time */
     uint8_t out[HILP_HEADER + 1100]; /* every message this target sends fits */
 } session;
 
@@ -284,6 +291,43 @@ static void drain(session *s, int64_t t_rx) {
     s->len -= pos;
 }
 
+/* Reads into the buffer; *t_rx is when the bytes arrived on this target's clock:
+ * the kernel's receive time (SO_TIMESTAMPNS, CLOCK_REALTIME) mapped with a paired
+ * reading of both clocks where the socket gives one, else the clock after the read. */
+static ssize_t read_stamped(session *s, int64_t *t_rx) {
+    struct iovec iov = {s->buf + s->len, s->cap - s->len};
+    union {
+        char buf[CMSG_SPACE(sizeof(struct timespec))];
+        struct cmsghdr align;
+    } ctl;
+    struct msghdr mh;
+    memset(&mh, 0, sizeof mh);
+    mh.msg_iov = &iov;
+    mh.msg_iovlen = 1;
+    mh.msg_control = ctl.buf;
+    mh.msg_controllen = sizeof ctl.buf;
+    ssize_t n = recvmsg(s->fd, &mh, 0);
+    int64_t a = now_ns(s);
+    *t_rx = a;
+#ifdef SCM_TIMESTAMPNS
+    for (struct cmsghdr *c = CMSG_FIRSTHDR(&mh); n > 0 && c; c = CMSG_NXTHDR(&mh, c)) {
+        if (c->cmsg_level != SOL_SOCKET || c->cmsg_type != SCM_TIMESTAMPNS) continue;
+        struct timespec k, r;
+        memcpy(&k, CMSG_DATA(c), sizeof k);
+        clock_gettime(CLOCK_REALTIME, &r);
+        int64_t b = now_ns(s);
+        int64_t real = (int64_t)r.tv_sec * 1000000000LL + r.tv_nsec;
+        int64_t kernel = (int64_t)k.tv_sec * 1000000000LL + k.tv_nsec;
+        int64_t mapped = kernel + (a + (b - a) / 2 - real);
+        if (kernel > 0 && mapped <= b) {
+            *t_rx = mapped;
+            s->kernel_stamps++;
+        }
+    }
+#endif
+    return n;
+}
+
 static void serve(session *s) {
     send_hello(s);
     while (!s->stop) {
@@ -302,8 +346,8 @@ static void serve(session *s) {
         }
         /* drain() leaves less than one whole message (and grows the buffer to the
          * size a header announces), so there is always room to read into. */
-        ssize_t n = recv(s->fd, s->buf + s->len, s->cap - s->len, 0);
-        int64_t t_rx = now_ns(s); /* the read that completes a message stamps it */
+        int64_t t_rx; /* the read that completes a message stamps it */
+        ssize_t n = read_stamped(s, &t_rx);
         if (n < 0 && errno == EINTR) continue;
         if (n <= 0) break; /* end of stream: the harness has gone */
         s->len += (size_t)n;
@@ -369,6 +413,9 @@ static int tcp_open(const char *listen_at, const char *connect_to) {
     }
     freeaddrinfo(ai);
     if (fd >= 0) setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
+#ifdef SO_TIMESTAMPNS
+    if (fd >= 0) setsockopt(fd, SOL_SOCKET, SO_TIMESTAMPNS, &one, sizeof one);
+#endif
     return fd;
 }
 
@@ -422,9 +469,9 @@ int main(int argc, char **argv) {
     s.last_send_ns = now_ns(&s);
     serve(&s);
     fprintf(stderr, "hil_target: frames=%lu estimates=%lu dark=%lu syncs=%lu heartbeats=%lu bad=%lu "
-                    "errors_sent=%lu errors_received=%lu commands=%lu\n",
+                    "errors_sent=%lu errors_received=%lu commands=%lu kernel_stamps=%lu\n",
             s.frames, s.estimates, s.dark, s.syncs, s.heartbeats, s.bad, s.errors_sent, s.errors_received,
-            s.commands);
+            s.commands, s.kernel_stamps);
     free(s.buf);
     close(s.fd);
     return 0;
