@@ -4,6 +4,7 @@ compiler: the plain binary (-O2) and the AddressSanitizer + UBSan one, both with
 
 from __future__ import annotations
 
+import atexit
 import functools
 import shutil
 import subprocess
@@ -42,6 +43,7 @@ def build() -> CBinaries:
         AssertionError: the build failed (with the compiler's output).
     """
     out = Path(tempfile.mkdtemp(prefix="hil-c-target-"))
+    atexit.register(shutil.rmtree, out, True)
     proc = subprocess.run(["make", "-s", "-C", str(SOURCE), f"BUILD={out}", "all", "asan"],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, f"make failed:\n{proc.stdout}\n{proc.stderr}"
