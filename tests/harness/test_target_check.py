@@ -27,15 +27,17 @@ def _rows(out: str) -> dict[str, str]:
 
 
 @needs_cc
-def test_c_target_passes_over_local(capsys, monkeypatch):
+@pytest.mark.parametrize("clock", ["monotonic", "realtime"])
+def test_c_target_passes_over_local(clock, capsys, monkeypatch):
     for k, v in c_build.SAN_ENV.items():
         monkeypatch.setenv(k, v)
-    code = target_check.main(["local", "--", str(c_build.build().asan)])
+    code = target_check.main(["local", "--", str(c_build.build().asan), "--clock", clock])
     out = capsys.readouterr().out
     assert code == 0, out
     rows = _rows(out)
     assert len(rows) == 13 and set(rows.values()) == {"PASS"}, out
     assert "command 'status'" in rows and "13 of 13 checks passed" in out
+    assert f"clock {clock.upper()}" in out  # its own clock: the frame checks map it through clock sync
 
 
 @needs_cc
