@@ -4,13 +4,16 @@ one in lockstep with the same scenario, seed and parameters and the run's record
 per-frame latencies, and says whether the mismatch comes back.
 
 Exit codes: ``cases`` 0; ``replay`` 0 reproduced, 1 not reproduced; 2 for a missing
-or foreign run folder, a truncated database, an unknown case id.
+or foreign run folder, a truncated database, an unknown case id, or a target command
+that is not trusted (``harness.replay_trust``: a run folder from elsewhere is code;
+``--trust-config`` runs it anyway).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -34,6 +37,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     r.add_argument("run", type=Path, help="a run folder")
     r.add_argument("case_id", type=int, help="the case id (see hil cases RUN)")
     r.add_argument("--out", type=Path, default=None, help="replay folder (default RUN/replays/case-N-<time>)")
+    r.add_argument("--trust-config", action="store_true",
+                   help="run the target command of RUN/config.json even when it is not one of the current "
+                        "configs or example targets (a run folder from elsewhere can run any program)")
 
 
 def _run_dir(path: Path) -> Path:
@@ -92,6 +98,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
         cfg_data = json.loads(cfg_path.read_text())
     except (OSError, ValueError) as err:
         raise ConfigError(f"{cfg_path}: cannot read the run's config ({err})") from err
+    from harness.replay_trust import check_replay_command
+
+    check_replay_command(cfg_data, source=str(cfg_path), trust=args.trust_config,
+                         ask=input if sys.stdin.isatty() else None)
     sim_s = max(case["sim_time_ns"], 0) / 1e9
     cfg_data.update(mode="lockstep", progress=False, name=f"{cfg_data.get('name', 'run')}-replay-{args.case_id}",
                     duration_s=min(cfg_data.get("duration_s", sim_s + 3), sim_s + 3.0))
