@@ -10,7 +10,8 @@ fixture (elsewhere: ``pytest -p harness.pytest_plugin``)::
         result.assert_no_drops()
 
 ``hil_run(config, *, overrides=(), require_complete=True)`` runs the config (a YAML
-path, relative to the working directory or else to pytest's rootdir, or a mapping)
+path, relative to the working directory, else to pytest's rootdir, else to the
+checkout holding the package's ``hil_configs/``; or a mapping)
 in a fresh folder under the test's ``tmp_path`` and returns a :class:`HilRunResult`
 (``.summary``, ``.run_dir``, ``.mcap_path``). A config mistake or a target that
 cannot start fails the test with the one-line error, no traceback; a run that
@@ -120,11 +121,32 @@ class HilRunResult:
         self.assert_drop_rate(0.0, vehicle=vehicle)
 
 
+def config_search_path(rootdir: Path | None) -> list[Path]:
+    """Where a relative config path is looked for, in order: the working directory,
+    pytest's rootdir, and the folder holding this package's ``hil_configs/`` (a
+    checkout or an editable install), so ``hil_configs/regression.yaml`` works from
+    any test session."""
+    package_root = Path(__file__).resolve().parents[1]  # harness/ sits next to hil_configs/
+    places = [Path.cwd(), *([rootdir] if rootdir is not None else []), package_root]
+    return list(dict.fromkeys(p.resolve() for p in places))
+
+
 def _resolve(config: str | os.PathLike[str], rootdir: Path | None) -> Path:
+    """The config file ``config`` names (see ``config_search_path``).
+
+    Raises:
+        timing.errors.ConfigError: found in none of the places (all are listed).
+    """
+    from timing.errors import ConfigError
+
     p = Path(config)
-    if not p.is_absolute() and not p.exists() and rootdir is not None and (rootdir / p).exists():
-        return rootdir / p
-    return p
+    if p.is_absolute():
+        return p
+    places = config_search_path(rootdir)
+    for base in places:
+        if (base / p).is_file():
+            return base / p
+    raise ConfigError(f"config file not found: {p} (looked in {', '.join(str(b) for b in places)})")
 
 
 def run_config(config: str | os.PathLike[str] | Mapping[str, Any], *, out_dir: Path,
@@ -147,7 +169,12 @@ def run_config(config: str | os.PathLike[str] | Mapping[str, Any], *, out_dir: P
         cfg = parse_config(config, overrides=overrides)
     else:
         cfg = load_config(_resolve(config, rootdir), overrides=overrides)
-    result = execute(cfg, out_dir=prepare_out_dir(out_dir), gl_backend=backend, install_signal_handlers=False)
+    from harness.out_dir import release_out_dir
+
+    try:
+        result = execute(cfg, out_dir=prepare_out_dir(out_dir), gl_backend=backend, install_signal_handlers=False)
+    finally:
+        release_out_dir(out_dir)  # a test session runs many runs: give each folder's claim back
     ended = result.summary.get("ended_by")
     if not (result.out_dir / "report.html").exists():  # harness.run may write it already
         from harness.report import write_report
@@ -189,4 +216,4 @@ def hil_run(tmp_path: Path, request: pytest.FixtureRequest) -> HilRunner:
     return HilRunner(tmp_path, rootdir=Path(request.config.rootpath))
 
 
-__all__ = ["HilRunResult", "HilRunner", "hil_run", "run_config"]
+__all__ = ["HilRunResult", "HilRunner", "config_search_path", "hil_run", "run_config"]

@@ -102,3 +102,40 @@ def test_config_mistake_fails_the_test_in_one_line(tmp_path: Path) -> None:
     assert err.value.pytrace is False
     with pytest.raises(pytest.fail.Exception, match="config file not found"):
         runner(tmp_path / "missing.yaml")
+
+
+def test_packaged_configs_resolve_from_any_working_directory(tmp_path: Path, monkeypatch) -> None:
+    from harness.pytest_plugin import _resolve
+    from timing.errors import ConfigError
+
+    monkeypatch.chdir(tmp_path)  # a user's project: no hil_configs/ of its own
+    found = _resolve("hil_configs/regression.yaml", tmp_path)
+    assert found.is_file() and found.parent.name == "hil_configs", found
+    (tmp_path / "hil_configs").mkdir()
+    (tmp_path / "hil_configs" / "regression.yaml").write_text("name: mine\n")
+    assert _resolve("hil_configs/regression.yaml", tmp_path) == tmp_path / "hil_configs" / "regression.yaml"
+    with pytest.raises(ConfigError, match=r"config file not found: nope.yaml \(looked in "):
+        _resolve("nope.yaml", tmp_path)
+
+
+def _readme_block(marker: str) -> str:
+    text = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    blocks = text.split("```")
+    return next(b.split("\n", 1)[1] for b in blocks[1::2] if marker in b)
+
+
+@pytest.mark.slow
+def test_the_readme_fixture_sample_runs_as_shown(tmp_path: Path) -> None:
+    # Exactly the README's test, in a project folder of its own (not the checkout).
+    (tmp_path / "test_readme.py").write_text(_readme_block("def test_my_ai_budget(hil_run)"))
+    registered = any(e.value == "harness.pytest_plugin" for e in entry_points(group="pytest11"))
+    plugin = [] if registered else ["-p", "harness.pytest_plugin"]
+    p = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *plugin,
+                        "--rootdir", str(tmp_path), str(tmp_path / "test_readme.py")],
+                       cwd=tmp_path, env=dict(os.environ, MUJOCO_GL=GL_BACKEND), capture_output=True, text=True,
+                       timeout=300, check=False)
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert "1 passed" in p.stdout
+    # The README's sample failure names the folder the fixture really makes.
+    sample = _readme_block("AssertionError: latency budget exceeded")
+    assert "/hil-1-regression " in sample, sample
