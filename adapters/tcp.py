@@ -230,8 +230,9 @@ class TcpLink(Link):
     def _open(self) -> None:
         if self.listening:
             self.start_listening()
-        self._reader = threading.Thread(target=self._read_loop, name=f"tcp-rx-{self.vehicle_id}", daemon=True)
-        self._reader.start()
+        reader = threading.Thread(target=self._read_loop, name=f"tcp-rx-{self.vehicle_id}", daemon=True)
+        reader.start()
+        self._reader = reader  # only a started thread: close() may join it from another thread
 
     def _establish(self) -> socket.socket | None:
         """The connection, retried until the open deadline; None when closed or late."""
@@ -288,8 +289,9 @@ class TcpLink(Link):
         self._last_send = time.monotonic()
         self._connected.set()
         if self.heartbeat_idle_s > 0:
-            self._beater = threading.Thread(target=self._beat, name=f"tcp-hb-{self.vehicle_id}", daemon=True)
-            self._beater.start()
+            beater = threading.Thread(target=self._beat, name=f"tcp-hb-{self.vehicle_id}", daemon=True)
+            beater.start()
+            self._beater = beater
         buf = bytearray(_RECV_BYTES)
         view = memoryview(buf)
         st = self.tcp_stats
