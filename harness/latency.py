@@ -144,6 +144,10 @@ class HeldControls:
             out.append(heapq.heappop(self._heap))
         return out
 
+    def next_due(self) -> int | None:
+        """The earliest due sim time (ns) held, or None."""
+        return self._heap[0].due_sim_ns if self._heap else None
+
     def pop_all(self) -> list[Held]:
         out = sorted(self._heap)
         self._heap = []

@@ -1,31 +1,41 @@
-"""The simulator loop: step physics, capture and send frames, apply estimates.
+"""The run process's loop: world states in, frames out, estimates in, controls out.
 
-Real-time mode paces physics to the harness clock at ``realtime_factor`` and never
-waits for a target: an estimate is applied the moment it arrives, between physics
-steps, so latency has physical consequences. A physics step that runs more than
-``LATE_TOLERANCE_NS`` after its due time is counted as late (as a real-time test
-system counts late iterations); the summary says when real time was not kept.
+The simulation itself runs in the physics process and the cameras in the render
+pool (``harness.engine``); this loop is everything between them and the targets:
 
-Lockstep mode waits at each camera tick for every vehicle's estimate (or its
-timeout, a drop) before stepping on: deterministic, for regression and replay.
-With a latency profile (``harness.latency``) each control is held and applied when
-sim time reaches its capture time plus the frame's latency.
+* a world state from the physics process at a camera instant (stamped ``t_state``)
+  becomes ground truth (computed on a mirror of the world, ``self.sim``) and a
+  render job for the capturing vehicles;
+* a rendered frame (stamped ``t0``, bytes in shared memory) is sent to its target
+  (``t_tx``) and waits in flight for its estimate;
+* an estimate (``t0'`` stamped by the link's reader, at the wire where the socket
+  allows) sends its control to the physics process, which applies it at once and
+  answers with ``t_apply`` and the world at that instant; then the frame's pipeline
+  record is complete and goes to the observers and the recording.
 
-Ground truth goes to ``/ground_truth`` at every camera tick (every entity's state
-the first time, then the entities that changed; ego truth; collisions) and, with
-``truth.visible_boxes``, to ``/<vehicle>/truth`` (the camera's visible boxes from a
-segmentation render, after the frames are sent so it adds no capture latency).
+Real-time mode: the physics process paces itself and never waits for this loop or
+a target. Lockstep mode: this loop tells the physics process how far to step and
+which controls to apply first, waiting at each camera instant for every vehicle's
+estimate (or its timeout, a drop): deterministic, for regression and replay. With a
+latency profile (``harness.latency``) each control is held and applied when sim time
+reaches its capture time plus the frame's latency.
+
+Ground truth goes to ``/ground_truth`` at every camera instant (every entity's state
+the first time, then the entities that changed; the capturing egos' truth;
+collisions) and, with ``truth.visible_boxes``, to ``/<vehicle>/truth`` (the camera's
+visible boxes from a segmentation render done by the render worker after the frame).
 """
 
 from __future__ import annotations
 
-import math
 import gc
+import math
 import queue
+import sys
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
-import cv2
 import numpy as np
 
 from adapters.link import Received
@@ -33,28 +43,48 @@ from adapters.messages import CameraInfo, Command, ErrorMsg, Estimate, Heartbeat
 from harness import foxglove_out
 from harness.channels import sync_sample_json
 from harness.config import CameraConfig, Encoding, Mode, RunConfig
+from harness.engine.physics import PhysicsSpec, capture_table, spread_phases
+from harness.engine.pool import Engine
+from harness.engine.render import RenderSpec, encode_image as _encode
 from harness.latency import HeldControls, LatencyProfile
 from harness.observers import RunObserver
 from harness.recorder import Recorder
 from harness.vehicle_state import InFlight, VehicleRun
 from scenarios.ground_truth import GroundTruth, StateChanges
 from scenarios.sim import Simulation
-from timing.clock import MonotonicClock
+from timing.clock import Clock
 from timing.errors import TransportError
 from timing.records import FrameStatus, PipelineRecord
 
-LATE_TOLERANCE_NS = 10_000_000
+TICK_NS = 5_000_000          # observers' on_tick and the live display, at most this often
+PHYSICS_END_TIMEOUT_S = 10.0
 
 
 def encode_image(rgb: np.ndarray, camera: CameraConfig) -> tuple[bytes, ImageEncoding]:
     """An RGB8 render as the wire carries it: JPEG at the configured quality, or raw."""
-    if camera.encoding == Encoding.JPEG:
-        ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
-                               (cv2.IMWRITE_JPEG_QUALITY, camera.jpeg_quality))
-        if not ok:  # pragma: no cover - OpenCV failing to encode a valid array
-            raise RuntimeError("JPEG encoding failed")
-        return buf.tobytes(), ImageEncoding.JPEG
-    return rgb.tobytes(), ImageEncoding.RGB8
+    data, enc = _encode(rgb, jpeg=camera.encoding == Encoding.JPEG, quality=camera.jpeg_quality)
+    return bytes(data) if isinstance(data, (bytes, bytearray)) else data.tobytes(), ImageEncoding(enc)
+
+
+def engine_specs(cfg: RunConfig, world: Any, rules: Any) -> tuple[PhysicsSpec, RenderSpec]:
+    """The physics and render specs of a run (camera phases, pacing, late tolerance)."""
+    step_ns = round(world.physics_step_s * 1e9)
+    egos = tuple(v.name for v in world.vehicles if v.ego)
+    period = cfg.camera_period_steps
+    eng = cfg.engine
+    realtime = cfg.mode == Mode.REALTIME
+    phases = (spread_phases(len(egos), period) if realtime and eng.capture_phase == "spread"
+              else tuple(0 for _ in egos))
+    cam = cfg.camera
+    physics = PhysicsSpec(world=world, rules=rules, realtime=realtime,
+                          total_steps=round(cfg.duration_s * 1e9 / step_ns),
+                          wall_per_step_ns=step_ns / cfg.realtime_factor, period_steps=period, phases=phases,
+                          late_tolerance_ns=int(eng.late_tolerance_ms * 1e6),
+                          realtime_priority=eng.realtime_priority if realtime else 0)
+    render = RenderSpec(world=world, vehicles=egos, shm={}, slot_bytes=cam.width * cam.height * 3 + 65536,
+                        jpeg=cam.encoding == Encoding.JPEG, jpeg_quality=cam.jpeg_quality,
+                        visible_boxes=cfg.truth.visible_boxes, min_visible_px=cfg.truth.min_visible_px)
+    return physics, render
 
 
 @dataclass
@@ -65,21 +95,34 @@ class LoopStats:
     late_steps: int = 0
     max_lateness_ns: int = 0
     ended_by: str = "duration"
+    lateness: dict[str, Any] = field(default_factory=dict)   # the physics process's histogram
+    scheduling: str = ""
+    render_workers: int = 0
 
 
 class SimLoop:
-    """Runs one configured simulation against its vehicles' links."""
+    """Runs one configured simulation (in ``engine``) against its vehicles' links.
+
+    ``sim`` is a mirror of the physics process's world in this process: ground truth
+    and the summary's final state are taken from it. ``events`` is the one queue the
+    links and the engine's pumps deliver into.
+    """
 
     def __init__(self, cfg: RunConfig, sim: Simulation, vehicles: list[VehicleRun],
-                 rx: queue.Queue[Received], recorder: Recorder, clock: MonotonicClock,
-                 *, on_tick: Callable[[], None] | None = None, latency: LatencyProfile | None = None) -> None:
-        self.cfg, self.sim, self.vehicles, self.rx, self.rec, self.clock = cfg, sim, vehicles, rx, recorder, clock
+                 events: queue.Queue[Any], recorder: Recorder, clock: Clock, *, engine: Engine,
+                 physics: PhysicsSpec, on_tick: Callable[[], None] | None = None,
+                 latency: LatencyProfile | None = None) -> None:
+        self.cfg, self.sim, self.vehicles, self.rx, self.rec, self.clock = cfg, sim, vehicles, events, recorder, clock
+        self.engine, self.physics = engine, physics
         self.by_id = {v.vehicle_id: v for v in vehicles}
-        self.stats = LoopStats()
+        self.by_name = {v.name: v for v in vehicles}
+        self.egos = sim.egos
+        self.stats = LoopStats(render_workers=engine.workers, scheduling=engine.scheduling)
         self.stop_reason: str | None = None
         self.on_tick = on_tick
         self.timeout_ns = int(cfg.target.estimate_timeout_s * 1e9)
         self.period = cfg.camera_period_steps
+        self.table = capture_table(self.period, physics.phases)
         intr = sim.intrinsics()
         cam = cfg.camera
         self.camera_info = CameraInfo(intr.fx, intr.fy, intr.cx, intr.cy, cam.mount_height_m,
@@ -93,9 +136,21 @@ class SimLoop:
         self.collisions: list[dict[str, object]] = []
         self.min_gap_m: dict[str, float] = {}
         self._next_sync_ns = 0
+        self._frame_of: dict[tuple[str, int], int] = {}  # (vehicle, steps) -> frame id, for camera truth
+        self._rendering = 0
+        self._applying: dict[tuple[int, int], tuple[VehicleRun, InFlight, Estimate, int]] = {}
+        self._lockstep_ctls: list[tuple[Any, ...]] = []
+        self._sim_steps = 0
+        self._state_seen = -1
+        self._finished = False
+        self._done: tuple[Any, ...] | None = None
+        self._physics_eof = False
+        self._halted = False
+        self._next_tick_ns = 0
 
     def request_stop(self, reason: str) -> None:
-        """Ask the loop to end after the current step (signal handlers call this)."""
+        """Ask the loop to end (signal handlers call this): stepping stops, frames in
+        flight are still answered or time out."""
         if self.stop_reason is None:
             self.stop_reason = reason
 
@@ -104,112 +159,260 @@ class SimLoop:
     def run(self) -> LoopStats:
         """Run to the configured duration (or a stop request); returns the loop's stats.
 
-        Python's full (generation 2) garbage collection is held off during the loop
-        and everything allocated before it is frozen: a full collection over a run's
-        growing history stalled the loop for 60-80 ms (measured); with it held off
-        the worst physics-step lateness fell to ~24 ms. It is restored afterwards.
+        Python's full garbage collection is held off during the loop (a collection
+        over a run's growing history stalled it for 60-80 ms) and restored afterwards.
         """
         thresholds = gc.get_threshold()
+        switch = sys.getswitchinterval()
         gc.collect()
         gc.freeze()
         gc.set_threshold(thresholds[0], thresholds[1], 1_000_000)
+        # The links' readers and the engine's pumps stamp and hand over in threads:
+        # let them have the interpreter within 0.5 ms, not Python's default 5 ms.
+        sys.setswitchinterval(0.0005)
         try:
             return self._run()
         finally:
+            sys.setswitchinterval(switch)
             gc.set_threshold(*thresholds)
             gc.unfreeze()
 
     def _run(self) -> LoopStats:
-        total_steps = round(self.cfg.duration_s * 1e9 / self.sim.step_ns)
-        wall_per_step = self.sim.step_ns / self.cfg.realtime_factor
-        lockstep = self.cfg.mode == Mode.LOCKSTEP
         st = self.stats
         st.wall_start_ns = self.clock.now_ns()
         self._next_sync_ns = st.wall_start_ns
         try:
-            while self.sim.steps < total_steps and self.stop_reason is None:
-                if not lockstep:
-                    due = st.wall_start_ns + int(self.sim.steps * wall_per_step)
-                    now = self.clock.now_ns()
-                    if now < due:
-                        self._service(until_ns=due)
-                        continue
-                    lateness = now - due
-                    st.max_lateness_ns = max(st.max_lateness_ns, lateness)
-                    if lateness > LATE_TOLERANCE_NS:
-                        st.late_steps += 1
-                if self.sim.steps % self.period == 0:
-                    self._send_commands()
-                    self._capture_all()
-                    if lockstep:
-                        self._await_answers()
-                if self.held is not None:
-                    for h in self.held.pop_due(self.sim.sim_time_ns):
-                        self._settle(*h.item)  # type: ignore[misc]
-                self.sim.step()
-                self._service(until_ns=0)
-                if self.observers:
-                    now_ns, sim_ns = self.clock.now_ns(), self.sim.sim_time_ns
-                    for ob in self.observers:
-                        ob.on_tick(now_ns=now_ns, sim_time_ns=sim_ns)
-                if self.on_tick is not None:
-                    self.on_tick()
-            # Let the frames in flight finish (answer or time out): nothing unaccounted.
+            self.engine.start(st.wall_start_ns)
+            if self.cfg.mode == Mode.LOCKSTEP:
+                self._run_lockstep()
+            else:
+                while not self._finished:
+                    if self.stop_reason is not None and not self._halted:
+                        self._halted = True
+                        self.engine.halt()
+                    self._service(until_ns=self.clock.now_ns() + TICK_NS)
+                    if not self.engine.alive() and not self._finished:
+                        self.request_stop("the physics or a render process ended unexpectedly")
+                        break
             self._drain()
             self._settle_held_at_end()
         except KeyboardInterrupt:
             self.request_stop("interrupted (Ctrl-C)")
             self._expire_all()
-        st.sim_steps = self.sim.steps
+        self._end_physics()
+        st.sim_steps = self._sim_steps
         st.wall_end_ns = self.clock.now_ns()
         if self.stop_reason is not None:
             st.ended_by = self.stop_reason
         return st
 
+    def _run_lockstep(self) -> None:
+        """Step to each camera instant (or held control's due step), capture, wait for
+        every answer, then tell the physics the controls to apply and the next stop."""
+        total = self.physics.total_steps
+        step, ctls = 0, []
+        while self.stop_reason is None:
+            self.engine.advance(step, ctls)
+            if step >= total:
+                break
+            while self._state_seen < step and self.stop_reason is None:
+                self._service(until_ns=self.clock.now_ns() + TICK_NS)
+                if not self.engine.alive():
+                    self.request_stop("the physics or a render process ended unexpectedly")
+            self._await_answers()
+            if self.held is not None:
+                for h in self.held.pop_due(step * self.sim.step_ns):
+                    self._settle(*h.item)  # type: ignore[misc]
+            ctls, self._lockstep_ctls = self._lockstep_ctls, []
+            step = self._next_stop(step, total)
+        if self.stop_reason is not None:
+            self.engine.halt()
+        while not self._finished and self.engine.alive():
+            self._service(until_ns=self.clock.now_ns() + TICK_NS)
+
+    def _next_stop(self, step: int, total: int) -> int:
+        nxt = (step // self.period + 1) * self.period
+        for p in self.table:
+            cand = (step // self.period) * self.period + p
+            cand = cand if cand > step else cand + self.period
+            nxt = min(nxt, cand)
+        if self.held is not None:
+            due = self.held.next_due()
+            if due is not None:
+                nxt = min(nxt, max(step + 1, -(-due // self.sim.step_ns)))
+        return min(nxt, total)
+
+    def _end_physics(self) -> None:
+        """Let the physics process finish, take its histogram and final state."""
+        try:
+            self.engine.exit_physics()
+        except (OSError, ValueError):
+            return
+        deadline = self.clock.now_ns() + int(PHYSICS_END_TIMEOUT_S * 1e9)
+        while self._done is None and not self._physics_eof and self.clock.now_ns() < deadline:
+            self._service(until_ns=self.clock.now_ns() + TICK_NS)
+        if self._done is None:
+            return
+        hist, steps, qpos, qvel, collisions = self._done
+        st = self.stats
+        st.lateness = hist
+        st.late_steps = int(hist["late_steps"])
+        st.max_lateness_ns = int(hist["max_ns"])
+        self._sim_steps = int(steps)
+        self.sim.load_state(steps, qpos, qvel)
+        if collisions:
+            self.sim.add_collisions(collisions)
+            self._record_truth(self.sim.ground_truth(egos=()))
+
+    # -- events ----------------------------------------------------------------
+
+    def _service(self, *, until_ns: int, until_answered: bool = False) -> None:
+        """Handle events until ``until_ns`` (0: only what is waiting), or, with
+        ``until_answered``, as soon as nothing is rendering or in flight."""
+        while True:
+            now = self.clock.now_ns()
+            self._expire(now)
+            if now >= self._next_tick_ns:
+                self._tick(now)
+            timeout_s = max(0.0, (until_ns - now) / 1e9)
+            try:
+                ev = self.rx.get(timeout=min(timeout_s, TICK_NS / 1e9)) if timeout_s > 0 else self.rx.get_nowait()
+            except queue.Empty:
+                self.collect_sync()
+                if until_ns == 0 or self.clock.now_ns() >= until_ns:
+                    return
+                continue
+            self._dispatch(ev)
+            if until_answered and not self._busy():
+                self.collect_sync()
+                return
+
+    def _busy(self) -> bool:
+        return self._rendering > 0 or any(v.in_flight for v in self.vehicles)
+
+    def _tick(self, now: int) -> None:
+        self._next_tick_ns = now + TICK_NS
+        sim_ns = self.sim.sim_time_ns
+        for ob in self.observers:
+            ob.on_tick(now_ns=now, sim_time_ns=sim_ns)
+        if self.on_tick is not None:
+            self.on_tick()
+
+    def _dispatch(self, ev: Any) -> None:
+        if isinstance(ev, Received):
+            self._handle(ev)
+        elif ev[0] == "physics":
+            self._on_physics(ev[1:])
+        elif ev[0] == "render":
+            self._on_render(ev[1:])
+        elif ev[0] == "eof":
+            if ev[1] == "physics":
+                self._physics_eof = True
+            if self._done is None:
+                self.request_stop(f"the {ev[1]} process ended unexpectedly")
+
+    def _on_physics(self, m: tuple[Any, ...]) -> None:
+        tag = m[0]
+        if tag == "state":
+            self._on_state(*m[1:])
+        elif tag == "applied":
+            self._on_applied(*m[1:])
+        elif tag == "finished":
+            self._finished = True
+            self._sim_steps = int(m[1])
+        elif tag == "done":
+            self._done = m[1:]
+
     # -- frames out ----------------------------------------------------------
 
-    def _capture_all(self) -> None:
-        gt = self.sim.ground_truth()
-        self._record_truth(gt)
-        for v in self.vehicles:
+    def _on_state(self, vis: tuple[int, ...], t_state: int, steps: int, qpos: np.ndarray, qvel: np.ndarray,
+                  collisions: list[Any]) -> None:
+        """A camera instant (the render workers have it from the physics already):
+        truth, commands due, clock-sync probes."""
+        self._sim_steps = max(self._sim_steps, steps)
+        self._state_seen = steps
+        sim = self.sim
+        sim.load_state(steps, qpos, qvel)
+        if collisions:
+            sim.add_collisions(collisions)
+        names = [self.egos[i] for i in vis]
+        if not names and not collisions:
+            return
+        self._send_commands()
+        self._record_truth(sim.ground_truth(egos=tuple(names)))
+        if not names or self.stop_reason is not None:
+            return
+        self._rendering += len(names)
+        for name in names:
+            v = self.by_name[name]
             if not v.link.alive:
                 self.request_stop(f"target of {v.name} is gone: {v.link.peer_gone_reason}")
                 return
-            rgb = self.sim.render(v.name)
-            t0 = self.clock.now_ns()
-            data, enc = encode_image(rgb, self.cfg.camera)
-            frame_id = v.next_frame_id
-            v.next_frame_id += 1
-            try:
-                t_tx = v.link.send_frame(frame_id=frame_id, sim_time_ns=self.sim.sim_time_ns, t0_ns=t0,
-                                         width=rgb.shape[1], height=rgb.shape[0], encoding=enc,
-                                         camera=self.camera_info, ego_speed_mps=self.sim.speed_mps(v.name),
-                                         data=data)
-            except TransportError as err:
-                self.request_stop(f"target of {v.name} is gone: {err}")
+        self._maybe_sync()
+
+    def _on_render(self, m: tuple[Any, ...]) -> None:
+        tag = m[0]
+        if tag == "frame":
+            self._on_frame(*m[1:])
+        elif tag == "camtruth":
+            name, steps, ct = m[1:]
+            frame_id = self._frame_of.pop((name, steps), None)
+            if frame_id is None:
                 return
-            v.in_flight[frame_id] = InFlight(frame_id, self.sim.sim_time_ns, t0, t_tx)
-            v.fps_meter.add(t0)
-            if self.cfg.recording.images:
-                topic = f"/{v.name}/camera"
-                if enc == ImageEncoding.JPEG:
-                    self.rec.write_image(topic, data, fmt="jpeg", frame_id=f"{v.name}/camera",
-                                         log_time_ns=t0, publish_time_ns=t0)
-                else:
-                    self.rec.write_raw_image(topic, rgb, encoding="rgb8", frame_id=f"{v.name}/camera",
-                                             log_time_ns=t0, publish_time_ns=t0)
+            t = self.clock.now_ns()
+            for ob in self.observers:
+                if hasattr(ob, "on_camera_truth"):
+                    ob.on_camera_truth(name, frame_id, ct)
+            self.rec.write_json(f"/{name}/truth", {"frame_id": frame_id, **ct.to_json()},
+                                log_time_ns=t, publish_time_ns=t)
+        elif tag == "error":
+            self.request_stop(str(m[1]))
+
+    def _on_frame(self, name: str, steps: int, t_state: int, speed_mps: float, t0: int, _t_encoded: int,
+                  slot: int, nbytes: int, enc: int) -> None:
+        self._rendering -= 1
+        if self.stop_reason is not None:
+            return
+        v = self.by_name[name]
+        data = self.engine.frame_bytes(name, slot, nbytes)
+        cam = self.cfg.camera
+        frame_id = v.next_frame_id
+        v.next_frame_id += 1
         if self.cfg.truth.visible_boxes:
-            self._record_camera_truth()
+            self._frame_of[(name, steps)] = frame_id
+        sim_time_ns = steps * self.sim.step_ns
+        encoding = ImageEncoding(enc)
+        try:
+            t_tx = v.link.send_frame(frame_id=frame_id, sim_time_ns=sim_time_ns, t0_ns=t0, width=cam.width,
+                                     height=cam.height, encoding=encoding, camera=self.camera_info,
+                                     ego_speed_mps=speed_mps, data=data)
+        except TransportError as err:
+            self.request_stop(f"target of {v.name} is gone: {err}")
+            return
+        v.in_flight[frame_id] = InFlight(frame_id, sim_time_ns, t0, t_tx, t_state)
+        v.fps_meter.add(t0)
+        if self.cfg.recording.images:
+            topic = f"/{v.name}/camera"
+            if encoding == ImageEncoding.JPEG:
+                self.rec.write_image(topic, data, fmt="jpeg", frame_id=f"{v.name}/camera",
+                                     log_time_ns=t0, publish_time_ns=t0)
+            else:
+                rgb = np.frombuffer(data, np.uint8).reshape(cam.height, cam.width, 3)
+                self.rec.write_raw_image(topic, rgb, encoding="rgb8", frame_id=f"{v.name}/camera",
+                                         log_time_ns=t0, publish_time_ns=t0)
+
+    def _maybe_sync(self) -> None:
         now = self.clock.now_ns()
-        if now >= self._next_sync_ns:
-            sync = self.cfg.timing.sync
-            self._next_sync_ns = now + int(sync.interval_s * 1e9)
-            for v in self.vehicles:
-                try:
-                    for _ in range(sync.burst):  # the clock filter keeps the fastest
-                        v.link.send_sync_request()
-                except TransportError:
-                    pass
+        if now < self._next_sync_ns:
+            return
+        sync = self.cfg.timing.sync
+        self._next_sync_ns = now + int(sync.interval_s * 1e9)
+        for v in self.vehicles:
+            try:
+                for _ in range(sync.burst):  # the clock filter keeps the fastest
+                    v.link.send_sync_request()
+            except TransportError:
+                pass
 
     def _record_truth(self, gt: GroundTruth) -> None:
         t = self.clock.now_ns()
@@ -232,35 +435,7 @@ class SimLoop:
         }, log_time_ns=t, publish_time_ns=t)
         foxglove_out.write(self.rec, gt, egos=self._ego_names, t_ns=t)
 
-    def _record_camera_truth(self) -> None:
-        """Per camera: the entities it shows (segmentation render), for the frame just sent."""
-        for v in self.vehicles:
-            ct = self.sim.camera_truth(v.name, min_visible_px=self.cfg.truth.min_visible_px)
-            t = self.clock.now_ns()
-            for ob in self.observers:
-                if hasattr(ob, "on_camera_truth"):
-                    ob.on_camera_truth(v.name, v.next_frame_id - 1, ct)
-            self.rec.write_json(f"/{v.name}/truth", {"frame_id": v.next_frame_id - 1, **ct.to_json()},
-                                log_time_ns=t, publish_time_ns=t)
-
     # -- answers in ----------------------------------------------------------
-
-    def _service(self, *, until_ns: int, until_answered: bool = False) -> None:
-        """Handle received messages until ``until_ns`` (0: only what is waiting), or,
-        with ``until_answered``, as soon as no frame is in flight any more."""
-        while True:
-            now = self.clock.now_ns()
-            self._expire(now)
-            timeout_s = max(0.0, (until_ns - now) / 1e9)
-            try:
-                r = self.rx.get(timeout=timeout_s) if timeout_s > 0 else self.rx.get_nowait()
-            except queue.Empty:
-                self.collect_sync()
-                return
-            self._handle(r)
-            if until_answered and not any(v.in_flight for v in self.vehicles):
-                self.collect_sync()
-                return
 
     def _handle(self, r: Received) -> None:
         v = self.by_id.get(r.link_vehicle_id)
@@ -302,11 +477,12 @@ class SimLoop:
         fl = v.in_flight.pop(m.frame_id, None)
         if fl is None:
             # Already counted as dropped (late) or never sent (a confused target).
-            if m.frame_id < v.next_frame_id:
+            late = m.frame_id < v.next_frame_id
+            if late:
                 v.late_estimates += 1
             else:
                 v.unknown_estimates += 1
-            ev = {"kind": "late_estimate" if m.frame_id < v.next_frame_id else "unknown_estimate",
+            ev = {"kind": "late_estimate" if late else "unknown_estimate",
                   "vehicle": v.name, "frame_id": m.frame_id, "t0p_ns": t0p}
             self.rec.write_json("/events", ev, log_time_ns=t0p, publish_time_ns=t0p)
             return
@@ -316,25 +492,44 @@ class SimLoop:
         self._settle(v, fl, m, t0p)
 
     def _settle(self, v: VehicleRun, fl: InFlight, m: Estimate, t0p: int) -> None:
-        """Apply an answered frame's control now (or count it stale) and record it."""
-        t_apply: int | None = None
-        sim_apply: int | None = None
-        if m.frame_id > v.last_applied_frame_id:
-            c = m.control
-            self.sim.set_control(v.name, steering_rad=c.steering_rad, throttle=c.throttle, brake=c.brake)
-            t_apply = self.clock.now_ns()
-            sim_apply = self.sim.sim_time_ns
-            v.last_applied_frame_id = m.frame_id
-            status = FrameStatus.OK
-            for ob in self.observers:
-                if hasattr(ob, "on_apply"):
-                    ob.on_apply(v.name, m.frame_id, self.sim.truth_snapshot)
+        """Send an answered frame's control to the physics (its record completes when
+        the physics says it applied it), or count it stale."""
+        if m.frame_id <= v.last_applied_frame_id:
+            self._complete(v, fl, m, t0p, FrameStatus.STALE)
+            return
+        v.last_applied_frame_id = m.frame_id
+        c = m.control
+        self._applying[(v.vehicle_id, m.frame_id)] = (v, fl, m, t0p)
+        ctl = (v.vehicle_id, m.frame_id, c.steering_rad, c.throttle, c.brake)
+        if self.cfg.mode == Mode.LOCKSTEP:
+            self._lockstep_ctls.append(("ctl", *ctl))
         else:
-            status = FrameStatus.STALE
-        rec = PipelineRecord(v.name, fl.frame_id, fl.sim_time_ns, fl.t0_ns, fl.t_tx_ns, status,
-                             m.t_rx_target_ns, m.t_infer_start_target_ns, m.t_infer_end_target_ns,
-                             m.t_reply_target_ns, t0p, t_apply, sim_apply)
-        self._add_record(v, rec, m)
+            try:
+                self.engine.control(*ctl)
+            except (OSError, ValueError):
+                self._applying.pop((v.vehicle_id, m.frame_id))
+                self._complete(v, fl, m, t0p, FrameStatus.STALE)
+
+    def _on_applied(self, vi: int, frame_id: int, t_apply: int, steps: int, qpos: np.ndarray,
+                    qvel: np.ndarray) -> None:
+        item = self._applying.pop((vi, frame_id), None)
+        if item is None:
+            return
+        v, fl, m, t0p = item
+        sim = self.sim
+
+        def truth_now() -> GroundTruth:
+            sim.load_state(steps, qpos, qvel)
+            return sim.truth_snapshot(egos=(v.name,))
+
+        for ob in self.observers:
+            if hasattr(ob, "on_apply"):
+                ob.on_apply(v.name, frame_id, truth_now)
+        self._complete(v, fl, m, t0p, FrameStatus.OK, t_apply=t_apply, sim_apply=steps * sim.step_ns)
+
+    def _complete(self, v: VehicleRun, fl: InFlight, m: Estimate, t0p: int, status: FrameStatus, *,
+                  t_apply: int | None = None, sim_apply: int | None = None) -> None:
+        self._add_record(v, _record(v, fl, status, m, t0p, t_apply, sim_apply), m)
         self.rec.write_json(f"/{v.name}/estimate", {
             "frame_id": m.frame_id, "state": m.state.name,
             "control": {"steering_rad": m.control.steering_rad, "throttle": m.control.throttle,
@@ -347,9 +542,7 @@ class SimLoop:
         assert self.held is not None and self.latency is not None
         d = self.latency.delay(v.vehicle_id, fl.frame_id)
         if d.latency_ns is None:  # the replayed run lost (or discarded) this frame: so does the replay
-            self._add_record(v, PipelineRecord(v.name, fl.frame_id, fl.sim_time_ns, fl.t0_ns, fl.t_tx_ns, d.status,
-                                               m.t_rx_target_ns, m.t_infer_start_target_ns, m.t_infer_end_target_ns,
-                                               m.t_reply_target_ns, t0p), m)
+            self._add_record(v, _record(v, fl, d.status, m, t0p), m)
             ev = {"kind": "replayed_" + d.status.value, "vehicle": v.name, "frame_id": fl.frame_id}
             self.rec.write_json("/events", ev, log_time_ns=t0p, publish_time_ns=fl.t0_ns)
             return
@@ -361,9 +554,7 @@ class SimLoop:
             return
         for h in self.held.pop_all():
             v, fl, m, t0p = h.item  # type: ignore[misc]
-            self._add_record(v, PipelineRecord(v.name, fl.frame_id, fl.sim_time_ns, fl.t0_ns, fl.t_tx_ns,
-                                               FrameStatus.PENDING, m.t_rx_target_ns, m.t_infer_start_target_ns,
-                                               m.t_infer_end_target_ns, m.t_reply_target_ns, t0p), m)
+            self._add_record(v, _record(v, fl, FrameStatus.PENDING, m, t0p), m)
 
     def _add_record(self, v: VehicleRun, rec: PipelineRecord, estimate: Estimate | None = None) -> None:
         v.add(rec)
@@ -379,39 +570,44 @@ class SimLoop:
             if not v.in_flight:
                 continue
             for fid in [f for f, fl in v.in_flight.items() if now - fl.t0_ns > self.timeout_ns]:
-                self._drop(v, v.in_flight.pop(fid), now)
+                self._drop(v, v.in_flight.pop(fid))
 
     def _expire_all(self) -> None:
-        now = self.clock.now_ns()
         for v in self.vehicles:
             for fid in sorted(v.in_flight):
-                self._drop(v, v.in_flight.pop(fid), now)
+                self._drop(v, v.in_flight.pop(fid))
 
-    def _drop(self, v: VehicleRun, fl: InFlight, now: int) -> None:
-        self._add_record(v, PipelineRecord(v.name, fl.frame_id, fl.sim_time_ns, fl.t0_ns, fl.t_tx_ns,
-                                           FrameStatus.DROPPED))
-        ev = {"kind": "dropped_frame", "vehicle": v.name, "frame_id": fl.frame_id,
-              "timeout_ms": self.timeout_ns / 1e6}
-        self.rec.write_json("/events", ev, log_time_ns=now, publish_time_ns=fl.t0_ns)
+    def _drop(self, v: VehicleRun, fl: InFlight) -> None:
+        """No estimate within the timeout: the record says DROPPED; the event is the
+        timing analysis's ``dropped_frame`` anomaly (one event per dropped frame)."""
+        self._add_record(v, _record(v, fl, FrameStatus.DROPPED))
 
     def _await_answers(self) -> None:
-        """Lockstep: wait until no vehicle has a frame in flight."""
-        while any(v.in_flight for v in self.vehicles) and self.stop_reason is None:
-            deadline = min(fl.t0_ns for v in self.vehicles for fl in v.in_flight.values()) + self.timeout_ns
+        """Lockstep: wait until nothing renders and no vehicle has a frame in flight."""
+        while self._busy() and self.stop_reason is None:
+            deadline = self.clock.now_ns() + self.timeout_ns
+            if any(v.in_flight for v in self.vehicles):
+                deadline = min(fl.t0_ns for v in self.vehicles for fl in v.in_flight.values()) + self.timeout_ns
             self._service(until_ns=deadline + 1, until_answered=True)
             if any(not v.link.alive for v in self.vehicles if v.in_flight):
                 gone = next(v for v in self.vehicles if not v.link.alive)
                 self.request_stop(f"target of {gone.name} is gone: {gone.link.peer_gone_reason}")
                 self._expire_all()
+            if not self.engine.alive():
+                self.request_stop("the physics or a render process ended unexpectedly")
 
     def _drain(self) -> None:
-        if any(v.in_flight for v in self.vehicles):
-            deadline = max(fl.t0_ns for v in self.vehicles for fl in v.in_flight.values()) + self.timeout_ns
-            while any(v.in_flight for v in self.vehicles) and self.clock.now_ns() <= deadline:
-                if not all(v.link.alive for v in self.vehicles if v.in_flight):
-                    break
-                self._service(until_ns=min(deadline + 1, self.clock.now_ns() + 50_000_000))
+        """Let the frames being rendered or in flight finish (answer or time out)."""
+        deadline = self.clock.now_ns() + self.timeout_ns + 1_000_000_000
+        while self._busy() and self.clock.now_ns() <= deadline:
+            if not all(v.link.alive for v in self.vehicles if v.in_flight) or not self.engine.alive():
+                break
+            self._service(until_ns=min(deadline + 1, self.clock.now_ns() + 50_000_000), until_answered=True)
         self._expire_all()
+        if self._lockstep_ctls:  # answers that came while draining a lockstep run
+            ctls, self._lockstep_ctls = self._lockstep_ctls, []
+            for c in ctls:
+                self.engine.control(*c[1:])
         self.collect_sync()
 
     def collect_sync(self) -> None:
@@ -422,3 +618,14 @@ class SimLoop:
                     ob.on_sync(v.name, s)
                 self.rec.write_json(f"/{v.name}/clock_sync", sync_sample_json(s), log_time_ns=s.t4_ns,
                                     publish_time_ns=s.t1_ns)
+
+
+def _record(v: VehicleRun, fl: InFlight, status: FrameStatus, m: Estimate | None = None, t0p: int | None = None,
+            t_apply: int | None = None, sim_apply: int | None = None) -> PipelineRecord:
+    """The one place a frame's pipeline record is built."""
+    if m is None:
+        return PipelineRecord(v.name, fl.frame_id, fl.sim_time_ns, fl.t0_ns, fl.t_tx_ns, status,
+                              t_state_ns=fl.t_state_ns)
+    return PipelineRecord(v.name, fl.frame_id, fl.sim_time_ns, fl.t0_ns, fl.t_tx_ns, status,
+                          m.t_rx_target_ns, m.t_infer_start_target_ns, m.t_infer_end_target_ns,
+                          m.t_reply_target_ns, t0p, t_apply, sim_apply, fl.t_state_ns)

@@ -84,7 +84,8 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
     from harness.corner_cases import CaseRecorder
     from harness.detector_observer import DetectorObserver
     from harness.latency import LatencyProfile
-    from harness.loop import SimLoop, encode_image
+    from harness.engine.pool import Engine, auto_workers
+    from harness.loop import SimLoop, encode_image, engine_specs
     from harness.recorder import Recorder
     from harness.report import write_report
     from harness.summary import build_summary
@@ -111,7 +112,7 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
     rules = RefStateRules(comfort_decel_mps2=t.comfort_decel_mps2, stop_margin_m=t.stop_margin_m,
                           slow_headway_s=t.slow_headway_s, slow_ttc_s=t.slow_ttc_s)
     clock = MonotonicClock()
-    rx: queue.Queue[Received] = queue.Queue(maxsize=4096)
+    rx: queue.Queue[Any] = queue.Queue(maxsize=4096)  # links' messages and the engine's, one queue
     mcap_path = out_dir / "run.mcap"
     (out_dir / "config.json").write_text(json.dumps(dump_config(cfg), indent=2, sort_keys=True) + "\n")
     summary_path = out_dir / "summary.json"
@@ -121,20 +122,24 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
         "scenario_realized": world.realized,
         "latency_profile": None if latency is None else latency.describe(),
     }
+    # ``sim`` mirrors the physics process's world here (truth, summary); it renders
+    # only for the CAN preflight.
     with Simulation(world, rules=rules) as sim:
-        sim.open_renderer()
-        for name in sim.egos:  # first renders compile shaders; keep them out of the loop
-            first = sim.render(name)
-            if cfg.truth.visible_boxes:
-                sim.camera_truth(name, min_visible_px=cfg.truth.min_visible_px)
         if cfg.target.transport == Transport.CAN:
             # The bus must carry the frames: check with a real frame of this run
             # (+25 % for scenes busier than the first one) before anything starts.
-            size = len(encode_image(first, cfg.camera)[0])
+            size = len(encode_image(sim.render(sim.egos[0]), cfg.camera)[0])
+            sim.close()
             notify(can_preflight(cfg, frame_bytes=int(size * 1.25)))
         vehicles: list[VehicleRun] = []
         procs: list[TargetProcess] = []
+        engine: Engine | None = None
         try:
+            # Physics and render processes start first: their start-up (MuJoCo, EGL,
+            # shaders) overlaps the targets'.
+            phys_spec, render_spec = engine_specs(cfg, world, rules)
+            engine = Engine(physics=phys_spec, render=render_spec, events=rx,
+                            workers=cfg.engine.render_workers or auto_workers(len(sim.egos)))
             for i, name in enumerate(sim.egos):
                 link, proc = make_link(cfg, vehicle_id=i, vehicle=name, clock=clock, out_dir=out_dir, rx=rx)
                 if proc is not None:
@@ -160,7 +165,8 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
                         rec.write_json(f"/{name}/clock_sync", sync_sample_json(s, warmup=True),
                                        log_time_ns=s.t4_ns, publish_time_ns=s.t1_ns)
                         timing.on_sync(name, s)
-                loop = SimLoop(cfg, sim, vehicles, rx, rec, clock, latency=latency)
+                loop = SimLoop(cfg, sim, vehicles, rx, rec, clock, engine=engine, physics=phys_spec,
+                               latency=latency)
                 loop.observers.append(timing)
                 if detector is not None:
                     loop.observers.append(detector)
@@ -198,6 +204,8 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
                 v.link.close()
             for p in procs:
                 p.close()
+            if engine is not None:
+                engine.close()
     summary_path.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
     write_report(out_dir)
     return RunResult(out_dir, mcap_path, summary_path, summary)

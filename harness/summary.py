@@ -56,7 +56,10 @@ def build_summary(*, loop: SimLoop, stats: LoopStats, recorder_stats: dict[str, 
     rtf = sim_s / wall_s
     realtime = loop.cfg.mode.value == "realtime"
     requested = loop.cfg.realtime_factor
-    kept = (not realtime) or (rtf >= 0.95 * requested and stats.late_steps <= 0.01 * max(stats.sim_steps, 1))
+    lat = stats.lateness
+    # Real time is kept when the pace held and no physics step started later than
+    # the tolerance (1 ms by default).
+    kept = (not realtime) or (rtf >= 0.95 * requested and stats.late_steps == 0)
     vehicles = {v.name: vehicle_summary(v, wall_s=wall_s, timing=timing, detector=detector) for v in loop.vehicles}
     final = {e.vehicle: e for e in loop.sim.truth_snapshot().egos}  # once, and without taking collisions
     for name, s in vehicles.items():
@@ -77,9 +80,14 @@ def build_summary(*, loop: SimLoop, stats: LoopStats, recorder_stats: dict[str, 
             "requested_factor": requested,
             "achieved_factor": round(rtf, 4),
             "late_steps": stats.late_steps,
-            "late_tolerance_ms": 10.0,
+            "late_tolerance_ms": lat.get("tolerance_ns", 0) / 1e6,
+            "steps_over_10ms": lat.get("steps_over_10ms", 0),
+            "lateness_ms": {q: round(lat.get(f"{q}_ns", 0) / 1e6, 3) for q in ("p50", "p99", "p999")},
+            "lateness_histogram": {"bin_ns": lat.get("bin_ns"), "bins": lat.get("bins", {})},
             "max_lateness_ms": round(stats.max_lateness_ns / 1e6, 3),
             "kept_realtime": kept,
+            "physics_scheduling": stats.scheduling,
+            "render_workers": stats.render_workers,
         },
         "collisions": loop.collisions,
         "recorder": recorder_stats,

@@ -19,6 +19,7 @@ class InFlight:
     sim_time_ns: int
     t0_ns: int
     t_tx_ns: int
+    t_state_ns: int | None = None  # the camera instant: when the physics reached sim_time_ns
 
 
 @dataclass

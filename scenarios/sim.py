@@ -203,6 +203,33 @@ class Simulation:
             self._scan_contacts()
         self.steps += 1
 
+    # -- state hand-over (physics process -> mirrors that render and judge) ----
+
+    def state(self) -> tuple[int, np.ndarray, np.ndarray]:
+        """(step count, qpos copy, qvel copy): everything a mirror of this world
+        needs to show and judge the present instant (scripted entities follow from
+        the step count)."""
+        return self.steps, self.data.qpos.copy(), self.data.qvel.copy()
+
+    def load_state(self, steps: int, qpos: np.ndarray, qvel: np.ndarray) -> None:
+        """Make this simulation a mirror of another one's ``state()``: images, ground
+        truth and camera truth then show that instant exactly."""
+        self.steps = steps
+        np.copyto(self.data.qpos, qpos)
+        np.copyto(self.data.qvel, qvel)
+        self._kin_step = -1
+        self._states_step = -1
+
+    def take_collisions(self) -> list[Collision]:
+        """The collisions that began since the previous call (physics side)."""
+        out, self._new_collisions = self._new_collisions, []
+        return out
+
+    def add_collisions(self, collisions: list[Collision]) -> None:
+        """Collisions found by the physics this mirror follows; the next
+        ``ground_truth()`` reports them."""
+        self._new_collisions.extend(collisions)
+
     def _place_scripted(self, step: int) -> None:
         if len(self._mocap):
             r = self._table.row(step)
@@ -337,23 +364,23 @@ class Simulation:
         self._states_step = self.steps
         return self._states_cache
 
-    def ground_truth(self) -> GroundTruth:
-        """Every entity's state, every ego's truth, and the collisions that began
-        since the previous call."""
+    def ground_truth(self, *, egos: tuple[str, ...] | None = None) -> GroundTruth:
+        """Every entity's state, the truth of ``egos`` (default: every ego), and the
+        collisions that began since the previous call."""
         self._sync_kinematics()
         t = self.sim_time_ns
         xs, ys, hs, vxs, vys = (a.tolist() for a in self._states())
         ents = tuple(EntityState(v.name, v.cls.value, xs[i], ys[i], vxs[i], vys[i], hs[i], v.size_m, i, t)
                      for i, v in enumerate(self.world.vehicles))
-        egos = tuple(self._ego_truth(name) for name in self.egos)
+        egos = tuple(self._ego_truth(name) for name in (self.egos if egos is None else egos))
         collisions, self._new_collisions = tuple(self._new_collisions), []
         return GroundTruth(t, ents, egos, collisions)
 
-    def truth_snapshot(self) -> GroundTruth:
-        """Every entity's state and every ego's truth now, without taking the new
-        collisions (they stay for the next ``ground_truth()``)."""
+    def truth_snapshot(self, *, egos: tuple[str, ...] | None = None) -> GroundTruth:
+        """Every entity's state and the truth of ``egos`` (default: every ego) now,
+        without taking the new collisions (they stay for the next ``ground_truth()``)."""
         pending = self._new_collisions
-        gt = self.ground_truth()
+        gt = self.ground_truth(egos=egos)
         self._new_collisions = pending
         return GroundTruth(gt.sim_time_ns, gt.entities, gt.egos, ())
 

@@ -1,0 +1,222 @@
+"""The physics process: keeps time and nothing else.
+
+It steps the simulation at wall-clock pace (real time) or as far as the run process
+says (lockstep), applies each control the moment it arrives, and at every camera
+instant sends the world state to the run process. Each step's lateness (how long
+after its due instant it started) goes into a fixed-size histogram.
+
+Messages (tuples, over one ``multiprocessing`` pipe between our own processes):
+
+run -> physics                           physics -> run
+``("start", wall_start_ns)``             ``("ready", scheduling)``
+``("ctl", vi, frame_id, s, t, b)``       ``("applied", vi, frame_id, t_apply_ns, steps, qpos, qvel)``
+``("advance", to_step, [ctl...])``       ``("state", vis, t_state_ns, steps, qpos, qvel, collisions)``
+``("halt",)`` stop stepping              ``("finished", steps)`` (then still applies controls)
+``("exit",)``                            ``("done", LatenessHistogram.to_json(), final state)``
+"""
+
+from __future__ import annotations
+
+import gc
+import os
+import select
+import time
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+
+from harness.engine.procs import ask_realtime, die_with_parent
+
+SPIN_NS = 60_000          # spin the last 60 µs before a due instant (sleep overshoots)
+BIN_NS = 10_000           # lateness histogram resolution: 10 µs
+BINS = 10_000             # up to 100 ms; beyond goes to the last bin (max kept exactly)
+OVER_10MS_NS = 10_000_000
+
+
+@dataclass(frozen=True)
+class PhysicsSpec:
+    """What the physics process needs; pickled once at start."""
+
+    world: Any                      # scenarios.world.WorldSpec
+    rules: Any                      # scenarios.ground_truth.RefStateRules
+    realtime: bool
+    total_steps: int
+    wall_per_step_ns: float
+    period_steps: int
+    phases: tuple[int, ...]         # capture phase (steps) of each ego, in 0..period-1
+    late_tolerance_ns: int
+    realtime_priority: int
+    assign: tuple[int, ...] = ()    # render worker (index into the job pipes) of each ego
+
+
+def capture_table(period_steps: int, phases: tuple[int, ...]) -> dict[int, tuple[int, ...]]:
+    """Step-in-period -> the egos (indices) whose camera captures at that step."""
+    out: dict[int, list[int]] = {}
+    for vi, p in enumerate(phases):
+        out.setdefault(p % period_steps, []).append(vi)
+    return {k: tuple(v) for k, v in out.items()}
+
+
+def spread_phases(n: int, period_steps: int) -> tuple[int, ...]:
+    """Capture phases spread evenly over the camera period (no capture burst)."""
+    return tuple((i * period_steps) // max(n, 1) for i in range(n))
+
+
+class LatenessHistogram:
+    """Per-step lateness in 10 µs bins up to 100 ms, the exact maximum, and the count
+    over the late tolerance and over 10 ms. Fixed memory whatever the run length."""
+
+    def __init__(self, *, tolerance_ns: int) -> None:
+        self.counts = np.zeros(BINS, np.int64)
+        self.tolerance_ns = tolerance_ns
+        self.n = 0
+        self.late = 0
+        self.over_10ms = 0
+        self.max_ns = 0
+
+    def add(self, lateness_ns: int) -> None:
+        self.n += 1
+        self.counts[min(lateness_ns // BIN_NS, BINS - 1)] += 1
+        if lateness_ns > self.tolerance_ns:
+            self.late += 1
+            if lateness_ns > OVER_10MS_NS:
+                self.over_10ms += 1
+        if lateness_ns > self.max_ns:
+            self.max_ns = lateness_ns
+
+    def quantile_ns(self, q: float) -> int:
+        """Upper edge of the bin holding quantile ``q`` (0..1); 0 with no steps."""
+        if self.n == 0:
+            return 0
+        k = int(np.searchsorted(np.cumsum(self.counts), max(1, int(np.ceil(q * self.n)))))
+        return min((k + 1) * BIN_NS, self.max_ns) if k < BINS - 1 else self.max_ns
+
+    def to_json(self) -> dict[str, Any]:
+        nz = np.flatnonzero(self.counts)
+        return {"steps": self.n, "late_steps": self.late, "steps_over_10ms": self.over_10ms,
+                "tolerance_ns": self.tolerance_ns, "max_ns": self.max_ns,
+                "p50_ns": self.quantile_ns(0.5), "p99_ns": self.quantile_ns(0.99),
+                "p999_ns": self.quantile_ns(0.999), "bin_ns": BIN_NS,
+                "bins": {int(k): int(self.counts[k]) for k in nz}}
+
+
+def physics_main(conn: Connection, jobs: list[Connection], spec: PhysicsSpec, parent_pid: int) -> None:
+    """Entry point of the physics process. ``jobs``: one pipe to each render worker,
+    which gets the world state of its vehicles' camera instants directly."""
+    die_with_parent(parent_pid)
+    scheduling = ask_realtime(spec.realtime_priority)
+    from scenarios.sim import Simulation  # no renderer here: physics only
+
+    sim = Simulation(spec.world, rules=spec.rules)
+    keeper = _Keeper(conn, jobs, sim, spec)
+    gc.collect()
+    gc.freeze()
+    gc.disable()  # the loop makes no reference cycles; a collection would be a stall
+    conn.send(("ready", scheduling))
+    try:
+        keeper.serve()
+    except (EOFError, BrokenPipeError, KeyboardInterrupt):
+        pass
+    finally:
+        conn.close()
+        os._exit(0)
+
+
+class _Keeper:
+    def __init__(self, conn: Connection, jobs: list[Connection], sim: Any, spec: PhysicsSpec) -> None:
+        self.conn, self.jobs, self.sim, self.spec = conn, jobs, sim, spec
+        self.egos: tuple[str, ...] = sim.egos
+        self.table = capture_table(spec.period_steps, spec.phases)
+        self.hist = LatenessHistogram(tolerance_ns=spec.late_tolerance_ns)
+        self.halted = False
+        self.exiting = False
+        self.fd = conn.fileno()
+
+    # -- messages ---------------------------------------------------------------
+
+    def _pending(self) -> bool:
+        return bool(select.select([self.fd], [], [], 0)[0])
+
+    def _handle(self, msg: tuple[Any, ...]) -> None:
+        tag = msg[0]
+        if tag == "ctl":
+            self._apply(msg)
+        elif tag == "halt":
+            self.halted = True
+        elif tag == "exit":
+            self.halted = self.exiting = True
+
+    def _apply(self, msg: tuple[Any, ...]) -> None:
+        _, vi, frame_id, steer, throttle, brake = msg
+        self.sim.set_control(self.egos[vi], steering_rad=steer, throttle=throttle, brake=brake)
+        t_apply = time.monotonic_ns()
+        steps, qpos, qvel = self.sim.state()
+        self.conn.send(("applied", vi, frame_id, t_apply, steps, qpos, qvel))
+
+    def _drain(self) -> None:
+        while self._pending():
+            self._handle(self.conn.recv())
+
+    def _publish(self, vis: tuple[int, ...], t_state_ns: int) -> None:
+        """A camera instant: the state to the render workers first (capture latency),
+        then to the run process (truth)."""
+        steps, qpos, qvel = self.sim.state()
+        by_worker: dict[int, list[str]] = {}
+        for vi in vis:
+            by_worker.setdefault(self.spec.assign[vi], []).append(self.egos[vi])
+        for w, names in by_worker.items():
+            self.jobs[w].send(("job", steps, qpos, qvel, names, t_state_ns))
+        self.conn.send(("state", vis, t_state_ns, steps, qpos, qvel, self.sim.take_collisions()))
+
+    # -- the loops ----------------------------------------------------------------
+
+    def serve(self) -> None:
+        msg = self.conn.recv()
+        if msg[0] == "exit":
+            return
+        if self.spec.realtime:
+            self._realtime(int(msg[1]))
+        else:
+            self._lockstep()
+        self.conn.send(("finished", self.sim.steps))
+        while not self.exiting:  # the run drains its frames: controls still apply
+            self._handle(self.conn.recv())
+        steps, qpos, qvel = self.sim.state()
+        self.conn.send(("done", self.hist.to_json(), steps, qpos, qvel, self.sim.take_collisions()))
+
+    def _realtime(self, start_ns: int) -> None:
+        sim, spec, clock = self.sim, self.spec, time.monotonic_ns
+        period, table, wps = spec.period_steps, self.table, spec.wall_per_step_ns
+        while sim.steps < spec.total_steps and not self.halted:
+            due = start_ns + int(sim.steps * wps)
+            now = clock()
+            while now < due:
+                wait = due - now
+                if wait > SPIN_NS and select.select([self.fd], [], [], (wait - SPIN_NS) / 1e9)[0]:
+                    self._handle(self.conn.recv())  # a control: applied at once
+                now = clock()
+            self.hist.add(now - due)
+            self._drain()
+            vis = table.get(sim.steps % period)
+            if vis is not None:
+                self._publish(vis, now)
+            sim.step()
+
+    def _lockstep(self) -> None:
+        sim, spec = self.sim, self.spec
+        while not self.halted:
+            msg = self.conn.recv()
+            if msg[0] != "advance":
+                self._handle(msg)
+                continue
+            _, to_step, ctls = msg
+            for c in ctls:
+                self._apply(c)
+            to_step = min(int(to_step), spec.total_steps)
+            while sim.steps < to_step:
+                sim.step()
+            if sim.steps >= spec.total_steps:
+                return
+            self._publish(self.table.get(sim.steps % spec.period_steps, ()), time.monotonic_ns())

@@ -1,0 +1,157 @@
+"""``Engine``: the physics process and the render pool of one run, seen from the run
+process. A context manager; ``close()`` is idempotent, ends every child (by PID) and
+unlinks the shared memory."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import queue
+from dataclasses import replace
+from typing import Any
+
+from harness.engine.physics import PhysicsSpec, physics_main
+from harness.engine.procs import Pump, widen_pipe
+from harness.engine.render import FrameSlots, RenderSpec, render_main
+from timing.errors import SimulationError
+
+START_TIMEOUT_S = 60.0
+
+
+def auto_workers(n_vehicles: int) -> int:
+    """Render workers when the config says 0: one per spare core, at most one per
+    vehicle (the physics process and the run process keep a core between them)."""
+    return max(1, min(n_vehicles, (os.cpu_count() or 2) - 1))
+
+
+class Engine:
+    """Starts the children; their messages arrive in ``events`` (the run's one event
+    queue, which the links feed too) as tuples tagged ``"physics"`` or ``"render"``."""
+
+    def __init__(self, *, physics: PhysicsSpec, render: RenderSpec, workers: int,
+                 events: queue.Queue[Any]) -> None:
+        self._procs: list[Any] = []
+        self._conns: list[Any] = []
+        self.slots: dict[str, FrameSlots] = {}
+        self.scheduling = "not started"
+        self.worker_pids: list[int] = []
+        self.events = events
+        ctx = mp.get_context("spawn")
+        names = render.vehicles
+        try:
+            self.slots = {v: FrameSlots(slot_bytes=render.slot_bytes) for v in names}
+            shm = {v: s.shm.name for v, s in self.slots.items()}
+            self.workers = max(1, min(workers, len(names)))
+            self.assign = {v: i % self.workers for i, v in enumerate(names)}
+            self._render: list[Any] = []
+            job_ends = []
+            for w in range(self.workers):
+                mine = tuple(v for v in names if self.assign[v] == w)
+                rs = replace(render, vehicles=mine, shm={v: shm[v] for v in mine})
+                a, b = ctx.Pipe()
+                jr, jw = ctx.Pipe(duplex=False)  # physics -> worker: world states
+                for c in (a, b, jr, jw):
+                    widen_pipe(c)
+                rp = ctx.Process(target=render_main, args=(b, jr, rs, os.getpid()), name=f"hil-render-{w}",
+                                 daemon=True)
+                rp.start()
+                b.close()
+                jr.close()
+                job_ends.append(jw)
+                self._procs.append(rp)
+                self._render.append(a)
+            physics = replace(physics, assign=tuple(self.assign[v] for v in names))
+            pc, cc = ctx.Pipe()
+            widen_pipe(pc), widen_pipe(cc)
+            p = ctx.Process(target=physics_main, args=(cc, job_ends, physics, os.getpid()), name="hil-physics",
+                            daemon=True)
+            p.start()
+            cc.close()
+            for jw in job_ends:
+                jw.close()
+            self._procs.append(p)
+            self._physics = pc
+            self._conns = [pc, *self._render]
+            self.scheduling = self._expect(pc, "ready", "physics")[1]
+            for w, c in enumerate(self._render):
+                self.worker_pids.append(int(self._expect(c, "ready", f"render worker {w}")[1]))
+            self._pumps = [Pump(pc, events, name="physics", transform=lambda m: ("physics", *m))]
+            self._pumps += [Pump(c, events, name=f"render-{w}", transform=lambda m: ("render", *m))
+                            for w, c in enumerate(self._render)]
+        except BaseException:
+            self.close()
+            raise
+
+    @staticmethod
+    def _expect(conn: Any, tag: str, who: str) -> tuple[Any, ...]:
+        if not conn.poll(START_TIMEOUT_S):
+            raise SimulationError(f"{who} did not start within {START_TIMEOUT_S:.0f} s")
+        try:
+            msg = conn.recv()
+        except EOFError as err:
+            raise SimulationError(f"{who} exited while starting") from err
+        if msg[0] != tag:
+            raise SimulationError(str(msg[1]) if msg[0] == "error" else f"{who}: unexpected {msg[0]!r}")
+        return msg
+
+    # -- to the physics process ------------------------------------------------------
+
+    def start(self, wall_start_ns: int) -> None:
+        self._physics.send(("start", wall_start_ns))
+
+    def control(self, vi: int, frame_id: int, steering: float, throttle: float, brake: float) -> None:
+        self._physics.send(("ctl", vi, frame_id, steering, throttle, brake))
+
+    def advance(self, to_step: int, controls: list[tuple[Any, ...]]) -> None:
+        self._physics.send(("advance", to_step, controls))
+
+    def halt(self) -> None:
+        self._physics.send(("halt",))
+
+    def exit_physics(self) -> None:
+        self._physics.send(("exit",))
+
+    # -- from the render pool ----------------------------------------------------------
+
+    def frame_bytes(self, vehicle: str, slot: int, nbytes: int) -> bytes:
+        return self.slots[vehicle].read(slot, nbytes)
+
+    def alive(self) -> bool:
+        return all(p.is_alive() for p in self._procs)
+
+    # -- lifetime ------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """End every child (asked first, then terminated, then killed) and unlink the
+        shared memory. Idempotent."""
+        procs, self._procs = self._procs, []
+        for c in getattr(self, "_render", []):
+            try:
+                c.send(("stop",))
+            except (OSError, ValueError):
+                pass
+        if procs:
+            try:
+                self._physics.send(("exit",))
+            except (OSError, ValueError, AttributeError):
+                pass
+        for p in procs:
+            p.join(2.0)
+            if p.is_alive():
+                p.terminate()
+                p.join(2.0)
+            if p.is_alive():
+                p.kill()
+                p.join(2.0)
+        for c in self._conns:
+            c.close()
+        self._conns = []
+        slots, self.slots = self.slots, {}
+        for s in slots.values():
+            s.close()
+
+    def __enter__(self) -> Engine:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,139 @@
+"""Render workers: each a process with its own MuJoCo mirror of the world and its own
+EGL context, serving the cameras of the vehicles assigned to it.
+
+A job is a world state sent by the physics process itself at a camera instant (so
+a capture never waits behind the run process) and the vehicles to capture. The
+worker renders each camera, stamps ``t0`` when the pixels are ready, encodes, and
+writes the bytes into that vehicle's shared-memory slot ring (images never cross a
+pipe); then, with ``truth.visible_boxes``, it renders segmentation for the camera
+truth — after every frame of the job is out, so truth adds no capture latency.
+
+Worker -> run messages: ``("ready", pid)``, ``("frame", vehicle, steps, t_state_ns,
+speed_mps, t0_ns, t_encoded_ns, slot, nbytes, encoding)``, ``("camtruth", vehicle,
+steps, CameraTruth)``, ``("error", text)``. The run process sends ``("stop",)``.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from multiprocessing import shared_memory
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+
+from harness.engine.procs import die_with_parent
+
+SLOTS = 8  # frames of one camera in flight between a worker and the links
+
+
+def encode_image(rgb: np.ndarray, *, jpeg: bool, quality: int) -> tuple[bytes | np.ndarray, int]:
+    """An RGB8 render as the wire carries it: JPEG bytes at ``quality``, or the raw
+    array. Returns (data, wire encoding value: 1 RGB8, 2 JPEG)."""
+    if jpeg:
+        import cv2
+
+        ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), (cv2.IMWRITE_JPEG_QUALITY, quality))
+        if not ok:  # pragma: no cover - OpenCV failing to encode a valid array
+            raise RuntimeError("JPEG encoding failed")
+        return buf, 2
+    return rgb, 1
+
+
+@dataclass(frozen=True)
+class RenderSpec:
+    world: Any                     # scenarios.world.WorldSpec
+    vehicles: tuple[str, ...]      # the cameras this worker serves
+    shm: dict[str, str]            # vehicle -> shared-memory block name
+    slot_bytes: int
+    jpeg: bool
+    jpeg_quality: int
+    visible_boxes: bool
+    min_visible_px: int
+
+
+class FrameSlots:
+    """One vehicle's ring of ``SLOTS`` image slots in shared memory (run side owns
+    and unlinks it)."""
+
+    def __init__(self, *, slot_bytes: int, name: str | None = None) -> None:
+        self.slot_bytes = slot_bytes
+        create = name is None
+        self.shm = shared_memory.SharedMemory(name=name, create=create, size=slot_bytes * SLOTS if create else 0)
+        self.owner = create
+        self.buf = np.ndarray((SLOTS, slot_bytes), np.uint8, buffer=self.shm.buf)
+
+    def write(self, slot: int, data: bytes | np.ndarray) -> int:
+        flat = np.frombuffer(data, np.uint8) if isinstance(data, (bytes, bytearray)) else data.reshape(-1)
+        n = flat.size
+        self.buf[slot, :n] = flat
+        return n
+
+    def read(self, slot: int, nbytes: int) -> bytes:
+        return self.buf[slot, :nbytes].tobytes()
+
+    def close(self) -> None:
+        shm = getattr(self, "shm", None)
+        if shm is None:
+            return
+        self.shm = None  # type: ignore[assignment]
+        del self.buf
+        shm.close()
+        if self.owner:
+            try:
+                shm.unlink()
+            except FileNotFoundError:
+                pass
+
+
+def render_main(conn: Connection, jobs: Connection, spec: RenderSpec, parent_pid: int) -> None:
+    """Entry point of a render worker: jobs from the physics process on ``jobs``,
+    results (and ``stop``) with the run process on ``conn``."""
+    from multiprocessing.connection import wait
+
+    die_with_parent(parent_pid)
+    slots: dict[str, FrameSlots] = {}
+    try:
+        from scenarios.sim import Simulation
+
+        sim = Simulation(spec.world)
+        sim.open_renderer()
+        for name in spec.vehicles:  # first renders compile shaders: keep them out of the run
+            sim.render(name)
+            if spec.visible_boxes:
+                sim.camera_truth(name, min_visible_px=spec.min_visible_px)
+        slots = {v: FrameSlots(slot_bytes=spec.slot_bytes, name=spec.shm[v]) for v in spec.vehicles}
+    except Exception as err:  # noqa: BLE001 - reported to the run, which raises SimulationError
+        conn.send(("error", f"render worker could not start: {err}"))
+        os._exit(1)
+    counter = {v: 0 for v in spec.vehicles}
+    conn.send(("ready", os.getpid()))
+    try:
+        while True:
+            ready = wait([jobs, conn])
+            if conn in ready:
+                break  # "stop" (or the run process is gone)
+            msg = jobs.recv()
+            _, steps, qpos, qvel, names, t_state = msg
+            sim.load_state(steps, qpos, qvel)
+            for name in names:
+                rgb = sim.render(name)
+                t0 = time.monotonic_ns()
+                data, enc = encode_image(rgb, jpeg=spec.jpeg, quality=spec.jpeg_quality)
+                slot = counter[name] % SLOTS
+                counter[name] += 1
+                n = slots[name].write(slot, data)
+                conn.send(("frame", name, steps, t_state, sim.speed_mps(name), t0, time.monotonic_ns(), slot, n,
+                           enc))
+            if spec.visible_boxes:
+                for name in names:
+                    conn.send(("camtruth", name, steps, sim.camera_truth(name, min_visible_px=spec.min_visible_px)))
+    except (EOFError, BrokenPipeError, KeyboardInterrupt):
+        pass
+    finally:
+        for s in slots.values():
+            s.close()
+        sim.close()
+        os._exit(0)
