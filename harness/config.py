@@ -206,6 +206,24 @@ class LatencyConfig(BaseModel):
     drop_prob: Float = Field(0.0, ge=0, le=1)
 
 
+class CapturePhase(str, Enum):
+    """When each vehicle's camera captures within the camera period (real time)."""
+
+    SPREAD = "spread"    # vehicle i at i/N of the period: no capture burst
+    ALIGNED = "aligned"  # every camera at the same instant (lockstep always is)
+
+
+class EngineConfig(BaseModel):
+    """The run's processes: physics pacing and the render pool (harness/engine)."""
+
+    model_config = _MODEL_CONFIG
+
+    render_workers: Int = Field(0, ge=0, le=256)  # 0: one per spare core, at most one per vehicle
+    capture_phase: CapturePhase = CapturePhase.SPREAD
+    late_tolerance_ms: Float = Field(1.0, gt=0, le=1000)  # a physics step later than this is late
+    realtime_priority: Int = Field(10, ge=0, le=99)  # SCHED_FIFO for the physics process (0: don't ask)
+
+
 class LockstepConfig(BaseModel):
     """Lockstep-only settings."""
 
@@ -239,6 +257,7 @@ class RunConfig(BaseModel):
     timing: TimingConfig = Field(default_factory=TimingConfig)
     detector: DetectorSettings = Field(default_factory=DetectorSettings)
     corner_cases: CornerCaseSettings = Field(default_factory=CornerCaseSettings)
+    engine: EngineConfig = Field(default_factory=EngineConfig)
     progress: bool = True
 
     @model_validator(mode="after")
