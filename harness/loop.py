@@ -13,6 +13,10 @@ pool (``harness.engine``); this loop is everything between them and the targets:
   answers with ``t_apply`` and the world at that instant; then the frame's pipeline
   record is complete and goes to the observers and the recording.
 
+Truth, observers (timing analysis, detector) and recording run on the analysis
+thread (``harness.engine.analysis``); the loop thread only moves world states,
+frames, estimates and controls, so none of them waits behind analysis.
+
 Real-time mode: the physics process paces itself and never waits for this loop or
 a target. Lockstep mode: this loop tells the physics process how far to step and
 which controls to apply first, waiting at each camera instant for every vehicle's
@@ -28,6 +32,7 @@ visible boxes from a segmentation render done by the render worker after the fra
 
 from __future__ import annotations
 
+import functools
 import gc
 import math
 import queue
@@ -38,11 +43,13 @@ from typing import Any
 
 import numpy as np
 
-from adapters.link import Received
+from adapters.link import ProtocolFault, Received
+from adapters.protocol import ErrorCode
 from adapters.messages import CameraInfo, Command, ErrorMsg, Estimate, Heartbeat, ImageEncoding
 from harness import foxglove_out
 from harness.channels import sync_sample_json
 from harness.config import CameraConfig, Encoding, Mode, RunConfig
+from harness.engine.analysis import AnalysisThread
 from harness.engine.physics import PhysicsSpec, capture_table, spread_phases
 from harness.engine.pool import Engine
 from harness.engine.render import RenderSpec, encode_image as _encode
@@ -56,6 +63,7 @@ from timing.clock import Clock
 from timing.errors import TransportError
 from timing.records import FrameStatus, PipelineRecord
 
+MAX_PROTOCOL_EVENTS = 200  # per vehicle; beyond, counted (summary: protocol_events_unwritten)
 TICK_NS = 5_000_000          # observers' on_tick and the live display, at most this often
 PHYSICS_END_TIMEOUT_S = 10.0
 
@@ -137,6 +145,9 @@ class SimLoop:
         self.min_gap_m: dict[str, float] = {}
         self._next_sync_ns = 0
         self._frame_of: dict[tuple[str, int], int] = {}  # (vehicle, steps) -> frame id, for camera truth
+        self._camtruth_early: list[tuple[str, int, int, Any]] = []  # camera truth ahead of its world state
+        self._sim_ns = 0  # the latest camera instant's sim time (loop thread)
+        self.analysis = AnalysisThread()
         self._rendering = 0
         self._applying: dict[tuple[int, int], tuple[VehicleRun, InFlight, Estimate, int]] = {}
         self._lockstep_ctls: list[tuple[Any, ...]] = []
@@ -173,6 +184,7 @@ class SimLoop:
         try:
             return self._run()
         finally:
+            self.analysis.close()
             sys.setswitchinterval(switch)
             gc.set_threshold(*thresholds)
             gc.unfreeze()
@@ -259,10 +271,7 @@ class SimLoop:
         st.late_steps = int(hist["late_steps"])
         st.max_lateness_ns = int(hist["max_ns"])
         self._sim_steps = int(steps)
-        self.sim.load_state(steps, qpos, qvel)
-        if collisions:
-            self.sim.add_collisions(collisions)
-            self._record_truth(self.sim.ground_truth(egos=()))
+        self.analysis.post(self._final_state_task, steps, qpos, qvel, collisions)
 
     # -- events ----------------------------------------------------------------
 
@@ -292,9 +301,7 @@ class SimLoop:
 
     def _tick(self, now: int) -> None:
         self._next_tick_ns = now + TICK_NS
-        sim_ns = self.sim.sim_time_ns
-        for ob in self.observers:
-            ob.on_tick(now_ns=now, sim_time_ns=sim_ns)
+        self.analysis.post(self._tick_task, now, self._sim_ns)
         if self.on_tick is not None:
             self.on_tick()
 
@@ -331,15 +338,16 @@ class SimLoop:
         truth, commands due, clock-sync probes."""
         self._sim_steps = max(self._sim_steps, steps)
         self._state_seen = steps
-        sim = self.sim
-        sim.load_state(steps, qpos, qvel)
-        if collisions:
-            sim.add_collisions(collisions)
+        self._sim_ns = steps * self.sim.step_ns
         names = [self.egos[i] for i in vis]
         if not names and not collisions:
             return
         self._send_commands()
-        self._record_truth(sim.ground_truth(egos=tuple(names)))
+        self.analysis.post(self._truth_task, steps, qpos, qvel, collisions, tuple(names))
+        if self._camtruth_early:
+            early, self._camtruth_early = self._camtruth_early, []
+            for item in early:
+                self._on_camtruth(*item)
         if not names or self.stop_reason is not None:
             return
         self._rendering += len(names)
@@ -357,16 +365,18 @@ class SimLoop:
         elif tag == "camtruth":
             name, steps, ct = m[1:]
             frame_id = self._frame_of.pop((name, steps), None)
-            if frame_id is None:
-                return
-            t = self.clock.now_ns()
-            for ob in self.observers:
-                if hasattr(ob, "on_camera_truth"):
-                    ob.on_camera_truth(name, frame_id, ct)
-            self.rec.write_json(f"/{name}/truth", {"frame_id": frame_id, **ct.to_json()},
-                                log_time_ns=t, publish_time_ns=t)
+            if frame_id is not None:
+                self._on_camtruth(name, steps, frame_id, ct)
         elif tag == "error":
             self.request_stop(str(m[1]))
+
+    def _on_camtruth(self, name: str, steps: int, frame_id: int, ct: Any) -> None:
+        """Camera truth goes to the analysis after its instant's ground truth (the
+        render worker's pipe may overtake the physics's)."""
+        if steps > self._state_seen:
+            self._camtruth_early.append((name, steps, frame_id, ct))
+            return
+        self.analysis.post(self._camtruth_task, name, frame_id, ct)
 
     def _on_frame(self, name: str, steps: int, t_state: int, speed_mps: float, t0: int, _t_encoded: int,
                   slot: int, nbytes: int, enc: int) -> None:
@@ -394,12 +404,12 @@ class SimLoop:
         if self.cfg.recording.images:
             topic = f"/{v.name}/camera"
             if encoding == ImageEncoding.JPEG:
-                self.rec.write_image(topic, data, fmt="jpeg", frame_id=f"{v.name}/camera",
-                                     log_time_ns=t0, publish_time_ns=t0)
+                self.analysis.post(functools.partial(self.rec.write_image, topic, data, fmt="jpeg",
+                                                     frame_id=f"{v.name}/camera", log_time_ns=t0, publish_time_ns=t0))
             else:
                 rgb = np.frombuffer(data, np.uint8).reshape(cam.height, cam.width, 3)
-                self.rec.write_raw_image(topic, rgb, encoding="rgb8", frame_id=f"{v.name}/camera",
-                                         log_time_ns=t0, publish_time_ns=t0)
+                self.analysis.post(functools.partial(self.rec.write_raw_image, topic, rgb, encoding="rgb8",
+                                                     frame_id=f"{v.name}/camera", log_time_ns=t0, publish_time_ns=t0))
 
     def _maybe_sync(self) -> None:
         now = self.clock.now_ns()
@@ -413,6 +423,78 @@ class SimLoop:
                     v.link.send_sync_request()
             except TransportError:
                 pass
+
+    # -- analysis-thread tasks ------------------------------------------------------
+
+    def _truth_task(self, steps: int, qpos: np.ndarray, qvel: np.ndarray, collisions: list[Any],
+                    names: tuple[str, ...]) -> None:
+        sim = self.sim
+        sim.load_state(steps, qpos, qvel)
+        if collisions:
+            sim.add_collisions(collisions)
+        self._record_truth(sim.ground_truth(egos=names))
+
+    def _final_state_task(self, steps: int, qpos: np.ndarray, qvel: np.ndarray, collisions: list[Any]) -> None:
+        """The mirror takes the final state (the summary reads it); collisions since
+        the last camera instant are recorded."""
+        self.sim.load_state(steps, qpos, qvel)
+        if collisions:
+            self.sim.add_collisions(collisions)
+            self._record_truth(self.sim.ground_truth(egos=()))
+
+    def _camtruth_task(self, name: str, frame_id: int, ct: Any) -> None:
+        t = self.clock.now_ns()
+        for ob in self.observers:
+            if hasattr(ob, "on_camera_truth"):
+                ob.on_camera_truth(name, frame_id, ct)
+        self.rec.write_json(f"/{name}/truth", {"frame_id": frame_id, **ct.to_json()}, log_time_ns=t, publish_time_ns=t)
+
+    def _tick_task(self, now: int, sim_ns: int) -> None:
+        for ob in self.observers:
+            ob.on_tick(now_ns=now, sim_time_ns=sim_ns)
+
+    def _apply_task(self, v: VehicleRun, fl: InFlight, m: Estimate, t0p: int, t_apply: int, steps: int,
+                    qpos: np.ndarray, qvel: np.ndarray) -> None:
+        sim = self.sim
+
+        def truth_now() -> GroundTruth:
+            sim.load_state(steps, qpos, qvel)
+            return sim.truth_snapshot(egos=(v.name,))
+
+        for ob in self.observers:
+            if hasattr(ob, "on_apply"):
+                ob.on_apply(v.name, m.frame_id, truth_now)
+        self._complete_task(v, fl, m, t0p, FrameStatus.OK, t_apply, steps * sim.step_ns)
+
+    def _complete_task(self, v: VehicleRun, fl: InFlight, m: Estimate, t0p: int, status: FrameStatus,
+                       t_apply: int | None = None, sim_apply: int | None = None) -> None:
+        self._record_task(v, _record(v, fl, status, m, t0p, t_apply, sim_apply), m)
+        self.rec.write_json(f"/{v.name}/estimate", {
+            "frame_id": m.frame_id, "state": m.state.name,
+            "control": {"steering_rad": m.control.steering_rad, "throttle": m.control.throttle,
+                        "brake": m.control.brake},
+            "objects": [{"cls": o.cls.name, "confidence": o.confidence, "box_px": list(o.box_px),
+                         "position_m": list(o.position_m)} for o in m.objects],
+        }, log_time_ns=t0p, publish_time_ns=m.t_reply_target_ns)
+
+    def _record_task(self, v: VehicleRun, rec: PipelineRecord, estimate: Estimate | None = None) -> None:
+        v.add(rec)
+        for ob in self.observers:
+            ob.on_record(v.name, rec, estimate)
+        if rec.t0p_ns is not None and rec.status == FrameStatus.OK:
+            v.e2e_window.add(rec.t0p_ns - rec.t0_ns)
+        t = rec.t0p_ns or self.clock.now_ns()
+        self.rec.write_json(f"/{v.name}/pipeline", rec.to_json(), log_time_ns=t, publish_time_ns=rec.t0_ns)
+
+    def _sync_task(self, name: str, s: Any) -> None:
+        for ob in self.observers:
+            ob.on_sync(name, s)
+        self.rec.write_json(f"/{name}/clock_sync", sync_sample_json(s), log_time_ns=s.t4_ns, publish_time_ns=s.t1_ns)
+
+    def _event(self, ev: dict[str, Any], log_time_ns: int, publish_time_ns: int) -> None:
+        """An event from the loop thread, recorded by the analysis thread (one writer)."""
+        self.analysis.post(functools.partial(self.rec.write_json, "/events", ev, log_time_ns=log_time_ns,
+                                             publish_time_ns=publish_time_ns))
 
     def _record_truth(self, gt: GroundTruth) -> None:
         t = self.clock.now_ns()
@@ -444,20 +526,35 @@ class SimLoop:
         m = r.msg
         if isinstance(m, Estimate):
             self._on_estimate(v, m, r.t_rx_ns)
+        elif isinstance(m, ProtocolFault):
+            self._on_protocol_fault(v, m, r.t_rx_ns)
         elif isinstance(m, ErrorMsg):
             ev = {"kind": "target_error", "vehicle": v.name, "code": m.code, "message": m.message}
-            self.rec.write_json("/events", ev, log_time_ns=r.t_rx_ns, publish_time_ns=r.t_rx_ns)
+            self._event(ev, r.t_rx_ns, r.t_rx_ns)
         elif isinstance(m, Command):  # the target's reply to a command: the swap, on record
             ev = {"kind": "target_command_reply", "vehicle": v.name, "seq": m.seq, "text": m.text,
                   "t_target_ns": m.t_sender_ns}
-            self.rec.write_json("/events", ev, log_time_ns=r.t_rx_ns, publish_time_ns=r.t_rx_ns)
+            self._event(ev, r.t_rx_ns, r.t_rx_ns)
         elif isinstance(m, Heartbeat):
+            pass
+
+    def _on_protocol_fault(self, v: VehicleRun, f: ProtocolFault, t_rx: int) -> None:
+        """A message the target sent could not be decoded: an event (bounded per
+        vehicle, the rest counted) and an ERROR MALFORMED back (PROTOCOL.md section 8)."""
+        v.protocol_faults += 1
+        if v.protocol_faults <= MAX_PROTOCOL_EVENTS:
+            ev = {"kind": "protocol_error", "severity": "warning", "vehicle": v.name, "offset": f.offset,
+                  "detail": f.detail, "t_rx_ns": t_rx, "sim_time_ns": self._sim_ns}
+            self._event(ev, t_rx, t_rx)
+        try:
+            v.link.send_error(ErrorCode.MALFORMED, f.detail)
+        except TransportError:
             pass
 
     def _send_commands(self) -> None:
         """Send the configured commands whose sim time has come (each once)."""
         cmds = self.cfg.target.commands
-        while self._next_command < len(cmds) and cmds[self._next_command].at_s * 1e9 <= self.sim.sim_time_ns:
+        while self._next_command < len(cmds) and cmds[self._next_command].at_s * 1e9 <= self._sim_ns:
             c = cmds[self._next_command]
             self._next_command += 1
             for v in self.vehicles:
@@ -467,11 +564,11 @@ class SimLoop:
                 try:
                     sent = v.link.send_command(c.command)
                     ev = {"kind": "target_command", "vehicle": v.name, "seq": sent.seq, "text": c.command,
-                          "sim_time_ns": self.sim.sim_time_ns}
+                          "sim_time_ns": self._sim_ns}
                 except TransportError as err:
                     ev = {"kind": "target_command_failed", "vehicle": v.name, "text": c.command,
-                          "detail": str(err), "sim_time_ns": self.sim.sim_time_ns}
-                self.rec.write_json("/events", ev, log_time_ns=t, publish_time_ns=t)
+                          "detail": str(err), "sim_time_ns": self._sim_ns}
+                self._event(ev, t, t)
 
     def _on_estimate(self, v: VehicleRun, m: Estimate, t0p: int) -> None:
         fl = v.in_flight.pop(m.frame_id, None)
@@ -484,7 +581,7 @@ class SimLoop:
                 v.unknown_estimates += 1
             ev = {"kind": "late_estimate" if late else "unknown_estimate",
                   "vehicle": v.name, "frame_id": m.frame_id, "t0p_ns": t0p}
-            self.rec.write_json("/events", ev, log_time_ns=t0p, publish_time_ns=t0p)
+            self._event(ev, t0p, t0p)
             return
         if self.held is not None:  # lockstep latency profile: applied when sim time comes
             self._hold(v, fl, m, t0p)
@@ -513,30 +610,11 @@ class SimLoop:
     def _on_applied(self, vi: int, frame_id: int, t_apply: int, steps: int, qpos: np.ndarray,
                     qvel: np.ndarray) -> None:
         item = self._applying.pop((vi, frame_id), None)
-        if item is None:
-            return
-        v, fl, m, t0p = item
-        sim = self.sim
+        if item is not None:
+            self.analysis.post(self._apply_task, *item, t_apply, steps, qpos, qvel)
 
-        def truth_now() -> GroundTruth:
-            sim.load_state(steps, qpos, qvel)
-            return sim.truth_snapshot(egos=(v.name,))
-
-        for ob in self.observers:
-            if hasattr(ob, "on_apply"):
-                ob.on_apply(v.name, frame_id, truth_now)
-        self._complete(v, fl, m, t0p, FrameStatus.OK, t_apply=t_apply, sim_apply=steps * sim.step_ns)
-
-    def _complete(self, v: VehicleRun, fl: InFlight, m: Estimate, t0p: int, status: FrameStatus, *,
-                  t_apply: int | None = None, sim_apply: int | None = None) -> None:
-        self._add_record(v, _record(v, fl, status, m, t0p, t_apply, sim_apply), m)
-        self.rec.write_json(f"/{v.name}/estimate", {
-            "frame_id": m.frame_id, "state": m.state.name,
-            "control": {"steering_rad": m.control.steering_rad, "throttle": m.control.throttle,
-                        "brake": m.control.brake},
-            "objects": [{"cls": o.cls.name, "confidence": o.confidence, "box_px": list(o.box_px),
-                         "position_m": list(o.position_m)} for o in m.objects],
-        }, log_time_ns=t0p, publish_time_ns=m.t_reply_target_ns)
+    def _complete(self, v: VehicleRun, fl: InFlight, m: Estimate, t0p: int, status: FrameStatus) -> None:
+        self.analysis.post(self._complete_task, v, fl, m, t0p, status)
 
     def _hold(self, v: VehicleRun, fl: InFlight, m: Estimate, t0p: int) -> None:
         assert self.held is not None and self.latency is not None
@@ -544,7 +622,7 @@ class SimLoop:
         if d.latency_ns is None:  # the replayed run lost (or discarded) this frame: so does the replay
             self._add_record(v, _record(v, fl, d.status, m, t0p), m)
             ev = {"kind": "replayed_" + d.status.value, "vehicle": v.name, "frame_id": fl.frame_id}
-            self.rec.write_json("/events", ev, log_time_ns=t0p, publish_time_ns=fl.t0_ns)
+            self._event(ev, t0p, fl.t0_ns)
             return
         self.held.hold(self.held.due_time(fl.sim_time_ns, d.latency_ns), v.vehicle_id, fl.frame_id, (v, fl, m, t0p))
 
@@ -557,13 +635,7 @@ class SimLoop:
             self._add_record(v, _record(v, fl, FrameStatus.PENDING, m, t0p), m)
 
     def _add_record(self, v: VehicleRun, rec: PipelineRecord, estimate: Estimate | None = None) -> None:
-        v.add(rec)
-        for ob in self.observers:
-            ob.on_record(v.name, rec, estimate)
-        if rec.t0p_ns is not None and rec.status == FrameStatus.OK:
-            v.e2e_window.add(rec.t0p_ns - rec.t0_ns)
-        t = rec.t0p_ns or self.clock.now_ns()
-        self.rec.write_json(f"/{v.name}/pipeline", rec.to_json(), log_time_ns=t, publish_time_ns=rec.t0_ns)
+        self.analysis.post(self._record_task, v, rec, estimate)
 
     def _expire(self, now: int) -> None:
         for v in self.vehicles:
@@ -614,10 +686,7 @@ class SimLoop:
         """Record (and pass to observers) the clock-sync answers received so far."""
         for v in self.vehicles:
             for s in v.link.sync_samples():
-                for ob in self.observers:
-                    ob.on_sync(v.name, s)
-                self.rec.write_json(f"/{v.name}/clock_sync", sync_sample_json(s), log_time_ns=s.t4_ns,
-                                    publish_time_ns=s.t1_ns)
+                self.analysis.post(self._sync_task, v.name, s)
 
 
 def _record(v: VehicleRun, fl: InFlight, status: FrameStatus, m: Estimate | None = None, t0p: int | None = None,
