@@ -41,6 +41,16 @@ class Received:
     link_vehicle_id: int = 0
 
 
+@dataclass(frozen=True)
+class ProtocolFault:
+    """A message from the target that could not be decoded: delivered in order with
+    the messages (as ``Received.msg``) so the run records it as an event and replies
+    ERROR (PROTOCOL.md section 8)."""
+
+    detail: str
+    offset: int
+
+
 @dataclass
 class LinkStats:
     frames_sent: int = 0
@@ -170,6 +180,14 @@ class Link(ABC):
         self._send_checked(protocol.encode(req))
         return req
 
+    def send_error(self, code: int, text: str) -> None:
+        """Tell the target that something it sent was bad (ERROR, PROTOCOL.md section 8).
+
+        Raises:
+            TransportError: the peer is gone.
+        """
+        self._send_checked(protocol.encode(ErrorMsg(self.vehicle_id, int(code), text[:1000])))
+
     def send_command(self, text: str) -> Command:
         """Send one COMMAND (a line of text for the target's control software, e.g.
         ``"swap detector cv"``) stamped with the harness clock; returns it. The
@@ -261,6 +279,7 @@ class Link(ABC):
         if isinstance(item, ProtocolError):
             self.stats.protocol_errors += 1
             self.stats.last_error = str(item)
+            self._put(self._rx, Received(ProtocolFault(str(item), item.offset), t_rx_ns, self.vehicle_id))  # type: ignore[arg-type]
             return
         self.stats.messages_received += 1
         if isinstance(item, ErrorMsg):
@@ -270,15 +289,18 @@ class Link(ABC):
             self._mark_gone(f"target said bye ({item.reason or 'no reason given'})")
             return
         target = self._sync_rx if isinstance(item, SyncResponse) else self._rx
+        self._put(target, Received(item, t_rx_ns, self.vehicle_id))
+
+    def _put(self, target: queue.Queue[Received], r: Received) -> None:
         try:
-            target.put_nowait(Received(item, t_rx_ns, self.vehicle_id))
+            target.put_nowait(r)
         except queue.Full:
             # Counted, never silent; the consumer is far behind, so the oldest
             # message is the least useful one.
             self.stats.rx_dropped += 1
             try:
                 target.get_nowait()
-                target.put_nowait(Received(item, t_rx_ns, self.vehicle_id))
+                target.put_nowait(r)
             except (queue.Empty, queue.Full):
                 pass
 

@@ -34,6 +34,8 @@ def vehicle_summary(v: VehicleRun, *, wall_s: float, timing: TimingObserver | No
         "stale": v.count(FrameStatus.STALE),
         "late_estimates": v.late_estimates,
         "unknown_estimates": v.unknown_estimates,
+        "protocol_errors": v.protocol_faults,
+        "protocol_events_unwritten": max(0, v.protocol_faults - 200),
         "drop_rate": round(v.count(FrameStatus.DROPPED) / frames, 6) if frames else 0.0,
         "frames_per_s": round(v.next_frame_id / wall_s, 3) if wall_s > 0 else 0.0,
         "estimates_per_s": round(len(ok) / wall_s, 3) if wall_s > 0 else 0.0,

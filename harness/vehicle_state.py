@@ -33,6 +33,7 @@ class VehicleRun:
     records: list[PipelineRecord] = field(default_factory=list)
     late_estimates: int = 0
     unknown_estimates: int = 0
+    protocol_faults: int = 0  # messages from the target that could not be decoded
     e2e_window: RollingWindow = field(default_factory=RollingWindow)
     fps_meter: RateMeter = field(default_factory=RateMeter)
 
