@@ -57,6 +57,17 @@ class _Moments:
                          int(values_ns.min()), int(values_ns.max()))
         self.merge(other)
 
+    def add_one(self, value_ns: int) -> None:
+        """Welford's update for one value (no numpy: this runs once per stage per frame)."""
+        self.count += 1
+        if self.count == 1:
+            self.mean, self.m2, self.lo, self.hi = float(value_ns), 0.0, value_ns, value_ns
+            return
+        d = value_ns - self.mean
+        self.mean += d / self.count
+        self.m2 += d * (value_ns - self.mean)
+        self.lo, self.hi = min(self.lo, value_ns), max(self.hi, value_ns)
+
     def merge(self, o: _Moments) -> None:
         if o.count == 0:
             return
@@ -95,7 +106,18 @@ class StageHistograms:
     def record(self, stage: str, value_ns: int) -> bool:
         """Record one duration (ns). Returns False (and counts it in ``rejected``)
         for a negative value. Raises ValueError beyond ``MAX_STAGES`` stage names."""
-        return self.record_many(stage, np.asarray([value_ns], dtype=np.int64)) == 1
+        value_ns = int(value_ns)
+        if value_ns < 0:
+            self.rejected += 1
+            return False
+        hist, moments = self._slot(stage)
+        us = (value_ns + 500) // 1000
+        if us > HIGHEST_US:
+            self.overflow += 1
+            us = HIGHEST_US
+        hist.record_value(us)
+        moments.add_one(value_ns)
+        return True
 
     def record_many(self, stage: str, values_ns: Iterable[int] | np.ndarray) -> int:
         """Record a batch of durations (ns); returns how many were recorded."""
