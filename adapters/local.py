@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from adapters import protocol
-from adapters.process import end_process
+from adapters.process import die_with_parent, end_process
 from adapters.link import Link, Received
 from adapters.messages import Hello, MsgType
 from adapters.shm import (DEFAULT_INLINE_BELOW, DEFAULT_SLOT_BYTES, DEFAULT_SLOTS, ENV_SHM, SHM_FRAMES,
@@ -145,7 +145,7 @@ class LocalLink(Link):
         try:
             self._proc = subprocess.Popen(self.command, pass_fds=pass_fds, env=env,
                                           stdin=subprocess.DEVNULL, stdout=out, stderr=out,
-                                          start_new_session=True)
+                                          start_new_session=True, preexec_fn=die_with_parent)
         except FileNotFoundError as err:
             raise TargetError(f"target command not found: {self.command[0]!r} "
                               f"(check target.command)") from err

@@ -2,8 +2,21 @@
 
 from __future__ import annotations
 
+import ctypes
 import signal
 import subprocess
+
+_PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent() -> None:
+    """``preexec_fn`` for a target the harness starts: the kernel SIGKILLs it when the
+    harness dies, even by SIGKILL, so no target outlives its run (Linux; elsewhere a
+    no-op)."""
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
 
 
 def end_process(proc: subprocess.Popen[bytes] | None, *, grace_s: float = 2.0, term_s: float = 2.0) -> None:

@@ -70,12 +70,41 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
             install_signal_handlers: bool = True) -> RunResult:
     """Run ``cfg`` and write its folder. The MuJoCo GL backend must already be chosen.
 
+    SIGTERM before the loop starts ends the start-up as Ctrl-C does (KeyboardInterrupt:
+    targets and workers are ended, nothing is left running); during the loop it ends
+    the run cleanly.
+
     Raises:
         ConfigError: bad scenario name/parameters or overlapping vehicles (before
             anything starts).
         TargetError: a target could not start (before the loop; nothing recorded).
         SimulationError: the world cannot be built or rendered.
     """
+    restore = _sigterm_interrupts() if install_signal_handlers else None
+    try:
+        return _execute(cfg, out_dir=out_dir, gl_backend=gl_backend, on_progress=on_progress, notify=notify,
+                        install_signal_handlers=install_signal_handlers)
+    finally:
+        if restore is not None:
+            restore()
+
+
+def _sigterm_interrupts() -> Callable[[], None] | None:
+    """Until restored, SIGTERM raises KeyboardInterrupt (main thread only)."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def on_term(_signum: int, _frame: object) -> None:
+        raise KeyboardInterrupt
+
+    prev = signal.signal(signal.SIGTERM, on_term)
+    return lambda: signal.signal(signal.SIGTERM, prev)
+
+
+def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Callable[..., None] | None,
+             notify: Callable[[str], None], install_signal_handlers: bool) -> RunResult:
     # Imported here: these pull in mujoco, whose GL backend the caller chose first.
     import scenarios
     from adapters.link import Received

@@ -10,7 +10,7 @@ import subprocess
 from pathlib import Path
 
 from adapters.link import Link, Received, open_link
-from adapters.process import end_process
+from adapters.process import die_with_parent, end_process
 from harness.config import RunConfig, Transport
 from harness.config_target import substitute
 from timing.clock import Clock
@@ -27,7 +27,7 @@ class TargetProcess:
         try:
             self.proc: subprocess.Popen[bytes] | None = subprocess.Popen(
                 command, stdin=subprocess.DEVNULL, stdout=self._log, stderr=self._log,
-                env=dict(os.environ, PYTHONUNBUFFERED="1"), start_new_session=True)
+                env=dict(os.environ, PYTHONUNBUFFERED="1"), start_new_session=True, preexec_fn=die_with_parent)
         except FileNotFoundError as err:
             self._log.close()
             raise TargetError(f"target command not found: {command[0]!r} (check target.command)") from err
