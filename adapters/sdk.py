@@ -251,13 +251,18 @@ def add_transport_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--channel", default="vcan0", help="can: channel, e.g. vcan0, PCAN_USBBUS1")
     g.add_argument("--bitrate", type=int, default=500_000, help="can: nominal bitrate (bit/s)")
     g.add_argument("--data-bitrate", type=int, default=2_000_000, help="can: CAN FD data bitrate (bit/s)")
+    g.add_argument("--keep-serving", dest="keep_serving", action="store_true", default=None,
+                   help="zenoh: serve harness after harness until Ctrl-C/SIGTERM (the default of `hil target`)")
+    g.add_argument("--once", dest="keep_serving", action="store_false",
+                   help="zenoh: serve one harness, then exit (the default of `python -m targets.NAME`)")
 
 
 def transport_options(args: argparse.Namespace) -> dict[str, object]:
     """The keyword options ``serve`` passes to ``args.transport``."""
     if args.transport == "zenoh":
         return {"listen": list(args.listen), "connect": list(args.connect), "mode": args.mode,
-                "key_prefix": args.key_prefix, "vehicle_id": args.vehicle}
+                "key_prefix": args.key_prefix, "vehicle_id": args.vehicle,
+                "keep_serving": bool(getattr(args, "keep_serving", False))}
     if args.transport == "can":
         return {"interface": args.interface, "channel": args.channel, "bitrate": args.bitrate,
                 "data_bitrate": args.data_bitrate, "vehicle_id": args.vehicle}

@@ -55,7 +55,6 @@ from __future__ import annotations
 
 import json
 import queue
-import signal
 import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -64,7 +63,7 @@ from typing import TYPE_CHECKING
 
 from adapters import protocol
 from adapters.link import Link, Received
-from adapters.messages import Bye, Heartbeat, Hello, MsgType
+from adapters.messages import Heartbeat, MsgType
 from adapters.zenoh_options import TLS_KEYS, endpoint_problem
 from timing.clock import Clock
 from timing.errors import ConfigError, TransportError
@@ -285,7 +284,7 @@ class ZenohLink(Link):
     def _ask_hello(self) -> None:
         while not (self._hello_seen.is_set() or self._closed or not self.alive):
             try:
-                self._put(protocol.encode(Heartbeat(self.vehicle_id, self.clock.now_ns())))
+                self._publish(protocol.encode(Heartbeat(self.vehicle_id, self.clock.now_ns())))
             except TransportError:
                 return
             self.zenoh_stats.heartbeats_sent += 1
@@ -312,7 +311,7 @@ class ZenohLink(Link):
             self._mark_gone(f"zenoh liveliness lost: token {self.keys.alive!r} went away "
                             f"(target process exited, closed its session or its lease expired)")
 
-    def _put(self, data: bytes) -> None:
+    def _publish(self, data: bytes) -> None:
         pub = self._publisher
         if pub is None:
             raise TransportError("zenoh link is not open")
@@ -324,7 +323,7 @@ class ZenohLink(Link):
             raise TransportError(f"zenoh put on {self.keys.h2t!r} failed: {err}") from err
 
     def _send_bytes(self, data: bytes) -> None:
-        self._put(data)
+        self._publish(data)
 
     def _no_hello_reason(self, timeout_s: float) -> str:
         s = self._session
@@ -359,92 +358,13 @@ class ZenohLink(Link):
                 self.stats.last_error = reason
 
 
-def serve_endpoint(ep: Endpoint, *, listen: Sequence[str] = (), connect: Sequence[str] = (), mode: str = "peer",
-                   key_prefix: str = "hil", vehicle_id: int = 0, multicast_scouting: bool = False,
-                   tls: Mapping[str, object] | None = None, lease_ms: int = DEFAULT_LEASE_MS,
-                   shared_memory: bool | None = None) -> None:
-    """Target side: serve ``ep`` for one harness on vehicle ``vehicle_id``, until the
-    harness says BYE, its liveliness token goes away, or SIGTERM/Ctrl-C (then the
-    target says BYE). Listens on ``listen`` (how a harness reaches a device,
-    e.g. ``tcp/0.0.0.0:7447``) and/or connects to ``connect``.
+def serve_endpoint(ep: Endpoint, **options: object) -> None:
+    """Target side: serve ``ep`` (``adapters.zenoh_target.serve_endpoint``, where the
+    options are documented; kept here for its importers).
 
     Raises:
-        ConfigError: a bad option, or neither ``listen`` nor ``connect`` given.
-        TransportError: the session cannot be opened (e.g. the port is taken).
+        ConfigError: a bad option. TransportError: the session cannot be opened.
     """
-    if not listen and not connect:
-        raise ConfigError("a zenoh target needs --listen ENDPOINT (e.g. tcp/0.0.0.0:7447) or --connect ENDPOINT")
-    keys = Keys.of(key_prefix, vehicle_id)
-    cfg = make_config(mode=mode, connect=connect, listen=listen, tls=tls, multicast_scouting=multicast_scouting,
-                      lease_ms=lease_ms, shared_memory=shared_memory)
-    session = _open_session(cfg, f"listen={list(listen)} connect={list(connect)}")
-    engaged = threading.Event()  # a FRAME or SYNC_REQUEST came: the handshake is over
-    harness_gone = threading.Event()  # BYE from the harness, or its token went away
+    from adapters.zenoh_target import serve_endpoint as serve
 
-    def hello() -> Hello:
-        return ep.hello()
-
-    def on_sample(sample: zenoh.Sample) -> None:
-        t_rx = ep.clock.now_ns()
-        data = sample.payload.to_bytes()
-        try:
-            if _is(data, MsgType.HEARTBEAT):
-                if not engaged.is_set():
-                    ep.send(hello())
-                return
-            engaged.set()
-            if _is(data, MsgType.BYE):
-                harness_gone.set()
-            ep.on_message_bytes(data, t_rx)
-        except TransportError:
-            pass  # the session is closing: nothing can be answered any more
-
-    def on_harness(sample: zenoh.Sample) -> None:
-        if sample.kind == zenoh.SampleKind.DELETE:
-            harness_gone.set()
-            ep.stop()
-
-    old_term = None
-    entities: list[object] = []
-    try:
-        pub = session.declare_publisher(keys.t2h, congestion_control=zenoh.CongestionControl.BLOCK)
-
-        def send(data: bytes) -> None:
-            try:
-                pub.put(data)
-            except zenoh.ZError as err:
-                raise TransportError(f"zenoh put on {keys.t2h!r} failed: {err}") from err
-
-        # Declarations before HELLO: a harness that has our HELLO knows our subscriber,
-        # or its first frame would find no match and vanish. Zenoh undeclares an entity
-        # when its Python object is dropped: keep them all.
-        entities += [session.declare_subscriber(keys.h2t, on_sample),
-                     session.liveliness().declare_subscriber(keys.harness, on_harness)]
-        ep.start(send)  # a HEARTBEAT that comes before this is answered by the next one
-        entities.append(session.liveliness().declare_token(keys.alive))
-        if threading.current_thread() is threading.main_thread():
-            old_term = signal.signal(signal.SIGTERM, lambda *_: ep.stop())
-        try:
-            # No timeout: a waking main thread would take the GIL from a spinning AI.
-            # A POSIX lock wait still lets SIGTERM and Ctrl-C through.
-            ep.wait_stopped()
-        except KeyboardInterrupt:
-            ep.stop()
-        if not harness_gone.is_set():
-            try:
-                ep.send(Bye(vehicle_id, "target stopping"))
-            except TransportError:
-                pass
-            else:
-                # Our token's DELETE can overtake the BYE (declarations travel at a
-                # higher priority); stay until the harness leaves, or BYE_LINGER_S.
-                harness_gone.wait(BYE_LINGER_S)
-    except zenoh.ZError as err:
-        raise TransportError(f"zenoh declarations on {keys.h2t!r} failed: {err}") from err
-    finally:
-        if old_term is not None:
-            signal.signal(signal.SIGTERM, old_term)
-        ep.join()
-        entities.clear()
-        close_session(session, timeout_s=CLOSE_TIMEOUT_S)  # bounded: the harness may be frozen
-
+    serve(ep, **options)  # type: ignore[arg-type]

@@ -74,7 +74,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         # Everything after the name belongs to the target (including --help).
         import importlib
 
-        return int(importlib.import_module(TARGETS[argv[1]]).main(argv[2:], prog=f"hil target {argv[1]}") or 0)
+        target_argv = argv[2:]
+        if "--once" not in target_argv and "--keep-serving" not in target_argv:
+            target_argv = ["--keep-serving", *target_argv]  # a target on a bench serves run after run
+        return int(importlib.import_module(TARGETS[argv[1]]).main(target_argv, prog=f"hil target {argv[1]}") or 0)
     if argv[:1] == ["target"] and (len(argv) == 1 or argv[1] in ("-h", "--help")):
         print(_target_help(), end="", file=sys.stdout if len(argv) > 1 else sys.stderr)
         return EXIT_OK if len(argv) > 1 else EXIT_USAGE
