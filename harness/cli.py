@@ -197,9 +197,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
     backend = select_backend()
     console.print(f"renderer: MuJoCo offscreen via [bold]{backend.upper()}[/bold]"
                   + (" (software fallback: slower)" if backend == "osmesa" else ""))
-    with Progress(console=console, enabled=cfg.progress and not args.no_progress) as progress:
-        result = execute(cfg, out_dir=out, gl_backend=backend, on_progress=progress.update,
-                         notify=console.print)
+    try:
+        with Progress(console=console, enabled=cfg.progress and not args.no_progress) as progress:
+            result = execute(cfg, out_dir=out, gl_backend=backend, on_progress=progress.update,
+                             notify=console.print)
+    except (HilError, KeyboardInterrupt) as err:
+        mark_failed(out, err)
+        raise
     s = result.summary
     console.print(final_table(s))
     warning = realtime_warning(s["realtime"], sim_steps=round(s["sim_time_s"] / cfg.physics_step_s))
@@ -215,6 +219,20 @@ def _cmd_run(args: argparse.Namespace) -> int:
         console.print(f"[red]{len(errors)} corner case(s) could not be written[/red] "
                       f"(summary.json corner_cases.errors): {errors[0]}", highlight=False)
     return run_exit_code(s)
+
+
+def mark_failed(out: Path, err: BaseException) -> None:
+    """Say in the run folder ``out`` that its run never produced a summary, and why
+    (``OUT/FAILED``), so a half-made folder is never taken for a run."""
+    if (out / "summary.json").exists():
+        return
+    reason = "interrupted before the run started" if isinstance(err, KeyboardInterrupt) else str(err)
+    try:
+        from harness.out_dir import FAILED_NAME
+
+        (out / FAILED_NAME).write_text(f"this run did not start or did not finish: {reason}\n")
+    except OSError:
+        pass  # the folder itself is the problem; the error line says so
 
 
 def _scenario_switch_hint(overrides: Sequence[str], message: str) -> str:

@@ -29,6 +29,7 @@ PROBE_NAME = ".write-test"
 # what the run writes before its first second of recording.
 PROBE_BYTES = 1 << 20
 _DONE_MARKER = "summary.json"
+FAILED_NAME = "FAILED"  # written by ``hil run`` when a run never produced its summary
 
 
 class _Claims:
@@ -97,6 +98,7 @@ def claim_out_dir(out: Path) -> Path:
         if (out / "run.mcap").exists():  # finished between the first check and the lock
             raise ConfigError(f"--out {out}: holds a run already (run.mcap exists); choose another folder")
         _probe(out)
+        (out / FAILED_NAME).unlink(missing_ok=True)  # an earlier failed start's note: this run starts afresh
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode("ascii"), 0)
     except BaseException:

@@ -72,6 +72,9 @@ def test_target_exits_at_once(tmp_path):
     p = hil("run", "hil_configs/demo.yaml", "--out", str(tmp_path / "r"), "--set",
             'target.command=["{python}", "-c", "import sys; print(\'no model file\'); sys.exit(4)"]')
     assert_one_line_error(p, "exited with code 4", "no model file")
+    # The half-made folder says so (issue 14 item 11), and the same --out can be used again.
+    assert "exited with code 4" in (tmp_path / "r" / "FAILED").read_text()
+    assert not (tmp_path / "r" / "summary.json").exists()
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])

@@ -61,7 +61,9 @@ def test_claim_is_given_back_and_retaken(tmp_path: Path):
         prepare_out_dir(out)
     release_out_dir(out)
     assert out.resolve() not in held_claims()
-    prepare_out_dir(out)  # free again: no stale claim
+    (out / "FAILED").write_text("this run did not start: ...\n")
+    prepare_out_dir(out)  # free again: no stale claim, and no stale note of a failed start
+    assert not (out / "FAILED").exists()
     (out / "summary.json").write_text("{}")  # that run finished: its claim goes with the next claim
     prepare_out_dir(tmp_path / "other")
     assert out.resolve() not in held_claims()
