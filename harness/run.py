@@ -89,6 +89,32 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
             restore()
 
 
+def build_world(cfg: RunConfig) -> tuple[Any, Any]:
+    """(``WorldSpec``, ``RefStateRules``) of a config: the scenario built with its
+    seed and camera. Import mujoco-free; the GL backend need not be chosen.
+
+    Raises:
+        ConfigError: unknown scenario or bad parameters.
+    """
+    import scenarios
+    from scenarios.ground_truth import RefStateRules
+    from scenarios.world import CameraSpec
+
+    sdef = scenarios.get(cfg.scenario.name)
+    params = sdef.resolve(cfg.scenario.params)
+    cam = cfg.camera
+    world = sdef.build(params=params, seed=cfg.seed, physics_step_s=cfg.physics_step_s,
+                       camera=CameraSpec(width=cam.width, height=cam.height, fovy_deg=cam.fovy_deg,
+                                         mount_forward_m=cam.mount_forward_m,
+                                         mount_height_m=cam.mount_height_m, mount_lateral_m=cam.mount_lateral_m,
+                                         pitch_rad=math.radians(cam.pitch_deg), yaw_rad=math.radians(cam.yaw_deg)),
+                       shadows=cam.shadows, reflections=cam.reflections)
+    t = cfg.truth
+    rules = RefStateRules(comfort_decel_mps2=t.comfort_decel_mps2, stop_margin_m=t.stop_margin_m,
+                          slow_headway_s=t.slow_headway_s, slow_ttc_s=t.slow_ttc_s)
+    return world, rules
+
+
 def _sigterm_interrupts() -> Callable[[], None] | None:
     """Until restored, SIGTERM raises KeyboardInterrupt (main thread only)."""
     import threading
@@ -121,25 +147,13 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     from harness.target_launch import TargetProcess, can_preflight, make_link
     from harness.timing_observer import TimingObserver
     from harness.vehicle_state import VehicleRun
-    from scenarios.ground_truth import RefStateRules
     from scenarios.sim import Simulation
-    from scenarios.world import CameraSpec
 
-    sdef = scenarios.get(cfg.scenario.name)
-    params = sdef.resolve(cfg.scenario.params)
-    cam = cfg.camera
-    world = sdef.build(params=params, seed=cfg.seed, physics_step_s=cfg.physics_step_s,
-                       camera=CameraSpec(width=cam.width, height=cam.height, fovy_deg=cam.fovy_deg,
-                                         mount_forward_m=cam.mount_forward_m,
-                                         mount_height_m=cam.mount_height_m, mount_lateral_m=cam.mount_lateral_m,
-                                         pitch_rad=math.radians(cam.pitch_deg), yaw_rad=math.radians(cam.yaw_deg)),
-                       shadows=cam.shadows, reflections=cam.reflections)
+    world, rules = build_world(cfg)
+    params = scenarios.get(cfg.scenario.name).resolve(cfg.scenario.params)
     lat_cfg = cfg.lockstep.latency
     latency = (None if lat_cfg.kind == LatencyKind.NONE and lat_cfg.drop_prob == 0
                else LatencyProfile(lat_cfg, seed=cfg.seed, vehicles=[v.name for v in world.egos]))
-    t = cfg.truth
-    rules = RefStateRules(comfort_decel_mps2=t.comfort_decel_mps2, stop_margin_m=t.stop_margin_m,
-                          slow_headway_s=t.slow_headway_s, slow_ttc_s=t.slow_ttc_s)
     clock = MonotonicClock()
     rx: queue.Queue[Any] = queue.Queue(maxsize=4096)  # links' messages and the engine's, one queue
     mcap_path = out_dir / "run.mcap"
@@ -256,4 +270,4 @@ def _install_stop_handlers(loop: Any) -> Callable[[], None]:
     return restore
 
 
-__all__ = ["RunResult", "default_out_dir", "execute", "prepare_out_dir"]
+__all__ = ["RunResult", "build_world", "default_out_dir", "execute", "prepare_out_dir"]
