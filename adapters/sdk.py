@@ -23,6 +23,7 @@ Needs only numpy and the chosen transport: no simulator, torch or harness code.
 from __future__ import annotations
 
 import argparse
+import sys
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -251,10 +252,35 @@ def add_transport_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--channel", default="vcan0", help="can: channel, e.g. vcan0, PCAN_USBBUS1")
     g.add_argument("--bitrate", type=int, default=500_000, help="can: nominal bitrate (bit/s)")
     g.add_argument("--data-bitrate", type=int, default=2_000_000, help="can: CAN FD data bitrate (bit/s)")
+    g.add_argument("--tls", action="append", default=[], metavar="KEY=VALUE",
+                   help="zenoh: a transport/link/tls option, e.g. listen_certificate=dev.pem, "
+                        "listen_private_key=dev.key, enable_mtls=true, root_ca_certificate=ca.pem (repeatable)")
+    g.add_argument("--auth-dictionary", default=None, metavar="FILE",
+                   help="zenoh: admit only peers whose user:password is a line of FILE (Zenoh usrpwd)")
     g.add_argument("--keep-serving", dest="keep_serving", action="store_true", default=None,
                    help="zenoh: serve harness after harness until Ctrl-C/SIGTERM (the default of `hil target`)")
     g.add_argument("--once", dest="keep_serving", action="store_false",
                    help="zenoh: serve one harness, then exit (the default of `python -m targets.NAME`)")
+
+
+def _zenoh_security(args: argparse.Namespace) -> dict[str, object]:
+    """``tls`` and ``usrpwd`` options from ``--tls KEY=VALUE`` and ``--auth-dictionary``."""
+    out: dict[str, object] = {}
+    tls: dict[str, object] = {}
+    for item in getattr(args, "tls", None) or []:
+        from adapters.zenoh_options import tls_key_problem
+
+        key, sep, value = item.partition("=")
+        problem = "KEY=VALUE, e.g. listen_certificate=dev.pem" if not sep or not key else tls_key_problem(key)
+        if problem is not None:
+            print(f"--tls {item!r}: expected {problem}", file=sys.stderr)
+            raise SystemExit(2)  # a user mistake: one line, exit 2
+        tls[key] = {"true": True, "false": False}.get(value.lower(), value)
+    if tls:
+        out["tls"] = tls
+    if getattr(args, "auth_dictionary", None):
+        out["usrpwd"] = {"dictionary_file": args.auth_dictionary}
+    return out
 
 
 def transport_options(args: argparse.Namespace) -> dict[str, object]:
@@ -262,7 +288,8 @@ def transport_options(args: argparse.Namespace) -> dict[str, object]:
     if args.transport == "zenoh":
         return {"listen": list(args.listen), "connect": list(args.connect), "mode": args.mode,
                 "key_prefix": args.key_prefix, "vehicle_id": args.vehicle,
-                "keep_serving": bool(getattr(args, "keep_serving", False))}
+                "keep_serving": bool(getattr(args, "keep_serving", False)),
+                **_zenoh_security(args)}
     if args.transport == "can":
         return {"interface": args.interface, "channel": args.channel, "bitrate": args.bitrate,
                 "data_bitrate": args.data_bitrate, "vehicle_id": args.vehicle}

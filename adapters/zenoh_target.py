@@ -46,7 +46,7 @@ __all__ = ["serve_endpoint", "startup_line"]
 
 
 def startup_line(ep: Endpoint, *, listen: Sequence[str], connect: Sequence[str], keys: Keys,
-                 keep_serving: bool) -> str:
+                 keep_serving: bool, security: str = "none") -> str:
     """What a person starting the target by hand needs to know, in one line."""
     h = ep.hello()
     where = " and ".join(part for part in (f"listening on {', '.join(listen)}" if listen else "",
@@ -54,8 +54,18 @@ def startup_line(ep: Endpoint, *, listen: Sequence[str], connect: Sequence[str],
     caps = [name for bit, name in ((protocol.CAP_COMMANDS, "COMMANDS"),) if h.capabilities & bit]
     return (f"{h.target_name}: zenoh target {where}, keys {keys.h2t.rsplit('/', 1)[0]}/*, clock "
             f"{getattr(h.clock_id, 'name', h.clock_id)} ({h.clock_resolution_ns} ns), protocol v{h.protocol_version}, "
-            f"capabilities: {', '.join(caps) or 'none'}; "
+            f"capabilities: {', '.join(caps) or 'none'}, access: {security}; "
             + ("serving run after run until Ctrl-C/SIGTERM" if keep_serving else "serving one run"))
+
+
+def _security(listen: Sequence[str], connect: Sequence[str], tls: Mapping[str, object] | None,
+              usrpwd: Mapping[str, str] | None) -> str:
+    parts = []
+    if any(str(e).startswith(("tls/", "quic/")) for e in (*listen, *connect)):
+        parts.append("mutual TLS" if (tls or {}).get("enable_mtls") else "TLS")
+    if (usrpwd or {}).get("dictionary_file"):
+        parts.append("user/password")
+    return " + ".join(parts) or "open (anyone who reaches the endpoint can join; see README, threat model)"
 
 
 def _fresh(ep: Endpoint) -> Endpoint:
@@ -69,12 +79,15 @@ def serve_endpoint(ep: Endpoint, *, listen: Sequence[str] = (), connect: Sequenc
                    key_prefix: str = "hil", vehicle_id: int = 0, multicast_scouting: bool = False,
                    tls: Mapping[str, object] | None = None, lease_ms: int = DEFAULT_LEASE_MS,
                    shared_memory: bool | None = None, keep_serving: bool = False,
+                   usrpwd: Mapping[str, str] | None = None,
                    announce: Callable[[str], None] | None = None) -> None:
     """Serve ``ep`` on vehicle ``vehicle_id`` until the harness says BYE or its
     liveliness token goes away (with ``keep_serving``: then wait for the next
     harness), or SIGTERM/Ctrl-C (then the target says BYE). Listens on ``listen``
     (how a harness reaches a device, e.g. ``tcp/0.0.0.0:7447``) and/or connects to
-    ``connect``. ``announce`` gets the startup line (default: stderr).
+    ``connect``. ``usrpwd`` as ``adapters.zenoh_transport.config_entries`` (a
+    ``dictionary_file`` admits only the peers it lists). ``announce`` gets the
+    startup line (default: stderr).
 
     Raises:
         ConfigError: a bad option, or neither ``listen`` nor ``connect`` given.
@@ -84,7 +97,7 @@ def serve_endpoint(ep: Endpoint, *, listen: Sequence[str] = (), connect: Sequenc
         raise ConfigError("a zenoh target needs --listen ENDPOINT (e.g. tcp/0.0.0.0:7447) or --connect ENDPOINT")
     keys = Keys.of(key_prefix, vehicle_id)
     cfg = make_config(mode=mode, connect=connect, listen=listen, tls=tls, multicast_scouting=multicast_scouting,
-                      lease_ms=lease_ms, shared_memory=shared_memory)
+                      lease_ms=lease_ms, shared_memory=shared_memory, usrpwd=usrpwd)
     session = _open_session(cfg, f"listen={list(listen)} connect={list(connect)}")
     quit_ = threading.Event()  # SIGTERM or Ctrl-C: no further runs
     current: list[Endpoint] = [ep]
@@ -97,7 +110,8 @@ def serve_endpoint(ep: Endpoint, *, listen: Sequence[str] = (), connect: Sequenc
     if threading.current_thread() is threading.main_thread():
         old_term = signal.signal(signal.SIGTERM, on_term)
     try:
-        line = startup_line(ep, listen=listen, connect=connect, keys=keys, keep_serving=keep_serving)
+        line = startup_line(ep, listen=listen, connect=connect, keys=keys, keep_serving=keep_serving,
+                            security=_security(listen, connect, tls, usrpwd))
         (announce or (lambda text: print(text, file=sys.stderr, flush=True)))(line)
         while True:
             _serve_one(session, current[0], keys=keys, vehicle_id=vehicle_id, quit_=quit_)

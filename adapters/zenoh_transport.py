@@ -82,6 +82,7 @@ DEFAULT_LEASE_MS = 1000
 DEFAULT_KEEP_ALIVE = 4  # keep-alives per lease
 HELLO_POLL_S = 0.1  # harness HEARTBEAT period until HELLO
 BYE_LINGER_S = 1.0  # how long a stopping target waits for the harness to leave after its BYE
+USRPWD_KEYS = ("user", "password", "dictionary_file")
 CLOSE_TIMEOUT_S = 2.0  # how long closing a session may take (s) before it is left to finish alone
 _RETRY = MappingProxyType({"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 2})
 _WILDCARD_CHARS = frozenset("*$?#")
@@ -138,8 +139,13 @@ def _check_endpoints(name: str, endpoints: Sequence[str]) -> list[str]:
 def config_entries(*, mode: str = "peer", connect: Sequence[str] = (), listen: Sequence[str] = (),
                    multicast_scouting: bool = False, gossip: bool = False,
                    tls: Mapping[str, object] | None = None, lease_ms: int = DEFAULT_LEASE_MS,
-                   keep_alive: int = DEFAULT_KEEP_ALIVE, shared_memory: bool | None = None) -> dict[str, object]:
+                   keep_alive: int = DEFAULT_KEEP_ALIVE, shared_memory: bool | None = None,
+                   usrpwd: Mapping[str, str] | None = None) -> dict[str, object]:
     """The Zenoh config this transport uses, as ``{config path: JSON value}``.
+
+    ``usrpwd``: Zenoh's user/password authentication (``USRPWD_KEYS``): ``user`` and
+    ``password`` to present, ``dictionary_file`` (lines ``user:password``) to accept
+    only those peers.
 
     ``lease_ms`` (ms) is how long a peer may stay silent before this session's lease
     runs out at the other end; ``shared_memory`` None keeps Zenoh's default (on).
@@ -169,6 +175,10 @@ def config_entries(*, mode: str = "peer", connect: Sequence[str] = (), listen: S
         entries["scouting/delay"] = 0
     if shared_memory is not None:
         entries["transport/shared_memory/enabled"] = bool(shared_memory)
+    for key, value in (usrpwd or {}).items():
+        if key not in USRPWD_KEYS:
+            raise ConfigError(f"zenoh usrpwd key {key!r} is unknown; valid: {', '.join(USRPWD_KEYS)}")
+        entries[f"transport/auth/usrpwd/{key}"] = str(value)
     for key, value in (tls or {}).items():
         if key not in TLS_KEYS:
             raise ConfigError(f"zenoh tls key {key!r} is unknown; valid: {', '.join(TLS_KEYS)}")
@@ -214,6 +224,22 @@ def close_session(session: zenoh.Session, *, timeout_s: float = 2.0) -> str | No
     return failure[0] if failure else None
 
 
+def _tcp_answers(endpoint: str, *, timeout_s: float = 0.5) -> bool:
+    """True when something accepts a TCP connection at a ``tcp/`` or ``tls/`` endpoint
+    (to tell "nothing listens" from "a session was refused"). Other protocols: False."""
+    import socket
+
+    proto, _, address = endpoint.partition("/")
+    host, sep, port = address.split("?", 1)[0].split("#", 1)[0].rpartition(":")
+    if proto not in ("tcp", "tls") or not sep or not port.isdigit():
+        return False
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            return True
+    except OSError:
+        return False
+
+
 def _open_session(cfg: zenoh.Config, where: str) -> zenoh.Session:
     try:
         return zenoh.open(cfg)
@@ -240,6 +266,7 @@ class ZenohLink(Link):
     def __init__(self, *, vehicle_id: int, clock: Clock, connect: Sequence[str] = ("tcp/127.0.0.1:7447",),
                  listen: Sequence[str] = (), mode: str = "peer", key_prefix: str = "hil",
                  multicast_scouting: bool = False, tls: Mapping[str, object] | None = None,
+                 usrpwd: Mapping[str, str] | None = None,
                  congestion_control: str = "block", lease_ms: int = DEFAULT_LEASE_MS,
                  shared_memory: bool | None = None, rx_queue_size: int = 1024,
                  rx_queue: queue.Queue[Received] | None = None) -> None:
@@ -261,7 +288,8 @@ class ZenohLink(Link):
         self.keys = Keys.of(key_prefix, vehicle_id)
         self.congestion_control = congestion_control
         self.connect, self.listen = list(connect), list(listen)
-        self.config = make_config(mode=mode, connect=connect, listen=listen, tls=tls,
+        self.usrpwd = bool(usrpwd)
+        self.config = make_config(mode=mode, connect=connect, listen=listen, tls=tls, usrpwd=usrpwd,
                                    multicast_scouting=multicast_scouting, lease_ms=lease_ms,
                                    shared_memory=shared_memory)
 
@@ -331,6 +359,16 @@ class ZenohLink(Link):
             return super()._no_hello_reason(timeout_s)
         info = s.info
         if not (info.peers_zid() or info.routers_zid()):
+            answering = [ep for ep in self.connect if _tcp_answers(ep)]
+            if answering:
+                tls = any(ep.startswith("tls/") for ep in answering)
+                why = ("the TLS handshake was refused: check that root_ca_certificate signed the target's "
+                       "certificate, the name in the endpoint matches it, and (mTLS) ours"
+                       if tls else "user/password authentication was refused: check the user, the password "
+                       "and the target's --auth-dictionary" if self.usrpwd
+                       else "another program holds the port, or the target asks for TLS or a password")
+                return (f"{', '.join(answering)} answers, but no zenoh session came up within {timeout_s:g} s: "
+                        f"{why}")
             return (f"no zenoh peer reached within {timeout_s:g} s (connect={self.connect}, "
                     f"listen={self.listen}): is the target running, e.g. with "
                     f"--transport zenoh --listen tcp/0.0.0.0:7447, and reachable?")

@@ -192,6 +192,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         scenarios.get(cfg.scenario.name).resolve(cfg.scenario.params)
     except ConfigError as err:
         raise ConfigError(f"{err}{_scenario_switch_hint(args.overrides, str(err))}") from err
+    if cfg.target.zenoh.auth is not None:
+        cfg.target.zenoh.auth.usrpwd()  # the password's environment variable is set: checked before anything
     out = prepare_out_dir(args.out or default_out_dir(cfg))
     console = make_console()
     backend = select_backend()

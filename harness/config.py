@@ -289,6 +289,10 @@ class RunConfig(BaseModel):
         if lat.min_ms > lat.max_ms:
             raise PydanticCustomError(_RULE_ERROR, f"at most max_ms ({lat.max_ms:g})",
                                       {"loc": ("lockstep", "latency", "min_ms"), "got": lat.min_ms})
+        if self.target.zenoh.auth is not None and self.target.transport != Transport.ZENOH:
+            raise PydanticCustomError(_RULE_ERROR, "no auth section: user/password authentication is offered "
+                                      "for transport: zenoh", {"loc": ("target", "zenoh", "auth"),
+                                                               "got": self.target.transport.value})
         if self.target.transport == Transport.LOCAL and not self.target.command:
             raise PydanticCustomError(_RULE_ERROR, "the program to start: the local transport runs the "
                                       "target as a child process", {"loc": ("target", "command"), "got": []})

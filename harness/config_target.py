@@ -27,6 +27,7 @@ included, over ``can`` (whose ``camera_over`` it ignores: it is always ``none``)
 
 from __future__ import annotations
 
+import os
 import sys
 from enum import Enum
 from typing import Annotated, Literal
@@ -36,6 +37,7 @@ from pydantic import AfterValidator, BaseModel, Field
 from adapters.can_interfaces import LOCAL_INTERFACES
 from adapters.zenoh_options import endpoint_problem, tls_key_problem
 from harness.config_types import MODEL_CONFIG, Int
+from timing.errors import ConfigError
 
 
 def _endpoint(value: str) -> str:
@@ -68,6 +70,31 @@ class Congestion(str, Enum):
     DROP = "drop"
 
 
+class ZenohAuthConfig(BaseModel):
+    """User/password authentication of the harness's Zenoh session (Zenoh's usrpwd):
+    a target started with ``--auth-dictionary FILE`` admits only peers whose
+    ``user:password`` is a line of FILE. The password is read from the environment
+    variable ``password_env`` when the run starts, so it is never written to a config
+    or a run folder."""
+
+    model_config = MODEL_CONFIG
+
+    user: str = Field(min_length=1, max_length=128, pattern=r"^[^:\s]+$")
+    password_env: str = Field("HIL_ZENOH_PASSWORD", pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+    def usrpwd(self) -> dict[str, str]:
+        """``{"user", "password"}`` for the Zenoh session.
+
+        Raises:
+            ConfigError: the environment variable is not set (or empty).
+        """
+        password = os.environ.get(self.password_env, "")
+        if not password:
+            raise ConfigError(f"target.zenoh.auth: set the password in the environment variable "
+                              f"{self.password_env} (a password is never stored in a config)")
+        return {"user": self.user, "password": password}
+
+
 class ZenohTargetConfig(BaseModel):
     """Zenoh session of the harness. Multicast scouting stays off unless turned on;
     ``tls`` keys pass through to ``transport/link/tls`` (see adapters/zenoh_transport)."""
@@ -83,6 +110,7 @@ class ZenohTargetConfig(BaseModel):
     congestion_control: Congestion = Congestion.BLOCK
     lease_ms: Int = Field(1000, ge=100, le=60_000)
     tls: dict[TlsKey, str | bool] | None = None
+    auth: ZenohAuthConfig | None = None  # zenoh transport only (see ZenohAuthConfig)
 
 
 class CanTargetConfig(BaseModel):

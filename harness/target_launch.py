@@ -60,7 +60,7 @@ def _zenoh_options(cfg: RunConfig, vehicle_id: int) -> dict[str, object]:
             "listen": [substitute(e, vehicle_id=vehicle_id, base_port=z.base_port) for e in z.listen],
             "mode": z.mode.value, "key_prefix": z.key_prefix, "multicast_scouting": z.multicast_scouting,
             "congestion_control": z.congestion_control.value, "lease_ms": z.lease_ms,
-            "tls": dict(z.tls) if z.tls else None}
+            "tls": dict(z.tls) if z.tls else None, **({"usrpwd": z.auth.usrpwd()} if z.auth else {})}
 
 
 def _can_options(cfg: RunConfig, vehicle_id: int) -> dict[str, object]:
