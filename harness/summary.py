@@ -91,7 +91,17 @@ def build_summary(*, loop: SimLoop, stats: LoopStats, recorder_stats: dict[str, 
             "physics_scheduling": stats.scheduling,
             "render_workers": stats.render_workers,
         },
+        "harness_cost": _cost(stats, frames=sum(v.next_frame_id for v in loop.vehicles)),
         "collisions": loop.collisions,
         "recorder": recorder_stats,
         "vehicles": vehicles,
     }
+
+
+def _cost(stats: LoopStats, *, frames: int) -> dict[str, Any]:
+    """The run process's own CPU time per frame (µs): the loop thread (frames,
+    estimates, controls) and the analysis thread (truth, observers, recording)."""
+    per = max(frames, 1)
+    return {"frames": frames, "loop_thread_us_per_frame": round(stats.loop_cpu_ns / per / 1e3, 1),
+            "analysis_thread_us_per_frame": round(stats.analysis_cpu_ns / per / 1e3, 1),
+            "analysis_tasks_dropped": stats.analysis_dropped}

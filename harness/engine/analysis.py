@@ -26,6 +26,7 @@ class AnalysisThread:
         self.dropped = 0
         self.errors: list[str] = []
         self.max_depth = 0
+        self.cpu_ns = 0  # CPU time the thread used (set when it ends)
         self._thread = threading.Thread(target=self._run, name="hil-analysis", daemon=True)
         self._thread.start()
         self._closed = False
@@ -45,9 +46,13 @@ class AnalysisThread:
             self.max_depth = depth
 
     def _run(self) -> None:
+        import time
+
+        start = time.thread_time_ns()
         while True:
             item = self._q.get()
             if item is None:
+                self.cpu_ns = time.thread_time_ns() - start
                 return
             fn, args = item
             try:
