@@ -533,8 +533,10 @@ def _check_slots(h: Header) -> None:
             raise ProtocolError(f"{h.type.name} leaves ts{i} 0, got {h.ts[i]}", offset=24 + 8 * i)
 
 
-def decode(buf: bytes | bytearray | memoryview) -> Message:
-    """Decode exactly one whole message.
+def decode(buf: bytes | bytearray | memoryview, *, header: Header | None = None) -> Message:
+    """Decode exactly one whole message. ``header``: the result of ``decode_header``
+    on these bytes when the caller has it already (a stream decoder), so the header
+    is not checked twice.
 
     Order of checks: the header (see ``decode_header``), then that ``len(buf)`` is
     exactly ``HEADER_SIZE + payload_len``, the payload CRC if flagged, unused header
@@ -551,7 +553,7 @@ def decode(buf: bytes | bytearray | memoryview) -> Message:
     """
     with as_view(buf) as mv:
         try:
-            h = decode_header(mv)
+            h = header if header is not None else decode_header(mv)
             n, total = mv.nbytes, HEADER_SIZE + h.payload_len
             if n < total:
                 raise ProtocolError(f"truncated: header announces {total} bytes, {n} present",

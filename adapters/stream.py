@@ -95,14 +95,15 @@ class StreamDecoder:
                     self._fail(out, err)
                     continue
                 self._skipping = False
-            total = HEADER_SIZE + self._header.payload_len
+            header = self._header
+            total = HEADER_SIZE + header.payload_len
             if avail < total:
                 return
             self._header = None
             self._pos = pos + total
             try:
                 with memoryview(buf) as whole, whole[pos:pos + total] as one:
-                    msg = decode(one)
+                    msg = decode(one, header=header)
             except ProtocolError as err:
                 out.append(err)
                 self.errors += 1
