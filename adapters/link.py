@@ -279,7 +279,7 @@ class Link(ABC):
         if isinstance(item, ProtocolError):
             self.stats.protocol_errors += 1
             self.stats.last_error = str(item)
-            self._put(self._rx, Received(ProtocolFault(str(item), item.offset), t_rx_ns, self.vehicle_id))  # type: ignore[arg-type]
+            self._enqueue(self._rx, Received(ProtocolFault(str(item), item.offset), t_rx_ns, self.vehicle_id))  # type: ignore[arg-type]
             return
         self.stats.messages_received += 1
         if isinstance(item, ErrorMsg):
@@ -289,9 +289,9 @@ class Link(ABC):
             self._mark_gone(f"target said bye ({item.reason or 'no reason given'})")
             return
         target = self._sync_rx if isinstance(item, SyncResponse) else self._rx
-        self._put(target, Received(item, t_rx_ns, self.vehicle_id))
+        self._enqueue(target, Received(item, t_rx_ns, self.vehicle_id))
 
-    def _put(self, target: queue.Queue[Received], r: Received) -> None:
+    def _enqueue(self, target: queue.Queue[Received], r: Received) -> None:
         try:
             target.put_nowait(r)
         except queue.Full:
