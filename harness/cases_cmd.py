@@ -21,6 +21,7 @@ from rich.table import Table
 
 from harness.corner_cases import read_cases
 from harness.progress import make_console
+from harness.replayable import Reproducibility, reproducibility, why_not_replayable
 from timing.errors import ConfigError
 
 CONFIG_NAME = "config.json"
@@ -70,12 +71,14 @@ def cmd_cases(args: argparse.Namespace) -> int:
             console.print(f"[yellow]warning: {line}[/yellow]")
     rows, bad = read_cases(run)
     t = Table(title=f"{len(rows)} corner cases in {run}", title_justify="left")
-    for col in ("id", "vehicle", "sim s", "kind", "cause", "severity", "summary", "window"):
+    for col in ("id", "vehicle", "sim s", "kind", "cause", "severity", "replay", "summary", "window"):
         t.add_column(col, no_wrap=col in ("kind", "window"))
-    for r in rows:
+    t.caption = ("replay: whether hil replay (lockstep) brings the case back; no: a wall-clock timing anomaly, "
+                 "real time only")
+    for r in rows:  # replay: harness.replayable
         t.add_row(str(r["id"]), r["vehicle"], f"{r['sim_time_ns'] / 1e9:.2f}" if r["sim_time_ns"] >= 0 else "-",
                   r["kind"].removeprefix("mismatch."), r.get("cause") or "-", r.get("severity") or "-",
-                  r["summary"], _window(r))
+                  "yes" if reproducibility(r["kind"]) is Reproducibility.REPLAY else "no", r["summary"], _window(r))
     console.print(t)
     for line in bad:
         console.print(f"[yellow]warning: {line}[/yellow]")
@@ -93,6 +96,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if case is None:
         raise ConfigError(f"{run}: no corner case {args.case_id} (cases: "
                           f"{', '.join(str(r['id']) for r in rows) or 'none'})")
+    if reproducibility(case["kind"]) is not Reproducibility.REPLAY:
+        raise ConfigError(f"{run}: case {args.case_id}: {why_not_replayable(case['kind'])}")
     cfg_path = run / CONFIG_NAME
     try:
         cfg_data = json.loads(cfg_path.read_text())

@@ -189,6 +189,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
 def _cmd_cases(args: argparse.Namespace) -> int:
     from rich.table import Table
 
+    from harness.replayable import Reproducibility, reproducibility
     from harness.search.db import open_campaign_db
     from harness.search.summary import case_cause
 
@@ -203,7 +204,9 @@ def _cmd_cases(args: argparse.Namespace) -> int:
         t.add_row(str(k["episode"]), str(k["case_id"]), str(k["vehicle"]),
                   "-" if sim is None or sim < 0 else f"{sim / 1e9:.2f}", str(k["kind"]).removeprefix("mismatch."),
                   case_cause(k), str(k["severity"] or "-"),
-                  f"hil replay {args.campaign / k['episode_dir']} {k['case_id']}")
+                  f"hil replay {args.campaign / k['episode_dir']} {k['case_id']}"
+                  if reproducibility(str(k["kind"])) is Reproducibility.REPLAY
+                  else "real time only (a wall-clock timing anomaly: no lockstep replay)")
     console.print(t)
     return EXIT_OK
 

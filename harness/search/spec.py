@@ -18,7 +18,13 @@ A spec is a YAML mapping (``hil_configs/search.yaml``)::
     score: {near_miss_m: 5}
 
 Every episode runs the base config in lockstep with its drawn values. The scenario
-parameters not searched keep the base's values. ``resolve_spec`` returns a frozen
+parameters not searched keep the base's values. In lockstep only what the simulation
+decides comes back the same on every machine (truth, the AI's estimates, mismatches
+under the latency profile); wall-clock timing anomalies (a deadline miss, a latency
+spike) depend on the machine's load. So an episode records them (``/events``, the
+episode's ``anomalies`` count) but opens no corner case for them
+(``corner_cases.on_anomalies`` is emptied): a campaign's cases and case ids are the
+same however it is sharded, on any machine, and every one replays. ``resolve_spec`` returns a frozen
 ``Campaign`` whose ``campaign_id`` (sha256 of the resolved spec: the full run config,
 the search space, the strategy, the seed and the episode count) names the campaign;
 shards of one campaign share it, and ``hil search merge`` refuses others.
@@ -167,7 +173,8 @@ class Campaign:
 
     def episode_config(self, *, index: int, seed: int, values: Mapping[str, float]) -> RunConfig:
         """The run config of episode ``index``: the base in lockstep, without progress
-        display, with ``seed`` and the drawn ``values`` set.
+        display and without timing-anomaly corner cases (see the module docstring),
+        with ``seed`` and the drawn ``values`` set.
 
         Raises:
             ConfigError: a drawn value the run config refuses (cannot happen for a
@@ -175,6 +182,7 @@ class Campaign:
         """
         data = copy.deepcopy(self.run)
         data.update(name=f"{self.name}-e{index:05d}", seed=int(seed), mode="lockstep", progress=False)
+        data.setdefault("corner_cases", {})["on_anomalies"] = []  # wall clock: recorded, never a case
         scen = data.setdefault("scenario", {})
         scen["params"] = dict(scen.get("params") or {})
         lat = data.setdefault("lockstep", {}).setdefault("latency", {})

@@ -44,6 +44,15 @@ def test_random_draws_are_reproducible_from_the_seed_and_in_range():
     assert cfg.lockstep.latency.kind.value == "normal" and cfg.lockstep.latency.std_ms == a[3].values["latency.std_ms"]
 
 
+def test_lockstep_episodes_open_no_corner_case_for_wall_clock_timing_anomalies():
+    # A base that asks for timing-anomaly cases: in a lockstep episode they could never
+    # be replayed and would depend on the machine's load (and so on the sharding).
+    c = spec(run={**BASE["run"], "corner_cases": {"on_anomalies": ["deadline_miss", "latency_spike"]}})
+    d = draw_generation(c, 0)[0]
+    cfg = c.episode_config(index=0, seed=d.seed, values=d.values)
+    assert cfg.corner_cases.on_anomalies == [] and cfg.corner_cases.enabled
+
+
 def test_default_space_is_the_whole_scenario_and_integers_stay_whole():
     c = spec(params=None, latency={}, run={"mode": "lockstep", "scenario": {"name": "multi_vehicle"}})
     names = [d.name for d in c.dims]

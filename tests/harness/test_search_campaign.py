@@ -1,6 +1,9 @@
 """Whole campaigns: a blind AI (says SAFE, never brakes) on the stopped-car scene
 finds corner cases in every episode; they are kept, summarized and replayable, and a
-sharded campaign merges into the same result as an unsharded one."""
+sharded campaign merges into the same result as an unsharded one — the same cases
+with the same ids: wall-clock timing anomalies (every frame here misses an
+impossible deadline; latency spikes come and go with the machine's load) are
+recorded but never made cases in lockstep episodes."""
 
 from __future__ import annotations
 
@@ -29,7 +32,9 @@ pytestmark = pytest.mark.slow
 SPEC = {"name": "blind-search", "seed": 5, "episodes": 4,
         "run": {"mode": "lockstep", "duration_s": 2.0, "scenario": {"name": "stopped_car"},
                 "target": {"command": ["{python}", "-m", "targets.echo", "--throttle", "0.3"]},
-                "corner_cases": {"history_s": 1.0, "after_s": 0.3}},
+                "corner_cases": {"history_s": 1.0, "after_s": 0.3,
+                                 "on_anomalies": ["deadline_miss", "latency_spike", "jitter"]},
+                "timing": {"thresholds": {"deadline_ms": {"end_to_end": 0.01}}}},
         "params": {"gap_m": [15, 30], "ego_speed_mps": [6, 12]}, "latency": {"ms": [0, 200]},
         "strategy": {"kind": "random"}}
 
@@ -141,6 +146,34 @@ def test_shards_merge_into_the_unsharded_campaign(campaign, shards, tmp_path):
     p = hil("replay", str(tmp_path / "merged" / ep_dir), str(case_id))
     assert p.returncode == 0 and "reproduced" in p.stdout and "not reproduced" not in p.stdout, p.stdout
     assert not (shards / "shard-1" / ep_dir / "replays").exists(), "the shard's folder is left as it was"
+
+
+def case_set(folder: Path) -> list[tuple]:
+    con = sqlite3.connect(folder / "campaign.sqlite")
+    try:
+        return con.execute("SELECT episode, case_id, vehicle, sim_time_ns, kind, cause, severity FROM cases "
+                           "ORDER BY episode, case_id").fetchall()
+    finally:
+        con.close()
+
+
+def test_lockstep_episodes_record_timing_anomalies_but_make_no_case_of_them(campaign):
+    con = sqlite3.connect(campaign.out_dir / "campaign.sqlite")
+    anomalies = [n for (n,) in con.execute("SELECT anomalies FROM episodes")]
+    assert len(anomalies) == 4 and all(n > 0 for n in anomalies), "every frame misses its deadline"
+    kinds = {k for (k,) in con.execute("SELECT kind FROM cases")}
+    assert kinds and all(k.startswith("mismatch.") for k in kinds), kinds
+    s = json.loads((campaign.out_dir / "summary.json").read_text())
+    assert s["cases"]["by_cause"]["timing"] == 0
+
+
+def test_sharded_and_unsharded_campaigns_find_the_same_cases(campaign, shards, tmp_path):
+    # The unsharded campaign ran 2 episodes at a time in one folder, the shards one at a
+    # time each: different load, the same cases with the same ids.
+    merge(tmp_path / "merged", [shards / "shard-0", shards / "shard-1"])
+    merged, whole = case_set(tmp_path / "merged"), case_set(campaign.out_dir)
+    assert merged and merged == whole
+    assert merged == sorted(case_set(shards / "shard-0") + case_set(shards / "shard-1"))
 
 
 def test_merge_refuses_other_campaigns_duplicates_and_existing_output(shards, tmp_path):
