@@ -12,8 +12,9 @@ At :meth:`close` the triggers become cases, grouped in **sim time**: triggers of
 one vehicle, one kind and one cause (``perception``, ``latency``; none for timing
 anomalies) whose sim times are at most ``after_s`` apart form one case (one lasting
 mismatch, its escalations and its repeats are one case; a perception and a latency
-mismatch never share one). Cases are numbered by first sim time, then vehicle,
-kind and cause: the same run gives the same cases on any machine. A case's severity
+mismatch never share one). Mismatch cases are numbered by first sim time, then
+vehicle, kind and cause, and timing-anomaly cases after them in the same order: a
+lockstep run gives the same mismatch cases, ids included, on any machine. A case's severity
 is the highest of its events; its event (the one shown and replayed) is the first
 at that severity. One row per case goes to ``corner_cases.sqlite`` (table
 ``cases``: run, scenario, seed, params, config hash, vehicle, sim time, kind,
@@ -113,7 +114,10 @@ def group_cases(triggers: list[Trigger], *, join_ns: int) -> list[Case]:
                 groups.append(cur)
                 cur = [t]
         groups.append(cur)
-    groups.sort(key=lambda g: (g[0].sim_time_ns, g[0].vehicle, g[0].kind, g[0].cause or ""))
+    # Mismatch cases first: timing anomalies depend on the machine, their number must
+    # not shift the ids of the cases that do not.
+    groups.sort(key=lambda g: (not g[0].kind.startswith("mismatch."), g[0].sim_time_ns, g[0].vehicle, g[0].kind,
+                               g[0].cause or ""))
     return [Case(i, g) for i, g in enumerate(groups, 1)]
 
 

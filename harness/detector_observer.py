@@ -40,6 +40,9 @@ class _VehicleJudge:
     detector: CornerCaseDetector
     at_t0: dict[int, FrameTruth] = field(default_factory=dict)
     at_apply: dict[int, FrameTruth] = field(default_factory=dict)
+    # Applied frames whose camera truth has not arrived yet (frame id -> record,
+    # estimate), judged in frame order once it does.
+    waiting: dict[int, tuple[PipelineRecord, Estimate]] = field(default_factory=dict)
     last_frame: int = -1
 
 
@@ -116,15 +119,18 @@ class DetectorObserver:
                    if b.visible_px >= c.min_visible_px and b.visible_fraction >= c.min_visible_fraction}
         vj.at_t0[frame_id] = self._frame_truth(vehicle, gt, visible)
         _trim(vj.at_t0, frame_id)
+        if vj.waiting:
+            self._release(vj, upto=frame_id)
 
     def on_apply(self, vehicle: str, frame_id: int, truth_now: Callable[..., GroundTruth]) -> None:
         vj = self.v.get(vehicle)
-        t0 = vj.at_t0.get(frame_id) if vj is not None else None
-        if vj is None or t0 is None:
+        if vj is None:
             return
         gt = truth_now(egos=(vehicle,)) if self._accepts_egos(truth_now) else truth_now()
-        # Only what the t0 judgement can compare: the entities it had in range.
-        near = {o.name for o in t0.objects if o.distance_m <= self.cfg.max_range_m * 1.5}
+        # Only what the t0 judgement can compare: the entities it had in range (all of
+        # them while its camera truth is still on its way).
+        t0 = vj.at_t0.get(frame_id)
+        near = None if t0 is None else {o.name for o in t0.objects if o.distance_m <= self.cfg.max_range_m * 1.5}
         vj.at_apply[frame_id] = self._frame_truth(vehicle, gt, None, only=near)
         _trim(vj.at_apply, frame_id)
 
@@ -144,9 +150,25 @@ class DetectorObserver:
         if vj is None or estimate is None or rec.status != FrameStatus.OK:
             return
         vj.last_frame = rec.frame_id
-        t0 = vj.at_t0.pop(rec.frame_id, None)
-        if t0 is None:
-            return  # truth for this frame was not taken (truth.visible_boxes off)
+        if rec.frame_id not in vj.at_t0 or vj.waiting:
+            # Its camera truth (rendered after the frame) is still on its way, or an
+            # earlier frame waits for its own: judged in frame order when they come.
+            vj.waiting[rec.frame_id] = (rec, estimate)
+            for k in [k for k in vj.waiting if k < rec.frame_id - _KEEP_FRAMES]:
+                del vj.waiting[k]  # truth never came (truth.visible_boxes off): bounded
+            return
+        self._judge(vj, rec, estimate)
+
+    def _release(self, vj: _VehicleJudge, *, upto: int) -> None:
+        """Judge the waiting frames up to ``upto`` in order; one whose camera truth
+        did not come before a later frame's never will (it is skipped)."""
+        for fid in sorted(k for k in vj.waiting if k <= upto):
+            rec, estimate = vj.waiting.pop(fid)
+            if fid in vj.at_t0:
+                self._judge(vj, rec, estimate)
+
+    def _judge(self, vj: _VehicleJudge, rec: PipelineRecord, estimate: Estimate) -> None:
+        t0 = vj.at_t0.pop(rec.frame_id)
         ta = vj.at_apply.pop(rec.frame_id, None)
         now = rec.t_apply_ns or rec.t0p_ns or rec.t0_ns
         self._last_ns = max(self._last_ns, now)

@@ -79,8 +79,8 @@ def test_cases_group_in_sim_time_one_cause_each(tmp_path: Path):
     assert got == [(1, "ego0", "mismatch.state_mismatch", "latency", "critical", 2, 1000),
                    (2, "ego1", "mismatch.state_mismatch", "latency", "warning", 1, 1050),
                    (3, "ego0", "mismatch.state_mismatch", "perception", "critical", 1, 2600),
-                   (4, "ego1", "sync_lost", None, "warning", 1, 3000),
-                   (5, "ego0", "mismatch.state_mismatch", "latency", "warning", 1, 7500)]
+                   (4, "ego0", "mismatch.state_mismatch", "latency", "warning", 1, 7500),
+                   (5, "ego1", "sync_lost", None, "warning", 1, 3000)]  # timing cases after mismatch cases
     first = rows[0]
     assert "2 events over 1.50 s of sim time" in first["summary"]
     assert first["event"]["severity"] == "critical"  # the case shows its most severe event

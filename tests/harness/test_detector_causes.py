@@ -44,6 +44,9 @@ def cause_from_evidence(m: Mismatch) -> Cause:
         a = ev["truth_apply"]
         assert (not ev["applied_before_contact"]) or a["gap_m"] < a["stop_distance_m"], "applied too late"
         return Cause.LATENCY
+    if m.kind == MismatchKind.COLLISION_WHILE_SAFE:
+        assert ev["belief"]["state"] == "SAFE"
+        return Cause.LATENCY if ev["truth_t0"]["state"] == "SAFE" else Cause.PERCEPTION
     if m.kind == MismatchKind.STATE_MISMATCH:
         if ev["belief"]["state"] != ev["truth_t0"]["state"]:
             return Cause.PERCEPTION
@@ -55,7 +58,11 @@ def cause_from_evidence(m: Mismatch) -> Cause:
             return Cause.PERCEPTION
         assert math.hypot(b["x_m"] - ta["x_m"], b["y_m"] - ta["y_m"]) > ta["tol_m"]
         return Cause.LATENCY
-    return Cause.PERCEPTION  # missed and ghost objects: wrong at capture by construction
+    if m.kind == MismatchKind.MISSED_OBJECT:
+        assert ev["belief"] is None and ev["truth_t0"]["visible"] is True
+    else:
+        assert m.kind == MismatchKind.GHOST_OBJECT and ev["belief"] and ev["truth_t0"] is None
+    return Cause.PERCEPTION  # nothing there, or something there unseen, at capture
 
 
 def test_a_perception_error_is_reported_while_a_latency_episode_is_open():
@@ -183,3 +190,13 @@ def test_near_miss_is_a_late_reaction_too():
     assert m.sim_time_ns == 2950 * MS  # the first tick under 1 m (gap 0.5 m)
     assert m.evidence["applied_before_contact"] is True and m.measured == 2000.0
     assert cause_from_evidence(m) == Cause.LATENCY
+
+
+def test_collision_while_safe_carries_the_belief_it_was_judged_on():
+    for ref0, cause in ((S, Cause.LATENCY), (P, Cause.PERCEPTION)):
+        det = CornerCaseDetector("ego0")
+        det.judge(est(7, S), at_t0=truth(ref0, 350 * MS), at_apply=truth(P, 950 * MS), harness_time_ns=0)
+        (m,) = det.on_collision(other="car1", sim_time_ns=990 * MS, harness_time_ns=1, frame_id=7, force_n=1.0)
+        assert m.cause == cause == cause_from_evidence(m)
+        assert (m.evidence["frame_id"], m.evidence["sim_time_t0_ns"], m.evidence["sim_time_apply_ns"],
+                m.evidence["collision_sim_time_ns"]) == (7, 350 * MS, 950 * MS, 990 * MS)
