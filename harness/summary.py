@@ -8,7 +8,6 @@ from harness.loop import LoopStats, SimLoop
 from harness.detector_observer import DetectorObserver
 from harness.timing_observer import TimingObserver
 from harness.vehicle_state import VehicleRun
-from timing.anomaly import is_sane
 from timing.records import STAGES, FrameStatus
 from timing.stats import summarize_ns
 
@@ -17,19 +16,15 @@ SCHEMA_VERSION = 1
 
 def vehicle_summary(v: VehicleRun, *, wall_s: float, timing: TimingObserver | None = None,
                     detector: DetectorObserver | None = None) -> dict[str, Any]:
-    ok = [r for r in v.records if r.status == FrameStatus.OK]
     # Exact percentiles over the recorded frames; absurd records (flagged as causality
     # anomalies) are kept out so the summary never shows a negative latency.
-    sane = [r for r in ok if is_sane(r)[0]]
-    stages: dict[str, Any] = {}
-    for name in STAGES:
-        vals = [d[name] for r in sane if name in (d := r.stages_ns())]
-        stages[name] = summarize_ns(vals)
-    frames = len(v.records)
+    stages: dict[str, Any] = {name: summarize_ns(v.stage_values[name]) for name in STAGES}
+    frames = v.frames_settled
+    applied = v.count(FrameStatus.OK)
     return {
         "frames_sent": v.next_frame_id,
         "frames_accounted": frames,
-        "estimates_applied": len(ok),
+        "estimates_applied": applied,
         "dropped": v.count(FrameStatus.DROPPED),
         "stale": v.count(FrameStatus.STALE),
         "late_estimates": v.late_estimates,
@@ -38,8 +33,8 @@ def vehicle_summary(v: VehicleRun, *, wall_s: float, timing: TimingObserver | No
         "protocol_events_unwritten": max(0, v.protocol_faults - 200),
         "drop_rate": round(v.count(FrameStatus.DROPPED) / frames, 6) if frames else 0.0,
         "frames_per_s": round(v.next_frame_id / wall_s, 3) if wall_s > 0 else 0.0,
-        "estimates_per_s": round(len(ok) / wall_s, 3) if wall_s > 0 else 0.0,
-        "order_violations": sum(1 for r in ok if r.order_violations()),
+        "estimates_per_s": round(applied / wall_s, 3) if wall_s > 0 else 0.0,
+        "order_violations": v.order_violations,
         "latency_ms": stages,
         **(timing.summary(v.name) if timing is not None else {}),
         **(detector.summary(v.name) if detector is not None else {}),
