@@ -2,18 +2,23 @@
 
 Topics per vehicle ``V``: ``/V/camera`` (foxglove.CompressedImage or RawImage),
 ``/V/estimate``, ``/V/pipeline``, ``/V/clock_sync``, ``/V/truth`` (the camera's
-visible boxes); shared: ``/ground_truth`` and ``/events``. ``log_time`` is always the harness clock (receipt or capture);
+visible boxes); shared: ``/ground_truth`` and ``/events``; and the Foxglove views
+of :mod:`harness.foxglove_out` (``/scene``, ``/tf``, ``/log``, ``/V/camera_info``,
+``/V/annotations``, ``/V/estimate_scene``, ``/V/latency``). ``log_time`` is always
+the harness clock (receipt or capture), shifted onto the wall clock by the
+recorder's time anchor (metadata ``time_anchor``);
 ``publish_time`` the source's time (``t0`` for frames and records, the target's
 ``t_reply`` for estimates, ``t1`` for clock-sync samples).
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterable
 from typing import Any
 
 from harness import foxglove_out
-from harness.recorder import Recorder
+from harness.recorder import Recorder, TimeAnchor
 from timing.sync import SyncSample
 
 
@@ -90,8 +95,18 @@ def sync_sample_json(s: SyncSample, *, warmup: bool = False) -> dict[str, Any]:
             "t4_ns": s.t4_ns, "offset_ns": s.offset_ns, "delay_ns": s.delay_ns, "warmup": warmup}
 
 
-def register_all(rec: Recorder, vehicles: Iterable[str]) -> None:
-    """Declare every JSON channel of a run."""
+def register_all(rec: Recorder, vehicles: Iterable[str], *, anchor: TimeAnchor | None = None,
+                 views: bool = True) -> None:
+    """Declare every JSON channel of a run; put the recording on the wall clock
+    (``anchor``, captured now if not given; skipped if messages were already
+    written) and install the Foxglove views (:class:`harness.foxglove_out.FoxgloveViews`;
+    the camera calibration comes from the recorder's ``config`` metadata).
+
+    ``rec`` may be a stand-in wrapping the Recorder as ``rec.rec`` (CaseRecorder):
+    the anchor and the derivations go to the Recorder itself.
+    """
+    vehicles = list(vehicles)
+    inner = getattr(rec, "rec", rec)
     rec.register_json_channel("/ground_truth", "hil.GroundTruth", GROUND_TRUTH)
     rec.register_json_channel("/events", "hil.Event", EVENT)
     foxglove_out.register(rec)
@@ -101,3 +116,22 @@ def register_all(rec: Recorder, vehicles: Iterable[str]) -> None:
         rec.register_json_channel(f"/{v}/clock_sync", "hil.ClockSyncSample", CLOCK_SYNC)
         rec.register_json_channel(f"/{v}/clock", "hil.ClockState", CLOCK_STATE)
         rec.register_json_channel(f"/{v}/truth", "hil.CameraTruth", CAMERA_TRUTH)
+        foxglove_out.register_vehicle(rec, v)
+    if not isinstance(inner, Recorder):
+        return
+    if inner.stats.enqueued == 0:
+        inner.set_time_anchor(anchor or TimeAnchor.capture())
+    if views:
+        foxglove_out.FoxgloveViews(vehicles, camera=_camera_config(inner),
+                                   offset_ns=inner.log_time_offset_ns).install(inner)
+
+
+def _camera_config(rec: Recorder) -> dict[str, Any] | None:
+    """The ``camera`` section of the run config in the recorder's metadata, if any."""
+    meta = rec.metadata_record("config") or {}
+    try:
+        cam = json.loads(meta["yaml_json"])["camera"]
+    except (KeyError, ValueError, TypeError):
+        return None
+    needed = ("width", "height", "fovy_deg")
+    return cam if isinstance(cam, dict) and all(k in cam for k in needed) else None

@@ -24,6 +24,13 @@ COMPRESSED_IMAGE = "foxglove.CompressedImage"
 RAW_IMAGE = "foxglove.RawImage"
 FRAME_TRANSFORM = "foxglove.FrameTransform"
 SCENE_UPDATE = "foxglove.SceneUpdate"
+CAMERA_CALIBRATION = "foxglove.CameraCalibration"
+IMAGE_ANNOTATIONS = "foxglove.ImageAnnotations"
+LOG = "foxglove.Log"
+
+# foxglove.Log levels and foxglove.PointsAnnotation types (Foxglove's enum values).
+LOG_INFO, LOG_WARNING, LOG_ERROR = 2, 3, 4
+POINTS_LINE_LOOP = 2
 
 _NS_PER_S = 1_000_000_000
 
@@ -285,6 +292,80 @@ def scene_update_schema() -> dict[str, Any]:
     })
 
 
+def _numbers_array(description: str) -> dict[str, Any]:
+    return _array({"type": "number"}, description)
+
+
+def camera_calibration_schema() -> dict[str, Any]:
+    """``foxglove.CameraCalibration``: pinhole intrinsics (pixels) of the camera
+    whose images carry ``frame_id`` (an optical frame: +z forward, +x right, +y down)."""
+    return _schema(CAMERA_CALIBRATION, "Camera calibration parameters", {
+        "timestamp": _time("Timestamp of calibration data"),
+        "frame_id": {"type": "string", "description": "Frame of reference for the camera (optical frame)"},
+        "width": {"type": "integer", "minimum": 0, "description": "Image width (pixels)"},
+        "height": {"type": "integer", "minimum": 0, "description": "Image height (pixels)"},
+        "distortion_model": {"type": "string", "description": "plumb_bob, rational_polynomial or kannala_brandt"},
+        "D": _numbers_array("Distortion parameters"),
+        "K": _numbers_array("Intrinsic camera matrix (3x3 row-major)"),
+        "R": _numbers_array("Rectification matrix (3x3 row-major)"),
+        "P": _numbers_array("Projection/camera matrix (3x4 row-major)"),
+    })
+
+
+def _point2(description: str) -> dict[str, Any]:
+    return _numbers("foxglove.Point2", description, "xy")
+
+
+def image_annotations_schema() -> dict[str, Any]:
+    """``foxglove.ImageAnnotations``: outlines (``points``) and labels (``texts``)
+    in pixel coordinates (origin top-left, pixel centres at +0.5); no circles."""
+    points = _object("foxglove.PointsAnnotation", "An array of points on a 2D image", {
+        "timestamp": _time("Timestamp of annotation"),
+        "type": {
+            "title": "foxglove.PointsAnnotationType",
+            "description": "0 UNKNOWN, 1 POINTS, 2 LINE_LOOP, 3 LINE_STRIP, 4 LINE_LIST",
+            "oneOf": [{"title": t, "const": i} for i, t in
+                      enumerate(("UNKNOWN", "POINTS", "LINE_LOOP", "LINE_STRIP", "LINE_LIST"))],
+        },
+        "points": _array(_point2("Point"), "Points in 2D image coordinates (pixels)"),
+        "outline_color": _color("Outline color"),
+        "outline_colors": _array(_color("Color"), "Per-point colors"),
+        "fill_color": _color("Fill color"),
+        "thickness": {"type": "number", "minimum": 0, "description": "Stroke thickness in pixels"},
+    })
+    text = _object("foxglove.TextAnnotation", "A text label on a 2D image", {
+        "timestamp": _time("Timestamp of annotation"),
+        "position": _point2("Bottom-left origin of the text label in 2D image coordinates (pixels)"),
+        "text": {"type": "string", "description": "Text to display"},
+        "font_size": {"type": "number", "description": "Font size in pixels"},
+        "text_color": _color("Text color"),
+        "background_color": _color("Background fill color"),
+    })
+    out = _schema(IMAGE_ANNOTATIONS, "Array of annotations for a 2D image", {
+        "circles": _array({"title": "foxglove.CircleAnnotation", "type": "object"}, "Circle annotations"),
+        "points": _array(points, "Points annotations"),
+        "texts": _array(text, "Text annotations"),
+    })
+    return out
+
+
+def log_schema() -> dict[str, Any]:
+    """``foxglove.Log``: one line for the Log panel (``level`` 1 DEBUG .. 5 FATAL)."""
+    return _schema(LOG, "A log message", {
+        "timestamp": _time("Timestamp of log message"),
+        "level": {
+            "title": "foxglove.LogLevel",
+            "description": "0 UNKNOWN, 1 DEBUG, 2 INFO, 3 WARNING, 4 ERROR, 5 FATAL",
+            "oneOf": [{"title": t, "const": i} for i, t in
+                      enumerate(("UNKNOWN", "DEBUG", "INFO", "WARNING", "ERROR", "FATAL"))],
+        },
+        "message": {"type": "string", "description": "Log message"},
+        "name": {"type": "string", "description": "Process or node name"},
+        "file": {"type": "string", "description": "Filename"},
+        "line": {"type": "integer", "minimum": 0, "description": "Line number in the file"},
+    })
+
+
 def schema_for(name: str) -> dict[str, Any]:
     """The schema named ``name`` (one of the constants above).
 
@@ -296,6 +377,9 @@ def schema_for(name: str) -> dict[str, Any]:
         RAW_IMAGE: raw_image_schema,
         FRAME_TRANSFORM: frame_transform_schema,
         SCENE_UPDATE: scene_update_schema,
+        CAMERA_CALIBRATION: camera_calibration_schema,
+        IMAGE_ANNOTATIONS: image_annotations_schema,
+        LOG: log_schema,
     }
     try:
         return builders[name]()

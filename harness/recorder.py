@@ -15,6 +15,19 @@ Times: ``log_time_ns`` and ``publish_time_ns`` are integer nanoseconds, written 
 MCAP message ``log_time`` and ``publish_time``; Foxglove plays a file by log time. The
 ``timestamp`` field inside image messages is the publish time.
 
+Wall-clock timeline: :meth:`Recorder.set_time_anchor` (before the first message)
+adds ``realtime_ns - monotonic_ns`` of a :class:`TimeAnchor` to every ``log_time``
+and to the ``timestamp`` of the Foxglove images, so Foxglove shows the run at the
+date it happened; ``publish_time`` and every ``*_ns`` field inside messages stay on
+the monotonic clock. The anchor is written as the ``time_anchor`` metadata record
+(``realtime_ns``, ``monotonic_ns``, ``log_time_offset_ns``): ``log_time -
+log_time_offset_ns`` is the monotonic time the producer gave.
+
+Derived channels: :meth:`Recorder.add_derivation` runs a function on the writer
+thread for every message of one topic; the messages it returns are written too
+(Foxglove views of the hil.* channels, see :mod:`harness.foxglove_out`). Their cost
+stays off the producers.
+
 Crash safety: messages are written in chunks. A chunk is written when it holds
 ``chunk_size`` bytes (default 1 MiB), when it spans ``chunk_duration_ns`` of log time
 (default 1 s), on :meth:`Recorder.flush` and at close. Chunks go to the file with
@@ -46,7 +59,7 @@ been yielded. :func:`iter_salvaged_messages` wraps this. (The Go ``mcap recover`
 command rewrites such a file with a summary and footer.)
 
 Raises: :class:`timing.errors.ConfigError` for an unusable path or option, for a
-message on a topic that was never registered, and from :meth:`Recorder.close` when
+message on a topic that was never registered; ``RecordingError`` from :meth:`Recorder.close` when
 the file could not be written (disk full); bad messages (not JSON-serialisable) are
 counted in ``stats.errors`` and skipped, never raised on the producer.
 """
@@ -60,7 +73,8 @@ import os
 import queue
 import struct
 import threading
-from collections.abc import Iterator, Mapping
+import time
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from enum import Enum, IntEnum
 from pathlib import Path
@@ -76,7 +90,7 @@ from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
 from harness import __version__
 from harness import foxglove_schemas as fx
-from timing.errors import ConfigError
+from timing.errors import ConfigError, RecordingError
 
 _MESSAGE_ENCODING = "json"
 _SCHEMA_ENCODING = "jsonschema"
@@ -117,6 +131,37 @@ class RecorderStats:
     bytes_written: int
     max_queue_depth: int
     first_error: str | None
+
+
+@dataclass(frozen=True)
+class TimeAnchor:
+    """The realtime clock read beside the monotonic clock (both integer ns)."""
+
+    realtime_ns: int
+    monotonic_ns: int
+
+    @classmethod
+    def capture(cls) -> TimeAnchor:
+        """Read both clocks now (the monotonic read is the mean of two around the
+        realtime read, so the pair is within a few hundred ns)."""
+        m0 = time.monotonic_ns()
+        r = time.time_ns()
+        m1 = time.monotonic_ns()
+        return cls(realtime_ns=r, monotonic_ns=(m0 + m1) // 2)
+
+    @property
+    def offset_ns(self) -> int:
+        """Add to a monotonic time to get the wall-clock time (ns)."""
+        return self.realtime_ns - self.monotonic_ns
+
+    def to_metadata(self) -> dict[str, str]:
+        return {"realtime_ns": str(self.realtime_ns), "monotonic_ns": str(self.monotonic_ns),
+                "log_time_offset_ns": str(self.offset_ns), "clock": "CLOCK_MONOTONIC"}
+
+
+# A derivation gets (message, log_time_ns, publish_time_ns) with monotonic times and
+# returns messages (topic, message, log_time_ns, publish_time_ns) to write as well.
+Derivation = Callable[[Mapping[str, Any], int, int], Iterable[tuple[str, Mapping[str, Any], int, int]]]
 
 
 class _Op(IntEnum):
@@ -220,6 +265,7 @@ class Recorder:
         self._max_depth = 0
         # Writer-side state (touched only by the writer thread once it runs).
         self._written = 0
+        self._derived = 0
         self._errors = 0
         self._first_error: str | None = None
         self._io_error: OSError | None = None
@@ -227,6 +273,8 @@ class Recorder:
         self._channel_ids: dict[str, int] = {}
         self._schema_ids: dict[tuple[str, bytes], int] = {}
         self._chunk_start_ns: int | None = None
+        self._offset_ns = 0
+        self._derivations: dict[str, list[Derivation]] = {}
 
         if not isinstance(queue_size, int) or queue_size < 1:
             raise ConfigError(f"recorder queue_size must be a positive integer, got {queue_size!r}")
@@ -400,6 +448,46 @@ class Recorder:
                 raise ConfigError(f"cannot add metadata {name!r}: the recorder {self._path} is closed")
             self._metadata[name] = dict(data)
 
+    def set_time_anchor(self, anchor: TimeAnchor) -> None:
+        """Put ``log_time`` (and Foxglove image timestamps) on the wall clock: add
+        ``anchor.offset_ns`` to them; record the anchor as metadata ``time_anchor``.
+
+        Raises:
+            ConfigError: a message was already enqueued (its log time would be on
+                the other timeline), or the recorder is closed.
+        """
+        with self._lock:
+            if self._enqueued or self._dropped or self._closing:
+                raise ConfigError("set the recorder's time anchor before the first message")
+            self._offset_ns = anchor.offset_ns
+            self._metadata["time_anchor"] = anchor.to_metadata()
+
+    def metadata_record(self, name: str) -> dict[str, str] | None:
+        """A copy of the metadata record ``name`` added so far, or ``None``."""
+        with self._lock:
+            got = self._metadata.get(name)
+            return None if got is None else dict(got)
+
+    @property
+    def log_time_offset_ns(self) -> int:
+        """What is added to monotonic times for ``log_time`` (0 without an anchor)."""
+        return self._offset_ns
+
+    def add_derivation(self, topic: str, fn: Derivation) -> None:
+        """Run ``fn`` on the writer thread for every JSON message of ``topic`` and
+        write what it returns (on registered topics). An exception in ``fn`` is
+        counted in ``stats.errors``; the source message is written regardless.
+
+        Raises:
+            ConfigError: ``topic`` was never registered, or messages were enqueued.
+        """
+        with self._lock:
+            if topic not in self._topics:
+                raise ConfigError(f"cannot derive from {topic!r}: it is not registered")
+            if self._enqueued:
+                raise ConfigError("add derivations before the first message")
+            self._derivations.setdefault(topic, []).append(fn)
+
     @property
     def stats(self) -> RecorderStats:
         """A snapshot of the counters (exact once :meth:`close` returned)."""
@@ -439,7 +527,7 @@ class Recorder:
             The final counters.
 
         Raises:
-            ConfigError: the file could not be written (e.g. disk full); raised once,
+            RecordingError: the file could not be written (e.g. disk full); raised once,
                 after everything is closed.
         """
         if not self._closed:
@@ -459,7 +547,7 @@ class Recorder:
             self._closed = True
         if self._io_error is not None and not self._io_error_raised:
             self._io_error_raised = True
-            raise ConfigError(
+            raise RecordingError(
                 f"could not write the recording {self._path}: {self._io_error}; "
                 "check free disk space and permissions"
             ) from self._io_error
@@ -562,25 +650,52 @@ class Recorder:
 
     def _write_message(self, item: tuple[Any, ...]) -> None:
         op, topic, seq, log_ns, pub_ns, a, b, c = item
+        log_ns += self._offset_ns
         if op is _Op.JSON:
             try:
                 data = self._encoder.encode(a).encode()
             except ValueError:  # NaN or infinity somewhere: write them as null
                 data = self._encoder.encode(_finite(a)).encode()
         elif op is _Op.IMAGE:
-            data = _image_json(pub_ns, c, b'"format":"%s",' % b.encode(), a)
+            data = _image_json(pub_ns + self._offset_ns, c, b'"format":"%s",' % b.encode(), a)
         else:
             height, width, encoding = b
             fields = b'"width":%d,"height":%d,"encoding":"%s","step":%d,' % (
                 width, height, encoding.encode(), 3 * width)
-            data = _image_json(pub_ns, c, fields, a)
+            data = _image_json(pub_ns + self._offset_ns, c, fields, a)
+        self._add(topic, data, log_ns, pub_ns, seq)
+        self._written += 1  # only this thread writes it; stats reads an int
+        if op is _Op.JSON and topic in self._derivations:
+            self._derive(topic, a, log_ns - self._offset_ns, pub_ns)
+
+    def _derive(self, topic: str, obj: Mapping[str, Any], log_ns: int, pub_ns: int) -> None:
+        for fn in self._derivations[topic]:
+            try:
+                out = list(fn(obj, log_ns, pub_ns))
+            except Exception as err:  # a view must never stop the recording
+                self._note_error(err, topic=topic)
+                continue
+            for d_topic, d_obj, d_log, d_pub in out:
+                if d_topic not in self._topics:
+                    self._note_error(ConfigError(f"derived topic {d_topic!r} is not registered"), topic=topic)
+                    continue
+                with self._lock:
+                    seq = self._next_seq[d_topic] = (self._next_seq.get(d_topic, 0) + 1) & _SEQUENCE_MASK
+                try:
+                    data = self._encoder.encode(d_obj).encode()
+                except ValueError:
+                    data = self._encoder.encode(_finite(d_obj)).encode()
+                self._add(d_topic, data, d_log + self._offset_ns, d_pub, seq)
+                with self._lock:
+                    self._derived += 1
+
+    def _add(self, topic: str, data: bytes, log_ns: int, pub_ns: int, seq: int) -> None:
         channel_id = self._channel_ids.get(topic)
         if channel_id is None:
             channel_id = self._register(topic)
         before = self._sink.position
         self._writer.add_message(channel_id=channel_id, log_time=log_ns, data=data,
                                  publish_time=pub_ns, sequence=seq)
-        self._written += 1  # only this thread writes it; stats reads an int
         if self._sink.position != before:  # the writer just wrote a full chunk
             self._chunk_start_ns = None
         elif self._chunk_start_ns is None:
@@ -612,6 +727,7 @@ class Recorder:
                 "written": str(self._written),
                 "dropped": str(self._dropped),
                 "errors": str(self._errors),
+                "derived": str(self._derived),
                 "max_queue_depth": str(self._max_depth),
                 "queue_size": str(self._queue_size),
                 "chunk_size": str(self._chunk_size),

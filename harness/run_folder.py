@@ -23,7 +23,7 @@ import re
 import struct
 from collections import defaultdict
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -242,9 +242,12 @@ def read_run(path: str | os.PathLike[str]) -> RunData:
     cams: dict[str, list[int]] = defaultdict(list)
     first = last = None
     n = 0
+    offset: int | None = None  # log_time - monotonic (the recorder's time anchor; 0 in old runs)
     for _schema, channel, msg in iter_salvaged_messages(mcap_path):
         n += 1
         t = msg.log_time
+        if offset is None and channel.topic == "/ground_truth":
+            offset = msg.log_time - msg.publish_time  # written with log == publish time
         first = t if first is None or t < first else first
         last = t if last is None or t > last else last
         topic = channel.topic
@@ -273,6 +276,12 @@ def read_run(path: str | os.PathLike[str]) -> RunData:
             clock[vehicle].append(ClockPoint(msg.log_time, float(d["offset_ns"]),
                                              float(unc) if isinstance(unc, (int, float)) else 0.0,
                                              float(skew) if isinstance(skew, (int, float)) else None))
+    off = offset or 0
+    if off:
+        first = None if first is None else first - off
+        last = None if last is None else last - off
+        for points in (*sync.values(), *clock.values()):
+            points[:] = [replace(p, t_ns=p.t_ns - off) for p in points]
     data.messages, data.first_ns, data.last_ns = n, first, last
     data.truncated = not is_finalized_mcap(mcap_path)
     if n == 0 and data.truncated and data.mcap_bytes < 64 and summary is None:
