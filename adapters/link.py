@@ -22,6 +22,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 from adapters import protocol
+from adapters.impair import LinkImpairment
 from adapters.stream import StreamDecoder
 from adapters.messages import (Bye, CameraInfo, Command, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
                                Message, SyncRequest,
@@ -61,6 +62,7 @@ class LinkStats:
     rx_dropped: int = 0
     target_errors: int = 0
     last_error: str | None = None
+    impairment: dict[str, dict[str, int]] | None = None  # adapters/impair.py counts per direction, if set
 
 
 class Link(ABC):
@@ -89,6 +91,19 @@ class Link(ABC):
         self.peer_gone_reason: str | None = None
         self._sync_seq = 0
         self._command_seq = 0
+        self._impair: LinkImpairment | None = None
+
+    def set_impairment(self, stage: LinkImpairment) -> None:
+        """Put a link-fault stage (adapters/impair.py) on the send and receive paths;
+        call before ``open()``. The link closes it."""
+        self._impair = stage
+        self.stats.impairment = stage.counts
+        stage.bind(send=self._send_bytes, put=self._enqueue, name=f"impair-v{self.vehicle_id}")
+
+    @property
+    def impairment(self) -> LinkImpairment | None:
+        """The link-fault stage, if one was set."""
+        return self._impair
 
     # -- lifecycle -----------------------------------------------------------
 
@@ -140,6 +155,8 @@ class Link(ABC):
         if getattr(self, "_closed", True):
             return
         self._closed = True
+        if getattr(self, "_impair", None) is not None:
+            self._impair.close()  # type: ignore[union-attr]  # in-flight messages go down with the link
         try:
             if self.alive:
                 try:
@@ -230,7 +247,10 @@ class Link(ABC):
             raise TransportError("link is closed")
         if not self.alive:
             raise TransportError(f"target is gone: {self.peer_gone_reason}")
-        self._send_bytes(buf)
+        if self._impair is not None:
+            self._impair.send(buf)  # now, or at its due time from the stage's thread
+        else:
+            self._send_bytes(buf)
         self.stats.bytes_sent += len(buf)
 
     # -- receiving -----------------------------------------------------------
@@ -289,7 +309,10 @@ class Link(ABC):
             self._mark_gone(f"target said bye ({item.reason or 'no reason given'})")
             return
         target = self._sync_rx if isinstance(item, SyncResponse) else self._rx
-        self._enqueue(target, Received(item, t_rx_ns, self.vehicle_id))
+        r = Received(item, t_rx_ns, self.vehicle_id)
+        if self._impair is not None and self._impair.receive(r, target):
+            return  # queued at its due time, stamped with the release instant
+        self._enqueue(target, r)
 
     def _enqueue(self, target: queue.Queue[Received], r: Received) -> None:
         try:

@@ -36,7 +36,7 @@ from pydantic_core import PydanticCustomError
 
 from adapters.protocol import FRAME_META_SIZE, MAX_PAYLOAD
 from harness.config_cases import CornerCaseSettings, DetectorSettings
-from harness.config_target import CanTargetConfig, TcpTargetConfig, ZenohTargetConfig
+from harness.config_target import CanTargetConfig, ImpairConfig, TcpTargetConfig, ZenohTargetConfig
 from harness.config_timing import TimingConfig
 from harness.config_types import MODEL_CONFIG, Float, Int
 from timing.errors import ConfigError
@@ -139,12 +139,16 @@ class TargetConfig(BaseModel):
     zenoh: ZenohTargetConfig = Field(default_factory=ZenohTargetConfig)
     can: CanTargetConfig = Field(default_factory=CanTargetConfig)
     tcp: TcpTargetConfig = Field(default_factory=TcpTargetConfig)
+    impair: ImpairConfig = Field(default_factory=ImpairConfig)  # link faults in real time (config_target.py)
     # Commands for the targets' control software at given sim times, e.g.
     # [{at_s: 5.0, command: "swap detector cv"}] (targets announcing CAP_COMMANDS).
     commands: list[TargetCommand] = Field(default_factory=list)
     startup_timeout_s: Float = Field(15.0, gt=0, le=300)
     # No estimate within this after t0: the frame counts as dropped.
     estimate_timeout_s: Float = Field(0.5, gt=0, le=60)
+    # One target process serves every vehicle (batched; harness/shared_target.py):
+    # local or zenoh only.
+    shared: bool = False
 
 
 class RecordingConfig(BaseModel):
@@ -293,6 +297,10 @@ class RunConfig(BaseModel):
             raise PydanticCustomError(_RULE_ERROR, "no auth section: user/password authentication is offered "
                                       "for transport: zenoh", {"loc": ("target", "zenoh", "auth"),
                                                                "got": self.target.transport.value})
+        if self.target.shared and self.target.transport not in (Transport.LOCAL, Transport.ZENOH):
+            raise PydanticCustomError(_RULE_ERROR, "shared: false, or transport local or zenoh (a shared "
+                                      "target serves all vehicles over those)",
+                                      {"loc": ("target", "shared"), "got": self.target.transport.value})
         if self.target.transport == Transport.LOCAL and not self.target.command:
             raise PydanticCustomError(_RULE_ERROR, "the program to start: the local transport runs the "
                                       "target as a child process", {"loc": ("target", "command"), "got": []})

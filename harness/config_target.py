@@ -36,7 +36,7 @@ from pydantic import AfterValidator, BaseModel, Field
 
 from adapters.can_interfaces import LOCAL_INTERFACES
 from adapters.zenoh_options import endpoint_problem, tls_key_problem
-from harness.config_types import MODEL_CONFIG, Int
+from harness.config_types import MODEL_CONFIG, Float, Int
 from timing.errors import ConfigError
 
 
@@ -144,6 +144,43 @@ class TcpTargetConfig(BaseModel):
     address: str = Field("127.0.0.1:{port}", pattern=r"^(tcp/)?(\[[0-9A-Fa-f:.]+\]|[^:\s\[\]]+):(\{port\}|[0-9]{1,5})$")
     base_port: Int = Field(7600, ge=1, le=65535)
     kernel_stamps: bool = True
+
+
+class LinkFaults(BaseModel):
+    """One direction's faults (adapters/impair.py, netem's model): ``delay_ms ±
+    jitter_ms`` (uniform), probabilities ``loss``, ``reorder`` (skip the delay),
+    ``duplicate``, a bandwidth cap ``rate_kbps`` (0: none), at most ``queue_limit``
+    messages in flight (more are dropped, counted)."""
+
+    model_config = MODEL_CONFIG
+
+    delay_ms: Float = Field(0.0, ge=0, le=60_000)
+    jitter_ms: Float = Field(0.0, ge=0, le=60_000)
+    loss: Float = Field(0.0, ge=0, le=1)
+    reorder: Float = Field(0.0, ge=0, le=1)
+    duplicate: Float = Field(0.0, ge=0, le=1)
+    rate_kbps: Float = Field(0.0, ge=0, le=100_000_000)
+    queue_limit: Int = Field(1000, ge=1, le=1_000_000)
+
+
+class ImpairConfig(BaseModel):
+    """Link faults in real time, on any transport (``target.impair``), e.g.
+    ``--set target.impair.uplink.delay_ms=20 --set target.impair.uplink.jitter_ms=2``.
+    Every impaired message is recorded on ``/<vehicle>/impairment``. ``seed``: default
+    the run's seed. ``sync``: impair clock-sync probes too (an asymmetric delay then
+    biases the clock offset by half the asymmetry, as on a real link)."""
+
+    model_config = MODEL_CONFIG
+
+    uplink: LinkFaults = Field(default_factory=LinkFaults)
+    downlink: LinkFaults = Field(default_factory=LinkFaults)
+    seed: Int | None = Field(None, ge=0, le=2**63 - 1)
+    sync: bool = False
+
+    @property
+    def active(self) -> bool:
+        return any(v != 0 for d in (self.uplink, self.downlink)
+                   for k, v in d.model_dump().items() if k != "queue_limit")
 
 
 def substitute(text: str, *, vehicle_id: int, base_port: int) -> str:

@@ -164,6 +164,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
         "config_hash": config_hash(cfg), "gl_backend": gl_backend, "versions": versions(),
         "scenario_realized": world.realized,
         "latency_profile": None if latency is None else latency.describe(),
+        "impairment": cfg.target.impair.model_dump(mode="json") if cfg.target.impair.active else None,
     }
     # ``sim`` mirrors the physics process's world here (truth, summary); it renders
     # only for the CAN preflight.
@@ -200,6 +201,10 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 rec = CaseRecorder(main_rec, out_dir, run_meta=meta, history_s=cc.history_s, after_s=cc.after_s,
                                    trigger_kinds=set(cc.on_anomalies)) if cc.enabled else main_rec
                 register_all(rec, [v.name for v in vehicles])
+                from adapters.impair import record_on
+
+                for v in vehicles:  # link faults in real time: each impaired message on /<vehicle>/impairment
+                    record_on(v.link.impairment, rec, f"/{v.name}/impairment")
                 timing = TimingObserver(cfg.timing, [v.name for v in vehicles], recorder=rec)
                 detector = (DetectorObserver(cfg.detector.to_config(), [v.name for v in vehicles], camera=cfg.camera,
                                              recorder=rec, timing=timing) if cfg.detector.enabled else None)

@@ -80,10 +80,16 @@ def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, ou
         TransportError / ConfigError: the transport options are unusable.
     """
     t = cfg.target
+    if t.shared:  # one process for all vehicles (harness/shared_target.py)
+        from harness.shared_target import shared_link
+
+        return shared_link(cfg, vehicle_id=vehicle_id, clock=clock, out_dir=out_dir, rx=rx)  # type: ignore[return-value]
     log = out_dir / f"target-{vehicle}.log"
     if t.transport == Transport.LOCAL:
-        return open_link("local", command=target_command(cfg, vehicle_id=vehicle_id), vehicle_id=vehicle_id,
-                         clock=clock, log_path=log, rx_queue=rx), None
+        link = open_link("local", command=target_command(cfg, vehicle_id=vehicle_id), vehicle_id=vehicle_id,
+                         clock=clock, log_path=log, rx_queue=rx)
+        _impair(cfg, link, vehicle_id=vehicle_id, clock=clock)
+        return link, None
     proc = TargetProcess(target_command(cfg, vehicle_id=vehicle_id), log_path=log) if t.command else None
     try:
         if t.transport == Transport.ZENOH:
@@ -103,7 +109,17 @@ def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, ou
         if proc is not None:
             proc.close()
         raise
+    _impair(cfg, link, vehicle_id=vehicle_id, clock=clock)
     return link, proc
+
+
+def _impair(cfg: RunConfig, link: Link, *, vehicle_id: int, clock: Clock) -> None:
+    """Link faults in real time (``target.impair``, adapters/impair.py), if any."""
+    from adapters.impair import stage_for
+
+    stage = stage_for(cfg.target.impair, run_seed=cfg.seed, vehicle_id=vehicle_id, clock=clock)
+    if stage is not None:
+        link.set_impairment(stage)
 
 
 def can_preflight(cfg: RunConfig, *, frame_bytes: int) -> str:
