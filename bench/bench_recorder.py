@@ -14,6 +14,11 @@ vehicle; events at ~2 per second.
    through the recorder (enqueue to closed file), next to a raw unbuffered file write
    of the same payload bytes in 1 MiB blocks in the same run (the floor), with the
    ratio; medians of ``--repeat`` tries.
+3. Foxglove views: the writer thread's time per camera frame with the Foxglove views
+   (annotations, calibration, transforms, log, latency; derived on the writer thread)
+   and without, flat out; and the encode cost of one frame's ImageAnnotations as
+   JSON (what is written) against foxglove-sdk's protobuf (``foxglove.messages``,
+   objects built directly, then ``encode()``), when foxglove-sdk is installed.
 
     .venv/bin/python bench/bench_recorder.py [--duration 30] [--vehicles 4] [--fps 20]
 
@@ -98,6 +103,87 @@ def tick_messages(k: int, t_ns: int, vehicles: list[str], images: list[bytes], p
     if rng.random() < 0.1:
         yield "json", "/events", {"kind": "latency_spike", "vehicle": vehicles[k % len(vehicles)], "frame_id": k,
                                   "value_ms": 41.2, "threshold_ms": 20.0, "severity": "warning"}, t_ns
+
+
+CAMERA = {"width": 320, "height": 240, "fovy_deg": 60.0, "mount_forward_m": 2.3, "mount_lateral_m": 0.0,
+          "mount_height_m": 1.3, "pitch_deg": 0.0}
+META = {"config": {"yaml_json": json.dumps({"camera": CAMERA})}}
+
+
+def with_truth(msgs: list[Msg]) -> list[Msg]:
+    """``msgs`` with one camera-truth message (two visible boxes) before each image."""
+    out: list[Msg] = []
+    for m in msgs:
+        if m[0] == "image":
+            v = m[1].split("/")[1]
+            boxes = [{"entity": f"car{j}", "id": j, "cls": "vehicle", "box_px": [150 + j, 118, 165 + j, 127],
+                      "visible_px": 120, "visible_fraction": 1.0, "truncated": False, "path_s_m": 45.0 + j,
+                      "path_lateral_m": 0.0} for j in (1, 2)]
+            out.append(("json", f"/{v}/truth", {"vehicle": v, "frame_id": len(out), "sim_time_ns": 0,
+                                                 "boxes": boxes, "ego": {}}, m[3]))
+        out.append(m)
+    return out
+
+
+def views_cost(msgs: list[Msg], *, vehicles: list[str], folder: Path, repeat: int) -> dict[str, float]:
+    """Writer-thread time per frame with and without the Foxglove views (flat out)."""
+    frames = sum(1 for m in msgs if m[0] == "image")
+    res = {}
+    for views in (False, True):
+        tries = []
+        for _ in range(repeat):
+            t = time.perf_counter()
+            with Recorder(folder / "views.mcap", queue_size=len(msgs) + 16, compression="zstd",
+                          metadata=META) as rec:
+                register_all(rec, vehicles, views=views)
+                for m in msgs:
+                    _put(rec, m)
+            tries.append(time.perf_counter() - t)
+            assert rec.stats.errors == 0, rec.stats
+        res["with" if views else "without"] = float(np.median(tries)) / frames * 1e6
+    return res
+
+
+def annotation_encode_cost(n: int) -> dict[str, float]:
+    """µs to build and encode one frame's ImageAnnotations (2 truth + 1 AI box, 4
+    labels): JSON as written, and foxglove-sdk protobuf (if installed)."""
+    from harness.foxglove_out import FoxgloveViews
+
+    fv = FoxgloveViews(["ego0"], camera=CAMERA, offset_ns=0)
+    boxes = [{"cls": "vehicle", "box_px": [150, 118, 165, 127], "path_s_m": 45.0}] * 2
+    objs = [{"cls": "VEHICLE", "confidence": 0.7, "box_px": [149.0, 117.0, 166.0, 128.0],
+             "position_m": [44.0, 0.1, 0.0]}]
+    enc = json.JSONEncoder(separators=(",", ":"))
+    t = time.perf_counter()
+    for i in range(n):
+        enc.encode(fv._annotations(10**12 + i, boxes, objs, note="frame 1: AI SAFE")).encode()
+    out = {"json_us": (time.perf_counter() - t) / n * 1e6}
+    try:
+        import foxglove.messages as fm
+    except ImportError:
+        return out
+
+    def color(r: float, g: float, b: float, a: float) -> Any:
+        return fm.Color(r=r, g=g, b=b, a=a)
+
+    t = time.perf_counter()
+    for i in range(n):
+        ts = fm.Timestamp(1000 + i, 5)
+        points, texts = [], []
+        for (x0, y0, x1, y1), c in [(b["box_px"], (0.1, 0.9, 0.2, 1.0)) for b in boxes] + \
+                                   [(o["box_px"], (1.0, 0.2, 0.9, 1.0)) for o in objs]:
+            points.append(fm.PointsAnnotation(
+                timestamp=ts, type=fm.PointsAnnotationType.LineLoop,
+                points=[fm.Point2(x=x0, y=y0), fm.Point2(x=x1, y=y0), fm.Point2(x=x1, y=y1), fm.Point2(x=x0, y=y1)],
+                outline_color=color(*c), fill_color=color(*c[:3], 0.0), thickness=2.0))
+            texts.append(fm.TextAnnotation(timestamp=ts, position=fm.Point2(x=x0, y=y1 + 12), text="truth vehicle 45.0 m",
+                                           font_size=12.0, text_color=color(*c),
+                                           background_color=color(0.0, 0.0, 0.0, 0.6)))
+        texts.append(fm.TextAnnotation(timestamp=ts, position=fm.Point2(x=4, y=14), text="frame 1: AI SAFE",
+                                       font_size=12.0, text_color=color(1, 1, 1, 1)))
+        fm.ImageAnnotations(timestamp=ts, points=points, texts=texts).encode()
+    out["protobuf_us"] = (time.perf_counter() - t) / n * 1e6
+    return out
 
 
 def _put(rec: Recorder, m: Msg) -> bool:
@@ -232,6 +318,18 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\nThe run's load needs {need:.2f} MB/s and {len(msgs) / a.duration:.0f} messages/s: "
               f"headroom x{rates['zstd'] / need:.0f} with zstd (the run's choice), x{rates['lz4'] / need:.0f} "
               f"with lz4.")
+        print("\n## Foxglove views (writer thread, zstd, flat out; each camera frame has 2 true boxes)\n")
+        vmsgs = with_truth(msgs)
+        vc = views_cost(vmsgs, vehicles=vehicles, folder=folder, repeat=a.repeat)
+        ac = annotation_encode_cost(2000)
+        print("| writer time per camera frame, hil.* only (µs) | with Foxglove views (µs) | views cost (µs) |")
+        print("| ---: | ---: | ---: |")
+        print(f"| {vc['without']:.0f} | {vc['with']:.0f} | {vc['with'] - vc['without']:.0f} |\n")
+        print("| one frame's ImageAnnotations | build + encode (µs) |")
+        print("| --- | ---: |")
+        print(f"| JSON (written today) | {ac['json_us']:.1f} |")
+        print(f"| foxglove-sdk protobuf | {ac['protobuf_us']:.1f} |" if "protobuf_us" in ac
+              else "| foxglove-sdk protobuf | not installed |")
         if s["dropped"]:
             print(f"FAIL: {s['dropped']} messages dropped at real-time pace")
             return 1
