@@ -6,7 +6,9 @@ time, ``[window_start_ns, window_end_ns]``. :func:`write_case_windows` reads
 chunk), and copies into each case's file the messages recorded while the simulation
 was inside its window: the shared topics (``/ground_truth``, ``/events``, ``/scene``,
 ``/tf``) and the case vehicle's own (``/<vehicle>/...``), never the other vehicles'.
-A message's sim time is that of the latest ``/ground_truth`` before it in the file.
+A message's sim time is that of the latest ``/ground_truth`` before it in the file;
+an event's is its own ``sim_time_ns`` where it has one (events are written late, once
+the timing analysis of their frames is done).
 Messages are copied as recorded (no re-encoding), except the window's first
 ``/ground_truth``, written with every entity's state (``initial: true``) so the
 window stands alone (the run records only what changed). The row's ``mcap_path`` and
@@ -119,9 +121,17 @@ def _copy(mcap: Path, windows: list[_Window]) -> None:
                     entities[e.get("id", e.get("name"))] = e
             except (ValueError, KeyError, TypeError):
                 gt = None
+        at_ns = sim_ns
+        if channel.topic == "/events":  # written late (after the timing analysis): its own sim time
+            try:
+                own = json.loads(msg.data).get("sim_time_ns")
+            except (ValueError, AttributeError):
+                own = None
+            if isinstance(own, int):
+                at_ns = own
         parts = channel.topic.split("/")
         for w in windows:
-            if not (w.start_ns <= sim_ns <= w.end_ns):
+            if not (w.start_ns <= at_ns <= w.end_ns):
                 continue
             if len(parts) > 2 and parts[1] != w.vehicle:
                 continue  # another vehicle's channel

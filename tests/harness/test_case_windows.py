@@ -179,3 +179,13 @@ def test_hil_cases_shows_and_cuts_windows(tmp_path: Path):
     assert read_mcap(tmp_path / "corner_cases/case-0001.mcap")["/ego1/camera"]
     p = hil("cases", str(tmp_path), "--window", "9")
     assert p.returncode == 2 and "no corner case 9" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_a_late_written_event_is_in_its_own_window(tmp_path: Path):
+    # Events reach /events once the timing analysis of their frames is done: here
+    # 3 s (60 ticks) after their sim time, past the window's end.
+    fake_run(tmp_path, seconds=8, events={100: [mismatch("ego0", "state_mismatch", "latency", 2000)]})
+    assert write_case_windows(tmp_path) == []
+    window = read_mcap(tmp_path / "corner_cases/case-0001.mcap")
+    assert [d["sim_time_ns"] for _, d in window["/events"]] == [2000 * MS]
+    assert max(d["sim_time_ns"] for _, d in window["/ground_truth"]) == 4000 * MS

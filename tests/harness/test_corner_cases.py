@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from harness.case_windows import write_case_windows
 from harness.config import parse_config
 from harness.run import execute, prepare_out_dir
 from tests.conftest import GL_BACKEND, read_mcap
@@ -54,16 +55,21 @@ def test_blind_ai_mismatches_are_found(blind):
 
 def test_cases_are_indexed_with_their_history(blind):
     db = blind.out_dir / "corner_cases.sqlite"
+    assert write_case_windows(blind.out_dir) == []  # cut from the finished run.mcap
     rows = sqlite3.connect(db).execute(
-        "SELECT id, run, scenario, seed, params, config_hash, vehicle, kind, mcap_path FROM cases").fetchall()
+        "SELECT id, run, scenario, seed, params, config_hash, vehicle, kind, mcap_path, window_start_ns,"
+        " window_end_ns, messages FROM cases").fetchall()
     assert len(rows) == blind.summary["corner_cases"]["written"] >= 3
-    for _id, run, scenario, seed, params, chash, vehicle, kind, path in rows:
+    for _id, run, scenario, seed, params, chash, vehicle, kind, path, lo, hi, n in rows:
         assert (run, scenario, seed, vehicle) == ("blind", "stopped_car", 3, "ego0")
         assert json.loads(params)["gap_m"] == 20.0 and chash == blind.summary["config_hash"]
+        assert path == f"corner_cases/case-{_id:04d}.mcap"
         window = read_mcap(blind.out_dir / path)
         assert window["/ego0/camera"], "the window holds the frames before the trigger"
         assert window["/ego0/pipeline"] and window["/ground_truth"]
         assert any(d["kind"] == kind for _, d in window["/events"])
+        assert all(lo <= d["sim_time_ns"] <= hi for _, d in window["/ground_truth"])
+        assert n == sum(len(v) for v in window.values())
 
 
 def test_hil_cases_lists_and_survives_a_corrupt_row(blind, tmp_path):
