@@ -3,7 +3,8 @@ each with the camera frame nearest to the case's simulated time.
 
 The database is ``RUN/corner_cases.sqlite`` (or the first ``RUN/corner_cases/*.sqlite``),
 table ``cases`` with columns ``id, run, scenario, seed, params, config_hash, vehicle,
-sim_time_ns, kind, summary, mcap_path``; missing columns show as "–". A database
+sim_time_ns, kind, cause, severity, summary, events, mcap_path`` and the window in
+sim time (``window_start_ns``, ``window_end_ns``); missing columns show as "–". A database
 that cannot be read is reported in the section, never raised: the rest of the report
 stands.
 """
@@ -21,8 +22,9 @@ from harness.run_folder import CORNER_DB_NAME, MCAP_NAME, RunData, camera_images
 
 MAX_ROWS = 500
 MAX_THUMBNAILS = 100
-_SHOWN = ("kind", "vehicle", "sim_time_ns", "summary", "scenario", "seed", "params", "config_hash", "run",
-          "mcap_path")
+_SHOWN = ("kind", "cause", "severity", "vehicle", "sim_time_ns", "summary", "events", "scenario", "seed", "params",
+          "config_hash", "run", "mcap_path")
+_WINDOW = ("window_start_ns", "window_end_ns", "sim_end_ns")
 
 
 def find_db(run_dir: Path) -> Path | None:
@@ -111,7 +113,10 @@ def cases_section(d: RunData) -> str:
                 cells.append(("sim time", f"{v / 1e9:.3f} s"))
             else:
                 cells.append((k, "–" if v is None else escape(str(v))))
-        extra = [(k, escape(str(v))) for k, v in r.items() if k not in _SHOWN and k != "id"]
+        lo, hi = r.get("window_start_ns"), r.get("window_end_ns")
+        if isinstance(lo, int) and isinstance(hi, int):  # the case's data: this sim-time range of mcap_path
+            cells.append(("window", f"{lo / 1e9:.2f}–{hi / 1e9:.2f} s sim time"))
+        extra = [(k, escape(str(v))) for k, v in r.items() if k not in _SHOWN and k not in _WINDOW and k != "id"]
         table = "<table>" + "".join(f"<tr><th>{escape(k)}</th><td>{v}</td></tr>" for k, v in cells + extra) + "</table>"
         out.append(f'<div class="case" id="case-{escape(str(r.get("id")))}">{pic}<div><b>case '
                    f'{escape(str(r.get("id", i)))}</b>{table}</div></div>')
