@@ -146,6 +146,9 @@ class TargetConfig(BaseModel):
     startup_timeout_s: Float = Field(15.0, gt=0, le=300)
     # No estimate within this after t0: the frame counts as dropped.
     estimate_timeout_s: Float = Field(0.5, gt=0, le=60)
+    # One target process serves every vehicle (batched; harness/shared_target.py):
+    # local or zenoh only.
+    shared: bool = False
 
 
 class RecordingConfig(BaseModel):
@@ -294,6 +297,10 @@ class RunConfig(BaseModel):
             raise PydanticCustomError(_RULE_ERROR, "no auth section: user/password authentication is offered "
                                       "for transport: zenoh", {"loc": ("target", "zenoh", "auth"),
                                                                "got": self.target.transport.value})
+        if self.target.shared and self.target.transport not in (Transport.LOCAL, Transport.ZENOH):
+            raise PydanticCustomError(_RULE_ERROR, "shared: false, or transport local or zenoh (a shared "
+                                      "target serves all vehicles over those)",
+                                      {"loc": ("target", "shared"), "got": self.target.transport.value})
         if self.target.transport == Transport.LOCAL and not self.target.command:
             raise PydanticCustomError(_RULE_ERROR, "the program to start: the local transport runs the "
                                       "target as a child process", {"loc": ("target", "command"), "got": []})

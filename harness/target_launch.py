@@ -80,6 +80,10 @@ def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, ou
         TransportError / ConfigError: the transport options are unusable.
     """
     t = cfg.target
+    if t.shared:  # one process for all vehicles (harness/shared_target.py)
+        from harness.shared_target import shared_link
+
+        return shared_link(cfg, vehicle_id=vehicle_id, clock=clock, out_dir=out_dir, rx=rx)  # type: ignore[return-value]
     log = out_dir / f"target-{vehicle}.log"
     if t.transport == Transport.LOCAL:
         link = open_link("local", command=target_command(cfg, vehicle_id=vehicle_id), vehicle_id=vehicle_id,

@@ -71,15 +71,20 @@ class CnnStats:
 
 
 class CnnTarget:
-    """``infer`` is the function the SDK serves, ``command`` its COMMAND handler.
+    """``infer`` is the function the SDK serves, ``infer_batch`` the one a shared
+    target's scheduler serves (``adapters.batching``), ``command`` the COMMAND handler.
 
     Raises:
-        FileNotFoundError, ValueError: missing or unfit weights (``models.load``).
+        FileNotFoundError, ValueError: missing or unfit weights (``models.load``), or
+            an unusable ``device``.
     """
 
     def __init__(self, *, detector: str = "cnn", steering: str = "cnn", policy: Policy | None = None,
-                 cruise_speed_mps: float = 10.0, weights_dir: Path | None = None) -> None:
+                 cruise_speed_mps: float = 10.0, weights_dir: Path | None = None, device: str = "cpu") -> None:
+        """``device``: ``cpu``, ``cuda``, ``cuda:N`` or ``auto`` (``targets.cnn.device``);
+        the weights are loaded there and the nets run there."""
         from targets.cnn import models
+        from targets.cnn.device import device_name, parse_device
 
         for slot, name in (("detector", detector), ("steering", steering)):
             if name not in commands.MODELS:
@@ -90,6 +95,10 @@ class CnnTarget:
         steer_path = None if weights_dir is None else weights_dir / models.STEERING_FILE
         self.det_net, self.det_meta = models.load("detector", det_path)
         self.steer_net, self.steer_meta = models.load("steering", steer_path)
+        self.device = parse_device(device)
+        self.device_name = device_name(self.device)
+        self.det_net.to(self.device)
+        self.steer_net.to(self.device)
         self._torch = models.torch
         self._decode = models.decode
         self._lock = threading.Lock()
@@ -143,80 +152,108 @@ class CnnTarget:
         return (f"detector={act['detector']} steering={act['steering']} frames={s.frames} "
                 f"detector_uncertain={s.detector_uncertain} detector_confirmed_by_cv={s.detector_confirmed_by_cv} "
                 f"steering_low_confidence={s.steering_low_confidence} baseline_runs={s.baseline_runs} "
-                f"swaps={s.swaps} {times}").strip()
+                f"swaps={s.swaps} device={self.device} {times}").strip()
 
     # -- the SDK entry point ---------------------------------------------------------
 
     def infer(self, frame: Frame) -> Inference:
-        """Steer, detect, range, decide for one frame.
+        """Steer, detect, range, decide for one frame (a batch of one).
 
         Raises:
             ProtocolError, ValueError: the image bytes do not decode.
         """
-        torch = self._torch
+        return self.infer_batch([frame])[0]
+
+    def infer_batch(self, frames: Sequence[Frame]) -> list[Inference]:
+        """Steer, detect, range, decide for each of ``frames`` (any vehicles), each net
+        run once on the whole batch on ``self.device``; one ``Inference`` per frame, in
+        order. The stage timings of ``stats`` are those of the batch (per call).
+
+        Raises:
+            ProtocolError, ValueError: an image does not decode (the whole batch fails).
+        """
+        if not frames:
+            return []
         t0 = time.perf_counter_ns()
         with self._lock:
             det_name, steer_name = self._active["detector"], self._active["steering"]
-            self._last_frame_id = frame.frame_id
-        bgr = decode_image(frame)
-        cam = frame.camera
-        cv_result: list[Inference] = []
+            self._last_frame_id = frames[-1].frame_id
+        bgrs = [decode_image(f) for f in frames]
+        n = len(frames)
+        cv_results: list[Inference | None] = [None] * n
 
-        def baseline() -> Inference:
-            if not cv_result:
-                cv_result.append(self.baseline.infer(frame))
+        def baseline(i: int) -> Inference:
+            got = cv_results[i]
+            if got is None:
+                got = cv_results[i] = self.baseline.infer(frames[i])
                 self.stats.baseline_runs += 1
-            return cv_result[0]
+            return got
 
         t1 = time.perf_counter_ns()
-        low_steer = False
+        steers: list[float] = []
+        low_steer = [False] * n
         if steer_name == "cnn":
-            x = torch.from_numpy(np.ascontiguousarray(steering_input(bgr, cam.cy, cam.fy, cam.pitch_rad)
-                                                      .transpose(2, 0, 1)))[None].float()
-            with torch.inference_mode():
-                out = self.steer_net(x)[0]
-            steer, err = float(out[0]), math.exp(float(out[1]))
-            if err > self.policy.steer_error_max_rad:
-                low_steer = True
-                self.stats.steering_low_confidence += 1
-                steer = baseline().control.steering_rad
+            out = self._run(self.steer_net, [steering_input(b, f.camera.cy, f.camera.fy, f.camera.pitch_rad)
+                                             for b, f in zip(bgrs, frames)])
+            for i, (s_out, log_err) in enumerate(out.tolist()):
+                steer = float(s_out)
+                if math.exp(float(log_err)) > self.policy.steer_error_max_rad:
+                    low_steer[i] = True
+                    self.stats.steering_low_confidence += 1
+                    steer = baseline(i).control.steering_rad
+                steers.append(steer)
         else:
-            steer = baseline().control.steering_rad
-        steer = max(-MAX_STEER_RAD, min(MAX_STEER_RAD, steer))
+            steers = [baseline(i).control.steering_rad for i in range(n)]
+        steers = [max(-MAX_STEER_RAD, min(MAX_STEER_RAD, s)) for s in steers]
         t2 = time.perf_counter_ns()
-        uncertain_m = None
+        all_objects: list[list[DetectedObject]] = []
+        uncertain_ms: list[float | None] = [None] * n
         if det_name == "cnn":
-            objects, uncertain = self._detect(bgr, frame)
-            uncertain_m = nearest_in_path(uncertain, steer, self.policy)
-            sure_m = nearest_in_path(objects, steer, self.policy)
-            if uncertain_m is not None and (sure_m is None or uncertain_m < sure_m):
-                self.stats.detector_uncertain += 1
-                extra = [o for o in baseline().objects if in_path(o, steer, self.policy)
-                         and not any(_iou(o.box_px, c.box_px) > 0.3 for c in objects)]
-                if extra:
-                    self.stats.detector_confirmed_by_cv += 1
-                    objects.extend(extra)
+            maps = self._run(self.det_net, [detector_input(b) for b in bgrs])
+            for i, frame in enumerate(frames):
+                objects, uncertain = self._boxes(maps[i], frame)
+                steer = steers[i]
+                uncertain_m = uncertain_ms[i] = nearest_in_path(uncertain, steer, self.policy)
+                sure_m = nearest_in_path(objects, steer, self.policy)
+                if uncertain_m is not None and (sure_m is None or uncertain_m < sure_m):
+                    self.stats.detector_uncertain += 1
+                    extra = [o for o in baseline(i).objects if in_path(o, steer, self.policy)
+                             and not any(_iou(o.box_px, c.box_px) > 0.3 for c in objects)]
+                    if extra:
+                        self.stats.detector_confirmed_by_cv += 1
+                        objects.extend(extra)
+                all_objects.append(objects)
         else:
-            objects = list(baseline().objects)
+            all_objects = [list(baseline(i).objects) for i in range(n)]
         t3 = time.perf_counter_ns()
-        dist = nearest_in_path(objects, steer, self.policy)
-        d = decide(self.baseline, self.policy, distance_m=dist, uncertain_m=uncertain_m,
-                   speed_mps=frame.ego_speed_mps, steering_low_confidence=low_steer)
+        results: list[Inference] = []
+        for i, frame in enumerate(frames):
+            objects = all_objects[i]
+            dist = nearest_in_path(objects, steers[i], self.policy)
+            d = decide(self.baseline, self.policy, distance_m=dist, uncertain_m=uncertain_ms[i],
+                       speed_mps=frame.ego_speed_mps, steering_low_confidence=low_steer[i])
+            objects.sort(key=lambda o: o.position_m[0])
+            results.append(Inference(d.state, Control(steers[i], d.throttle, d.brake), tuple(objects)))
         t4 = time.perf_counter_ns()
         s = self.stats
         with self._lock:
-            s.frames += 1
+            s.frames += n
             for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t4 - t0)):
                 s.timings_ns[name].append(dt)
-        objects.sort(key=lambda o: o.position_m[0])
-        return Inference(d.state, Control(steer, d.throttle, d.brake), tuple(objects))
+        return results
 
-    def _detect(self, bgr: np.ndarray, frame: Frame) -> tuple[list[DetectedObject], list[DetectedObject]]:
-        """(confident, uncertain) detections, boxes in frame pixels, ranged."""
+    def _run(self, net: object, images: list[np.ndarray]) -> object:
+        """``net`` on HxWx3 uint8 ``images`` as one N x 3 x H x W batch: uint8 to the
+        device (a quarter of the bytes of floats), floats made there; output on the CPU."""
         torch = self._torch
-        x = torch.from_numpy(np.ascontiguousarray(detector_input(bgr).transpose(2, 0, 1)))[None].float()
+        x = torch.from_numpy(np.ascontiguousarray(np.stack(images).transpose(0, 3, 1, 2)))
+        x = x.to(self.device, non_blocking=True).float()
         with torch.inference_mode():
-            out = self.det_net(x)
+            return net(x).cpu()  # type: ignore[operator]
+
+    def _boxes(self, out: object, frame: Frame) -> tuple[list[DetectedObject], list[DetectedObject]]:
+        """(confident, uncertain) detections of one detector output, boxes in frame
+        pixels, ranged."""
         sx, sy = frame.width / DET_W, frame.height / DET_H
         sure: list[DetectedObject] = []
         unsure: list[DetectedObject] = []
@@ -259,7 +296,18 @@ def main(argv: Sequence[str] | None = None, *, prog: str = "python -m targets.cn
     p.add_argument("--weights", type=Path, default=None, help="folder with detector.pt and steering.pt "
                    "(default: the shipped weights)")
     p.add_argument("--threads", type=int, default=1, help="torch threads (1: one core)")
-    p.add_argument("--name", default="cnn", help="target name reported in HELLO")
+    p.add_argument("--name", default="cnn", help="target name reported in HELLO (with @device (its name) added)")
+    p.add_argument("--device", default="cpu", help="torch device: cpu, cuda, cuda:N or auto (CUDA when available)")
+    g = p.add_argument_group("shared target (one process serves many vehicles, frames batched)")
+    g.add_argument("--shared", action="store_true",
+                   help="serve many vehicles: local: every vehicle the harness hands over (target.shared: true); "
+                        "zenoh: the keys of each of --vehicles on one session")
+    g.add_argument("--vehicles", default="1", help="zenoh: a count N (vehicles 0..N-1) or ids, e.g. 0,2,3")
+    g.add_argument("--batch-window-ms", type=float, default=2.0,
+                   help="longest a frame waits for other vehicles' frames before its batch runs (ms)")
+    g.add_argument("--max-batch", type=int, default=16, help="most frames per batch")
+    g.add_argument("--batch-log", default=None,
+                   help="CSV of every frame's batch (default: $HIL_BATCH_LOG, set by the harness)")
     from adapters.sdk import TransportError, add_transport_args, serve, transport_options
 
     add_transport_args(p)
@@ -270,16 +318,44 @@ def main(argv: Sequence[str] | None = None, *, prog: str = "python -m targets.cn
         torch.set_num_threads(max(1, a.threads))
         target = CnnTarget(detector=a.detector, steering=a.steering, cruise_speed_mps=a.cruise_speed,
                            weights_dir=a.weights, policy=Policy(det_confidence=a.det_confidence,
-                                                                det_uncertain=a.det_uncertain))
+                                                                det_uncertain=a.det_uncertain),
+                           device=a.device)
         steer_max = a.steer_error_max or float(target.steer_meta.get("steer_error_max_rad", Policy.steer_error_max_rad))
         target.policy = Policy(det_confidence=a.det_confidence, det_uncertain=a.det_uncertain,
                                steer_error_max_rad=steer_max)
     except (FileNotFoundError, ValueError, ImportError) as err:
         print(f"cnn: {err}", file=sys.stderr)
         return 2
+    from targets.cnn.device import hello_name
+
+    name = hello_name(a.name, target.device, detail=target.device_name)
+    print(f"cnn: device {target.device} ({target.device_name}), torch threads {torch.get_num_threads()}",
+          file=sys.stderr, flush=True)
+    from adapters.batching import started_shared
+
     try:
-        serve(target.infer, target_name=a.name, transport=a.transport, on_command=target.command,
-              **transport_options(a))
+        if a.shared or (a.transport == "local" and started_shared()):
+            from adapters.batching import ConfigError, parse_vehicles, serve_batched
+
+            try:
+                vehicles = parse_vehicles(a.vehicles)
+                if a.batch_window_ms < 0 or a.max_batch < 1:
+                    raise ValueError(f"--batch-window-ms {a.batch_window_ms:g} / --max-batch {a.max_batch}: "
+                                     "expected a window >= 0 and batches of >= 1")
+            except ValueError as err:
+                print(f"cnn: {err}", file=sys.stderr)
+                return 2
+            opts = transport_options(a)
+            try:
+                serve_batched(target.infer_batch, target_name=name, transport=a.transport, on_command=target.command,
+                              window_ns=int(a.batch_window_ms * 1e6), max_batch=a.max_batch, vehicles=vehicles,
+                              batch_log=a.batch_log, **opts)
+            except ConfigError as err:
+                print(f"cnn: {err}", file=sys.stderr)
+                return 2
+        else:
+            serve(target.infer, target_name=name, transport=a.transport, on_command=target.command,
+                  **transport_options(a))
     except TransportError as err:
         print(f"cnn: {err}", file=sys.stderr)
         return 2

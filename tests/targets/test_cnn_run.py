@@ -65,7 +65,7 @@ def test_models_are_swapped_by_a_command_over_the_transport(tmp_path: Path):
                      vehicle_id=0, clock=MonotonicClock(), log_path=log)
     try:
         hello = link.open(hello_timeout_s=60)
-        assert hello.target_name == "cnn-test" and hello.capabilities & protocol.CAP_COMMANDS
+        assert hello.target_name.startswith("cnn-test@cpu (") and hello.capabilities & protocol.CAP_COMMANDS
         f = _frame(0)
         link.send_frame(frame_id=0, sim_time_ns=0, t0_ns=0, width=f.width, height=f.height, encoding=f.encoding,
                         camera=f.camera, ego_speed_mps=f.ego_speed_mps, data=f.data)
@@ -116,7 +116,7 @@ def test_short_run_reports_inference_time_from_the_targets_stamps(tmp_path: Path
     print(f"cnn target, 3 s run: inference p50 {inference['p50_ms']:.2f} ms, p99 {inference['p99_ms']:.2f} ms "
           f"over {inference['count']} frames; end to end p50 {v['latency_ms']['end_to_end']['p50_ms']:.2f} ms")
     assert s["ended_by"] == "duration"
-    assert v["target"]["name"] == "cnn"
+    assert v["target"]["name"].startswith("cnn@cpu (")  # the device and its name
     assert inference["count"] >= 0.8 * v["frames_sent"]
     # Not a benchmark (bench/bench_inference.py checks the 15 ms goal): only sane.
     assert 0.0 < inference["p50_ms"] < 100.0
@@ -144,7 +144,7 @@ def test_served_over_zenoh_like_on_a_remote_host(tmp_path: Path):
     try:
         with ZenohLink(vehicle_id=0, clock=MonotonicClock(), connect=[f"tcp/127.0.0.1:{port}"]) as link:
             hello = link.open(hello_timeout_s=60)
-            assert hello.target_name == "cnn" and hello.capabilities & protocol.CAP_COMMANDS
+            assert hello.target_name.startswith("cnn@cpu (") and hello.capabilities & protocol.CAP_COMMANDS
             f = _frame(3)
             link.send_frame(frame_id=3, sim_time_ns=0, t0_ns=0, width=f.width, height=f.height, encoding=f.encoding,
                             camera=f.camera, ego_speed_mps=f.ego_speed_mps, data=f.data)

@@ -1,0 +1,94 @@
+"""A shared target over Zenoh: one session subscribed to every served vehicle's keys.
+
+Each vehicle keeps the keys, handshake and liveness of ``adapters.zenoh_transport``
+(``{prefix}/{vehicle}/h2t`` and so on): a harness reaches vehicle ``v`` of the
+shared target as it would reach a target of its own, at the one endpoint the shared
+target listens on. Each vehicle is served by ``adapters.zenoh_target``'s
+one-harness loop on its own thread with a ``BatchedEndpoint``; all of them feed one
+``BatchScheduler``. It serves one run per vehicle (or, with ``keep_serving``, run
+after run) until SIGTERM/Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+from collections.abc import Callable, Mapping, Sequence
+
+from adapters.batching import BatchedEndpoint, BatchScheduler
+from adapters.zenoh_target import _serve_one, _security, startup_line
+from adapters.zenoh_transport import CLOSE_TIMEOUT_S, DEFAULT_LEASE_MS, Keys, _open_session, close_session, make_config
+from timing.errors import ConfigError
+
+
+def serve_shared(scheduler: BatchScheduler, make_endpoint: Callable[[], BatchedEndpoint], *,
+                 vehicles: Sequence[int], listen: Sequence[str] = (), connect: Sequence[str] = (),
+                 mode: str = "peer", key_prefix: str = "hil", multicast_scouting: bool = False,
+                 tls: Mapping[str, object] | None = None, lease_ms: int = DEFAULT_LEASE_MS,
+                 keep_serving: bool = False, usrpwd: Mapping[str, str] | None = None) -> None:
+    """Serve ``vehicles`` (ids) from one Zenoh session until each vehicle's harness
+    has left (``keep_serving``: until SIGTERM/Ctrl-C).
+
+    Raises:
+        ConfigError: no vehicles, or neither ``listen`` nor ``connect``.
+        TransportError: the session cannot be opened.
+    """
+    if not vehicles:
+        raise ConfigError("a shared zenoh target needs --vehicles (e.g. --vehicles 4, or 0,2,3)")
+    if not listen and not connect:
+        raise ConfigError("a zenoh target needs --listen ENDPOINT (e.g. tcp/0.0.0.0:7447) or --connect ENDPOINT")
+    cfg = make_config(mode=mode, connect=connect, listen=listen, tls=tls, multicast_scouting=multicast_scouting,
+                      lease_ms=lease_ms, usrpwd=usrpwd)
+    session = _open_session(cfg, f"listen={list(listen)} connect={list(connect)}")
+    quit_ = threading.Event()
+    current: dict[int, BatchedEndpoint] = {}
+    lock = threading.Lock()
+
+    def on_term(*_: object) -> None:
+        quit_.set()
+        with lock:
+            for ep in current.values():
+                ep.stop()
+
+    def serve_vehicle(vid: int) -> None:
+        keys = Keys.of(key_prefix, vid)
+        while not quit_.is_set():
+            ep = make_endpoint()
+            with lock:
+                current[vid] = ep
+            _serve_one(session, ep, keys=keys, vehicle_id=vid, quit_=quit_)
+            if not keep_serving:
+                return
+
+    old_term = None
+    if threading.current_thread() is threading.main_thread():
+        old_term = signal.signal(signal.SIGTERM, on_term)
+    scheduler.start()
+    try:
+        first = make_endpoint()
+        line = startup_line(first, listen=listen, connect=connect, keys=Keys.of(key_prefix, vehicles[0]),
+                            keep_serving=keep_serving, security=_security(listen, connect, tls, usrpwd))
+        print(f"{line}; shared by vehicles {', '.join(map(str, vehicles))} "
+              f"(window {scheduler.window_ns / 1e6:g} ms, batches of at most {scheduler.max_batch})",
+              file=sys.stderr, flush=True)
+        threads = [threading.Thread(target=serve_vehicle, args=(v,), name=f"vehicle-{v}", daemon=True)
+                   for v in vehicles]
+        for t in threads:
+            t.start()
+        try:
+            for t in threads:
+                while t.is_alive():
+                    t.join(timeout=0.5)  # a timed join lets Ctrl-C through
+        except KeyboardInterrupt:
+            on_term()
+            for t in threads:
+                t.join(timeout=5.0)
+    finally:
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
+        scheduler.stop()
+        close_session(session, timeout_s=CLOSE_TIMEOUT_S)
+
+
+__all__ = ["serve_shared"]
