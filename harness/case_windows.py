@@ -87,9 +87,9 @@ def write_case_windows(run_dir: Path, *, case_ids: list[int] | None = None, limi
             for cid, vehicle, start, end, _ in todo:
                 rel = f"{FOLDER}/case-{cid:04d}.mcap"
                 f = open(run_dir / rel, "wb")
-                w = Writer(f, compression=CompressionType.ZSTD)
-                w.start(profile="", library="hil-harness case window")
-                windows.append(_Window(cid, vehicle, int(start), int(end), rel, w, f))
+                writer = Writer(f, compression=CompressionType.ZSTD)
+                writer.start(profile="", library="hil-harness case window")
+                windows.append(_Window(cid, vehicle, int(start), int(end), rel, writer, f))
             _copy(mcap, windows)
         finally:
             for w in windows:
