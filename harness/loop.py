@@ -154,6 +154,9 @@ class SimLoop:
         self.analysis = AnalysisThread()
         self._rendering = 0
         self._applying: dict[tuple[int, int], tuple[VehicleRun, InFlight, Estimate, int]] = {}
+        # Per vehicle: records settled while an earlier-received estimate waits for the
+        # physics to apply it; they follow it, so observers see receipt order.
+        self._behind_apply: dict[int, list[tuple[Any, ...]]] = {}
         self._lockstep_ctls: list[tuple[Any, ...]] = []
         self._sim_steps = 0
         self._state_seen = -1
@@ -264,6 +267,23 @@ class SimLoop:
 
     def _end_physics(self) -> None:
         """Let the physics process finish, take its histogram and final state."""
+        try:
+            self._await_physics_end()
+        finally:
+            self._flush_unapplied()
+
+    def _flush_unapplied(self) -> None:
+        """Controls the physics never confirmed (it died) were never applied: their
+        frames are recorded as stale, and the records held behind them follow."""
+        for (_vi, _fid), (v, fl, m, t0p) in sorted(self._applying.items()):
+            self.analysis.post(self._complete_task, v, fl, m, t0p, FrameStatus.STALE)
+        self._applying.clear()
+        held, self._behind_apply = self._behind_apply, {}
+        for items in held.values():
+            for fn, *args in items:
+                self.analysis.post(fn, *args)
+
+    def _await_physics_end(self) -> None:
         try:
             self.engine.exit_physics()
         except (OSError, ValueError):
@@ -618,11 +638,22 @@ class SimLoop:
     def _on_applied(self, vi: int, frame_id: int, t_apply: int, steps: int, qpos: np.ndarray,
                     qvel: np.ndarray) -> None:
         item = self._applying.pop((vi, frame_id), None)
-        if item is not None:
-            self.analysis.post(self._apply_task, *item, t_apply, steps, qpos, qvel)
+        if item is None:
+            return
+        self.analysis.post(self._apply_task, *item, t_apply, steps, qpos, qvel)
+        if not any(k[0] == vi for k in self._applying):
+            for fn, *args in self._behind_apply.pop(vi, ()):
+                self.analysis.post(fn, *args)
 
     def _complete(self, v: VehicleRun, fl: InFlight, m: Estimate, t0p: int, status: FrameStatus) -> None:
-        self.analysis.post(self._complete_task, v, fl, m, t0p, status)
+        self._post_in_order(v, self._complete_task, v, fl, m, t0p, status)
+
+    def _post_in_order(self, v: VehicleRun, fn: Callable[..., None], *args: Any) -> None:
+        """Post a record's task behind this vehicle's controls still being applied."""
+        if any(k[0] == v.vehicle_id for k in self._applying):
+            self._behind_apply.setdefault(v.vehicle_id, []).append((fn, *args))
+        else:
+            self.analysis.post(fn, *args)
 
     def _hold(self, v: VehicleRun, fl: InFlight, m: Estimate, t0p: int) -> None:
         assert self.held is not None and self.latency is not None
@@ -643,7 +674,7 @@ class SimLoop:
             self._add_record(v, _record(v, fl, FrameStatus.PENDING, m, t0p), m)
 
     def _add_record(self, v: VehicleRun, rec: PipelineRecord, estimate: Estimate | None = None) -> None:
-        self.analysis.post(self._record_task, v, rec, estimate)
+        self._post_in_order(v, self._record_task, v, rec, estimate)
 
     def _expire(self, now: int) -> None:
         for v in self.vehicles:
