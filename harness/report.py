@@ -39,7 +39,8 @@ import numpy as np
 
 from harness import __version__
 from harness import report_plots as rp
-from harness.report_cases import cases_section
+from harness import report_fleet as fleet
+from harness.report_cases import case_for_event, cases_section, read_case_rows
 from harness.run_folder import ClockPoint, Event, RunData, read_run
 from timing.errors import ConfigError
 from timing.records import STAGES
@@ -56,9 +57,10 @@ td.n{text-align:right;font-variant-numeric:tabular-nums}.note{padding:8px 12px;m
 .warn{background:#fff4e0;border:1px solid #f0b860}.bad{background:#fde8e8;border:1px solid #e88}
 .ok{color:#2a7a2a;font-weight:bold}.nok{color:#c62828;font-weight:bold}.muted{color:#777}
 .grid{display:flex;flex-wrap:wrap;gap:6px}code{font-size:12px}details{margin:6px 0}
-.case{display:flex;gap:12px;border:1px solid #ddd;padding:8px;margin:8px 0;border-radius:4px}
-.case img{width:240px;height:auto;border:1px solid #ccc}
-"""
+.case{display:flex;align-items:flex-start;gap:12px;border:1px solid #ddd;padding:8px;margin:8px 0;border-radius:4px}
+.case img{flex:none;width:320px;height:auto;border:1px solid #ccc}
+svg{max-width:100%;height:auto}:target{background:#fff8d0}
+"""  + fleet.NAV_CSS
 
 
 def _ms(v: Any, digits: int = 3) -> str:
@@ -136,18 +138,22 @@ def _run_section(d: RunData) -> str:
     vers = get("versions")
     if isinstance(vers, dict):
         rows.append(("versions", escape(", ".join(f"{k} {v}" for k, v in vers.items()))))
-    out = ["<h2>Run</h2>", _kv_table(rows)]
+    out = ['<h2 id="run">Run</h2>', _kv_table(rows)]
     vs = s.get("vehicles") or {}
     if vs:
-        head = ["vehicle", "frames", "applied", "dropped", "stale", "late", "drop rate", "frames/s",
-                "order viol.", "target", "min gap m", "final speed m/s", "collisions"]
+        head = ["vehicle", "frames sent", "applied", "dropped", "stale", "late", "drop rate (%)", "frames/s",
+                "order violations", "target (clock)", "min gap (m)", "final speed (m/s)", "collisions"]
         rows2 = []
         for name, v in vs.items():
             o = v.get("outcome") or {}
             t = v.get("target") or {}
+            drop = v.get("drop_rate")
+            fps = v.get("frames_per_s")
             rows2.append([escape(name)] + [escape(str(v.get(k, "–"))) for k in
                                            ("frames_sent", "estimates_applied", "dropped", "stale",
-                                            "late_estimates", "drop_rate", "frames_per_s", "order_violations")]
+                                            "late_estimates")]
+                         + ["–" if not isinstance(drop, (int, float)) else f"{drop:.1%}", _ms(fps, 1),
+                            escape(str(v.get("order_violations", "–")))]
                          + [escape(f"{t.get('name', '?')} ({t.get('clock', '?')})"), _ms(o.get("min_gap_m"), 2),
                             _ms(o.get("final_speed_mps"), 2), escape(str(o.get("collisions", "–")))])
         out += ["<h3>Vehicles</h3>", _table(head, rows2)]
@@ -172,15 +178,16 @@ def _stage_values(recs: list[dict[str, Any]]) -> dict[str, np.ndarray]:
 
 
 def _latency_section(d: RunData) -> str:
-    out = ["<h2>Latency per stage</h2>",
+    out = ['<h2 id="latency">Latency per stage</h2>',
            ('<p class="muted">Exact percentiles over the frames whose estimate was applied, in ms. '
-            "Stages: capture_to_send = t_tx−t0, transport = (t0′−t_tx)−(t_reply−t_rx), target_queue, "
+            "Stages: render = the world state at the camera instant to the encoded image (t_state→), "
+            "capture_to_send = t_tx−t0, transport = (t0′−t_tx)−(t_reply−t_rx), target_queue, "
             "inference, target_total = t_reply−t_rx, apply_delay = t_apply−t0′, end_to_end = t0′−t0, "
             "to_apply = t_apply−t0.</p>")]
-    head = ["stage", "count", "p50", "p90", "p99", "max", "min", "mean", "std"]
+    head = ["stage", "frames", "p50 (ms)", "p90 (ms)", "p99 (ms)", "max (ms)", "min (ms)", "mean (ms)", "std (ms)"]
     keys = ("count", "p50_ms", "p90_ms", "p99_ms", "max_ms", "min_ms", "mean_ms", "std_ms")
     for vehicle in d.vehicles:
-        out.append(f"<h3>{escape(vehicle)}</h3>")
+        out.append(f'<h3 id="latency-{escape(vehicle)}">{escape(vehicle)}</h3>')
         values = _stage_values(d.pipeline.get(vehicle, []))
         if values:
             stats = {k: summarize_ns(v.tolist()) for k, v in values.items()}
@@ -201,9 +208,22 @@ def _latency_section(d: RunData) -> str:
 
 
 def _event_title(e: Event, t_s: float) -> str:
-    rest = {k: v for k, v in e.data.items() if k not in ("kind",)}
-    text = json.dumps(rest, default=str)
-    return f"{e.kind} at {t_s:.3f} s: {text[:300]}"
+    sim = e.data.get("sim_time_ns")
+    parts = [f"{e.kind} at {t_s:.3f} s"]
+    if isinstance(sim, int):
+        parts.append(f"sim {sim / 1e9:.3f} s")
+    if e.vehicles:
+        parts.append(", ".join(e.vehicles))
+    frames = _frames(e.data)
+    if frames != "–":
+        parts.append(f"frame {frames}")
+    vt = _value_vs_threshold(e.data)
+    if vt != "–":
+        parts.append(vt)
+    cause = _cause(e.data)
+    if cause != "–":
+        parts.append(cause)
+    return ": ".join(parts[:1]) + (" — " + "; ".join(parts[1:]) if parts[1:] else "")[:300]
 
 
 def _strips(d: RunData, vehicle: str | None) -> list[rp.Strip]:
@@ -218,10 +238,13 @@ def _strips(d: RunData, vehicle: str | None) -> list[rp.Strip]:
 
 
 def _timeline_section(d: RunData) -> str:
-    out = ["<h2>End-to-end latency over time</h2>",
-           ('<p class="muted">t0′−t0 of each frame at its capture time; under each chart one row per event '
-            "kind (hover a tick for details; coloured by severity where the event has one).</p>")]
+    out = ['<h2 id="timeline">End-to-end latency over time</h2>',
+           ('<p class="muted">t0′−t0 of each frame at its capture time; dashed: the end-to-end deadline and '
+            "the estimate timeout; under each chart one row per event kind (hover a tick for details; coloured "
+            "by severity where the event has one). All vehicles share one time axis.</p>")]
     t0 = d.t_start_ns
+    left = fleet.chart_left(d, _strips)
+    span = _time_span(d)
     for vehicle in d.vehicles:
         recs = [r for r in d.pipeline.get(vehicle, []) if r.get("status") == "ok"
                 and isinstance((r.get("stages_ns") or {}).get("end_to_end"), int)]
@@ -229,10 +252,18 @@ def _timeline_section(d: RunData) -> str:
         y = np.array([r["stages_ns"]["end_to_end"] / 1e6 for r in recs])
         series = [rp.Series("end_to_end (ms)", x, y, rp.colour_for("end_to_end"), "points")]
         out.append(rp.line_chart(series=series, strips=_strips(d, vehicle), x_label="time since first frame (s)",
-                                 y_label="end-to-end (ms)", title=vehicle))
+                                 y_label="end-to-end (ms)", title=vehicle, rules=fleet.e2e_rules(d.run_dir, vehicle),
+                                 left=left, x_range=span))
     if not d.vehicles and d.events:
         out.append(rp.line_chart(series=[], strips=_strips(d, None), x_label="time (s)", y_label="", title="events"))
     return "".join(out)
+
+
+def _time_span(d: RunData) -> tuple[float, float]:
+    """0 to the last capture of any vehicle (s since the first frame)."""
+    t0 = d.t_start_ns
+    ends = [(r["t0_ns"] - t0) / 1e9 for recs in d.pipeline.values() for r in recs if isinstance(r.get("t0_ns"), int)]
+    return (0.0, max(ends, default=1.0))
 
 
 def _bin_s(end_s: float) -> float:
@@ -254,7 +285,7 @@ def _rate(times_s: np.ndarray, end_s: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _fps_section(d: RunData) -> str:
-    out = ["<h2>Frames per second over time</h2>",
+    out = ['<h2 id="fps">Frames per second over time</h2>',
            ('<p class="muted">Frames sent (by capture time t0) and estimates applied (by t_apply) per '
             "second, counted in bins of harness time (width in each chart's title).</p>")]
     t0 = d.t_start_ns
@@ -269,10 +300,13 @@ def _fps_section(d: RunData) -> str:
         end = float(max(sent.max(), applied.max() if applied.size else 0.0))
         xs, ys = _rate(sent, end)
         xa, ya = _rate(applied, end)
+        floor = fleet.limits(d.run_dir, vehicle).get("fps_floor")
+        rules = [] if floor is None else [rp.Rule(f"frame-rate floor {floor:g}/s", floor, "#d62728")]
         out.append(rp.line_chart(series=[rp.Series("frames sent/s", xs, ys, "#4c78a8"),
-                                         rp.Series("estimates applied/s", xa, ya, "#f58518")],
+                                         rp.Series("estimates applied/s", xa, ya, "#f58518")], rules=rules,
                                  x_label="time since first frame (s)", y_label="per second",
-                                 title=f"{vehicle} ({_bin_s(end):g} s bins)", height=200))
+                                 title=f"{vehicle} ({_bin_s(end):g} s bins)", height=200,
+                                 left=fleet.chart_left(d, _strips), x_range=_time_span(d)))
     return "".join(out)
 
 
@@ -295,7 +329,7 @@ def _skew_ppm(points: list[ClockPoint]) -> float | None:
 
 
 def _clock_section(d: RunData) -> str:
-    out = ["<h2>Target clock: offset and uncertainty</h2>",
+    out = ['<h2 id="clock">Target clock: offset and uncertainty</h2>',
            ('<p class="muted">Offset of each target clock from the harness clock (target − harness), '
             "plotted relative to its median; the band is ± the uncertainty (half the round trip of "
             "each sample, or the estimator's own).</p>")]
@@ -316,7 +350,8 @@ def _clock_section(d: RunData) -> str:
                                          rp.Series("samples", x, y, c, "points")],
                                  bands=[rp.Band("± uncertainty", x, y - u, y + u, c)],
                                  x_label="time since first frame (s)", y_label="µs", y_zero=False,
-                                 title=f"{vehicle} ({d.clock_source.get(vehicle, '?')})", height=200))
+                                 title=f"{vehicle} ({d.clock_source.get(vehicle, '?')})", height=200,
+                                 left=fleet.chart_left(d, _strips), x_range=_time_span(d)))
         skew = _skew_ppm(pts)
         rows.append([escape(vehicle), escape(d.clock_source.get(vehicle, "?")), str(len(pts)),
                      f"{med / 1e6:.3f}", _ms(float(u.min()), 1), _ms(float(np.median(u)), 1),
@@ -326,8 +361,35 @@ def _clock_section(d: RunData) -> str:
     return "".join(out)
 
 
+def _value_vs_threshold(data: dict[str, Any]) -> str:
+    """``measured`` against ``threshold`` with their unit, e.g. ``61.2 ms > 50 ms``."""
+    m, th, unit = data.get("measured"), data.get("threshold"), data.get("unit")
+    if not isinstance(m, (int, float)) or isinstance(m, bool):
+        return "–"
+    u = f" {unit}" if isinstance(unit, str) and unit else ""
+    if not isinstance(th, (int, float)) or isinstance(th, bool):
+        return f"{m:.4g}{u}"
+    return f"{m:.4g}{u} {'>' if m > th else '≤'} {th:.4g}{u}"
+
+
+def _cause(data: dict[str, Any]) -> str:
+    parts = [str(data[k]) for k in ("cause", "stage", "entity") if isinstance(data.get(k), str) and data[k]]
+    detail = data.get("detail")
+    if isinstance(detail, str) and detail:
+        parts.append(detail)
+    return "; ".join(parts) or "–"
+
+
+def _frames(data: dict[str, Any]) -> str:
+    ids = data.get("frame_ids")
+    if isinstance(ids, list) and ids:
+        return ", ".join(str(i) for i in ids[:3]) + (f" (+{len(ids) - 3})" if len(ids) > 3 else "")
+    fid = data.get("frame_id")
+    return str(fid) if isinstance(fid, int) else "–"
+
+
 def _events_section(d: RunData) -> str:
-    out = ["<h2>Events</h2>"]
+    out = ['<h2 id="events">Events</h2>']
     if not d.events:
         return "".join(out) + "<p>no events recorded</p>"
     t0 = d.t_start_ns
@@ -338,17 +400,25 @@ def _events_section(d: RunData) -> str:
     rows = [[f'<span style="color:{rp.severity_colour(g[0].severity, k)}">■</span> {escape(k)}', escape(sev or "–"),
              escape(who), str(len(g)), f"{(g[0].t_ns - t0) / 1e9:.3f}", f"{(g[-1].t_ns - t0) / 1e9:.3f}"]
             for (k, sev, who), g in sorted(groups.items())]
-    out.append(_table(["kind", "severity", "vehicle", "count", "first (s)", "last (s)"], rows, numeric_from=3))
+    out.append(_table(["kind", "severity", "vehicle", "events", "first (s)", "last (s)"], rows, numeric_from=3))
+    cases = read_case_rows(d.run_dir)
     listed = sorted(d.events, key=lambda e: e.t_ns)[:_MAX_EVENTS_LISTED]
     more = len(d.events) - len(listed)
-    items = [[f"{(e.t_ns - t0) / 1e9:.3f}", escape(e.kind), escape(", ".join(e.vehicles) or "–"),
-              escape("–" if e.severity is None else str(e.severity)),
-              "<code>" + escape(json.dumps({k: v for k, v in e.data.items()
-                                            if k not in ("kind", "vehicle", "severity")}, default=str)[:400])
-              + "</code>"] for e in listed]
-    out.append(f"<details><summary>all {len(listed)} events"
-               + (f" (first {len(listed)}; {more} more in run.mcap)" if more else "") + "</summary>"
-               + _table(["time (s)", "kind", "vehicle", "severity", "details"], items, numeric_from=9)
+    items = []
+    for e in listed:
+        sim = e.data.get("sim_time_ns")
+        case = case_for_event(cases, e)
+        link = "–" if case is None else f'<a href="#case-{escape(str(case))}">case {escape(str(case))}</a>'
+        items.append([f"{(e.t_ns - t0) / 1e9:.3f}",
+                      "–" if not isinstance(sim, int) else f"{sim / 1e9:.3f}",
+                      f'<span style="color:{rp.severity_colour(e.severity, e.kind)}">■</span> {escape(e.kind)}',
+                      escape(", ".join(e.vehicles) or "–"), escape(_frames(e.data)),
+                      escape("–" if e.severity is None else str(e.severity)),
+                      escape(_value_vs_threshold(e.data)), escape(_cause(e.data)[:300]), link])
+    out.append(f"<details open><summary>{len(listed)} event{'s' if len(listed) != 1 else ''}"
+               + (f" (the first {len(listed)}; {more} more in run.mcap)" if more else "") + "</summary>"
+               + _table(["time (s)", "sim time (s)", "kind", "vehicle", "frame", "severity", "value vs threshold",
+                         "cause / detail", "case"], items, numeric_from=99)
                + "</details>")
     return "".join(out)
 
@@ -359,13 +429,13 @@ def _events_section(d: RunData) -> str:
 def build_report(d: RunData) -> str:
     """The whole HTML page for ``d``."""
     name = (d.summary or {}).get("name") or d.meta.get("name") or d.run_dir.name
-    parts = [_run_section(d), _latency_section(d)]
+    parts = [_run_section(d), fleet.fleet_section(d, left=fleet.chart_left(d, _strips)), _latency_section(d)]
     if d.mcap_present:
         parts += [_timeline_section(d), _fps_section(d), _clock_section(d), _events_section(d)]
     parts.append(cases_section(d))
     return ("<!DOCTYPE html><html lang=en><head><meta charset=utf-8>"
             f"<title>hil report: {escape(str(name))}</title><style>{_CSS}</style></head><body>"
-            f"<h1>hil report: {escape(str(name))}</h1>"
+            f"{fleet.nav(d.vehicles)}<h1>hil report: {escape(str(name))}</h1>"
             f'<p class="muted">{escape(str(d.run_dir))} · generated {time.strftime("%Y-%m-%d %H:%M:%S")} '
             f"by hil {__version__}</p>" + "".join(_notes(d)) + "".join(parts) + "</body></html>\n")
 

@@ -74,9 +74,64 @@ def _vehicle(d: RunData, row: dict[str, Any]) -> str | None:
     return d.vehicles[0] if len(d.vehicles) == 1 else None
 
 
+def read_case_rows(run_dir: Path) -> list[dict[str, Any]]:
+    """The run's cases (empty when it has none or the database cannot be read)."""
+    db = find_db(run_dir)
+    if db is None:
+        return []
+    try:
+        return read_cases(db)
+    except sqlite3.Error:
+        return []
+
+
+def case_for_event(cases: list[dict[str, Any]], event: Any) -> Any:
+    """The id of the case ``event`` (a ``run_folder.Event``) belongs to: same kind
+    and vehicle, its sim time within the case's first..last trigger (or at the
+    case's sim time); ``None`` if none."""
+    sim = event.data.get("sim_time_ns")
+    if not isinstance(sim, int):
+        return None
+    for c in cases:
+        if c.get("kind") != event.kind or (event.vehicles and c.get("vehicle") not in event.vehicles):
+            continue
+        start = c.get("sim_time_ns")
+        end = c.get("sim_end_ns") if isinstance(c.get("sim_end_ns"), int) else start
+        if isinstance(start, int) and start <= sim <= (end if isinstance(end, int) else start):
+            return c.get("id")
+    return None
+
+
+def _size(fmt: str, b64: str) -> tuple[int, int] | None:
+    """Width and height (px) of a base64 JPEG/PNG, from its header."""
+    import base64
+
+    import cv2
+    import numpy as np
+
+    try:
+        img = cv2.imdecode(np.frombuffer(base64.b64decode(b64), np.uint8), cv2.IMREAD_REDUCED_GRAYSCALE_8)
+    except (ValueError, cv2.error):
+        return None
+    if img is None:
+        return None
+    return img.shape[1] * 8, img.shape[0] * 8
+
+
+_THUMB_W = 320
+
+
+def _mcap_link(d: RunData, rel: Any) -> str:
+    if not isinstance(rel, str) or not rel:
+        return "–"
+    exists = (d.run_dir / rel).is_file()
+    return (f'<a href="{escape(rel)}">{escape(rel)}</a>' if exists
+            else f'{escape(rel)} <span class="muted">(not written)</span>')
+
+
 def cases_section(d: RunData) -> str:
     """HTML of the corner-case section (says so when there are none)."""
-    out = ["<h2>Corner cases</h2>"]
+    out = ['<h2 id="cases">Corner cases</h2>']
     db = find_db(d.run_dir)
     if db is None:
         return "".join(out) + "<p>no corner cases recorded</p>"
@@ -86,9 +141,25 @@ def cases_section(d: RunData) -> str:
         return "".join(out) + f'<div class="note warn">{escape(db.name)} cannot be read: {escape(str(err))}</div>'
     if not rows:
         return "".join(out) + f"<p>no corner cases recorded ({escape(db.name)} is empty)</p>"
-    out.append(f'<p class="muted">{len(rows)} cases in {escape(str(db.relative_to(d.run_dir)))}'
-               + (f"; the first {MAX_ROWS} are shown" if len(rows) > MAX_ROWS else "") + ".</p>")
+    n = len(rows)
+    out.append(f'<p class="muted">{n} case{"s" if n != 1 else ""} in {escape(str(db.relative_to(d.run_dir)))}'
+               + (f"; the first {MAX_ROWS} are shown" if n > MAX_ROWS else "")
+               + ". Each links to its recording (open it in Foxglove with hil_configs/foxglove_layout.json).</p>")
     rows = rows[:MAX_ROWS]
+    head = ["case", "kind", "vehicle", "sim time (s)", "severity", "cause", "events", "summary", "recording"]
+    body = []
+    for i, r in enumerate(rows):
+        t = r.get("sim_time_ns")
+        ev = r.get("events")
+        body.append([f'<a href="#case-{escape(str(r.get("id", i)))}">{escape(str(r.get("id", i)))}</a>',
+                     escape(str(r.get("kind") or "–")), escape(str(r.get("vehicle") or "–")),
+                     f"{t / 1e9:.3f}" if isinstance(t, (int, float)) else "–",
+                     escape(str(r.get("severity") or "–")), escape(str(r.get("cause") or "–")),
+                     str(ev) if isinstance(ev, int) else "–", escape(str(r.get("summary") or "–")),
+                     _mcap_link(d, r.get("mcap_path"))])
+    h = "".join(f"<th>{escape(c)}</th>" for c in head)
+    out.append(f"<table><tr>{h}</tr>" + "".join("<tr>" + "".join(f"<td>{c}</td>" for c in b) + "</tr>"
+                                                for b in body) + "</table>")
     frames: dict[int, tuple[str, int]] = {}
     for i, r in enumerate(rows[:MAX_THUMBNAILS]):
         v, t = _vehicle(d, r), r.get("sim_time_ns")
@@ -101,26 +172,59 @@ def cases_section(d: RunData) -> str:
         img = images.get(frames.get(i, ("", -1)))
         if img is not None:
             fmt, b64 = img
-            pic = f'<img alt="camera frame" src="data:image/{escape(fmt)};base64,{b64}">'
+            wh = _size(fmt, b64)
+            dims = "" if wh is None else f' width="{_THUMB_W}" height="{round(_THUMB_W * wh[1] / wh[0])}"'
+            pic = f'<img alt="camera frame of case {escape(str(r.get("id", i)))}"{dims} ' \
+                  f'src="data:image/{escape(fmt)};base64,{b64}">'
         elif i < MAX_THUMBNAILS:
-            pic = '<div class="muted" style="width:240px">no camera frame recorded near this time</div>'
+            pic = f'<div class="muted" style="width:{_THUMB_W}px">no camera frame recorded near this time</div>'
         else:
             pic = ""
         cells = []
         for k in _SHOWN:
             v = r.get(k)
-            if k == "sim_time_ns" and isinstance(v, (int, float)):
-                cells.append(("sim time", f"{v / 1e9:.3f} s"))
+            if k == "sim_time_ns":
+                cells.append(("sim time", f"{v / 1e9:.3f} s" if isinstance(v, (int, float)) else "–"))
+            elif k == "mcap_path":
+                cells.append(("recording", _mcap_link(d, v)))
             else:
                 cells.append((k, "–" if v is None else escape(str(v))))
-        lo, hi = r.get("window_start_ns"), r.get("window_end_ns")
-        if isinstance(lo, int) and isinstance(hi, int):  # the case's data: this sim-time range of mcap_path
-            cells.append(("window", f"{lo / 1e9:.2f}–{hi / 1e9:.2f} s sim time"))
-        extra = [(k, escape(str(v))) for k, v in r.items() if k not in _SHOWN and k not in _WINDOW and k != "id"]
-        table = "<table>" + "".join(f"<tr><th>{escape(k)}</th><td>{v}</td></tr>" for k, v in cells + extra) + "</table>"
+        for k, v in r.items():
+            if k in _SHOWN or k == "id":
+                continue
+            if k == "harness_time_ns" and isinstance(v, (int, float)):
+                cells.append(("time since first frame (s)", f"{(v - d.t_start_ns) / 1e9:.3f}"))
+            elif k.endswith("_ns") and isinstance(v, (int, float)):
+                cells.append((k[:-3].replace("_", " ") + " (s)", f"{v / 1e9:.3f}"))
+            elif k == "event" and isinstance(v, str):
+                cells.append(("event", _event_cells(v)))
+            else:
+                cells.append((k, escape(str(v))))
+        table = "<table>" + "".join(f"<tr><th>{escape(k)}</th><td>{v}</td></tr>" for k, v in cells) + "</table>"
         out.append(f'<div class="case" id="case-{escape(str(r.get("id")))}">{pic}<div><b>case '
                    f'{escape(str(r.get("id", i)))}</b>{table}</div></div>')
     return "".join(out)
 
 
-__all__ = ["cases_section", "find_db", "read_cases"]
+def _event_cells(text: str) -> str:
+    """A case's event (JSON) as a small key/value list; times in s."""
+    import json
+
+    try:
+        ev = json.loads(text)
+    except ValueError:
+        return escape(text[:400])
+    if not isinstance(ev, dict):
+        return escape(text[:400])
+    parts = []
+    for k, v in ev.items():
+        if k.endswith("_ns") and isinstance(v, (int, float)):
+            parts.append(f"{escape(k[:-3])} {v / 1e9:.3f} s")
+        elif isinstance(v, float):
+            parts.append(f"{escape(k)} {v:.4g}")
+        elif v not in (None, [], {}):
+            parts.append(f"{escape(k)} {escape(json.dumps(v, default=str)[:120])}")
+    return "; ".join(parts)
+
+
+__all__ = ["case_for_event", "cases_section", "find_db", "read_case_rows", "read_cases"]

@@ -125,6 +125,16 @@ class Strip:
     marks: Sequence[Mark]
 
 
+@dataclass(frozen=True)
+class Rule:
+    """A horizontal reference line at ``y`` (a deadline, a threshold), dashed, labelled
+    at its right end."""
+
+    label: str
+    y: float
+    colour: str = "#d62728"
+
+
 class _Scale:
     def __init__(self, lo: float, hi: float, p0: float, p1: float, *, log: bool = False) -> None:
         if hi <= lo:
@@ -173,11 +183,15 @@ def _svg(width: float, height: float, body: list[str], label: str) -> str:
 
 
 def line_chart(*, series: Sequence[Series], bands: Sequence[Band] = (), strips: Sequence[Strip] = (),
-               x_label: str, y_label: str, width: int = 1000, height: int = 220,
-               y_zero: bool = True, title: str = "") -> str:
-    """Lines and dots over a shared x axis, optional shaded bands, and event strips
-    under the axis (one row each). ``height`` is the chart without its strips."""
-    left = max(64, 10 + int(6.2 * max((len(st.label) for st in strips), default=0)))
+               rules: Sequence[Rule] = (), x_label: str, y_label: str, width: int = 1000, height: int = 220,
+               y_zero: bool = True, title: str = "", left: int = 0,
+               x_range: tuple[float, float] | None = None) -> str:
+    """Lines and dots over a shared x axis, optional shaded bands, horizontal rules
+    (deadlines, thresholds), and event strips under the axis (one row each).
+    ``height`` is the chart without its strips. ``left``: at least this left margin
+    (px), so charts drawn with the same value line up; ``x_range``: the x axis span
+    (charts of several vehicles on one time axis)."""
+    left = max(64, left, strip_margin(strips))
     right, top, bottom = 14, 22, 40
     strip_h = 14 * len(strips) + (6 if strips else 0)
     pw, ph = width - left - right, height - top - bottom
@@ -185,6 +199,9 @@ def line_chart(*, series: Sequence[Series], bands: Sequence[Band] = (), strips: 
     xs_all += [np.asarray([m.x for m in st.marks], float) for st in strips]
     ys_all = [np.asarray(s.ys, float) for s in series]
     ys_all += [np.asarray(b.lo, float) for b in bands] + [np.asarray(b.hi, float) for b in bands]
+    ys_all += [np.asarray([r.y for r in rules], float)]
+    if x_range is not None:
+        xs_all.append(np.asarray(x_range, float))
     xcat = np.concatenate([a[np.isfinite(a)] for a in xs_all] or [np.zeros(0)])
     ycat = np.concatenate([a[np.isfinite(a)] for a in ys_all] or [np.zeros(0)])
     if xcat.size == 0:
@@ -237,6 +254,17 @@ def line_chart(*, series: Sequence[Series], bands: Sequence[Band] = (), strips: 
         else:
             body.append(f'<path d="{d}" stroke="{s.colour}" stroke-width="1.4" fill="none" '
                         f'stroke-linejoin="round"><title>{escape(s.label)}</title></path>')
+    placed: list[float] = []
+    for r in rules:
+        y = float(sy(r.y))
+        ly = y - 4
+        while any(abs(ly - p) < 12 for p in placed):  # rules close together: stack their labels
+            ly += 13
+        placed.append(ly)
+        body.append(f'<line x1="{left}" x2="{left + pw}" y1="{y:.1f}" y2="{y:.1f}" stroke="{r.colour}" '
+                    f'stroke-width="1.3" stroke-dasharray="6 4"><title>{escape(r.label)}</title></line>'
+                    f'<text x="{left + pw - 4}" y="{ly:.1f}" text-anchor="end" fill="{r.colour}" '
+                    f'paint-order="stroke" stroke="#fafafa" stroke-width="3">{escape(r.label)}</text>')
     # legend
     lx = left + 4
     for item in [*series, *bands]:
@@ -260,6 +288,11 @@ def line_chart(*, series: Sequence[Series], bands: Sequence[Band] = (), strips: 
             body.append(f'<line x1="{x:.1f}" x2="{x:.1f}" y1="{y}" y2="{y + 10}" stroke="{m.colour}" '
                         f'stroke-width="2"><title>{escape(m.title)}</title></line>')
     return _svg(width, height + strip_h, body, title or y_label)
+
+
+def strip_margin(strips: Sequence[Strip]) -> int:
+    """The left margin (px) the labels of ``strips`` need."""
+    return 10 + int(6.2 * max((len(st.label) for st in strips), default=0))
 
 
 def box_chart(rows: Sequence[tuple[str, np.ndarray]], *, x_label: str, width: int = 1000,
@@ -355,6 +388,7 @@ __all__ = [
     "PALETTE",
     "Band",
     "Mark",
+    "Rule",
     "Series",
     "Strip",
     "box_chart",
@@ -364,4 +398,5 @@ __all__ = [
     "line_chart",
     "nice_ticks",
     "severity_colour",
+    "strip_margin",
 ]

@@ -27,9 +27,8 @@ from harness.run_folder import Event, read_run
 from tests.conftest import GL_BACKEND
 
 ROOT = Path(__file__).resolve().parents[2]
-SECTIONS = ("<h2>Run</h2>", "<h2>Latency per stage</h2>", "<h2>End-to-end latency over time</h2>",
-            "<h2>Frames per second over time</h2>", "<h2>Target clock: offset and uncertainty</h2>",
-            "<h2>Events</h2>", "<h2>Corner cases</h2>")
+SECTIONS = ("Run", "Fleet overview", "Latency per stage", "End-to-end latency over time",
+            "Frames per second over time", "Target clock: offset and uncertainty", "Events", "Corner cases")
 CASES_SQL = ("CREATE TABLE cases (id INTEGER PRIMARY KEY, run TEXT, scenario TEXT, seed INTEGER, params TEXT, "
              "config_hash TEXT, vehicle TEXT, sim_time_ns INTEGER, kind TEXT, summary TEXT, mcap_path TEXT)")
 
@@ -75,7 +74,15 @@ def test_report_is_self_contained_and_has_every_section(run_dir: Path) -> None:
     assert not re.search(r"""(src|href)\s*=\s*["']?\s*(https?:|//)""", html, re.IGNORECASE)
     assert "<link" not in html and "<script" not in html and "http" not in html
     for s in SECTIONS:
-        assert s in html, s
+        assert re.search(rf"<h2[^>]*>{re.escape(s)}</h2>", html), s
+    # navigation: every section has an anchor the bar links to
+    for anchor in re.findall(r'<nav class="top">(.*?)</nav>', html)[0].split('href="#')[1:]:
+        assert f'id="{anchor.split(chr(34))[0]}"' in html, anchor
+    # the estimate timeout (100 ms) and the default end-to-end deadline (100 ms) are drawn
+    assert "estimate timeout 100 ms" in html and "deadline 100 ms" in html
+    # events readable: value against threshold with units, sim time; cases counted in words
+    assert "value vs threshold" in html and "2 cases in" in html
+    assert "harness_time_ns" not in html
 
     # Every chart is well-formed SVG: box plot, 8 histograms, timeline, frame rate, clock.
     svgs = _svgs(html)
@@ -97,6 +104,8 @@ def test_report_is_self_contained_and_has_every_section(run_dir: Path) -> None:
     # One thumbnail per corner case, real JPEG of the camera's size.
     images = re.findall(r'src="data:image/(\w+);base64,([^"]+)"', html)
     assert len(images) == 2
+    # drawn at the image's aspect ratio (320x240 shown 320x240), never stretched
+    assert len(re.findall(r'<img [^>]*width="320" height="240"', html)) == 2
     for fmt, b64 in images:
         assert fmt == "jpeg"
         img = cv2.imdecode(np.frombuffer(base64.b64decode(b64), np.uint8), cv2.IMREAD_COLOR)
