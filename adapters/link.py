@@ -29,7 +29,7 @@ from adapters.messages import (Bye, CameraInfo, Command, ErrorMsg, Estimate, Fra
                                SyncResponse)
 from timing.clock import Clock
 from timing.sync import SyncSample
-from timing.errors import ProtocolError, TargetError, TimeoutError_, TransportError
+from timing.errors import ProtocolError, TargetError, TransportError
 
 
 @dataclass(frozen=True)
@@ -270,8 +270,7 @@ class Link(ABC):
     def recv(self, *, timeout_s: float) -> Received | None:
         """Next received estimate/heartbeat/error, or None after ``timeout_s``.
 
-        Raises:
-            TimeoutError_: never; a timeout returns None (callers decide what it means).
+        A timeout is not an error: it returns None (callers decide what it means).
         """
         try:
             if timeout_s <= 0:
@@ -372,4 +371,4 @@ def open_link(transport: str, **options: object) -> Link:
     raise TransportError(f"unknown transport {transport!r}; valid: {', '.join(TRANSPORTS)}")
 
 
-__all__ = ["Estimate", "Link", "LinkStats", "Received", "SyncSample", "TimeoutError_", "open_link"]
+__all__ = ["Estimate", "Link", "LinkStats", "Received", "SyncSample", "open_link"]

@@ -12,7 +12,7 @@ import os
 import subprocess
 import sys
 
-from timing.errors import SimulationError
+from hil_errors import SimulationError
 
 _PROBE = (
     "import os, sys; os.environ['MUJOCO_GL'] = sys.argv[1]; "

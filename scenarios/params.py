@@ -6,7 +6,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from timing.errors import ConfigError
+from hil_errors import ConfigError
 
 
 @dataclass(frozen=True)

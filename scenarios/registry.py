@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 from scenarios.params import Param, resolve_params
 from scenarios.world import CameraSpec, WorldSpec
-from timing.errors import ConfigError
+from hil_errors import ConfigError
 
 BuildFn = Callable[..., WorldSpec]
 

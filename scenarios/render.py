@@ -17,7 +17,7 @@ import mujoco
 import numpy as np
 
 from scenarios.road import ROAD_GROUP
-from timing.errors import SimulationError
+from hil_errors import SimulationError
 
 BACKGROUND = -1
 

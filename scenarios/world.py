@@ -152,7 +152,7 @@ class WorldSpec:
 
 
 def _check_no_overlap(vehicles: tuple[VehicleSpec, ...]) -> None:
-    from timing.errors import ConfigError
+    from hil_errors import ConfigError
 
     names = [v.name for v in vehicles]
     dup = {n for n in names if names.count(n) > 1}

@@ -3,12 +3,13 @@
     python sdk/build_wheel.py [--out dist/]
 
 The wheel holds the packages ``adapters`` (wire codec, stream decoder, the SDK's
-``Endpoint``/``serve``/``decode_image``, every transport's target endpoint) and
-``timing`` (clocks, errors, the clock-sync estimator), from this repository's own
-files: there is one copy of the code. It depends on numpy only; extras add a
-transport's library (``zenoh``, ``can``) or JPEG decoding (``jpeg``). Written with
-the standard library (a wheel is a zip file with three metadata files, PEP 427), so
-it builds offline with no build backend.
+``Endpoint``/``serve``/``decode_image``, every transport's target endpoint),
+``timing`` (clocks, the clock-sync estimator) and ``hil_errors`` (the exception
+tree), from this repository's own files: there is one copy of the code. It
+depends on numpy only; extras add a transport's library (``zenoh``, ``can``) or
+JPEG decoding (``jpeg``). Written with the standard library (a wheel is a zip
+file with three metadata files, PEP 427), so it builds offline with no build
+backend.
 
 Exit 0 with the wheel's path on stdout; 2 with one line on stderr for a bad option.
 """
@@ -25,7 +26,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 NAME = "hil-target-sdk"
-PACKAGES = ("adapters", "timing")
+PACKAGES = ("adapters", "timing", "hil_errors")
 DATA_SUFFIXES = (".py", ".dbc")
 REQUIRES = ["numpy>=1.26,<2.5"]
 EXTRAS = {

@@ -35,7 +35,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from timing.errors import ConfigError
+from hil_errors import ConfigError
 from timing.pipeline import Mapper, Split, Violation, causality_violations, split_stages
 from timing.records import FrameStatus, PipelineRecord
 from timing.sync import SyncEvent, SyncEventKind

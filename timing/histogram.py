@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from timing.anomaly import is_sane
-from timing.errors import HilError
+from hil_errors import HilError
 from timing.records import PipelineRecord
 
 LOWEST_US = 1

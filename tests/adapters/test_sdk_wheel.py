@@ -49,8 +49,9 @@ def test_wheel_holds_the_target_side_only(tmp_path):
         names = z.namelist()
         meta = z.read(next(n for n in names if n.endswith("/METADATA"))).decode()
     tops = {n.split("/")[0] for n in names}
-    assert tops == {"adapters", "timing", "hil_target_sdk-0.1.0.dist-info"}
-    assert {"adapters/sdk.py", "adapters/tcp.py", "adapters/hil.dbc", "timing/clock.py"} <= set(names)
+    assert tops == {"adapters", "timing", "hil_errors", "hil_target_sdk-0.1.0.dist-info"}
+    assert {"adapters/sdk.py", "adapters/tcp.py", "adapters/hil.dbc", "timing/clock.py",
+            "hil_errors/__init__.py"} <= set(names)
     required = [ln for ln in meta.splitlines() if ln.startswith("Requires-Dist:") and "extra ==" not in ln]
     assert required == ["Requires-Dist: numpy>=1.26,<2.5"]
 
