@@ -23,6 +23,7 @@ from mcap.reader import NonSeekingReader, make_reader
 from harness import foxglove_schemas as fx
 from harness import recorder as recorder_module
 from harness.recorder import Recorder, RecorderStats, iter_salvaged_messages
+from hil_errors import RecordingError
 from timing.errors import ConfigError, HilError
 
 STATE_SCHEMA = {"type": "object", "properties": {"i": {"type": "integer"}}}
@@ -176,8 +177,10 @@ def test_write_failure_is_counted_and_raised_once_at_close(tmp_path: Path, monke
         rec.write_json("/s", {"i": i}, log_time_ns=i, publish_time_ns=i)
     assert rec.flush()
     rec.write_json("/s", {"i": 9}, log_time_ns=9, publish_time_ns=9)
-    with pytest.raises(ConfigError, match="No space left") as info:
+    with pytest.raises(RecordingError, match="No space left") as info:
         rec.close()
+    # A full disk is a failure of the run's file system, not of the configuration.
+    assert not isinstance(info.value, ConfigError) and isinstance(info.value, HilError)
     assert isinstance(info.value.__cause__, OSError)
     stats = rec.close()  # raised once; now just the counters
     assert stats.errors >= 2 and "No space left" in stats.first_error
