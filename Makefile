@@ -11,6 +11,7 @@ run: $(STAMP)
 	$(BIN)/hil run hil_configs/demo.yaml
 
 test: $(STAMP)
+	@bash tools/install_chromium.sh
 	$(BIN)/python -m pytest -q
 
 install: $(STAMP)

@@ -212,3 +212,64 @@ def test_bad_inputs_give_one_line_and_exit_2(run_dir: Path, tmp_path: Path,
     stub.mkdir()
     (stub / "run.mcap").write_bytes((run_dir / "run.mcap").read_bytes()[:12])
     _one_line_error(["report", str(stub)], capsys, "run.mcap", "truncated")
+
+
+# --- as a person sees it: headless Chromium -------------------------------------------
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                 "--disable-extensions", "--no-first-run", "--hide-scrollbars", "--mute-audio",
+                 "--enable-logging=stderr", "--v=0"]
+# Injected into a copy of the page (the report itself holds no script): records
+# script errors, then measures every chart and picture once the page has loaded.
+_PROBE = """<script>
+window.__errors = [];
+window.addEventListener('error', e => window.__errors.push(String(e.message || e.type)), true);
+window.addEventListener('load', () => {
+  const box = el => { const r = el.getBoundingClientRect(); return [r.width, r.height]; };
+  const out = {errors: window.__errors,
+    svgs: [...document.querySelectorAll('svg')].map(box),
+    imgs: [...document.querySelectorAll('img')].map(i => ({box: box(i), natural: [i.naturalWidth, i.naturalHeight],
+                                                           complete: i.complete})),
+    width: document.documentElement.scrollWidth, viewport: window.innerWidth};
+  document.body.setAttribute('data-probe', btoa(JSON.stringify(out)));
+});
+</script>"""
+
+
+def _chromium(args: list[str], url: str) -> subprocess.CompletedProcess[str]:
+    assert CHROMIUM is not None
+    return subprocess.run([CHROMIUM, *CHROMIUM_ARGS, *args, url], capture_output=True, text=True, timeout=90,
+                          check=False, env={**os.environ, "HOME": os.environ.get("TMPDIR", "/tmp")})
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None, reason="no chromium: `make test` installs it where apt-get works")
+def test_report_in_a_real_browser(run_dir: Path, tmp_path: Path) -> None:
+    page = write_report(run_dir).read_text()
+    probed = tmp_path / "probed.html"
+    probed.write_text(page.replace("<head>", "<head>" + _PROBE, 1))
+    p = _chromium(["--window-size=1200,900", "--virtual-time-budget=10000", "--dump-dom"], probed.as_uri())
+    m = re.search(r'data-probe="([^"]+)"', p.stdout)
+    assert m, p.stderr[-2000:]
+    got = json.loads(base64.b64decode(m.group(1)))
+    assert got["errors"] == []
+    console = [ln for ln in p.stderr.splitlines() if "CONSOLE" in ln or "Uncaught" in ln]
+    assert console == [], console
+    # every chart has a size; the page fits the window (charts shrink, nothing overflows)
+    assert len(got["svgs"]) >= 12
+    assert all(w > 50 and h > 30 for w, h in got["svgs"]), got["svgs"]
+    assert got["width"] <= got["viewport"], (got["width"], got["viewport"])
+    # every thumbnail decoded and drawn at its own aspect ratio
+    assert len(got["imgs"]) == 2
+    for img in got["imgs"]:
+        (w, h), (nw, nh) = img["box"], img["natural"]
+        assert img["complete"] and nw > 0 and nh > 0 and w > 100
+        assert abs(w / h - nw / nh) < 0.02, (w, h, nw, nh)
+
+    # A screenshot of the page as rendered: not blank (kept next to the run for a look).
+    shot = tmp_path / "report.png"
+    _chromium(["--window-size=1200,2400", f"--screenshot={shot}"], (run_dir / "report.html").as_uri())
+    img = cv2.imread(str(shot))
+    assert img is not None and img.shape[:2] == (2400, 1200)
+    assert img.std() > 20  # text, tables and charts, not an empty page
