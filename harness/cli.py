@@ -61,6 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
     from harness.search import cli as search_cli
 
     search_cli.add_parser(sub)
+    from harness import study
+
+    study.add_parser(sub)
     return p
 
 
@@ -104,7 +107,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             from harness import target_check
 
             return target_check.cmd(args)
-        if args.command in ("report", "compare", "train", "calibrate"):
+        if args.command in ("report", "compare", "train", "calibrate", "study"):
             import importlib
 
             return int(importlib.import_module(f"harness.{args.command}").cmd(args))

@@ -1,0 +1,74 @@
+"""hil study (harness/study.py, harness/study_report.py): bad input is one line and
+exit 2 before any run; the largest-N rule; a tiny real study (N = 1, 2; 2 s runs) in
+both placements writes its table, plots and a report that opens with its reading."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from harness.study_report import largest_holding
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _hil(*argv: str, timeout: float = 60, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "harness.cli", *argv], cwd=ROOT, capture_output=True, text=True,
+                          timeout=timeout, env=env)
+
+
+@pytest.mark.parametrize(("argv", "needle"), [
+    (["hil_configs/study.yaml", "--vehicles", "0", "2"], "--vehicles"),
+    (["hil_configs/demo.yaml"], "n_vehicles"),
+    (["hil_configs/study.yaml", "--set", "camera.fps=-1"], "camera.fps"),
+    (["hil_configs/remote.yaml", "--placement", "distributed"], "n_vehicles"),
+])
+def test_bad_input_is_one_line_and_exit_2_before_any_run(tmp_path, argv, needle):
+    p = _hil("study", *argv, "--out", str(tmp_path / "s"))
+    assert p.returncode == 2, (p.stdout, p.stderr)
+    assert needle in p.stderr and "Traceback" not in p.stderr and len(p.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "s").exists()
+
+
+def test_largest_n_stops_at_the_first_point_that_fails():
+    rows = [{"placement": "replicated", "fps": 20.0, "vehicles": n, "status": "ok", "holds": h}
+            for n, h in ((1, True), (2, True), (4, False), (8, True))]
+    assert largest_holding(rows) == {"replicated @ 20 fps": 2}
+    rows[0]["holds"] = False
+    assert largest_holding(rows) == {"replicated @ 20 fps": None}
+
+
+@pytest.mark.slow
+def test_a_tiny_study_in_both_placements(tmp_path, gl_backend):
+    out = tmp_path / "study"
+    p = _hil("study", "hil_configs/study.yaml", "--vehicles", "1", "2", "--duration", "2", "--out", str(out),
+             timeout=400, env={**os.environ, "MUJOCO_GL": gl_backend})
+    assert p.returncode in (0, 1), (p.stdout, p.stderr)
+    doc = json.loads((out / "results.json").read_text())
+    pts = {(r["placement"], r["vehicles"]): r for r in doc["points"]}
+    assert set(pts) == {("replicated", 1), ("replicated", 2), ("distributed", 1), ("distributed", 2)}
+    for (placement, n), r in pts.items():
+        if placement == "distributed" and r["status"] == "skipped":
+            assert r["reason"]  # no namespace here: skipped with the reason
+            continue
+        assert r["status"] == "ok", r
+        assert 0 < r["total_fps"] <= 20 * n * 1.1 and r["fps_per_vehicle_min"] <= r["total_fps"]
+        assert r["e2e_p50_ms"] > 0 and r["inference_p50_ms"] is not None and r["late_steps"] is not None
+        summary = json.loads((Path(r["run_dir"]) / "summary.json").read_text()) if r.get("run_dir") else None
+        assert summary is None or len(summary["vehicles"]) == n
+    assert pts[("replicated", 2)]["total_fps"] > pts[("replicated", 1)]["total_fps"]
+    with open(out / "results.csv") as f:
+        assert len(list(csv.DictReader(f))) == 4
+    report = (out / "report.md").read_text().splitlines()
+    assert report[0].startswith("# Study") and report[1] == ""
+    assert "largest N keeping" in report[2] and "frames/s" in report[2]  # the reading comes first
+    fps_svg = (out / "fig_fps_per_vehicle.svg").read_text()
+    assert fps_svg.startswith("<svg") and "10 fps floor" in fps_svg
+    for name in ("fig_total_fps.svg", "fig_e2e_latency.svg", "fig_inference_latency.svg", "fig_realtime.svg"):
+        assert (out / name).read_text().startswith("<svg")
