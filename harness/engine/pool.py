@@ -4,9 +4,12 @@ unlinks the shared memory."""
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 import os
 import queue
+import sys
+from collections.abc import Iterator
 from dataclasses import replace
 from typing import Any
 
@@ -22,6 +25,25 @@ def auto_workers(n_vehicles: int) -> int:
     """Render workers when the config says 0: one per spare core, at most one per
     vehicle (the physics process and the run process keep a core between them)."""
     return max(1, min(n_vehicles, (os.cpu_count() or 2) - 1))
+
+
+@contextlib.contextmanager
+def _without_main_module() -> Iterator[None]:
+    """While starting children: hide ``__main__``'s file and spec, so a spawned child
+    does not import the caller's main script (it needs only our modules). A user's
+    script that calls ``execute`` without an ``if __name__ == "__main__"`` guard
+    would otherwise run again in every child."""
+    main = sys.modules.get("__main__")
+    saved = {k: main.__dict__[k] for k in ("__file__", "__spec__") if main is not None and k in main.__dict__}
+    try:
+        if main is not None:
+            main.__dict__.pop("__file__", None)
+            main.__dict__["__spec__"] = None
+        yield
+    finally:
+        if main is not None:
+            main.__dict__.pop("__spec__", None)
+            main.__dict__.update(saved)
 
 
 class Engine:
@@ -54,7 +76,8 @@ class Engine:
                     widen_pipe(c)
                 rp = ctx.Process(target=render_main, args=(b, jr, rs, os.getpid()), name=f"hil-render-{w}",
                                  daemon=True)
-                rp.start()
+                with _without_main_module():
+                    rp.start()
                 b.close()
                 jr.close()
                 job_ends.append(jw)
@@ -65,7 +88,8 @@ class Engine:
             widen_pipe(pc), widen_pipe(cc)
             p = ctx.Process(target=physics_main, args=(cc, job_ends, physics, os.getpid()), name="hil-physics",
                             daemon=True)
-            p.start()
+            with _without_main_module():
+                p.start()
             cc.close()
             for jw in job_ends:
                 jw.close()

@@ -1,0 +1,99 @@
+"""Does a long run stay bounded in memory? RSS of the harness's processes sampled
+through one long real run, and its slope (MB/min) fitted from minute 1 to the end.
+
+    .venv/bin/python bench/bench_soak.py [--minutes 10] [--config hil_configs/demo.yaml]
+
+The run is ``hil run CONFIG --set duration_s=60*minutes`` with corner cases on (the
+default), sampled every 5 s: the run process (links, recording, analysis) and, as a
+second column, the physics and render processes together. Goal (issue 14): run
+process slope <= 0.2 MB/min over a 10-minute run. Floor: the same sampling of an
+idle Python process that imports the harness (what the sampler itself sees move).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def rss_mb(pid: int) -> float | None:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        return None
+    return None
+
+
+def children(pid: int) -> list[int]:
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                if int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                    out.append(int(d.name))
+            except (OSError, ValueError, IndexError):
+                continue
+    return out
+
+
+def slope(ts: list[float], ys: list[float], *, from_s: float = 60.0) -> float:
+    t = np.array(ts)
+    y = np.array(ys)
+    keep = t >= from_s
+    if keep.sum() < 3:
+        return float("nan")
+    return float(np.polyfit(t[keep] / 60.0, y[keep], 1)[0])
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--config", default="hil_configs/demo.yaml")
+    a = ap.parse_args()
+    load = open("/proc/loadavg").read().split()[0]
+    with tempfile.TemporaryDirectory() as d:
+        out = Path(d) / "run"
+        p = subprocess.Popen([str(ROOT / ".venv/bin/hil"), "run", a.config, "--no-progress", "--out", str(out),
+                              "--set", f"duration_s={a.minutes * 60:g}"], cwd=ROOT,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        t0 = time.monotonic()
+        ts, run_mb, eng_mb = [], [], []
+        while p.poll() is None:
+            r = rss_mb(p.pid)
+            kids = [k for k in children(p.pid) if b"harness.engine" in Path(f"/proc/{k}/cmdline").read_bytes()
+                    or b"multiprocessing" in Path(f"/proc/{k}/cmdline").read_bytes()]
+            e = sum(x for k in kids if (x := rss_mb(k)) is not None)
+            if r is not None:
+                ts.append(time.monotonic() - t0)
+                run_mb.append(r)
+                eng_mb.append(e)
+            time.sleep(5)
+        err = p.stderr.read() if p.stderr else ""
+        if p.returncode not in (0, 1):
+            print(err[-2000:], file=sys.stderr)
+            return 1
+    print(f"run of {a.minutes:g} min ({a.config}), load before {load}, after "
+          f"{open('/proc/loadavg').read().split()[0]}, {os.cpu_count()} cores\n")
+    print("| process | RSS at 1 min MB | RSS at end MB | slope MB/min (1 min .. end) | goal |")
+    print("|---|---:|---:|---:|---|")
+    i1 = next((i for i, t in enumerate(ts) if t >= 60), 0)
+    s_run, s_eng = slope(ts, run_mb), slope(ts, eng_mb)
+    print(f"| run process | {run_mb[i1]:.1f} | {run_mb[-1]:.1f} | {s_run:+.3f} | "
+          f"{'met' if s_run <= 0.2 else 'NOT met'} (<= 0.2) |")
+    print(f"| physics + render | {eng_mb[i1]:.1f} | {eng_mb[-1]:.1f} | {s_eng:+.3f} | - |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
