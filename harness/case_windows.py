@@ -5,13 +5,16 @@ time, ``[window_start_ns, window_end_ns]``. :func:`write_case_windows` reads
 ``run.mcap`` once, in file order (a crashed run's file too, up to its last complete
 chunk), and copies into each case's file the messages recorded while the simulation
 was inside its window: the shared topics (``/ground_truth``, ``/events``, ``/scene``,
-``/tf``) and the case vehicle's own (``/<vehicle>/...``), never the other vehicles'.
+``/tf``, ``/log``, any other that is not a vehicle's) and the case vehicle's own
+(``/<vehicle>/...``), never the other vehicles'.
+
 A message's sim time is that of the latest ``/ground_truth`` before it in the file;
 an event's is its own ``sim_time_ns`` where it has one (events are written late, once
-the timing analysis of their frames is done).
-Messages are copied as recorded (no re-encoding), except the window's first
-``/ground_truth``, written with every entity's state (``initial: true``) so the
-window stands alone (the run records only what changed). The row's ``mcap_path`` and
+the timing analysis of their frames is done). Messages are copied as recorded (no
+re-encoding), except the window's first ``/ground_truth``, written with every
+entity's state (``initial: true``) so the window stands alone (the run records only
+what changed); the run's metadata records (run, config, time anchor) are copied and
+a ``case`` record added (id, vehicle, window). The row's ``mcap_path`` and
 ``messages`` then name the window file. At most ``limit`` windows per call: disk
 stays bounded whatever the number of cases; the rest keep referring to ``run.mcap``.
 """
@@ -20,10 +23,13 @@ from __future__ import annotations
 
 import json
 import sqlite3
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from harness.corner_cases import DB_NAME, FOLDER, RUN_MCAP
@@ -31,6 +37,7 @@ from harness.recorder import iter_salvaged_messages
 from timing.errors import ConfigError
 
 MAX_WINDOWS = 16  # window files written by one call (bounded disk)
+_PER_VEHICLE = ("pipeline", "estimate", "camera")  # "/<vehicle>/<these>" name a vehicle
 
 
 @dataclass
@@ -108,7 +115,28 @@ def write_case_windows(run_dir: Path, *, case_ids: list[int] | None = None, limi
         con.close()
 
 
+def _summary(mcap: Path) -> tuple[set[str], list[tuple[str, dict[str, str]]]]:
+    """The run's vehicles (from the channels in the file's summary) and its metadata
+    records; both empty for a crashed run's file (vehicles are learnt while reading)."""
+    try:
+        with open(mcap, "rb") as f:
+            reader = make_reader(f)
+            summary = reader.get_summary()
+            meta = [(m.name, dict(m.metadata)) for m in reader.iter_metadata()]
+    except (OSError, McapError, ValueError, struct.error):
+        return set(), []
+    vehicles = {c.topic.split("/")[1] for c in (summary.channels.values() if summary else ())
+                if c.topic.count("/") == 2 and c.topic.rsplit("/", 1)[1] in _PER_VEHICLE}
+    return vehicles, meta
+
+
 def _copy(mcap: Path, windows: list[_Window]) -> None:
+    vehicles, meta = _summary(mcap)
+    for w in windows:
+        for name, record in meta:
+            w.writer.add_metadata(name, record)
+        w.writer.add_metadata("case", {"id": str(w.id), "vehicle": w.vehicle, "window_start_ns": str(w.start_ns),
+                                       "window_end_ns": str(w.end_ns)})
     sim_ns = 0
     entities: dict[Any, dict[str, Any]] = {}  # every entity's latest state (the run records changes)
     for schema, channel, msg in iter_salvaged_messages(mcap):
@@ -130,10 +158,12 @@ def _copy(mcap: Path, windows: list[_Window]) -> None:
             if isinstance(own, int):
                 at_ns = own
         parts = channel.topic.split("/")
+        if len(parts) == 3 and parts[2] in _PER_VEHICLE:
+            vehicles.add(parts[1])
         for w in windows:
             if not (w.start_ns <= at_ns <= w.end_ns):
                 continue
-            if len(parts) > 2 and parts[1] != w.vehicle:
+            if len(parts) > 2 and parts[1] in vehicles and parts[1] != w.vehicle:
                 continue  # another vehicle's channel
             data = msg.data
             if gt is not None and not w.started:

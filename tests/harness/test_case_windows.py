@@ -189,3 +189,15 @@ def test_a_late_written_event_is_in_its_own_window(tmp_path: Path):
     window = read_mcap(tmp_path / "corner_cases/case-0001.mcap")
     assert [d["sim_time_ns"] for _, d in window["/events"]] == [2000 * MS]
     assert max(d["sim_time_ns"] for _, d in window["/ground_truth"]) == 4000 * MS
+
+
+def test_a_window_keeps_the_run_metadata(tmp_path: Path):
+    from mcap.reader import make_reader
+
+    fake_run(tmp_path, seconds=3, events={20: [mismatch("ego0", "ghost_object", "perception", 1000)]})
+    write_case_windows(tmp_path)
+    with open(tmp_path / "corner_cases/case-0001.mcap", "rb") as f:
+        meta = {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
+    assert meta["case"] == {"id": "1", "vehicle": "ego0", "window_start_ns": "0", "window_end_ns": str(3000 * MS)}
+    with open(tmp_path / "run.mcap", "rb") as f:
+        assert {m.name for m in make_reader(f).iter_metadata()} <= set(meta)
