@@ -14,6 +14,7 @@ recorder's time anchor (metadata ``time_anchor``);
 from __future__ import annotations
 
 import json
+import sys
 from collections.abc import Iterable
 from typing import Any
 
@@ -100,7 +101,9 @@ def register_all(rec: Recorder, vehicles: Iterable[str], *, anchor: TimeAnchor |
     """Declare every JSON channel of a run; put the recording on the wall clock
     (``anchor``, captured now if not given; skipped if messages were already
     written) and install the Foxglove views (:class:`harness.foxglove_out.FoxgloveViews`;
-    the camera calibration comes from the recorder's ``config`` metadata).
+    the camera calibration comes from the recorder's ``config`` metadata); with
+    ``recording.live`` in that config, start the live view (harness/live.py) on the
+    recorder's writer thread and print its address on stderr.
 
     ``rec`` may be a stand-in wrapping the Recorder as ``rec.rec`` (CaseRecorder):
     the anchor and the derivations go to the Recorder itself.
@@ -121,17 +124,26 @@ def register_all(rec: Recorder, vehicles: Iterable[str], *, anchor: TimeAnchor |
         return
     if inner.stats.enqueued == 0:
         inner.set_time_anchor(anchor or TimeAnchor.capture())
+    cfg = _run_config(inner)
     if views:
-        foxglove_out.FoxgloveViews(vehicles, camera=_camera_config(inner),
+        cam = cfg.get("camera")
+        ok = isinstance(cam, dict) and all(k in cam for k in ("width", "height", "fovy_deg"))
+        foxglove_out.FoxgloveViews(vehicles, camera=cam if ok else None,
                                    offset_ns=inner.log_time_offset_ns).install(inner)
+    if (cfg.get("recording") or {}).get("live") is True:
+        from harness.live import LiveView
+
+        live = LiveView()
+        inner.add_tap("live_view", live)
+        print(f"live view: {live.url} (Foxglove: Open connection -> Foxglove WebSocket; "
+              "layout hil_configs/foxglove_layout.json)", file=sys.stderr, flush=True)
 
 
-def _camera_config(rec: Recorder) -> dict[str, Any] | None:
-    """The ``camera`` section of the run config in the recorder's metadata, if any."""
+def _run_config(rec: Recorder) -> dict[str, Any]:
+    """The run config in the recorder's ``config`` metadata (empty if none)."""
     meta = rec.metadata_record("config") or {}
     try:
-        cam = json.loads(meta["yaml_json"])["camera"]
+        cfg = json.loads(meta["yaml_json"])
     except (KeyError, ValueError, TypeError):
-        return None
-    needed = ("width", "height", "fovy_deg")
-    return cam if isinstance(cam, dict) and all(k in cam for k in needed) else None
+        return {}
+    return cfg if isinstance(cfg, dict) else {}

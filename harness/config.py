@@ -152,12 +152,15 @@ class TargetConfig(BaseModel):
 
 
 class RecordingConfig(BaseModel):
-    """The recorder: its bounded queue (items) and whether images are stored."""
+    """The recorder: its bounded queue (items), whether images are stored, and
+    whether the run is also served live to Foxglove (``hil run --live``: a WebSocket
+    server on 127.0.0.1, port printed; see harness/live.py)."""
 
     model_config = _MODEL_CONFIG
 
     queue_size: Int = Field(4096, ge=16, le=1_000_000)
     images: bool = True
+    live: bool = False
 
 
 class TruthConfig(BaseModel):

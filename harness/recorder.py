@@ -79,7 +79,7 @@ from dataclasses import dataclass
 from enum import Enum, IntEnum
 from pathlib import Path
 from types import TracebackType
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, Protocol
 
 import numpy as np
 from mcap.exceptions import InvalidMagic, McapError
@@ -157,6 +157,16 @@ class TimeAnchor:
     def to_metadata(self) -> dict[str, str]:
         return {"realtime_ns": str(self.realtime_ns), "monotonic_ns": str(self.monotonic_ns),
                 "log_time_offset_ns": str(self.offset_ns), "clock": "CLOCK_MONOTONIC"}
+
+
+class Tap(Protocol):
+    """Something that sees every message the writer thread writes (a live view)."""
+
+    def offer(self, topic: str, schema_name: str, schema: bytes, data: bytes, log_time_ns: int) -> None: ...
+
+    def close(self) -> Any: ...
+
+    def metadata(self) -> dict[str, str]: ...
 
 
 # A derivation gets (message, log_time_ns, publish_time_ns) with monotonic times and
@@ -275,6 +285,7 @@ class Recorder:
         self._chunk_start_ns: int | None = None
         self._offset_ns = 0
         self._derivations: dict[str, list[Derivation]] = {}
+        self._taps: dict[str, Tap] = {}
 
         if not isinstance(queue_size, int) or queue_size < 1:
             raise ConfigError(f"recorder queue_size must be a positive integer, got {queue_size!r}")
@@ -488,6 +499,19 @@ class Recorder:
                 raise ConfigError("add derivations before the first message")
             self._derivations.setdefault(topic, []).append(fn)
 
+    def add_tap(self, name: str, tap: Tap) -> None:
+        """Hand every message written from now on to ``tap.offer`` (on the writer
+        thread: it must not block); at close, ``tap.close()`` is called and
+        ``tap.metadata()`` written as the metadata record ``name``.
+
+        Raises:
+            ConfigError: the name is taken or reserved, or the recorder is closed.
+        """
+        with self._lock:
+            if self._closing or name in self._taps or name in self._metadata or name == "recorder":
+                raise ConfigError(f"cannot add tap {name!r}: name taken or recorder closed")
+            self._taps = {**self._taps, name: tap}  # the writer thread reads a snapshot
+
     @property
     def stats(self) -> RecorderStats:
         """A snapshot of the counters (exact once :meth:`close` returned)."""
@@ -696,6 +720,13 @@ class Recorder:
         before = self._sink.position
         self._writer.add_message(channel_id=channel_id, log_time=log_ns, data=data,
                                  publish_time=pub_ns, sequence=seq)
+        if self._taps:
+            name, schema = self._topics[topic]
+            for tap in self._taps.values():
+                try:
+                    tap.offer(topic, name, schema, data, log_ns)
+                except Exception as err:  # a viewer must never stop the recording
+                    self._note_error(err, topic=topic)
         if self._sink.position != before:  # the writer just wrote a full chunk
             self._chunk_start_ns = None
         elif self._chunk_start_ns is None:
@@ -717,11 +748,18 @@ class Recorder:
 
     def _finish(self) -> None:
         """Metadata, summary and footer; on the writer thread, after the queue is drained."""
+        taps = {}
+        for name, tap in self._taps.items():
+            try:
+                tap.close()
+                taps[name] = tap.metadata()
+            except Exception as err:
+                self._note_error(err)
         if self._io_error is not None:
             return
         with self._lock:
             self._closing = True  # also when reached at interpreter exit without close()
-            user = dict(self._metadata)
+            user = {**dict(self._metadata), **taps}
             counters = {
                 "enqueued": str(self._enqueued),
                 "written": str(self._written),
