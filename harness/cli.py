@@ -34,6 +34,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", type=Path, default=None,
                    help="run folder (default runs/<name>-<timestamp>/)")
     r.add_argument("--no-progress", action="store_true", help="no live display")
+    r.add_argument("--live", action="store_true",
+                   help="serve the run live to Foxglove on ws://127.0.0.1:PORT (port printed; recording.live)")
     sc = sub.add_parser("scenarios", help="list the scenarios with their parameters, ranges and defaults")
     sc.add_argument("name", nargs="?", default=None, help="show only this scenario")
     sc.add_argument("--json", action="store_true", help="machine-readable output")
@@ -188,7 +190,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from harness.run import default_out_dir, execute, prepare_out_dir
     from scenarios.gl import select_backend
 
-    cfg = load_config(args.config, overrides=args.overrides)
+    overrides = [*args.overrides, "recording.live=true"] if args.live else args.overrides
+    cfg = load_config(args.config, overrides=overrides)
     import scenarios  # validate scenario and parameters before starting anything
 
     try:
