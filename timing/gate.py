@@ -58,15 +58,18 @@ class Metric(str, Enum):
 
     def rows(self, x: np.ndarray) -> np.ndarray:
         """The metric of every row of 2-D ``x``."""
+        out: np.ndarray
         if self is Metric.P1:
-            return np.percentile(x, 1, axis=1)
-        if self is Metric.P50:
-            return np.percentile(x, 50, axis=1)
-        if self is Metric.P99:
-            return np.percentile(x, 99, axis=1)
-        if self is Metric.STD:
-            return x.std(axis=1)
-        return x.mean(axis=1)
+            out = np.percentile(x, 1, axis=1)
+        elif self is Metric.P50:
+            out = np.percentile(x, 50, axis=1)
+        elif self is Metric.P99:
+            out = np.percentile(x, 99, axis=1)
+        elif self is Metric.STD:
+            out = x.std(axis=1)
+        else:
+            out = x.mean(axis=1)
+        return out
 
 
 @dataclass(frozen=True)
@@ -95,7 +98,8 @@ class Shift:
 def block_length(n: int) -> int:
     """Bootstrap block length for ``n`` samples: ``ceil(n^(1/3))`` (the usual rate
     for a block bootstrap of a variance-like statistic), at least 1."""
-    return max(1, math.ceil(n ** (1 / 3)))
+    root: float = n ** (1 / 3)
+    return max(1, math.ceil(root))
 
 
 def block_resample_rows(x: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
@@ -111,7 +115,8 @@ def block_resample_rows(x: np.ndarray, count: int, rng: np.random.Generator) -> 
     blocks = -(-n // length)
     starts = rng.integers(0, n, size=(count, blocks))
     idx = (starts[:, :, np.newaxis] + np.arange(length)) % n
-    return x[idx.reshape(count, blocks * length)[:, :n]]
+    out: np.ndarray = x[idx.reshape(count, blocks * length)[:, :n]]
+    return out
 
 
 def bootstrap(x: np.ndarray, stat: Callable[[np.ndarray], np.ndarray], *, resamples: int,
