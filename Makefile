@@ -1,4 +1,4 @@
-# Two commands for a new machine: `make run` (the demo) and `make test` (the suite).
+# Two commands for a new machine: `make run` (the demo) and `make test` (type check, then the suite).
 # Both create .venv if missing and install the project into it first.
 PYTHON ?= python3.11
 VENV   := .venv
@@ -10,8 +10,10 @@ STAMP  := $(VENV)/.installed
 run: $(STAMP)
 	$(BIN)/hil run hil_configs/demo.yaml
 
+# The type checker first (what it checks and how strictly: [tool.mypy] in pyproject.toml), then the suite.
 test: $(STAMP)
 	@bash tools/install_chromium.sh
+	$(BIN)/python -m mypy
 	$(BIN)/python -m pytest -q
 
 install: $(STAMP)

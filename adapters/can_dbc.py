@@ -121,7 +121,8 @@ class HilCan:
 
     def can_id(self, name: str) -> int:
         """The 29-bit id of DBC message ``name`` for this vehicle."""
-        return (self._m[name].frame_id & 0x1FFFFFFF) | self.vehicle_id
+        frame_id: int = self._m[name].frame_id  # cantools has no type information
+        return (frame_id & 0x1FFFFFFF) | self.vehicle_id
 
     def is_inbound(self, arbitration_id: int) -> bool:
         """True for a DBC frame the other side sends (whatever its vehicle id)."""

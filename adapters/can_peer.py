@@ -264,7 +264,7 @@ class CanPeer:
             for aid, data in self._hello:
                 self._send_can(aid, data)
             return
-        (f,) = self.codec.encode(Heartbeat(self.vehicle_id, now)) or ()
+        (f,) = self.codec.encode(Heartbeat(self.vehicle_id, now)) or []
         self._send_can(f.arbitration_id, f.data)
 
     def _on_frame(self, msg: can.Message, t_rx: int) -> None:
@@ -274,7 +274,9 @@ class CanPeer:
             return
         base, c = aid & MESSAGE_MASK, self.codec
         if base == c.isotp_rx_data & MESSAGE_MASK:
-            self._iso_in.append(isotp.CanMessage(arbitration_id=aid, data=msg.data, extended_id=True, is_fd=msg.is_fd,
+            # isotp takes any bytes-like data; python-can's is a bytearray.
+            self._iso_in.append(isotp.CanMessage(arbitration_id=aid, data=msg.data,  # type: ignore[arg-type]
+                                                 extended_id=True, is_fd=msg.is_fd,
                                                  bitrate_switch=msg.bitrate_switch))
             self._rx_stack.process()
             while self._rx_stack.available():
@@ -284,8 +286,9 @@ class CanPeer:
                 self._deliver_bytes(bytes(data), t_rx)
         elif base == c.isotp_tx_fc & MESSAGE_MASK:
             try:
-                self._fc_in.put_nowait(isotp.CanMessage(arbitration_id=aid, data=msg.data, extended_id=True,
-                                                        is_fd=msg.is_fd, bitrate_switch=msg.bitrate_switch))
+                self._fc_in.put_nowait(isotp.CanMessage(arbitration_id=aid, data=msg.data,  # type: ignore[arg-type]
+                                                        extended_id=True, is_fd=msg.is_fd,
+                                                        bitrate_switch=msg.bitrate_switch))
             except queue.Full:
                 pass
         elif c.is_inbound(aid):
@@ -300,8 +303,8 @@ class CanPeer:
         first = self._heard_ns is None
         self._heard_ns = t_rx
         if first and self.role is Role.TARGET and self._hello is not None:
-            for aid_, data in self._hello:  # answer a (re)appearing harness at once
-                self._send_can(aid_, data)
+            for aid_, hello in self._hello:  # answer a (re)appearing harness at once
+                self._send_can(aid_, hello)
 
     def close(self) -> None:
         """Stop both threads and, when this peer opened it, shut the bus down. Idempotent."""

@@ -50,7 +50,7 @@ accepted (``adapters.can_interfaces``): network interfaces would send frames off
 from __future__ import annotations
 
 import queue
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 try:
     import can
@@ -114,7 +114,7 @@ def open_bus(*, interface: str, channel: str, bitrate: int, data_bitrate: int, v
         TransportError: the bus cannot be opened (with a hint).
     """
     check_interface(interface)
-    kwargs: dict[str, object] = {"fd": True}
+    kwargs: dict[str, Any] = {"fd": True}  # python-can's Bus takes per-interface options
     if interface not in ("socketcan", "virtual"):
         kwargs.update(bitrate=bitrate, data_bitrate=data_bitrate)
     filters = [{"can_id": vehicle_id, "can_mask": VEHICLE_MASK, "extended": True}]

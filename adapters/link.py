@@ -257,7 +257,7 @@ class Link(ABC):
 
     def sync_samples(self) -> list[SyncSample]:
         """Answers to earlier ``send_sync_request`` calls, without waiting."""
-        out = []
+        out: list[SyncSample] = []
         while True:
             try:
                 r = self._sync_rx.get_nowait()
@@ -279,7 +279,7 @@ class Link(ABC):
         except queue.Empty:
             return None
 
-    def _on_bytes(self, data: bytes, t_rx_ns: int) -> None:
+    def _on_bytes(self, data: bytes | bytearray | memoryview, t_rx_ns: int) -> None:
         """Reader-thread entry for stream transports: decode and dispatch."""
         self.stats.bytes_received += len(data)
         for item in self._decoder.feed(data):

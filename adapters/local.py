@@ -26,7 +26,7 @@ import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, BinaryIO
 
 from adapters import protocol
 from adapters.process import die_with_parent, end_process
@@ -98,7 +98,7 @@ class LocalLink(Link):
         self._proc: subprocess.Popen[bytes] | None = None
         self._sock: socket.socket | None = None
         self._reader: threading.Thread | None = None
-        self._log = None
+        self._log: BinaryIO | None = None
 
     @property
     def pid(self) -> int | None:
@@ -138,7 +138,7 @@ class LocalLink(Link):
             env[ENV_SHM] = str(self._ring.fd)
             pass_fds.append(self._ring.fd)
         env.setdefault("PYTHONUNBUFFERED", "1")
-        out = subprocess.DEVNULL
+        out: int | BinaryIO = subprocess.DEVNULL
         if self.log_path is not None:
             self._log = open(self.log_path, "ab")  # noqa: SIM115 (closed in _close_transport)
             out = self._log

@@ -514,7 +514,7 @@ def _dec_command(mv: memoryview, h: Header) -> Command:
                    t_sender_ns=h.ts[0])
 
 
-_DECODERS: dict[MsgType, Callable[[memoryview, Header], Any]] = {
+_DECODERS: dict[MsgType, Callable[[memoryview, Header], Message]] = {
     MsgType.HELLO: _dec_hello, MsgType.FRAME: _dec_frame, MsgType.ESTIMATE: _dec_estimate,
     MsgType.SYNC_REQUEST: _dec_sync_request, MsgType.SYNC_RESPONSE: _dec_sync_response,
     MsgType.HEARTBEAT: _dec_heartbeat, MsgType.ERROR: _dec_error, MsgType.BYE: _dec_bye,

@@ -60,6 +60,7 @@ def decode_image(frame: Frame) -> np.ndarray:
     Raises:
         ProtocolError: the image bytes cannot be decoded (offset 0 of the image).
     """
+    img: np.ndarray | None
     if frame.encoding in (ImageEncoding.RGB8, ImageEncoding.BGR8):
         img = np.frombuffer(frame.data, np.uint8).reshape(frame.height, frame.width, 3)
         return img[:, :, ::-1] if frame.encoding == ImageEncoding.RGB8 else img
@@ -144,7 +145,7 @@ class Endpoint:
         with self._send_lock:
             self._send_raw(buf)
 
-    def on_bytes(self, data: bytes, t_rx: int) -> None:
+    def on_bytes(self, data: bytes | bytearray | memoryview, t_rx: int) -> None:
         """Stream transports: bytes as they arrive, stamped at arrival (target clock)."""
         for item in self._decoder.feed(data):
             self.on_message(item, t_rx)
@@ -334,7 +335,7 @@ def serve(infer: InferFn, *, target_name: str, transport: str = "local", clock: 
         return ep.stats
     if transport == "zenoh":
         from adapters.zenoh_transport import serve_endpoint as serve_zenoh
-        serve_zenoh(ep, **transport_options)  # type: ignore[arg-type]
+        serve_zenoh(ep, **transport_options)
         return ep.stats
     if transport == "can":
         from adapters.can_transport import serve_endpoint as serve_can

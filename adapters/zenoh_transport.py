@@ -175,6 +175,7 @@ def config_entries(*, mode: str = "peer", connect: Sequence[str] = (), listen: S
         entries["scouting/delay"] = 0
     if shared_memory is not None:
         entries["transport/shared_memory/enabled"] = bool(shared_memory)
+    value: object  # a usrpwd value (str), then a tls value
     for key, value in (usrpwd or {}).items():
         if key not in USRPWD_KEYS:
             raise ConfigError(f"zenoh usrpwd key {key!r} is unknown; valid: {', '.join(USRPWD_KEYS)}")
