@@ -141,15 +141,16 @@ def _reading(rows: list[dict[str, Any]], holds: dict[str, int | None], floor: di
             f"steps), {_n(floor[g])}.")
     late = [r for r in ok if not r["kept_realtime"]]
     if late:
-        parts.append(f"{len(late)} of {len(ok)} points did not keep real time (late physics steps, worst "
-                     f"lateness p99 {max(r['lateness_p99_ms'] or 0 for r in late):.1f} ms): their latencies "
-                     f"were measured on a late simulation.")
+        parts.append(f"{len(late)} of {len(ok)} points did not keep real time (achieved real-time factor down to "
+                     f"{min(r['achieved_factor'] for r in late):.2f}, up to {max(r['late_steps'] for r in late)} "
+                     f"physics steps late, worst lateness p99 {max(r['lateness_p99_ms'] or 0 for r in late):.2f} "
+                     f"ms): their latencies were measured on a slowed simulation.")
     parts.append(f"The whole study took {study_wall_s / 60:.1f} minutes.")
     return " ".join(parts)
 
 
 def _n(v: int | None) -> str:
-    return "none (not even the smallest N run)" if v is None else f"N = {v}"
+    return "none (the smallest N already misses it)" if v is None else f"N = {v}"
 
 
 def _plots(out: Path, rows: list[dict[str, Any]], floor_fps: float) -> list[str]:
