@@ -121,6 +121,30 @@ def _size(fmt: str, b64: str) -> tuple[int, int] | None:
 _THUMB_W = 320
 
 
+def img_tag(fmt: str, b64: str, *, width: int, alt: str) -> str:
+    """An inline ``<img>`` of a base64 image, ``width`` px wide at its own aspect ratio."""
+    wh = _size(fmt, b64)
+    dims = "" if wh is None else f' width="{width}" height="{round(width * wh[1] / wh[0])}"'
+    return f'<img class="thumb" alt="{escape(alt)}"{dims} src="data:image/{escape(fmt)};base64,{b64}">'
+
+
+def thumbnail_for_case(d: RunData, row: dict[str, Any], *, width: int = _THUMB_W, alt: str = "camera frame") -> str:
+    """The ``<img>`` of the camera frame nearest to a case (``vehicle``,
+    ``sim_time_ns``) in ``d``'s run.mcap; ``""`` when there is none.
+
+    Raises:
+        ConfigError: the run.mcap cannot be read.
+    """
+    v, t = _vehicle(d, row), row.get("sim_time_ns")
+    if v is None or not isinstance(t, (int, float)) or not d.mcap_present:
+        return ""
+    t0 = _frame_t0(d, v, int(t))
+    if t0 is None:
+        return ""
+    img = camera_images(d.run_dir / MCAP_NAME, [(v, t0)]).get((v, t0))
+    return "" if img is None else img_tag(img[0], img[1], width=width, alt=alt)
+
+
 def _mcap_link(d: RunData, rel: Any) -> str:
     if not isinstance(rel, str) or not rel:
         return "–"
@@ -171,11 +195,7 @@ def cases_section(d: RunData) -> str:
     for i, r in enumerate(rows):
         img = images.get(frames.get(i, ("", -1)))
         if img is not None:
-            fmt, b64 = img
-            wh = _size(fmt, b64)
-            dims = "" if wh is None else f' width="{_THUMB_W}" height="{round(_THUMB_W * wh[1] / wh[0])}"'
-            pic = f'<img alt="camera frame of case {escape(str(r.get("id", i)))}"{dims} ' \
-                  f'src="data:image/{escape(fmt)};base64,{b64}">'
+            pic = img_tag(img[0], img[1], width=_THUMB_W, alt=f"camera frame of case {r.get('id', i)}")
         elif i < MAX_THUMBNAILS:
             pic = f'<div class="muted" style="width:{_THUMB_W}px">no camera frame recorded near this time</div>'
         else:
@@ -227,4 +247,5 @@ def _event_cells(text: str) -> str:
     return "; ".join(parts)
 
 
-__all__ = ["case_for_event", "cases_section", "find_db", "read_case_rows", "read_cases"]
+__all__ = ["case_for_event", "cases_section", "find_db", "img_tag", "read_case_rows", "read_cases",
+           "thumbnail_for_case"]
