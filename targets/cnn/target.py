@@ -300,8 +300,8 @@ def main(argv: Sequence[str] | None = None, *, prog: str = "python -m targets.cn
     p.add_argument("--device", default="cpu", help="torch device: cpu, cuda, cuda:N or auto (CUDA when available)")
     g = p.add_argument_group("shared target (one process serves many vehicles, frames batched)")
     g.add_argument("--shared", action="store_true",
-                   help="serve many vehicles: local: every vehicle the harness hands over (target.shared: true); "
-                        "zenoh: the keys of each of --vehicles on one session")
+                   help="zenoh: serve the keys of each of --vehicles on one session (local: implied when the "
+                        "harness starts the target with target.shared: true, ignored otherwise)")
     g.add_argument("--vehicles", default="1", help="zenoh: a count N (vehicles 0..N-1) or ids, e.g. 0,2,3")
     g.add_argument("--batch-window-ms", type=float, default=2.0,
                    help="longest a frame waits for other vehicles' frames before its batch runs (ms)")
@@ -334,7 +334,9 @@ def main(argv: Sequence[str] | None = None, *, prog: str = "python -m targets.cn
     from adapters.batching import started_shared
 
     try:
-        if a.shared or (a.transport == "local" and started_shared()):
+        # local: shared exactly when the harness started it so (target.shared), whatever
+        # --shared says, so one config's args serve both placements; zenoh: --shared.
+        if started_shared() if a.transport == "local" else a.shared:
             from adapters.batching import ConfigError, parse_vehicles, serve_batched
 
             try:

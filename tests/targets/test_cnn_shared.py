@@ -271,11 +271,18 @@ def test_one_local_process_serves_every_vehicle_on_its_own_socket(tmp_path: Path
 
 
 def test_shared_target_config_needs_local_or_zenoh():
-    from harness.config import parse_config
+    from harness.config import load_config, parse_config
     from timing.errors import ConfigError
 
     with pytest.raises(ConfigError, match="target.shared"):
         parse_config({"target": {"transport": "tcp", "shared": True}})
+    root = Path(__file__).resolve().parents[2]
+    cfg = load_config(root / "hil_configs" / "shared.yaml")
+    assert cfg.target.shared and cfg.scenario.params["n_vehicles"] == 4
+    # The distributed placement its comments show.
+    remote = load_config(root / "hil_configs" / "shared.yaml", overrides=[
+        "target.transport=zenoh", "target.command=[]", "target.args=[]", 'target.zenoh.connect=["tcp/HOST:7447"]'])
+    assert remote.target.shared and remote.target.command == []
 
 
 # -- the done-when run ---------------------------------------------------------------------
@@ -284,7 +291,8 @@ def test_shared_target_config_needs_local_or_zenoh():
 @pytest.mark.slow
 def test_four_vehicles_one_shared_cnn_target(hil_run):
     res = hil_run("hil_configs/shared.yaml", overrides=[
-        "mode=lockstep", "duration_s=1.5", "engine.capture_phase=aligned", "progress=false"])
+        "mode=lockstep", "duration_s=1.5", "engine.capture_phase=aligned", "progress=false",
+        "target.estimate_timeout_s=10"])  # a loaded 2-core machine: a batch of 4 may take a while
     s, out = res.summary, Path(res.run_dir)
     assert len(s["vehicles"]) == 4
     for name, v in s["vehicles"].items():
@@ -308,3 +316,68 @@ def test_four_vehicles_one_shared_cnn_target(hil_run):
             checked += 1
     assert checked == len(rows)
     assert max(int(r["batch_size"]) for r in rows) >= 2  # aligned cameras: frames of several vehicles batched
+
+
+def _send_and_get(link, clock, fid: int) -> Estimate:
+    link.send_frame(frame_id=fid, sim_time_ns=0, t0_ns=clock.now_ns(), width=320, height=240,
+                    encoding=ImageEncoding.RGB8, camera=CAM, ego_speed_mps=5.0, data=_frame(link.vehicle_id, fid).data)
+    r = link.recv(timeout_s=30)
+    while r is not None and not isinstance(r.msg, Estimate):
+        r = link.recv(timeout_s=30)
+    assert r is not None
+    return r.msg
+
+
+def test_shared_zenoh_target_one_session_each_vehicles_keys(tmp_path: Path):
+    """``target.shared`` over Zenoh through the harness's launch path: one process
+    (started once), every vehicle's link on the same endpoint under its own keys."""
+    import queue
+
+    from harness.config import parse_config
+    from harness.shared_target import BATCH_LOG_NAME, LOG_NAME
+    from harness.target_launch import make_link
+    from tests.adapters.pair_zenoh import free_port
+    from timing.clock import MonotonicClock
+
+    port = free_port()
+    script = _ECHO_SHARED.replace('window_ns=50_000_000, max_batch=8)',
+                                  'window_ns=50_000_000, max_batch=8, transport="zenoh", '
+                                  f'vehicles=[0, 1], listen=["tcp/127.0.0.1:{port}"])')
+    cfg = parse_config({"target": {"transport": "zenoh", "shared": True, "command": ["{python}", "-c", script],
+                                   "zenoh": {"connect": [f"tcp/127.0.0.1:{port}"]}}})
+    clock = MonotonicClock()
+    link0, proc = make_link(cfg, vehicle_id=0, vehicle="ego0", clock=clock, out_dir=tmp_path, rx=queue.Queue())
+    link1, proc1 = make_link(cfg, vehicle_id=1, vehicle="ego1", clock=clock, out_dir=tmp_path, rx=queue.Queue())
+    assert proc is not None and proc1 is None  # started once, by vehicle 0's link
+    try:
+        for link in (link0, link1):
+            assert link.open(hello_timeout_s=30).target_name == "echo-shared"
+        for link in (link0, link1):
+            est = _send_and_get(link, clock, 3)
+            assert (est.vehicle_id, est.frame_id) == (link.vehicle_id, 3)
+            assert est.control.throttle == pytest.approx(link.vehicle_id / 10)
+    finally:
+        link0.close()
+        link1.close()
+        proc.close()
+    rows = list(csv.DictReader(open(tmp_path / BATCH_LOG_NAME)))
+    assert sorted(int(r["vehicle_id"]) for r in rows) == [0, 1]
+    assert "shared by vehicles 0, 1" in (tmp_path / LOG_NAME).read_text()
+
+
+@pytest.mark.slow
+def test_the_shared_configs_args_also_serve_one_vehicle_per_target(tmp_path: Path):
+    """``--set target.shared=false`` on shared.yaml: the same args (``--shared`` too)
+    start an ordinary per-vehicle target on the local transport."""
+    from adapters.local import LocalLink
+    from timing.clock import MonotonicClock
+
+    clock = MonotonicClock()
+    link = LocalLink(command=[sys.executable, "-m", "targets.cnn", "--shared", "--device", "auto",
+                              "--batch-window-ms", "2"], vehicle_id=0, clock=clock, log_path=tmp_path / "t.log")
+    try:
+        assert link.open(hello_timeout_s=60).target_name.startswith("cnn@")
+        est = _send_and_get(link, clock, 5)
+        assert (est.vehicle_id, est.frame_id) == (0, 5)
+    finally:
+        link.close()

@@ -1,0 +1,214 @@
+"""One shared CNN target for N vehicles against one CNN target per vehicle (issue 18).
+
+    flock -o /tmp/hil-cpu.lock .venv/bin/python bench/bench_shared.py [--vehicles 1,2,4,8] \
+        [--seconds 4] [--fps 10] [--device cpu] [--window-ms 2] [--shared-threads 1] [--per-vehicle]
+
+For each N and each placement, the real target program (``python -m targets.cnn``,
+one torch thread) serves N vehicles over the local transport:
+
+* **per-vehicle**: N target processes, one ``LocalLink`` each (today's placement);
+* **shared**: one process (``--shared``) that batches frames arriving within
+  ``--window-ms`` (``adapters.batching``), N ``SharedLocalLink``s to it.
+
+Every vehicle sends a labelled simulator frame (``harness.dataset``, JPEG, 320x240)
+at ``--fps``, all vehicles at the same instants (aligned cameras: the most frames
+at once), for ``--seconds`` after a one-second warm-up. Per vehicle, from each
+estimate's stamps: ``inference`` = t_infer_end - t_infer_start (target clock; the
+batch's, for a shared target), ``queue`` = t_infer_start - t_rx, ``round trip`` =
+estimate received - frame handed to the link (harness clock); p50/p99 and jitter
+(std) in ms; ``drops`` = frames without an estimate (the newest frame per vehicle
+wins when the target is behind). Batch sizes from the shared target's batch log.
+
+Prints a markdown table (one row per N and placement: the median over vehicles of
+each vehicle's p50, the worst vehicle's p99, the mean of the vehicles' std) and
+with ``--per-vehicle`` one row per vehicle. Load average printed with it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import queue
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from scenarios.gl import select_backend
+
+select_backend()
+
+import numpy as np
+
+from adapters.link import Received
+from adapters.local import LocalLink
+from adapters.messages import CameraInfo, Estimate, ImageEncoding
+from adapters.shared_local import SharedLocalLink, SharedLocalTarget
+from harness import dataset
+from timing.clock import MonotonicClock
+
+WARMUP_S = 1.0
+
+
+def _frames(n: int) -> list[tuple[bytes, CameraInfo, float]]:
+    out = []
+    for s in dataset.generate(seed=dataset.HELDOUT_SEED_BASE + 3, n_frames=n):
+        fx, fy, cx, cy, mount, pitch = s.camera
+        out.append((s.jpeg, CameraInfo(fx, fy, cx, cy, mount, pitch), s.speed_mps))
+    return out
+
+
+def _pct(xs: list[float], q: float) -> float:
+    return float(np.percentile(xs, q)) if xs else float("nan")
+
+
+def run_one(n: int, *, shared: bool, frames: list[tuple[bytes, CameraInfo, float]], seconds: float, fps: float,
+            device: str, window_ms: float, tmp: Path, shared_threads: int = 1) -> dict[str, object]:
+    """Serve ``n`` vehicles; returns per-vehicle samples and the batch sizes seen."""
+    clock = MonotonicClock()
+    rx: queue.Queue[Received] = queue.Queue(maxsize=100_000)
+    cmd = [sys.executable, "-m", "targets.cnn", "--threads", "1", "--device", device]
+    batch_log = tmp / f"batches-{n}.csv"
+    host = None
+    links = []
+    if shared:
+        cmd[cmd.index("--threads") + 1] = str(max(1, shared_threads))
+        host = SharedLocalTarget([*cmd, "--shared", "--batch-window-ms", str(window_ms)],
+                                 log_path=tmp / f"shared-{n}.log", env={"HIL_BATCH_LOG": str(batch_log)})
+        links = [SharedLocalLink(host=host, vehicle_id=v, clock=clock, rx_queue=rx) for v in range(n)]
+    else:
+        links = [LocalLink(command=cmd, vehicle_id=v, clock=clock, log_path=tmp / f"own-{n}-{v}.log", rx_queue=rx)
+                 for v in range(n)]
+    sent: dict[tuple[int, int], int] = {}
+    got: dict[int, list[tuple[int, Estimate, int]]] = {v: [] for v in range(n)}
+    stop = threading.Event()
+
+    def collect() -> None:
+        while not stop.is_set() or not rx.empty():
+            try:
+                r = rx.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            if isinstance(r.msg, Estimate):
+                got[r.msg.vehicle_id].append((r.msg.frame_id, r.msg, r.t_rx_ns))
+
+    try:
+        for link in links:
+            link.open(hello_timeout_s=120)
+        collector = threading.Thread(target=collect, daemon=True)
+        collector.start()
+        period_ns = int(1e9 / fps)
+        total = int((seconds + WARMUP_S) * fps)
+        start = clock.now_ns() + period_ns
+        for fid in range(total):
+            due = start + fid * period_ns
+            while (left := due - clock.now_ns()) > 0:
+                time.sleep(left / 1e9)
+            jpeg, cam, speed = frames[fid % len(frames)]
+            for link in links:
+                t_tx = link.send_frame(frame_id=fid, sim_time_ns=0, t0_ns=due, width=320, height=240,
+                                       encoding=ImageEncoding.JPEG, camera=cam, ego_speed_mps=speed, data=jpeg)
+                sent[(link.vehicle_id, fid)] = t_tx
+        time.sleep(0.5)  # the last estimates (bench only)
+    finally:
+        for link in links:
+            link.close()
+        if host is not None:
+            host.close()
+        stop.set()
+    warm = int(WARMUP_S * fps)
+    per_vehicle = {}
+    for v in range(n):
+        ests = [(fid, e, t) for fid, e, t in got[v] if fid >= warm]
+        per_vehicle[v] = {
+            "inference": [(e.t_infer_end_target_ns - e.t_infer_start_target_ns) / 1e6 for _, e, _ in ests],
+            "queue": [(e.t_infer_start_target_ns - e.t_rx_target_ns) / 1e6 for _, e, _ in ests],
+            "rtt": [(t - sent[(v, fid)]) / 1e6 for fid, _, t in ests],
+            "sent": total - warm,
+            "drops": (total - warm) - len(ests),
+        }
+    sizes: Counter[int] = Counter()
+    if shared and batch_log.is_file():
+        batches = {(r["batch"], r["batch_size"]) for r in csv.DictReader(open(batch_log))
+                   if int(r["frame_id"]) >= warm}
+        sizes = Counter(int(size) for _, size in batches)
+    return {"vehicles": per_vehicle, "sizes": sizes}
+
+
+def _row(label: str, vs: list[dict[str, object]], sizes: Counter[int] | None) -> str:
+    def agg(key: str) -> tuple[float, float, float]:
+        p50 = statistics.median(_pct(v[key], 50) for v in vs)  # type: ignore[arg-type]
+        p99 = max(_pct(v[key], 99) for v in vs)  # type: ignore[arg-type]
+        std = statistics.fmean(float(np.std(v[key])) if v[key] else float("nan") for v in vs)  # type: ignore[arg-type]
+        return p50, p99, std
+
+    inf, qu, rt = agg("inference"), agg("queue"), agg("rtt")
+    drops = sum(int(v["drops"]) for v in vs)  # type: ignore[arg-type]
+    sent = sum(int(v["sent"]) for v in vs)  # type: ignore[arg-type]
+    sz = "-" if not sizes else " ".join(f"{k}:{c}" for k, c in sorted(sizes.items()))
+    return (f"| {label} | {inf[0]:.1f} | {inf[1]:.1f} | {inf[2]:.1f} | {qu[0]:.1f} | {qu[1]:.1f} | "
+            f"{rt[0]:.1f} | {rt[1]:.1f} | {rt[2]:.1f} | {drops}/{sent} | {sz} |")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--vehicles", default="1,2,4,8", help="N values, comma-separated")
+    p.add_argument("--seconds", type=float, default=4.0, help="measured seconds per configuration")
+    p.add_argument("--fps", type=float, default=10.0, help="frames per second per vehicle")
+    p.add_argument("--device", default="cpu", help="torch device of the targets (cpu, cuda, cuda:N, auto)")
+    p.add_argument("--window-ms", type=float, default=2.0, help="the shared target's batch window")
+    p.add_argument("--shared-threads", type=int, default=1,
+                   help="torch threads of the shared target (each per-vehicle target has 1)")
+    p.add_argument("--placements", default="per-vehicle,shared", help="which placements to run")
+    p.add_argument("--per-vehicle", action="store_true", help="also one row per vehicle")
+    a = p.parse_args(argv)
+    try:
+        ns = [int(x) for x in a.vehicles.split(",") if x.strip()]
+        if not ns or min(ns) < 1 or max(ns) > 64:
+            raise ValueError
+    except ValueError:
+        print(f"--vehicles {a.vehicles!r}: expected counts 1..64, e.g. 1,2,4,8", file=sys.stderr)
+        return 2
+    placements = [x.strip() for x in a.placements.split(",") if x.strip()]
+    if not placements or not set(placements) <= {"per-vehicle", "shared"}:
+        print(f"--placements {a.placements!r}: expected per-vehicle and/or shared", file=sys.stderr)
+        return 2
+    frames = _frames(16)
+    print(f"# bench_shared: {a.fps:g} fps per vehicle, {a.seconds:g} s measured, device {a.device}, "
+          f"window {a.window_ms:g} ms, shared target {a.shared_threads} torch thread(s), aligned cameras; {os.cpu_count()} cores; loadavg before: "
+          f"{open('/proc/loadavg').read().split()[:3]}", flush=True)
+    header = ("| N, placement | inference p50 | inference p99 | inference std | queue p50 | queue p99 | "
+              "round trip p50 | round trip p99 | round trip std | drops/frames | batch sizes (size:count) |\n"
+              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    rows, detail = [], []
+    with tempfile.TemporaryDirectory(prefix="bench-shared-") as tmp:
+        for n in ns:
+            for placement in placements:
+                res = run_one(n, shared=placement == "shared", frames=frames, seconds=a.seconds, fps=a.fps,
+                              device=a.device, window_ms=a.window_ms, tmp=Path(tmp),
+                              shared_threads=a.shared_threads)
+                vs = list(res["vehicles"].values())  # type: ignore[union-attr]
+                sizes = res["sizes"] if placement == "shared" else None
+                rows.append(_row(f"{n}, {placement}", vs, sizes))  # type: ignore[arg-type]
+                print(rows[-1], flush=True)
+                for v, data in res["vehicles"].items():  # type: ignore[union-attr]
+                    detail.append(_row(f"{n}, {placement}, vehicle {v}", [data], None))
+    print(f"\nloadavg after: {open('/proc/loadavg').read().split()[:3]}\n")
+    print("ms; p50: median over vehicles of each vehicle's p50; p99: the worst vehicle's; std: mean over vehicles\n")
+    print(header)
+    print("\n".join(rows))
+    if a.per_vehicle:
+        print("\n" + header)
+        print("\n".join(detail))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
