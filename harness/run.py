@@ -23,7 +23,7 @@ from typing import Any
 from harness import __version__
 from harness.config import RunConfig, Transport, config_hash, dump_config
 from timing.clock import MonotonicClock
-from timing.errors import ConfigError
+from timing.errors import ConfigError, HilError
 
 SYNC_WARMUP_SAMPLES = 8
 
@@ -242,11 +242,21 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                     "written": rec_stats.written, "dropped": rec_stats.dropped, "enqueued": rec_stats.enqueued},
                     meta=meta)
                 if isinstance(rec, CaseRecorder):
-                    summary["corner_cases"] = {"written": rec.cases_written, "errors": rec.errors}
+                    summary["corner_cases"] = {"written": rec.cases_written, "errors": list(rec.errors),
+                                               "triggers_dropped": rec.triggers_dropped}
                 main_rec.add_metadata("summary", {"json": json.dumps(summary, sort_keys=True)})
             final = main_rec.stats
             summary["recorder"] = {"written": final.written, "dropped": final.dropped,
                                    "enqueued": final.enqueued, "bytes_written": final.bytes_written}
+            if isinstance(rec, CaseRecorder) and rec.cases_written:
+                # Windows are cut from the finalized run.mcap, after the run (nothing
+                # of a case's history is held during it).
+                from harness.case_windows import write_case_windows
+
+                try:
+                    summary["corner_cases"]["errors"] += write_case_windows(out_dir, limit=cc.windows)
+                except HilError as err:
+                    summary["corner_cases"]["errors"].append(str(err))
         finally:
             for v in vehicles:
                 v.link.close()

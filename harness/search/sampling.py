@@ -39,8 +39,8 @@ from harness.search.spec import Campaign, StrategyKind
 
 RANDOM_STREAM = 0x5EA
 GUIDED_STREAM = 0xC3E
-MISMATCH_WEIGHT = {"collision_while_safe": 10.0, "state_mismatch": 3.0, "missed_object": 2.0,
-                   "position_error": 1.0, "ghost_object": 1.0}
+MISMATCH_WEIGHT = {"collision_while_safe": 10.0, "late_reaction": 10.0, "state_mismatch": 3.0,
+                   "missed_object": 2.0, "position_error": 1.0, "ghost_object": 1.0}
 COLLISION_WEIGHT = 5.0
 NEAR_MISS_WEIGHT = 2.0
 
