@@ -21,8 +21,9 @@ before and after. Goal (issue 12): unchanged passes >= 19 of 20, regressed fails
     flock -o /tmp/hil-cpu.lock .venv/bin/python bench/bench_gate.py            # record + judge (~3-6 min)
     .venv/bin/python bench/bench_gate.py --pool /tmp/gate-pool --reuse         # judge a recorded pool again
 
-Options: ``--pool DIR`` (default /tmp/hil-gate-pool), ``--reuse`` (judge the runs
-already in the pool), ``--runs 10``, ``--duration-s 8`` (simulated seconds per run:
+Runs already recorded in the pool (with a summary.json) are kept: remove the pool
+for a fresh one. Options: ``--pool DIR`` (default /tmp/hil-gate-pool), ``--reuse``
+(judge the runs already in the pool, record nothing), ``--runs 10``, ``--duration-s 8`` (simulated seconds per run:
 160 frames at 20 fps), ``--delay-ms 2``, ``--pairs 20``, ``--seed 1``.
 """
 
@@ -59,19 +60,31 @@ def record(pool: Path, *, runs: int, duration_s: float, delay_ms: float) -> None
     from harness.config import load_config
     from harness.run import execute, prepare_out_dir
 
+    from timing.errors import HilError
+
     slow_cmd = [sys.executable, str(ROOT / "bench" / "slow_cv_target.py"), "--delay-ms", f"{delay_ms:g}"]
-    if pool.exists():
-        shutil.rmtree(pool)
-    pool.mkdir(parents=True)
+    pool.mkdir(parents=True, exist_ok=True)
     for i in range(runs):
         for kind in ("base", "slow"):
+            out = pool / f"{kind}-{i:02d}"
+            if (out / "summary.json").is_file():  # recorded by an earlier call: kept
+                continue
             overrides = [f"duration_s={duration_s:g}", "progress=false"]
             cfg = load_config(CONFIG, overrides=overrides)
             if kind == "slow":
                 cfg = cfg.model_copy(update={"target": cfg.target.model_copy(update={"command": slow_cmd})})
             t = time.perf_counter()
-            res = execute(cfg, out_dir=prepare_out_dir(pool / f"{kind}-{i:02d}"), gl_backend=backend,
-                          install_signal_handlers=False)
+            for attempt in range(3):  # a target that fails to start is tried again, twice
+                shutil.rmtree(out, ignore_errors=True)
+                try:
+                    res = execute(cfg, out_dir=prepare_out_dir(out), gl_backend=backend,
+                                  install_signal_handlers=False)
+                    break
+                except HilError as err:
+                    print(f"  {kind}-{i:02d} attempt {attempt + 1} failed: {err}", flush=True)
+                    time.sleep(10)
+            else:
+                raise SystemExit(f"{out}: could not record it")
             e2e = res.summary["vehicles"]["ego0"]["latency_ms"]["end_to_end"]
             print(f"  recorded {kind}-{i:02d}: {time.perf_counter() - t:5.1f} s, e2e p50 {e2e['p50_ms']:.2f} "
                   f"p99 {e2e['p99_ms']:.2f} ms, ended by {res.summary['ended_by']}, load {_loadavg()}", flush=True)

@@ -158,11 +158,11 @@ class _Pending:
     shift: Shift
 
 
-def _shift(base: np.ndarray, run: np.ndarray, metric: Metric, tol: Tolerance, noise: float,
+def _shift(base: np.ndarray, run: np.ndarray, metric: Metric, tol: Tolerance, noise: Tolerance,
            settings: GateSettings, rng: np.random.Generator) -> Shift:
     allowed = tol.allowance(metric.of(np.asarray(base, np.float64)))
     return compare_metric(base, run, metric, allowed=allowed, confidence=settings.confidence,
-                          run_noise_rel=noise, resamples=settings.resamples, rng=rng)
+                          run_noise_rel=noise.rel, run_noise_abs=noise.abs, resamples=settings.resamples, rng=rng)
 
 
 def compare(baseline: Mapping[str, Any], run: Mapping[str, Any], tol: Tolerances | None = None, *,
@@ -192,8 +192,8 @@ def compare(baseline: Mapping[str, Any], run: Mapping[str, Any], tol: Tolerances
         xb = base_samples.vehicles.get(vehicle) if base_samples is not None else None
         xr = run_samples.vehicles.get(vehicle) if run_samples is not None else None
         if xb is not None and xr is not None and xb.dropped.size and xr.dropped.size:
-            pending.append(_Pending(len(checks), _shift(xb.dropped, xr.dropped, Metric.MEAN, tol.drop_rate, 0.0,
-                                                         settings, rng)))
+            pending.append(_Pending(len(checks), _shift(xb.dropped, xr.dropped, Metric.MEAN, tol.drop_rate,
+                                                         Tolerance(0.0, 0.0), settings, rng)))
             checks.append(Check(vehicle, "-", "drop_rate", None, None, None, Verdict.OK))
         else:
             checks.append(_judge(vehicle, "-", "drop_rate", _num(b, "drop_rate"), _num(r, "drop_rate"),
@@ -213,7 +213,7 @@ def compare(baseline: Mapping[str, Any], run: Mapping[str, Any], tol: Tolerances
             if sb is not None and sr is not None:
                 for metric in LATENCY_METRICS:
                     pending.append(_Pending(len(checks), _shift(sb, sr, Metric(metric), tol.for_stage(metric, stage),
-                                                                 tol.noise_of(metric), settings, rng)))
+                                                                 tol.noise_of(metric, stage), settings, rng)))
                     checks.append(Check(vehicle, stage, metric, None, None, None, Verdict.OK))
                 continue
             for metric in POINT_METRICS:
@@ -350,7 +350,9 @@ def cmd(args: argparse.Namespace) -> int:
         need = judged[0].need or 1.0
         console.print(f"{len(judged)} checks judged from per-frame samples: each fails only when P(worse) ≥ "
                       f"{need * 100:.2f} % (alpha {settings.alpha:g} over {len(judged)} checks), counting "
-                      "run-to-run noise of " + ", ".join(f"{m} {tol.noise_of(m) * 100:g} %" for m in LATENCY_METRICS)
+                      "run-to-run noise of " + ", ".join(
+                          f"{m} {tol.noise_of(m).rel * 100:g} % & {tol.noise_of(m).abs:g} ms" for m in LATENCY_METRICS)
+                      + " (own figures for " + ", ".join(sorted(tol.stage_noise)) + ")"
                       + f"; {settings.resamples} block-bootstrap resamples, seed {settings.seed}")
     failed = [c for c in checks if c.verdict.fails]
     if failed:

@@ -151,14 +151,15 @@ def z_of(p: float) -> float:
 
 
 def compare_metric(base: np.ndarray, run: np.ndarray, metric: Metric, *, allowed: float, confidence: float = 0.95,
-                   run_noise_rel: float = 0.0, resamples: int = DEFAULT_RESAMPLES,
+                   run_noise_rel: float = 0.0, run_noise_abs: float = 0.0, resamples: int = DEFAULT_RESAMPLES,
                    rng: np.random.Generator) -> Shift:
     """How ``metric`` moved from ``base`` to ``run`` (1-D samples in frame order) and
     how sure that is (see the module docstring). ``confidence``: of the interval
-    ``ci_lo..ci_hi``. ``run_noise_rel``: the run-to-run standard deviation of the
-    metric between runs of one build, as a fraction of its value (what one pair of
-    runs cannot show: the machine's load changing between them); it adds
-    ``2 × (run_noise_rel × base)²`` to the bootstrap variance: the variance of the
+    ``ci_lo..ci_hi``. ``run_noise_rel``/``run_noise_abs``: the run-to-run standard
+    deviation of the metric between runs of one build, ``sqrt((run_noise_rel ×
+    base)² + run_noise_abs²)`` (what one pair of runs cannot show: the machine's
+    load changing between them); twice its square is added to the bootstrap
+    variance: the variance of the
     difference of two runs of the baseline's build, which is what the test's null
     hypothesis (no change) says both runs are.
 
@@ -168,9 +169,9 @@ def compare_metric(base: np.ndarray, run: np.ndarray, metric: Metric, *, allowed
     """
     if base.size == 0 or run.size == 0:
         raise ValueError("both samples need at least one value")
-    if allowed < 0 or run_noise_rel < 0 or not 0 < confidence < 1 or resamples < 2:
-        raise ValueError(f"allowed {allowed} >= 0, run_noise_rel {run_noise_rel} >= 0, 0 < confidence {confidence} "
-                         f"< 1 and resamples {resamples} >= 2 expected")
+    if allowed < 0 or min(run_noise_rel, run_noise_abs) < 0 or not 0 < confidence < 1 or resamples < 2:
+        raise ValueError(f"allowed {allowed} >= 0, run noise {run_noise_rel}/{run_noise_abs} >= 0, 0 < confidence "
+                         f"{confidence} < 1 and resamples {resamples} >= 2 expected")
     b = np.asarray(base, np.float64)
     r = np.asarray(run, np.float64)
     m_base, m_run = metric.of(b), metric.of(r)
@@ -178,7 +179,7 @@ def compare_metric(base: np.ndarray, run: np.ndarray, metric: Metric, *, allowed
     d = (bootstrap(r, metric.rows, resamples=resamples, rng=rng)
          - bootstrap(b, metric.rows, resamples=resamples, rng=rng))
     se_boot = float(d.std(ddof=1))
-    se = math.sqrt(se_boot ** 2 + 2 * (run_noise_rel * m_base) ** 2)
+    se = math.sqrt(se_boot ** 2 + 2 * ((run_noise_rel * m_base) ** 2 + run_noise_abs ** 2))
     if se > 0:
         z = z_of(0.5 + confidence / 2)
         lo, hi = delta - z * se, delta + z * se

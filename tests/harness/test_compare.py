@@ -279,7 +279,8 @@ def test_a_tiny_change_passes_however_sure_and_a_fall_is_better() -> None:
     # 20,000 frames each, no run-to-run noise (a quiet machine): +0.1 ms on every frame
     # is surely real, and within its allowance.
     sb, xb, sr, xr = _pair(_frames(5, 20_000), _frames(6, 20_000, shift_ms=0.1))
-    quiet = parse_tolerances({"noise": {"p1": 0, "p50": 0, "p99": 0, "std": 0}})
+    zero = {"rel": 0, "abs_ms": 0}
+    quiet = parse_tolerances({"noise": {"p1": zero, "p50": zero, "p99": zero, "std": zero}})
     v = _by_metric(compare(sb, sr, quiet, base_samples=xb, run_samples=xr))
     assert v["p50"].ci[0] > 0.05 and v["p50"].verdict == Verdict.OK and v["p50"].p_worse < 0.01
     sb, xb, sr, xr = _pair(_frames(1, 160, shift_ms=2.0), _frames(2, 160))
@@ -291,11 +292,21 @@ def test_a_tiny_change_passes_however_sure_and_a_fall_is_better() -> None:
 
 def test_run_to_run_noise_comes_from_the_tolerances(tmp_path: Path) -> None:
     sb, xb, sr, xr = _pair(_frames(1, 160), _frames(2, 160, disturbed=0.7, load_ms=3.0))
-    quiet = parse_tolerances({"noise": {"p50": 0.0, "p99": 0.0, "std": 0.0}})
+    zero = {"rel": 0, "abs_ms": 0}
+    quiet = parse_tolerances({"noise": {"p50": zero, "p99": zero, "std": zero}})
     assert _by_metric(compare(sb, sr, quiet, base_samples=xb, run_samples=xr))["p50"].verdict == Verdict.REGRESSION
     from timing.errors import ConfigError
 
+    assert parse_tolerances({"noise": {"p50": 0.1}}).noise_of("p50") == Tolerance(0.1, 1.0)  # a number sets rel
     with pytest.raises(ConfigError, match=r"noise\.p50: got -1"):
         parse_tolerances({"noise": {"p50": -1}})
     with pytest.raises(ConfigError, match="noise: unknown metric 'p90'"):
         parse_tolerances({"noise": {"p90": 0.1}})
+    # Per stage: the harness's own stages move more between runs (defaults), and any can be set.
+    assert Tolerances().noise_of("p1", "render").rel > Tolerances().noise_of("p1", "end_to_end").rel
+    t = parse_tolerances({"stages": {"end_to_end": {"noise": {"p50": zero}, "p99": {"abs_ms": 5}}}})
+    assert t.noise_of("p50", "end_to_end") == Tolerance(0, 0)
+    assert t.noise_of("p50", "inference") == Tolerances().noise_of("p50")
+    assert _by_metric(compare(sb, sr, t, base_samples=xb, run_samples=xr))["p50"].verdict == Verdict.REGRESSION
+    with pytest.raises(ConfigError, match=r"stages\.render\.noise\.p1: got 'x'"):
+        parse_tolerances({"stages": {"render": {"noise": {"p1": "x"}}}})

@@ -37,6 +37,8 @@ def test_shift_is_judged_against_the_allowance_with_noise() -> None:
     # A run-to-run noise of 20 % of 5 ms (1 ms per run) makes the same shift uncertain.
     noisy = compare_metric(base, run, Metric.P50, allowed=0.5, run_noise_rel=0.2, rng=np.random.default_rng(0))
     assert noisy.se > 1.0 and 0.5 < noisy.p_worse < 0.8
+    fixed = compare_metric(base, run, Metric.P50, allowed=0.5, run_noise_abs=1.0, rng=np.random.default_rng(0))
+    assert fixed.se == pytest.approx(noisy.se, rel=0.05)
     # Constant samples: no spread, the change is what it is.
     c = compare_metric(np.full(10, 2.0), np.full(10, 3.0), Metric.P50, allowed=0.5, rng=np.random.default_rng(0))
     assert c.se == 0 and c.p_worse == 1.0 and c.p_better == 0.0
