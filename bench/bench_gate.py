@@ -112,6 +112,7 @@ def judge(pool: Path, *, pairs: int, seed: int) -> None:
               f"(range {min(x['p50_ms'] for x in s):.2f}-{max(x['p50_ms'] for x in s):.2f}), "
               f"p99 median {statistics.median(x['p99_ms'] for x in s):.2f} ms "
               f"(range {min(x['p99_ms'] for x in s):.2f}-{max(x['p99_ms'] for x in s):.2f})")
+    _noise_table([loaded[p][1] for p in base])
     print("\n| comparison | pairs | gate (bootstrap) passes | gate fails | old point gate passes | "
           "checks that failed (gate) | checks that failed (old) |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
@@ -137,6 +138,28 @@ def judge(pool: Path, *, pairs: int, seed: int) -> None:
     print(f"\n(each line judged with the default tolerances, alpha {settings.alpha:g} over all checks, "
           f"{settings.resamples} block resamples; {per * 1e3:.0f} ms per comparison incl. the point gate; "
           f"load average now {_loadavg()})")
+
+
+def _noise_table(runs: list) -> None:
+    """Between-run spread of each stage's figures over the base runs: what the gate's
+    ``noise`` defaults stand for (harness.compare_tolerances)."""
+    import numpy as np
+
+    from timing.gate import Metric
+
+    vs = [r.vehicles["ego0"] for r in runs if "ego0" in r.vehicles]
+    metrics = ("p1", "p50", "p99", "std")
+    print("\nrun-to-run spread of the unchanged build (sd over the base runs, ms and % of the mean):\n")
+    print("| stage | " + " | ".join(metrics) + " |")
+    print("| --- |" + " --- |" * len(metrics))
+    for stage in vs[0].stages_ms if vs else ():
+        cells = []
+        for m in metrics:
+            v = np.array([Metric(m).of(x.stages_ms[stage]) for x in vs if x.stages_ms.get(stage) is not None
+                          and x.stages_ms[stage].size])
+            sd = float(v.std(ddof=1)) if v.size > 1 else float("nan")
+            cells.append(f"{sd:.2f} ({sd / v.mean() * 100:.0f} %)" if v.size > 1 and v.mean() else "-")
+        print(f"| {stage} | " + " | ".join(cells) + " |")
 
 
 def main() -> int:
