@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
 
-from adapters import protocol
+from adapters import protocol, transports
 from adapters.messages import ErrorMsg, Estimate, Frame, Inference, Message
 from adapters.sdk import CommandFn, Endpoint
 from timing.clock import Clock, MonotonicClock
@@ -331,17 +331,16 @@ def serve_batched(infer_batch: BatchInferFn, *, target_name: str, transport: str
         return BatchedEndpoint(scheduler, target_name=target_name, on_command=on_command)
 
     try:
-        if transport == "local":
+        # The transport's serve_shared, from the table in adapters.transports.
+        kind = transports.transport_of(transport)
+        serve_shared = transports.shared_serve_function(kind)
+        if kind is transports.Transport.LOCAL:
             if transport_options:
                 raise TransportError(f"the local transport takes no options; got {sorted(transport_options)}")
-            from adapters.shared_local import serve_shared as serve_local
-            serve_local(scheduler, make_endpoint)
-        elif transport == "zenoh":
-            from adapters.shared_zenoh import serve_shared as serve_zenoh
-            options = {k: v for k, v in transport_options.items() if k not in ("vehicle_id", "shared_memory")}
-            serve_zenoh(scheduler, make_endpoint, vehicles=list(vehicles), **options)  # type: ignore[arg-type]
+            serve_shared(scheduler, make_endpoint)
         else:
-            raise TransportError(f"a shared target serves over local or zenoh, not {transport!r}")
+            options = {k: v for k, v in transport_options.items() if k not in ("vehicle_id", "shared_memory")}
+            serve_shared(scheduler, make_endpoint, vehicles=list(vehicles), **options)
     finally:
         scheduler.stop()
         (announce or (lambda text: print(text, file=sys.stderr, flush=True)))(

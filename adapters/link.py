@@ -19,9 +19,10 @@ from __future__ import annotations
 import queue
 import threading
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 
-from adapters import protocol
+from adapters import protocol, transports
 from adapters.impair import LinkImpairment
 from adapters.stream import StreamDecoder
 from adapters.messages import (Bye, CameraInfo, Command, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
@@ -343,32 +344,19 @@ class Link(ABC):
     def _close_transport(self) -> None: ...
 
 
-TRANSPORTS = ("local", "zenoh", "can", "mixed", "tcp")
+TRANSPORTS = transports.NAMES  # the transport names, from the table in adapters.transports
 
 
-def open_link(transport: str, **options: object) -> Link:
-    """Build the link for ``transport`` by name (not yet opened); each transport's
-    module is imported only when named, so zenoh and python-can stay optional.
+def open_link(transport: str | transports.Transport, **options: object) -> Link:
+    """Build the link for ``transport`` by name (not yet opened). The link class is
+    looked up in :data:`adapters.transports.BACKENDS` and its module imported only
+    now, so zenoh and python-can stay optional and this module imports no transport.
 
     Raises:
         TransportError: unknown transport name (listing the valid ones).
     """
-    if transport == "local":
-        from adapters.local import LocalLink
-        return LocalLink(**options)  # type: ignore[arg-type]
-    if transport == "zenoh":
-        from adapters.zenoh_transport import ZenohLink
-        return ZenohLink(**options)  # type: ignore[arg-type]
-    if transport == "can":
-        from adapters.can_transport import CanLink
-        return CanLink(**options)  # type: ignore[arg-type]
-    if transport == "mixed":  # frames over zenoh, everything else over CAN
-        from adapters.mixed import MixedLink
-        return MixedLink(**options)  # type: ignore[arg-type]
-    if transport == "tcp":  # the local transport's stream framing over TCP
-        from adapters.tcp import TcpLink
-        return TcpLink(**options)  # type: ignore[arg-type]
-    raise TransportError(f"unknown transport {transport!r}; valid: {', '.join(TRANSPORTS)}")
+    cls: Callable[..., Link] = transports.link_class(transport)
+    return cls(**options)
 
 
 __all__ = ["Estimate", "Link", "LinkStats", "Received", "SyncSample", "open_link"]

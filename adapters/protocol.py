@@ -14,6 +14,7 @@ of the bad field. Encoding applies the same rules, so whatever ``encode`` return
 
 from __future__ import annotations
 
+import importlib
 import math
 import operator
 import struct
@@ -581,8 +582,8 @@ __all__ = [
 
 
 def __getattr__(name: str) -> object:
-    # StreamDecoder moved to adapters.stream; keep the old name working.
+    # StreamDecoder moved to adapters.stream (which imports this module); keep the old
+    # name working without an import back.
     if name == "StreamDecoder":
-        from adapters.stream import StreamDecoder
-        return StreamDecoder
+        return importlib.import_module("adapters.stream").StreamDecoder
     raise AttributeError(f"module 'adapters.protocol' has no attribute {name!r}")

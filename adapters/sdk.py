@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from adapters import protocol
+from adapters import protocol, transports
 from adapters.stream import StreamDecoder
 from adapters.messages import (Bye, ClockId, Command, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
                                Inference, Message, SyncRequest, SyncResponse)
@@ -228,7 +228,7 @@ class Endpoint:
             self.stats.estimates_sent += 1
 
 
-TRANSPORTS = ("local", "zenoh", "can", "mixed", "tcp")
+TRANSPORTS = transports.NAMES  # the transport names, from the table in adapters.transports
 
 
 def add_transport_args(parser: argparse.ArgumentParser) -> None:
@@ -304,8 +304,8 @@ def transport_options(args: argparse.Namespace) -> dict[str, object]:
     return {}
 
 
-def serve(infer: InferFn, *, target_name: str, transport: str = "local", clock: Clock | None = None,
-          clock_id: ClockId = ClockId.MONOTONIC, clock_resolution_ns: int = 1,
+def serve(infer: InferFn, *, target_name: str, transport: str | transports.Transport = "local",
+          clock: Clock | None = None, clock_id: ClockId = ClockId.MONOTONIC, clock_resolution_ns: int = 1,
           on_command: CommandFn | None = None, **transport_options: object) -> SdkStats:
     """Serve ``infer`` until the harness says BYE or the connection ends.
 
@@ -328,32 +328,10 @@ def serve(infer: InferFn, *, target_name: str, transport: str = "local", clock: 
     """
     ep = Endpoint(infer, target_name=target_name, clock=clock, clock_id=clock_id,
                   clock_resolution_ns=clock_resolution_ns, on_command=on_command)
-    if transport == "local":
-        if transport_options:
-            raise TransportError(f"the local transport takes no options; got {sorted(transport_options)}")
-        _serve_local(ep)
-        return ep.stats
-    if transport == "zenoh":
-        from adapters.zenoh_transport import serve_endpoint as serve_zenoh
-        serve_zenoh(ep, **transport_options)
-        return ep.stats
-    if transport == "can":
-        from adapters.can_transport import serve_endpoint as serve_can
-        serve_can(ep, **transport_options)  # type: ignore[arg-type]
-        return ep.stats
-    if transport == "mixed":
-        from adapters.mixed import serve_endpoint as serve_mixed
-        serve_mixed(ep, **transport_options)  # type: ignore[arg-type]
-        return ep.stats
-    if transport == "tcp":
-        from adapters.tcp import serve_endpoint as serve_tcp
-        serve_tcp(ep, **transport_options)  # type: ignore[arg-type]
-        return ep.stats
-    raise TransportError(f"unknown transport {transport!r}; valid: {', '.join(TRANSPORTS)}")
-
-
-def _serve_local(ep: Endpoint) -> None:
-    # The socket in HIL_LOCAL_FD, plus the shared-memory frame ring of HIL_LOCAL_SHM
-    # where the harness offers one (adapters.local, adapters.shm; stdlib only).
-    from adapters.local import serve_endpoint as serve_local
-    serve_local(ep)
+    kind = transports.transport_of(transport)
+    if kind is transports.Transport.LOCAL and transport_options:
+        raise TransportError(f"the local transport takes no options; got {sorted(transport_options)}")
+    # The transport's serve_endpoint, from the table in adapters.transports (local: the
+    # socket in HIL_LOCAL_FD plus the shared-memory frame ring of HIL_LOCAL_SHM).
+    transports.serve_function(kind)(ep, **transport_options)
+    return ep.stats

@@ -61,7 +61,7 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import TYPE_CHECKING
 
-from adapters import protocol
+from adapters import protocol, transports
 from adapters.link import Link, Received
 from adapters.messages import Heartbeat, MsgType
 from adapters.zenoh_options import TLS_KEYS, endpoint_problem
@@ -399,11 +399,10 @@ class ZenohLink(Link):
 
 def serve_endpoint(ep: Endpoint, **options: object) -> None:
     """Target side: serve ``ep`` (``adapters.zenoh_target.serve_endpoint``, where the
-    options are documented; kept here for its importers).
+    options are documented; kept here for its importers, and reached through the
+    table in :mod:`adapters.transports` because ``zenoh_target`` imports this module).
 
     Raises:
         ConfigError: a bad option. TransportError: the session cannot be opened.
     """
-    from adapters.zenoh_target import serve_endpoint as serve
-
-    serve(ep, **options)  # type: ignore[arg-type]
+    transports.serve_function(transports.Transport.ZENOH)(ep, **options)
