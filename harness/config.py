@@ -35,6 +35,7 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 from adapters.protocol import FRAME_META_SIZE, MAX_PAYLOAD
+from adapters.transports import Transport  # how the harness reaches the AI target: one enum, one table
 from harness.config_cases import CornerCaseSettings, DetectorSettings
 from harness.config_target import CanTargetConfig, ImpairConfig, TcpTargetConfig, ZenohTargetConfig
 from harness.config_timing import TimingConfig
@@ -71,16 +72,6 @@ class Encoding(str, Enum):
 
     RAW = "raw"
     JPEG = "jpeg"
-
-
-class Transport(str, Enum):
-    """How the harness reaches the AI target."""
-
-    LOCAL = "local"
-    ZENOH = "zenoh"
-    CAN = "can"
-    MIXED = "mixed"  # frames over zenoh (target.zenoh), everything else over CAN (target.can)
-    TCP = "tcp"  # one TCP connection (target.tcp)
 
 
 class ScenarioConfig(BaseModel):
