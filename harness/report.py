@@ -250,7 +250,7 @@ def _timeline_section(d: RunData) -> str:
                 and isinstance((r.get("stages_ns") or {}).get("end_to_end"), int)]
         x = np.array([(r["t0_ns"] - t0) / 1e9 for r in recs])
         y = np.array([r["stages_ns"]["end_to_end"] / 1e6 for r in recs])
-        series = [rp.Series("end_to_end (ms)", x, y, rp.colour_for("end_to_end"), "points")]
+        series = [rp.Series(f"{vehicle} end-to-end (ms)", x, y, fleet.vehicle_colours(d.vehicles)[vehicle], "points")]
         out.append(rp.line_chart(series=series, strips=_strips(d, vehicle), x_label="time since first frame (s)",
                                  y_label="end-to-end (ms)", title=vehicle, rules=fleet.e2e_rules(d.run_dir, vehicle),
                                  left=left, x_range=span))

@@ -65,7 +65,8 @@ def e2e_rules(run_dir: Path, vehicle: str) -> list[rp.Rule]:
     if "deadline.end_to_end" in lim:
         rules.append(rp.Rule(f"deadline {lim['deadline.end_to_end']:g} ms", lim["deadline.end_to_end"], "#d62728"))
     if "timeout" in lim:
-        rules.append(rp.Rule(f"estimate timeout {lim['timeout']:g} ms (dropped beyond)", lim["timeout"], "#7f0000"))
+        rules.append(rp.Rule(f"estimate timeout {lim['timeout']:g} ms (dropped beyond)", lim["timeout"], "#7f0000",
+                             stretch=False))
     return rules
 
 
@@ -105,7 +106,8 @@ def fleet_section(d: RunData, *, left: int = 0) -> str:
     out.append(rp.line_chart(series=series, rules=rules, x_label="time since first frame (s)",
                              y_label="end-to-end (ms)", title="all vehicles", left=left, x_range=(0.0, end)))
     if boxes:
-        out.append(rp.box_chart(boxes, x_label="end-to-end ms", title="end-to-end latency per vehicle"))
+        out.append(rp.box_chart(boxes, x_label="end-to-end ms", title="end-to-end latency per vehicle",
+                                colours=colours))
     head = ["vehicle", "applied frames", "p50 (ms)", "p99 (ms)", "frames sent/s", "estimates applied/s",
             "drop rate (%)"]
     h = "".join(f"<th>{escape(c)}</th>" for c in head)

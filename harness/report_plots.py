@@ -133,6 +133,7 @@ class Rule:
     label: str
     y: float
     colour: str = "#d62728"
+    stretch: bool = True  # False: never widens the y axis; off the chart it is named in a note
 
 
 class _Scale:
@@ -199,7 +200,7 @@ def line_chart(*, series: Sequence[Series], bands: Sequence[Band] = (), strips: 
     xs_all += [np.asarray([m.x for m in st.marks], float) for st in strips]
     ys_all = [np.asarray(s.ys, float) for s in series]
     ys_all += [np.asarray(b.lo, float) for b in bands] + [np.asarray(b.hi, float) for b in bands]
-    ys_all += [np.asarray([r.y for r in rules], float)]
+    ys_all += [np.asarray([r.y for r in rules if r.stretch], float)]
     if x_range is not None:
         xs_all.append(np.asarray(x_range, float))
     xcat = np.concatenate([a[np.isfinite(a)] for a in xs_all] or [np.zeros(0)])
@@ -255,7 +256,14 @@ def line_chart(*, series: Sequence[Series], bands: Sequence[Band] = (), strips: 
             body.append(f'<path d="{d}" stroke="{s.colour}" stroke-width="1.4" fill="none" '
                         f'stroke-linejoin="round"><title>{escape(s.label)}</title></path>')
     placed: list[float] = []
+    off = [r for r in rules if not sy.lo <= r.y <= sy.hi]
+    if off:
+        body.append(f'<text x="{left + pw - 4}" y="{top + ph - 5}" text-anchor="end" fill="{off[0].colour}" '
+                    f'paint-order="stroke" stroke="#fafafa" stroke-width="3">'
+                    + escape("; ".join(f"{r.label}: off the chart" for r in off)) + "</text>")
     for r in rules:
+        if r in off:
+            continue
         y = float(sy(r.y))
         ly = y - 4
         while any(abs(ly - p) < 12 for p in placed):  # rules close together: stack their labels
@@ -296,7 +304,7 @@ def strip_margin(strips: Sequence[Strip]) -> int:
 
 
 def box_chart(rows: Sequence[tuple[str, np.ndarray]], *, x_label: str, width: int = 1000,
-              title: str = "") -> str:
+              title: str = "", colours: dict[str, str] | None = None) -> str:
     """One horizontal box per row: box p25–p75, bar p50, whiskers p1–p99, circle max.
     Log axis when the values span more than two decades."""
     rows = [(label, np.asarray(v, float)) for label, v in rows if np.asarray(v).size]
@@ -325,7 +333,7 @@ def box_chart(rows: Sequence[tuple[str, np.ndarray]], *, x_label: str, width: in
         p1, p25, p50, p75, p99 = np.percentile(v, (1, 25, 50, 75, 99))
         mx = float(v.max())
         yc = top + row_h * i + row_h / 2
-        c = colour_for(label)
+        c = (colours or {}).get(label) or colour_for(label)
         tip = escape(f"{label}: n={v.size}, p1 {p1:.3f}, p25 {p25:.3f}, p50 {p50:.3f}, p75 {p75:.3f}, "
                      f"p99 {p99:.3f}, max {mx:.3f} ms")
         x1, x25, x50, x75, x99, xm = (float(sx(q)) for q in (p1, p25, p50, p75, p99, mx))
