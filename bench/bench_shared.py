@@ -18,6 +18,9 @@ batch's, for a shared target), ``queue`` = t_infer_start - t_rx, ``round trip`` 
 estimate received - frame handed to the link (harness clock); p50/p99 and jitter
 (std) in ms; ``drops`` = frames without an estimate (the newest frame per vehicle
 wins when the target is behind). Batch sizes from the shared target's batch log.
+``target CPU ms/frame``: user + system CPU time of the target process(es) while
+frames flowed, per frame served: what serving costs, which a loaded machine's
+latencies hide (N processes also get N shares of a contended CPU, one gets one).
 
 Prints a markdown table (one row per N and placement: the median over vehicles of
 each vehicle's p50, the worst vehicle's p99, the mean of the vehicles' std) and
@@ -65,8 +68,47 @@ def _frames(n: int) -> list[tuple[bytes, CameraInfo, float]]:
     return out
 
 
+def _cpu_s(pids: list[int]) -> float:
+    """User + system CPU seconds the processes ``pids`` have used so far (/proc)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    total = 0
+    for pid in pids:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        total += int(fields[11]) + int(fields[12])  # utime, stime (fields 14, 15)
+    return total / tick
+
+
 def _pct(xs: list[float], q: float) -> float:
     return float(np.percentile(xs, q)) if xs else float("nan")
+
+
+def batch_cost(frames: list[tuple[bytes, CameraInfo, float]], *, device: str, threads: int,
+               sizes: tuple[int, ...] = (1, 2, 4, 8, 16), reps: int = 15) -> list[str]:
+    """``CnnTarget.infer_batch`` in this process, per batch size: p50 ms per batch and
+    per frame (interleaved across sizes so machine noise hits all alike)."""
+    import torch
+
+    from adapters.messages import Frame
+    from targets.cnn.target import CnnTarget
+
+    torch.set_num_threads(threads)
+    target = CnnTarget(device=device)
+    fs = [Frame(0, i, 0, 0, 0, 320, 240, ImageEncoding.JPEG, cam, speed, jpeg)
+          for i, (jpeg, cam, speed) in enumerate(frames)]
+    times: dict[int, list[float]] = {b: [] for b in sizes}
+    for rep in range(reps + 2):
+        for b in sizes:
+            batch = [fs[(rep + k) % len(fs)] for k in range(b)]
+            t0 = time.perf_counter_ns()
+            target.infer_batch(batch)
+            if rep >= 2:  # warm-up
+                times[b].append((time.perf_counter_ns() - t0) / 1e6)
+    one = statistics.median(times[sizes[0]])
+    rows = ["| batch | ms per batch (p50) | ms per frame | per frame vs batch 1 |", "| --- | --- | --- | --- |"]
+    for b in sizes:
+        med = statistics.median(times[b])
+        rows.append(f"| {b} | {med:.1f} | {med / b:.1f} | {med / b / one:.2f} |")
+    return rows
 
 
 def run_one(n: int, *, shared: bool, frames: list[tuple[bytes, CameraInfo, float]], seconds: float, fps: float,
@@ -104,6 +146,8 @@ def run_one(n: int, *, shared: bool, frames: list[tuple[bytes, CameraInfo, float
             link.open(hello_timeout_s=120)
         collector = threading.Thread(target=collect, daemon=True)
         collector.start()
+        pids = sorted({link.pid for link in links if link.pid is not None})
+        cpu0 = _cpu_s(pids)
         period_ns = int(1e9 / fps)
         total = int((seconds + WARMUP_S) * fps)
         start = clock.now_ns() + period_ns
@@ -117,6 +161,7 @@ def run_one(n: int, *, shared: bool, frames: list[tuple[bytes, CameraInfo, float
                                        encoding=ImageEncoding.JPEG, camera=cam, ego_speed_mps=speed, data=jpeg)
                 sent[(link.vehicle_id, fid)] = t_tx
         time.sleep(0.5)  # the last estimates (bench only)
+        cpu_s = _cpu_s(pids) - cpu0
     finally:
         for link in links:
             link.close()
@@ -139,10 +184,11 @@ def run_one(n: int, *, shared: bool, frames: list[tuple[bytes, CameraInfo, float
         batches = {(r["batch"], r["batch_size"]) for r in csv.DictReader(open(batch_log))
                    if int(r["frame_id"]) >= warm}
         sizes = Counter(int(size) for _, size in batches)
-    return {"vehicles": per_vehicle, "sizes": sizes}
+    served = sum(total - per_vehicle[v]["drops"] for v in range(n))  # type: ignore[operator]
+    return {"vehicles": per_vehicle, "sizes": sizes, "cpu_ms_per_frame": 1e3 * cpu_s / max(1, served)}
 
 
-def _row(label: str, vs: list[dict[str, object]], sizes: Counter[int] | None) -> str:
+def _row(label: str, vs: list[dict[str, object]], sizes: Counter[int] | None, cpu_ms: float | None = None) -> str:
     def agg(key: str) -> tuple[float, float, float]:
         p50 = statistics.median(_pct(v[key], 50) for v in vs)  # type: ignore[arg-type]
         p99 = max(_pct(v[key], 99) for v in vs)  # type: ignore[arg-type]
@@ -154,7 +200,8 @@ def _row(label: str, vs: list[dict[str, object]], sizes: Counter[int] | None) ->
     sent = sum(int(v["sent"]) for v in vs)  # type: ignore[arg-type]
     sz = "-" if not sizes else " ".join(f"{k}:{c}" for k, c in sorted(sizes.items()))
     return (f"| {label} | {inf[0]:.1f} | {inf[1]:.1f} | {inf[2]:.1f} | {qu[0]:.1f} | {qu[1]:.1f} | "
-            f"{rt[0]:.1f} | {rt[1]:.1f} | {rt[2]:.1f} | {drops}/{sent} | {sz} |")
+            f"{rt[0]:.1f} | {rt[1]:.1f} | {rt[2]:.1f} | {drops}/{sent} | {sz} | "
+            f"{'-' if cpu_ms is None else f'{cpu_ms:.1f}'} |")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -168,6 +215,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="torch threads of the shared target (each per-vehicle target has 1)")
     p.add_argument("--placements", default="per-vehicle,shared", help="which placements to run")
     p.add_argument("--per-vehicle", action="store_true", help="also one row per vehicle")
+    p.add_argument("--batch-only", action="store_true", help="only the in-process batch cost table")
     a = p.parse_args(argv)
     try:
         ns = [int(x) for x in a.vehicles.split(",") if x.strip()]
@@ -184,9 +232,16 @@ def main(argv: list[str] | None = None) -> int:
     print(f"# bench_shared: {a.fps:g} fps per vehicle, {a.seconds:g} s measured, device {a.device}, "
           f"window {a.window_ms:g} ms, shared target {a.shared_threads} torch thread(s), aligned cameras; {os.cpu_count()} cores; loadavg before: "
           f"{open('/proc/loadavg').read().split()[:3]}", flush=True)
+    for threads in sorted({1, a.shared_threads}):
+        print(f"\nin-process CnnTarget.infer_batch, {threads} torch thread(s), device {a.device}, "
+              f"loadavg {open('/proc/loadavg').read().split()[:3]}:\n")
+        print("\n".join(batch_cost(frames, device=a.device, threads=threads)), flush=True)
+    if a.batch_only:
+        return 0
     header = ("| N, placement | inference p50 | inference p99 | inference std | queue p50 | queue p99 | "
-              "round trip p50 | round trip p99 | round trip std | drops/frames | batch sizes (size:count) |\n"
-              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+              "round trip p50 | round trip p99 | round trip std | drops/frames | batch sizes (size:count) | "
+              "target CPU ms/frame |\n"
+              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     rows, detail = [], []
     with tempfile.TemporaryDirectory(prefix="bench-shared-") as tmp:
         for n in ns:
@@ -196,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
                               shared_threads=a.shared_threads)
                 vs = list(res["vehicles"].values())  # type: ignore[union-attr]
                 sizes = res["sizes"] if placement == "shared" else None
-                rows.append(_row(f"{n}, {placement}", vs, sizes))  # type: ignore[arg-type]
+                rows.append(_row(f"{n}, {placement}", vs, sizes, res["cpu_ms_per_frame"]))  # type: ignore[arg-type]
                 print(rows[-1], flush=True)
                 for v, data in res["vehicles"].items():  # type: ignore[union-attr]
                     detail.append(_row(f"{n}, {placement}, vehicle {v}", [data], None))
