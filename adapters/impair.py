@@ -47,7 +47,7 @@ import numpy as np
 from adapters import protocol
 from adapters.messages import Bye, Estimate, Hello, MsgType, SyncRequest, SyncResponse
 from timing.clock import Clock
-from timing.errors import ProtocolError, TransportError
+from timing.errors import ProtocolError
 
 
 class Direction(str, Enum):
@@ -159,6 +159,7 @@ class LinkImpairment:
         self._sink: Sink | None = None
         self._backlog: deque[ImpairRecord] = deque(maxlen=backlog)
         self.records_dropped = 0
+        self.last_error: str | None = None  # of a delayed message's hand-off (counted in send_errors)
         self._thread: threading.Thread | None = None
         self._closed = False
 
@@ -270,8 +271,9 @@ class LinkImpairment:
                     lane.in_flight -= 1
                     try:
                         deliver()
-                    except (TransportError, OSError, ProtocolError):
+                    except Exception as err:  # noqa: BLE001 - any transport's failure: counted, the stage goes on
                         lane.counts["send_errors"] += 1
+                        self.last_error = f"{type(err).__name__}: {err}"
                     self._note(lane, ImpairRecord(rec.direction, rec.kind, rec.frame_id, rec.action, rec.delay_ns,
                                                   rec.t_in_ns, self.clock.now_ns(), rec.nbytes))
 
