@@ -112,7 +112,7 @@ def shared_link(cfg: RunConfig, *, vehicle_id: int, clock: Clock, out_dir: Path,
         TargetError: the command cannot be started.
         TransportError / ConfigError: the transport options are unusable.
     """
-    from harness.target_launch import _zenoh_options
+    from harness.target_launch import _impair, _zenoh_options
 
     host, owner = _host(cfg, vehicle_id=vehicle_id, out_dir=out_dir)
     owned = _Owned(host, str(out_dir.resolve())) if (owner and host is not None) else None
@@ -122,6 +122,7 @@ def shared_link(cfg: RunConfig, *, vehicle_id: int, clock: Clock, out_dir: Path,
             link: Link = SharedLocalLink(host=host, vehicle_id=vehicle_id, clock=clock, rx_queue=rx)
         else:  # zenoh: one set of endpoints (vehicle 0's), each vehicle its own keys
             link = open_link("zenoh", vehicle_id=vehicle_id, clock=clock, rx_queue=rx, **_zenoh_options(cfg, 0))
+        _impair(cfg, link, vehicle_id=vehicle_id, clock=clock)  # target.impair applies per vehicle as usual
     except BaseException:
         if owned is not None:
             owned.close()

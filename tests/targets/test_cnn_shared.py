@@ -381,3 +381,26 @@ def test_the_shared_configs_args_also_serve_one_vehicle_per_target(tmp_path: Pat
         assert (est.vehicle_id, est.frame_id) == (0, 5)
     finally:
         link.close()
+
+
+def test_link_faults_apply_to_each_vehicle_of_a_shared_target(tmp_path: Path):
+    """``target.impair`` with ``target.shared``: each vehicle's link gets its stage."""
+    import queue
+
+    from harness.config import parse_config
+    from harness.target_launch import make_link
+    from timing.clock import MonotonicClock
+
+    cfg = parse_config({"target": {"transport": "local", "shared": True, "command": ["{python}", "-c", _ECHO_SHARED],
+                                   "impair": {"uplink": {"delay_ms": 40}}}})
+    clock = MonotonicClock()
+    link, proc = make_link(cfg, vehicle_id=0, vehicle="ego0", clock=clock, out_dir=tmp_path, rx=queue.Queue())
+    assert proc is not None
+    try:
+        assert link.open(hello_timeout_s=30).target_name == "echo-shared"
+        t0 = clock.now_ns()
+        est = _send_and_get(link, clock, 1)
+        assert est.frame_id == 1 and est.t_rx_target_ns - t0 >= 40_000_000  # delayed on the way up
+    finally:
+        link.close()
+        proc.close()
