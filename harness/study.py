@@ -92,6 +92,10 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",
                    help="override a config field for every point (repeatable)")
     p.add_argument("--out", type=Path, default=None, help="study folder (default runs/study-<name>-<time>/)")
+    p.add_argument("--netem", default=None, metavar="ARGS",
+                   help="distributed: impair the veth pair with the kernel's tc netem, both directions, e.g. "
+                        "'delay 20ms 2ms loss 1%%' (kernels without sch_netem: the points are skipped with the "
+                        "reason; target.impair works on any kernel)")
 
 
 def cmd(args: argparse.Namespace) -> int:
@@ -114,7 +118,7 @@ def cmd(args: argparse.Namespace) -> int:
     t_start = time.monotonic()
     for pl in placements:
         pts = [pt for pt in points if pt.placement is pl]
-        with _placement_host(pl) as (ns, why):
+        with _placement_host(pl, netem=args.netem) as (ns, why):
             for pt in pts:
                 if why is not None:
                     results.append(PointResult(pt, "skipped", why))
@@ -201,9 +205,10 @@ def _run_point(args: argparse.Namespace, pt: Point, *, ns: _Namespace | None, ou
 
 
 @contextmanager
-def _placement_host(pl: Placement) -> Iterator[tuple[_Namespace | None, str | None]]:
+def _placement_host(pl: Placement, *, netem: str | None = None) -> Iterator[tuple[_Namespace | None, str | None]]:
     """The targets' host: this one (replicated), or a network namespace joined by a
-    veth pair (distributed), removed afterwards. Yields (namespace, why-skipped)."""
+    veth pair (distributed; ``netem``: tc netem arguments for both ends), removed
+    afterwards. Yields (namespace, why-skipped)."""
     if pl is Placement.REPLICATED:
         yield None, None
         return
@@ -220,11 +225,15 @@ def _placement_host(pl: Placement) -> Iterator[tuple[_Namespace | None, str | No
              f"ip addr add {ns.host_ip}/30 dev {host_if}", f"ip link set {host_if} up",
              f"ip -n {ns.name} addr add {ns.target_ip}/30 dev {ns_if}", f"ip -n {ns.name} link set {ns_if} up",
              f"ip -n {ns.name} link set lo up"]
+    if netem:  # each end's egress: the host's is the uplink, the namespace's the downlink
+        steps += [f"tc qdisc add dev {host_if} root netem {netem}",
+                  f"ip netns exec {ns.name} tc qdisc add dev {ns_if} root netem {netem}"]
     try:
         for s in steps:
             p = subprocess.run(s.split(), capture_output=True, text=True)
             if p.returncode != 0:
-                yield None, f"could not build the namespace host ({s}: {p.stderr.strip()})"
+                what = "tc netem is not available here" if " netem " in s else "could not build the namespace host"
+                yield None, f"{what} ({s}: {' '.join(p.stderr.split())})"
                 return
         yield ns, None
     finally:

@@ -44,6 +44,20 @@ def test_largest_n_stops_at_the_first_point_that_fails():
     assert largest_holding(rows) == {"replicated @ 20 fps": None}
 
 
+def test_netem_where_the_kernel_has_none_skips_the_distributed_points_with_the_reason(tmp_path):
+    out = tmp_path / "study"
+    p = _hil("study", "hil_configs/study.yaml", "--vehicles", "1", "--placement", "distributed", "--netem",
+             "delay 5ms", "--out", str(out))
+    doc = json.loads((out / "results.json").read_text())
+    (pt,) = doc["points"]
+    if pt["status"] == "ok":  # a kernel with sch_netem: the point ran through the impaired veth
+        assert p.returncode == 0 and pt["e2e_p50_ms"] >= 10.0
+        return
+    assert p.returncode == 1 and pt["status"] == "skipped", (p.stdout, p.stderr)
+    assert "netem" in pt["reason"] or "root" in pt["reason"] or "netns" in pt["reason"]
+    assert "skipped" in (out / "report.md").read_text()
+
+
 @pytest.mark.slow
 def test_a_tiny_study_in_both_placements(tmp_path, gl_backend):
     out = tmp_path / "study"
