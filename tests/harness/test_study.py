@@ -44,6 +44,7 @@ def test_largest_n_stops_at_the_first_point_that_fails():
     assert largest_holding(rows) == {"replicated @ 20 fps": None}
 
 
+@pytest.mark.slow
 def test_netem_where_the_kernel_has_none_skips_the_distributed_points_with_the_reason(tmp_path):
     out = tmp_path / "study"
     p = _hil("study", "hil_configs/study.yaml", "--vehicles", "1", "--placement", "distributed", "--netem",
