@@ -4,6 +4,14 @@ Each chart function returns one ``<svg>`` element as a string, ready to inline i
 HTML5 (no namespace attribute, so the report holds no address at all). Marks carry
 a ``<title>``, which a browser shows on hover. Long series are thinned to the
 minimum and maximum per pixel column, so a one-hour run stays a few hundred KB.
+
+Why not a plotting library (zoom, pan, hover values): measured on 2026-11-23 in
+headless Chromium 150 on this 2-core machine (load average 7-9), the report of a
+4-vehicle 4 s run is 198 KB and reaches its load event in ~0.26 s; a page of 10
+simple charts with plotly.js inlined (plotly 7.1.0's plotly.min.js, 4.8 MB, the
+only way to stay one offline file) is 4.85 MB and takes ~1.7 s. Every report and
+every mailed copy would carry 4.8 MB of script for hover values the SVG ``<title>``
+tooltips already give.
 """
 
 from __future__ import annotations
