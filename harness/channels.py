@@ -128,8 +128,8 @@ def register_all(rec: Recorder, vehicles: Iterable[str], *, anchor: TimeAnchor |
     if views:
         cam = cfg.get("camera")
         ok = isinstance(cam, dict) and all(k in cam for k in ("width", "height", "fovy_deg"))
-        foxglove_out.FoxgloveViews(vehicles, camera=cam if ok else None,
-                                   offset_ns=inner.log_time_offset_ns).install(inner)
+        foxglove_out.FoxgloveViews(vehicles, camera=cam if ok else None, offset_ns=inner.log_time_offset_ns,
+                                   deadline_ms=_deadlines(cfg, vehicles)).install(inner)
     if (cfg.get("recording") or {}).get("live") is True:
         from harness.live import LiveView
 
@@ -137,6 +137,22 @@ def register_all(rec: Recorder, vehicles: Iterable[str], *, anchor: TimeAnchor |
         inner.add_tap("live_view", live)
         print(f"live view: {live.url} (Foxglove: Open connection -> Foxglove WebSocket; "
               "layout hil_configs/foxglove_layout.json)", file=sys.stderr, flush=True)
+
+
+def _deadlines(cfg: dict[str, Any], vehicles: list[str]) -> dict[str, float]:
+    """Each vehicle's end-to-end deadline (ms) under the run's timing config."""
+    from harness.config_timing import TimingConfig
+
+    try:
+        timing = TimingConfig.model_validate(cfg.get("timing") or {})
+    except ValueError:
+        return {}
+    out = {}
+    for v in vehicles:
+        ms = timing.thresholds_for(v).deadline_ms.get("end_to_end")
+        if ms is not None:
+            out[v] = float(ms)
+    return out
 
 
 def _run_config(rec: Recorder) -> dict[str, Any]:

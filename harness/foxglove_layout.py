@@ -36,7 +36,9 @@ def build_layout(vehicles: Sequence[str] = ("ego0",)) -> str:
     plot = fl.PlotPanel(title="end-to-end latency (ms)", config=fl.PlotConfig(paths=[
         fl.PlotSeries(value=f"/{v}/latency.stages_ms.end_to_end", label=f"{v} end-to-end (ms)")
         for v in vehicles] + [fl.PlotSeries(value=f"/{v}/latency.stages_ms.inference", label=f"{v} inference (ms)")
-                              for v in vehicles], show_legend=True))
+                              for v in vehicles]
+        + [fl.PlotSeries(value=f"/{vehicles[0]}/latency.deadline_ms", label="deadline (ms)", line_style="dashed",
+                         color="#d62728")], show_legend=True))
     log = fl.LogPanel(title="events", config=fl.LogConfig(topic_to_render="/log", show_name=True))
     cam_items = [fl.SplitItem(proportion=1, content=c) for c in cameras]
     content = fl.SplitContainer(direction="row", items=[

@@ -51,7 +51,8 @@ _ESTIMATE_LIFETIME_NS = 300_000_000
 LATENCY = {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "hil.Latency", "type": "object",
            "description": "Latency of one frame (ms); stages as in hil.PipelineRecord.stages_ns",
            "properties": {"frame_id": {"type": "integer"}, "status": {"type": "string"},
-                          "sim_time_s": {"type": "number"},
+                          "sim_time_s": {"type": ["number", "null"]},
+                          "deadline_ms": {"type": ["number", "null"], "description": "end-to-end deadline"},
                           "stages_ms": {"type": "object", "additionalProperties": {"type": "number"}}},
            "required": ["frame_id", "status", "stages_ms"]}
 
@@ -131,10 +132,14 @@ class FoxgloveViews:
         camera: the run config's ``camera`` section as JSON (``width``, ``height``,
             ``fovy_deg``, ``mount_*_m``, ``pitch_deg``); ``None``: no calibration.
         offset_ns: the recorder's wall-clock offset (ns).
+        deadline_ms: each vehicle's end-to-end deadline (ms), written beside its
+            latencies (``/V/latency.deadline_ms``) so a plot can draw it.
     """
 
-    def __init__(self, vehicles: Iterable[str], *, camera: Mapping[str, Any] | None, offset_ns: int) -> None:
+    def __init__(self, vehicles: Iterable[str], *, camera: Mapping[str, Any] | None, offset_ns: int,
+                 deadline_ms: Mapping[str, float] | None = None) -> None:
         self.vehicles = set(vehicles)
+        self.deadline_ms = dict(deadline_ms or {})
         self.offset_ns = offset_ns
         self._truth: dict[str, OrderedDict[int, list[dict[str, Any]]]] = {v: OrderedDict() for v in self.vehicles}
         self._t0: dict[str, OrderedDict[int, int]] = {v: OrderedDict() for v in self.vehicles}
@@ -210,7 +215,7 @@ class FoxgloveViews:
         sim = rec.get("sim_time_ns")
         out: list[tuple[str, Any, int, int]] = [(f"/{v}/latency", {
             "frame_id": frame, "status": rec.get("status"),
-            "sim_time_s": sim / 1e9 if isinstance(sim, int) else None,
+            "sim_time_s": sim / 1e9 if isinstance(sim, int) else None, "deadline_ms": self.deadline_ms.get(v),
             "stages_ms": {k: ns / 1e6 for k, ns in stages.items() if isinstance(ns, (int, float))}},
             log_ns, pub_ns)]
         t0s = self._t0.get(v)

@@ -170,6 +170,7 @@ def test_views_overlay_truth_and_ai_on_the_frame_and_log_events(tmp_path: Path) 
     assert {("ego0", "ego0/camera_ground"), ("ego0/camera_ground", "ego0/camera")} <= tfs
     lat = [d for _n, d in by_topic["/ego0/latency"]]
     assert lat[0]["stages_ms"]["end_to_end"] == 30.0
+    assert lat[0]["deadline_ms"] == 100.0  # the default end-to-end deadline, for the plot's line
     scene = by_topic["/ego0/estimate_scene"][0][1]
     assert scene["entities"][0]["frame_id"] == "ego0/camera_ground"
 
