@@ -20,7 +20,7 @@ answers, COMMANDs and BYE, over its own socket or Zenoh keys), but frames go to 
 frame, the target's three stamps), the run folder's ``target-shared-batches.csv``
 when the harness started the target (``HIL_BATCH_LOG``).
 
-Needs only numpy-free stdlib and the SDK: no torch.
+Needs only the standard library and the SDK (no numpy, no torch).
 """
 
 from __future__ import annotations
