@@ -129,6 +129,20 @@ def _run_section(d: RunData) -> str:
                  ("real-time health", (f"{badge}: factor {rt.get('achieved_factor')} of "
                                        f"{rt.get('requested_factor')}, late steps {rt.get('late_steps')}, "
                                        f"max lateness {rt.get('max_lateness_ms')} ms"))]
+        lat = rt.get("lateness_ms") or {}
+        if lat:
+            rows.append(("physics-step lateness", escape(
+                f"p50 {_ms(lat.get('p50'))} ms, p99 {_ms(lat.get('p99'))} ms, p99.9 {_ms(lat.get('p999'))} ms, "
+                f"max {_ms(rt.get('max_lateness_ms'))} ms; {rt.get('late_steps')} steps over "
+                f"{rt.get('late_tolerance_ms')} ms, {rt.get('steps_over_10ms')} over 10 ms")))
+            rows.append(("processes", escape(
+                f"physics: {rt.get('physics_scheduling', '?')}; render workers: {rt.get('render_workers', '?')}")))
+        cost = s.get("harness_cost") or {}
+        if cost:
+            rows.append(("harness cost per frame", escape(
+                f"loop thread {cost.get('loop_thread_us_per_frame')} µs, analysis thread "
+                f"{cost.get('analysis_thread_us_per_frame')} µs (CPU), analysis tasks dropped "
+                f"{cost.get('analysis_tasks_dropped')}")))
         rec = s.get("recorder") or {}
         rows.append(("recorder", escape(", ".join(f"{k} {v}" for k, v in rec.items()))))
         rows.append(("collisions", str(len(s.get("collisions") or []))))
