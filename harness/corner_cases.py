@@ -150,6 +150,11 @@ class CaseRecorder:
     def register_json_channel(self, topic: str, schema_name: str, schema: Mapping[str, Any]) -> None:
         self.rec.register_json_channel(topic, schema_name, schema)
 
+    @property
+    def failure(self) -> str | None:
+        """The underlying recorder's write failure (e.g. the disk filled), or None."""
+        return self.rec.failure
+
     def write_json(self, topic: str, obj: Mapping[str, Any], *, log_time_ns: int, publish_time_ns: int) -> bool:
         ok = self.rec.write_json(topic, obj, log_time_ns=log_time_ns, publish_time_ns=publish_time_ns)
         if topic == "/events":

@@ -329,6 +329,9 @@ class SimLoop:
 
     def _tick(self, now: int) -> None:
         self._next_tick_ns = now + TICK_NS
+        failure = getattr(self.rec, "failure", None)
+        if failure is not None and self.stop_reason is None:
+            self.request_stop(f"the recording failed ({failure}): is the disk full? What was written is kept")
         self.analysis.post(self._tick_task, now, self._sim_ns)
         if self.on_tick is not None:
             self.on_tick()

@@ -513,6 +513,12 @@ class Recorder:
             self._taps = {**self._taps, name: tap}  # the writer thread reads a snapshot
 
     @property
+    def failure(self) -> str | None:
+        """Why the file can no longer be written (e.g. the disk filled), or None."""
+        err = self._io_error
+        return None if err is None else f"{type(err).__name__}: {err}"
+
+    @property
     def stats(self) -> RecorderStats:
         """A snapshot of the counters (exact once :meth:`close` returned)."""
         with self._lock:

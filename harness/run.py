@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import platform
 import queue
 import signal
@@ -23,7 +24,7 @@ from typing import Any
 from harness import __version__
 from harness.config import RunConfig, Transport, config_hash, dump_config
 from timing.clock import MonotonicClock
-from timing.errors import ConfigError, HilError
+from timing.errors import ConfigError, HilError, RecordingError
 
 SYNC_WARMUP_SAMPLES = 8
 
@@ -115,6 +116,43 @@ def build_world(cfg: RunConfig) -> tuple[Any, Any]:
     return world, rules
 
 
+RESERVE_BYTES = 2 << 20  # kept free on the run's disk until the summary and report are written
+
+
+def _reserve_disk(out_dir: Path) -> Path:
+    """Hold ``RESERVE_BYTES`` of real bytes in the run folder, released before the
+    summary and report are written, so a disk that fills during the run cannot cost
+    them. Best effort: a disk already too full for it just has no reserve."""
+    path = out_dir / ".hil-reserve"
+    try:
+        with open(path, "wb") as f:
+            f.write(b"\0" * RESERVE_BYTES)
+            f.flush()
+            os.fsync(f.fileno())
+    except OSError:
+        path.unlink(missing_ok=True)
+    return path
+
+
+class _RecordingGuard:
+    """Lets a recording failure raised when the recorder closes (disk full) through
+    as a note once the summary exists: what was recorded is kept, the summary says
+    why the run ended."""
+
+    def __init__(self) -> None:
+        self.summary_ready = False
+        self.error: str | None = None
+
+    def __enter__(self) -> _RecordingGuard:
+        return self
+
+    def __exit__(self, et: type[BaseException] | None, ev: BaseException | None, _tb: object) -> bool:
+        if et is not None and issubclass(et, RecordingError) and self.summary_ready:
+            self.error = str(ev)
+            return True
+        return False
+
+
 def _sigterm_interrupts() -> Callable[[], None] | None:
     """Until restored, SIGTERM raises KeyboardInterrupt (main thread only)."""
     import threading
@@ -178,6 +216,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
         vehicles: list[VehicleRun] = []
         procs: list[TargetProcess] = []
         engine: Engine | None = None
+        reserve: Path | None = None
         try:
             # Physics and render processes start first: their start-up (MuJoCo, EGL,
             # shaders) overlaps the targets'.
@@ -193,7 +232,9 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
             warmup = {v.name: [s for _ in range(SYNC_WARMUP_SAMPLES)
                                if (s := v.link.sync_exchange(timeout_s=0.5)) is not None]
                       for v in vehicles}
-            with Recorder(mcap_path, queue_size=cfg.recording.queue_size, compression="zstd", metadata={
+            guard = _RecordingGuard()
+            reserve = _reserve_disk(out_dir)
+            with guard, Recorder(mcap_path, queue_size=cfg.recording.queue_size, compression="zstd", metadata={
                 "run": {k: json.dumps(val) if not isinstance(val, str) else val for k, val in meta.items()},
                 "config": {"yaml_json": json.dumps(dump_config(cfg), sort_keys=True)},
             }) as main_rec:
@@ -245,7 +286,13 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                     summary["corner_cases"] = {"written": rec.cases_written, "errors": list(rec.errors),
                                                "triggers_dropped": rec.triggers_dropped}
                 main_rec.add_metadata("summary", {"json": json.dumps(summary, sort_keys=True)})
+                guard.summary_ready = True
+            reserve.unlink(missing_ok=True)  # room for the summary and the report
             final = main_rec.stats
+            if guard.error is not None:
+                summary["recorder_error"] = guard.error
+                if summary.get("ended_by") == "duration":
+                    summary["ended_by"] = f"the recording failed: {guard.error}"
             summary["recorder"] = {"written": final.written, "dropped": final.dropped,
                                    "enqueued": final.enqueued, "bytes_written": final.bytes_written}
             if isinstance(rec, CaseRecorder) and rec.cases_written:
@@ -264,6 +311,8 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 p.close()
             if engine is not None:
                 engine.close()
+            if reserve is not None:
+                reserve.unlink(missing_ok=True)
     summary_path.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
     write_report(out_dir)
     return RunResult(out_dir, mcap_path, summary_path, summary)
