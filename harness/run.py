@@ -116,6 +116,33 @@ def build_world(cfg: RunConfig) -> tuple[Any, Any]:
     return world, rules
 
 
+def _target_batches(out_dir: Path) -> dict[str, Any] | None:
+    """A shared target's batches (its ``target-shared-batches.csv``): how many of each
+    size, and the mean size; None without a shared target."""
+    import csv
+
+    from harness.shared_target import BATCH_LOG_NAME
+
+    path = out_dir / BATCH_LOG_NAME
+    if not path.is_file():
+        return None
+    sizes: dict[int, int] = {}
+    try:
+        with open(path, newline="") as f:
+            seen = set()
+            for row in csv.DictReader(f):
+                if row.get("batch") in seen:
+                    continue
+                seen.add(row.get("batch"))
+                n = int(row.get("batch_size") or 0)
+                sizes[n] = sizes.get(n, 0) + 1
+    except (OSError, ValueError) as err:
+        return {"error": f"{path.name}: {err}"}
+    total = sum(sizes.values())
+    return {"batches": total, "by_size": {str(k): v for k, v in sorted(sizes.items())},
+            "mean_size": round(sum(k * v for k, v in sizes.items()) / total, 3) if total else 0.0}
+
+
 RESERVE_BYTES = 2 << 20  # kept free on the run's disk until the summary and report are written
 
 
@@ -182,7 +209,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     from harness.recorder import Recorder
     from harness.report import write_report
     from harness.summary import build_summary
-    from harness.target_launch import TargetProcess, can_preflight, make_link
+    from harness.target_launch import can_preflight, make_link
     from harness.timing_observer import TimingObserver
     from harness.vehicle_state import VehicleRun
     from scenarios.sim import Simulation
@@ -214,7 +241,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
             sim.close()
             notify(can_preflight(cfg, frame_bytes=int(size * 1.25)))
         vehicles: list[VehicleRun] = []
-        procs: list[TargetProcess] = []
+        procs: list[Any] = []  # TargetProcess, or a shared target's handle (anything with close())
         engine: Engine | None = None
         reserve: Path | None = None
         try:
@@ -313,6 +340,9 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 engine.close()
             if reserve is not None:
                 reserve.unlink(missing_ok=True)
+    batches = _target_batches(out_dir)
+    if batches is not None:
+        summary["target_batches"] = batches
     summary_path.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
     write_report(out_dir)
     return RunResult(out_dir, mcap_path, summary_path, summary)

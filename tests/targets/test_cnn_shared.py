@@ -316,6 +316,9 @@ def test_four_vehicles_one_shared_cnn_target(hil_run):
             checked += 1
     assert checked == len(rows)
     assert max(int(r["batch_size"]) for r in rows) >= 2  # aligned cameras: frames of several vehicles batched
+    tb = s["target_batches"]  # the summary counts the batches by size
+    assert tb["batches"] == len({r["batch"] for r in rows})
+    assert sum(int(k) * n for k, n in tb["by_size"].items()) == len(rows)
 
 
 def _send_and_get(link, clock, fid: int) -> Estimate:
