@@ -23,6 +23,7 @@ Needs only numpy and the chosen transport: no simulator, torch or harness code.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import threading
 from collections.abc import Callable
@@ -246,7 +247,9 @@ def add_transport_args(parser: argparse.ArgumentParser) -> None:
                    help="zenoh: endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable); "
                         "tcp: host:port of a listening harness")
     g.add_argument("--mode", choices=("peer", "client"), default="peer", help="zenoh session mode")
-    g.add_argument("--key-prefix", default="hil", help="zenoh: key expression prefix")
+    g.add_argument("--key-prefix", default=os.environ.get("HIL_ZENOH_KEY_PREFIX", "hil"),
+                   help="zenoh: key expression prefix (default: $HIL_ZENOH_KEY_PREFIX, which a harness that "
+                        "starts this target sets to its run's own keys, else 'hil')")
     g.add_argument("--vehicle", type=int, default=0, help="vehicle id this target serves (zenoh, can, mixed)")
     g.add_argument("--interface", default="socketcan",
                    help="can: python-can interface (socketcan, pcan, kvaser, vector, slcan, virtual)")

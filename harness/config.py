@@ -140,6 +140,9 @@ class TargetConfig(BaseModel):
     # One target process serves every vehicle (batched; harness/shared_target.py):
     # local or zenoh only.
     shared: bool = False
+    # The HELLO target name a run accepts (prefix match), e.g. "cv_baseline" or
+    # "cnn@cuda": a foreign target answering on the endpoint is refused (exit 2).
+    expect_name: str | None = Field(None, min_length=1, max_length=256)
 
 
 class RecordingConfig(BaseModel):

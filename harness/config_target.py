@@ -111,6 +111,11 @@ class ZenohTargetConfig(BaseModel):
     lease_ms: Int = Field(1000, ge=100, le=60_000)
     tls: dict[TlsKey, str | bool] | None = None
     auth: ZenohAuthConfig | None = None  # zenoh transport only (see ZenohAuthConfig)
+    # A target the harness starts serves keys under <key_prefix>/run-<session> (the run's
+    # nonce, given to it in HIL_ZENOH_KEY_PREFIX, which the SDK follows), so no other
+    # target on the endpoint (a leftover, a foreign one) can answer for it. Off for a
+    # started third-party target that keeps the fixed keys of PROTOCOL.md 10.2.
+    per_run_keys: bool = True
 
 
 class CanTargetConfig(BaseModel):

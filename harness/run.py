@@ -13,6 +13,7 @@ import math
 import os
 import platform
 import queue
+import secrets
 import signal
 import time
 from collections.abc import Callable
@@ -24,7 +25,7 @@ from typing import Any
 from harness import __version__
 from harness.config import RunConfig, Transport, config_hash, dump_config
 from timing.clock import MonotonicClock
-from timing.errors import ConfigError, HilError, RecordingError
+from timing.errors import ConfigError, HilError, RecordingError, TargetError
 
 SYNC_WARMUP_SAMPLES = 8
 
@@ -143,6 +144,37 @@ def _target_batches(out_dir: Path) -> dict[str, Any] | None:
             "mean_size": round(sum(k * v for k, v in sizes.items()) / total, 3) if total else 0.0}
 
 
+def _exit_note(proc: Any) -> str:
+    """'; the target process exited with code N: <its log's last lines>' for a target
+    the harness started that is gone, else ''."""
+    code = proc.exited() if proc is not None and hasattr(proc, "exited") else None
+    if code is None:
+        return ""
+    tail = proc.log_tail()
+    return f"; the target process it started exited with code {code}" + (f": {tail}" if tail else "")
+
+
+def _check_identity(cfg: RunConfig, vehicles: list[Any], procs: list[Any]) -> None:
+    """The run measures the target it started or was told to reach, no other.
+
+    Raises:
+        TargetError: a target the harness started is gone although something answered
+            (another process on its endpoint), or a HELLO names another target than
+            ``target.expect_name``.
+    """
+    for p in procs:
+        if hasattr(p, "exited") and p.exited() is not None:
+            raise TargetError("another target answered on the endpoint, but the target this run started is gone"
+                              f"{_exit_note(p)} — refusing to measure a target it did not start (is a leftover "
+                              "target or another run using the port?)")
+    want = cfg.target.expect_name
+    for v in vehicles:
+        got = v.link.hello.target_name if v.link.hello is not None else ""
+        if want is not None and not got.startswith(want):
+            raise TargetError(f"{v.name}: the target that answered says it is {got!r}, not {want!r} "
+                              "(target.expect_name) — refusing to measure it")
+
+
 RESERVE_BYTES = 2 << 20  # kept free on the run's disk until the summary and report are written
 
 
@@ -229,6 +261,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
         "config_hash": config_hash(cfg), "gl_backend": gl_backend, "versions": versions(),
         "scenario_realized": world.realized,
         "latency_profile": None if latency is None else latency.describe(),
+        "session": secrets.token_hex(6),  # this run's nonce: a started Zenoh target's keys carry it
         "impairment": cfg.target.impair.model_dump(mode="json") if cfg.target.impair.active else None,
     }
     # ``sim`` mirrors the physics process's world here (truth, summary); it renders
@@ -251,14 +284,19 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
             engine = Engine(physics=phys_spec, render=render_spec, events=rx,
                             workers=cfg.engine.render_workers or auto_workers(len(sim.egos)))
             for i, name in enumerate(sim.egos):
-                link, proc = make_link(cfg, vehicle_id=i, vehicle=name, clock=clock, out_dir=out_dir, rx=rx)
+                link, proc = make_link(cfg, vehicle_id=i, vehicle=name, clock=clock, out_dir=out_dir, rx=rx,
+                                       session=meta["session"])
                 if proc is not None:
                     procs.append(proc)
                 vehicles.append(VehicleRun(name, i, link))
-                link.open(hello_timeout_s=cfg.target.startup_timeout_s)
+                try:
+                    link.open(hello_timeout_s=cfg.target.startup_timeout_s)
+                except TargetError as err:
+                    raise TargetError(f"{name}: {err}{_exit_note(proc)}") from err
             warmup = {v.name: [s for _ in range(SYNC_WARMUP_SAMPLES)
                                if (s := v.link.sync_exchange(timeout_s=0.5)) is not None]
                       for v in vehicles}
+            _check_identity(cfg, vehicles, procs)
             guard = _RecordingGuard()
             reserve = _reserve_disk(out_dir)
             with guard, Recorder(mcap_path, queue_size=cfg.recording.queue_size, compression="zstd", metadata={

@@ -21,13 +21,15 @@ class TargetProcess:
     """A target program the harness started for a network transport. Ended by PID
     (SIGTERM, then SIGKILL) on ``close()``, which is idempotent."""
 
-    def __init__(self, command: list[str], *, log_path: Path) -> None:
+    def __init__(self, command: list[str], *, log_path: Path, env: dict[str, str] | None = None) -> None:
         self.command = command
+        self.log_path = log_path
         self._log = open(log_path, "ab")  # noqa: SIM115 (closed in close())
         try:
             self.proc: subprocess.Popen[bytes] | None = subprocess.Popen(
                 command, stdin=subprocess.DEVNULL, stdout=self._log, stderr=self._log,
-                env=dict(os.environ, PYTHONUNBUFFERED="1"), start_new_session=True, preexec_fn=die_with_parent)
+                env=dict(os.environ, PYTHONUNBUFFERED="1", **(env or {})), start_new_session=True,
+                preexec_fn=die_with_parent)
         except FileNotFoundError as err:
             self._log.close()
             raise TargetError(f"target command not found: {command[0]!r} (check target.command)") from err
@@ -38,6 +40,24 @@ class TargetProcess:
             self._log.close()
             raise TargetError(f"target command {command[0]!r} cannot be started: {err.strerror or err} "
                               f"(a script needs a '#!' line; a program must be built for this machine)") from err
+
+    @property
+    def pid(self) -> int | None:
+        return None if self.proc is None else self.proc.pid
+
+    def exited(self) -> int | None:
+        """The exit code if the process has ended, else None."""
+        return None if self.proc is None else self.proc.poll()
+
+    def log_tail(self, lines: int = 3) -> str:
+        """The last ``lines`` non-empty lines of its log, joined with ' | '."""
+        try:
+            with open(self.log_path, "rb") as f:
+                f.seek(max(0, self.log_path.stat().st_size - 8192))
+                text = f.read().decode("utf-8", "replace")
+        except OSError:
+            return ""
+        return " | ".join(ln.strip() for ln in text.splitlines() if ln.strip())[-600:] if lines else ""
 
     def close(self) -> None:
         proc, self.proc = getattr(self, "proc", None), None
@@ -54,11 +74,20 @@ def target_command(cfg: RunConfig, *, vehicle_id: int = 0) -> list[str]:
             for w in [*cfg.target.command, *cfg.target.args]]
 
 
-def _zenoh_options(cfg: RunConfig, vehicle_id: int) -> dict[str, object]:
+def run_key_prefix(cfg: RunConfig, session: str | None) -> str:
+    """The Zenoh key prefix of this run: ``<key_prefix>/run-<session>`` when the harness
+    starts the target itself (``target.zenoh.per_run_keys``), else ``key_prefix``."""
+    z = cfg.target.zenoh
+    if session and cfg.target.command and z.per_run_keys:
+        return f"{z.key_prefix}/run-{session}"
+    return z.key_prefix
+
+
+def _zenoh_options(cfg: RunConfig, vehicle_id: int, session: str | None = None) -> dict[str, object]:
     z = cfg.target.zenoh
     return {"connect": [substitute(e, vehicle_id=vehicle_id, base_port=z.base_port) for e in z.connect],
             "listen": [substitute(e, vehicle_id=vehicle_id, base_port=z.base_port) for e in z.listen],
-            "mode": z.mode.value, "key_prefix": z.key_prefix, "multicast_scouting": z.multicast_scouting,
+            "mode": z.mode.value, "key_prefix": run_key_prefix(cfg, session), "multicast_scouting": z.multicast_scouting,
             "congestion_control": z.congestion_control.value, "lease_ms": z.lease_ms,
             "tls": dict(z.tls) if z.tls else None, **({"usrpwd": z.auth.usrpwd()} if z.auth else {})}
 
@@ -70,7 +99,7 @@ def _can_options(cfg: RunConfig, vehicle_id: int) -> dict[str, object]:
 
 
 def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, out_dir: Path,
-              rx: queue.Queue[Received]) -> tuple[Link, TargetProcess | None]:
+              rx: queue.Queue[Received], session: str | None = None) -> tuple[Link, TargetProcess | None]:
     """Build (not open) the link of one vehicle, starting its local target process
     first where a network transport has a ``command``. A ``mixed`` target takes
     frames over ``target.zenoh`` and answers over ``target.can``.
@@ -90,18 +119,21 @@ def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, ou
                          clock=clock, log_path=log, rx_queue=rx)
         _impair(cfg, link, vehicle_id=vehicle_id, clock=clock)
         return link, None
-    proc = TargetProcess(target_command(cfg, vehicle_id=vehicle_id), log_path=log) if t.command else None
+    env = {"HIL_SESSION": session} if session else {}
+    if t.transport in (Transport.ZENOH, Transport.MIXED):
+        env["HIL_ZENOH_KEY_PREFIX"] = run_key_prefix(cfg, session)
+    proc = TargetProcess(target_command(cfg, vehicle_id=vehicle_id), log_path=log, env=env) if t.command else None
     try:
         if t.transport == Transport.ZENOH:
             link = open_link("zenoh", vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
-                             **_zenoh_options(cfg, vehicle_id))
+                             **_zenoh_options(cfg, vehicle_id, session))
         elif t.transport == Transport.TCP:  # target.tcp: {mode: address}, as adapters.tcp.TcpLink takes it
             tc = t.tcp
             link = open_link("tcp", vehicle_id=vehicle_id, clock=clock, rx_queue=rx, kernel_stamps=tc.kernel_stamps,
                              **{tc.mode.value: substitute(tc.address, vehicle_id=vehicle_id, base_port=tc.base_port)})
         elif t.transport == Transport.MIXED:  # frames over target.zenoh, the rest over target.can
             link = open_link("mixed", vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
-                             **_zenoh_options(cfg, vehicle_id), **_can_options(cfg, vehicle_id))
+                             **_zenoh_options(cfg, vehicle_id, session), **_can_options(cfg, vehicle_id))
         else:
             link = open_link("can", vehicle_id=vehicle_id, clock=clock, camera_over=t.can.camera_over, rx_queue=rx,
                              **_can_options(cfg, vehicle_id))

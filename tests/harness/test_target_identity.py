@@ -1,0 +1,72 @@
+"""A run measures the target it started or was told to reach, never another one:
+a target already listening on the port (a leftover, another run's) cannot answer
+for the run's own (per-run Zenoh keys), the failure names the port clash from the
+started target's log, and ``target.expect_name`` refuses a foreign HELLO."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import GL_BACKEND
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _hil(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ, MUJOCO_GL=GL_BACKEND)
+    return subprocess.run([sys.executable, "-m", "harness.cli", *args], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=timeout, check=False)
+
+
+def _listening(port: int) -> bool:
+    with socket.socket() as s:
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+@pytest.mark.slow
+def test_a_leftover_target_on_the_port_is_never_measured(tmp_path):
+    port = _free_port()
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    env.pop("HIL_ZENOH_KEY_PREFIX", None)
+    leftover = subprocess.Popen([sys.executable, "-m", "targets.echo", "--transport", "zenoh", "--listen",
+                                 f"tcp/127.0.0.1:{port}", "--vehicle", "0", "--keep-serving"], env=env,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 30
+        while not _listening(port):
+            assert time.monotonic() < deadline and leftover.poll() is None, "the leftover target did not start"
+            time.sleep(0.1)
+        p = _hil("run", "hil_configs/remote.yaml", "--no-progress", "--out", str(tmp_path / "run"),
+                 "--set", f"target.zenoh.base_port={port}", "--set", "duration_s=2",
+                 "--set", "target.startup_timeout_s=8")
+        assert p.returncode == 2, (p.returncode, p.stdout[-1500:], p.stderr[-1500:])
+        err = [ln for ln in p.stderr.splitlines() if ln.strip()]
+        assert len(err) == 1 and "Traceback" not in p.stderr, p.stderr
+        assert "exited" in err[0] and "in use" in err[0].lower(), err[0]  # the clash, from the target's own log
+        assert not (tmp_path / "run" / "summary.json").exists()  # nothing measured
+    finally:
+        os.killpg(leftover.pid, signal.SIGTERM)
+        leftover.wait(10)
+
+
+@pytest.mark.slow
+def test_expect_name_refuses_another_target(tmp_path):
+    p = _hil("run", "hil_configs/demo.yaml", "--no-progress", "--out", str(tmp_path / "run"),
+             "--set", "duration_s=1", "--set", "target.expect_name=cnn@")
+    assert p.returncode == 2, (p.returncode, p.stderr[-1500:])
+    err = [ln for ln in p.stderr.splitlines() if ln.strip()]
+    assert len(err) == 1 and "target.expect_name" in err[0] and "cv" in err[0], err
