@@ -116,3 +116,29 @@ def _cmdline(pid: int) -> bytes:
         return Path(f"/proc/{pid}/cmdline").read_bytes()
     except OSError:
         return b""
+
+
+@pytest.mark.slow
+def test_a_render_worker_crashing_ends_the_run_cleanly(tmp_path):
+    out = tmp_path / "run"
+    p = _start(out, "duration_s=60")
+    try:
+        assert _wait_for(lambda: (out / "run.mcap").exists() and (out / "run.mcap").stat().st_size > 50_000, 90), \
+            p.stderr.read() if p.poll() is not None else "no frames recorded"
+        kids = _children(p.pid)
+        workers = [k for k in kids if b"multiprocessing.spawn" in _cmdline(k)]
+        assert len(workers) >= 2, [_cmdline(k)[:120] for k in kids]  # physics + render worker(s)
+        # The render worker is the one started first (the physics process starts last).
+        victim = min(workers)
+        os.kill(victim, signal.SIGKILL)
+        code = p.wait(60)
+        err = p.stderr.read()
+        assert code == 1, err[-2000:]
+        assert "Traceback" not in err, err[-3000:]
+        s = __import__("json").loads((out / "summary.json").read_text())
+        assert "ended unexpectedly" in s["ended_by"], s["ended_by"]
+        assert _wait_for(lambda: not any(_alive(k) for k in kids), 10), [k for k in kids if _alive(k)]
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait(10)
