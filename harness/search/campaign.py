@@ -1,8 +1,9 @@
-"""Running a campaign (or one shard of it) on this machine with a process pool.
+"""Running a campaign (or one shard of it) with a process pool or a Dask cluster.
 
 ``run_campaign`` runs the episodes of its shard that the campaign folder does not
 hold yet, ``workers`` at a time, each in a pool process of its own (``spawn``: a
-fresh interpreter, its own simulator, renderer and target). A random campaign
+fresh interpreter, its own simulator, renderer and target), or as tasks on a Dask
+cluster (``engine=DaskEngine(...)``, engine.py): the same draws either way. A random campaign
 streams its episodes through the pool; a guided one runs generation by generation,
 each drawn from the results of the earlier ones in this folder (see sampling.py),
 so with ``--shard`` every shard runs its own guided search on its own slice, while
@@ -18,26 +19,19 @@ early, recorded as ``early``). Then ``summary.json`` and ``report.html`` are wri
 
 from __future__ import annotations
 
-import multiprocessing
-import os
 import shutil
 import signal
 import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
 from harness.search.db import DB_NAME, CampaignDB, now_text
-from harness.search.episode import (
-    EpisodeResult,
-    Status,
-    episode_dirname,
-    init_worker,
-    run_episode,
-)
+from harness.search.engine import ProcessEngine
+from harness.search.episode import EpisodeResult, Status, episode_dirname
 from harness.search.sampling import (
     Draw,
     Past,
@@ -116,8 +110,12 @@ def prepare_campaign_dir(out: Path, *, resume: bool) -> None:
 
 def run_campaign(c: Campaign, *, out: Path, gl_backend: str, shard: Shard | None = None, workers: int = 1,
                  resume: bool = False, reporter: Reporter | None = None,
-                 install_signal_handlers: bool = True) -> Outcome:
+                 install_signal_handlers: bool = True, engine: Engine | None = None) -> Outcome:
     """Run the campaign's episodes of ``shard`` into ``out`` (see the module docstring).
+
+    ``engine`` (a ``DaskEngine``; default a process pool of ``workers``) runs the
+    episodes; one passed in is left open (its owner closes it), and its own worker
+    count replaces ``workers``.
 
     Raises:
         ConfigError: a bad ``out`` (see ``prepare_campaign_dir``), ``workers`` < 1, or
@@ -127,6 +125,9 @@ def run_campaign(c: Campaign, *, out: Path, gl_backend: str, shard: Shard | None
     """
     if workers < 1:
         raise ConfigError(f"--workers {workers}: expected at least 1")
+    own_engine = engine is None
+    engine = engine or ProcessEngine(workers=workers, gl_backend=gl_backend)
+    workers = engine.workers
     shard = shard or Shard()
     prepare_campaign_dir(out, resume=resume)
     reporter = reporter or QuietReporter()
@@ -148,7 +149,7 @@ def run_campaign(c: Campaign, *, out: Path, gl_backend: str, shard: Shard | None
         restore = stop.install() if install_signal_handlers else None
         reporter.start(total=len(mine), done=oc.already_done, workers=workers, shard=shard)
         t0 = time.perf_counter()
-        pool = _Pool(workers, gl_backend)
+        pool = _Pool(engine)
         try:
             def on_result(r: EpisodeResult) -> None:
                 db.put_episode(r)
@@ -162,7 +163,8 @@ def run_campaign(c: Campaign, *, out: Path, gl_backend: str, shard: Shard | None
                 if stop.set:
                     break
         finally:
-            pool.close()
+            if own_engine:
+                engine.close()
             reporter.close()
             if restore is not None:
                 restore()
@@ -210,22 +212,25 @@ class _StopFlag:
         return restore
 
 
+class Engine(Protocol):
+    """Runs episodes (engine.py: ``ProcessEngine``, ``DaskEngine``)."""
+
+    workers: int
+
+    def submit(self, c: Campaign, d: Draw, *, out: Path, shard: str) -> Future[EpisodeResult]: ...
+
+    def reset(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
 class _Pool:
-    """A spawn process pool with at most ``2 x workers`` episodes submitted at once;
-    a pool that breaks (a worker killed) is replaced and its episodes recorded as
-    errors."""
+    """Feeds an engine at most ``2 x workers`` episodes at once; a process pool that
+    breaks (a worker killed) is replaced and its episodes recorded as errors."""
 
-    def __init__(self, workers: int, gl_backend: str) -> None:
-        self.workers = workers
-        self.gl_backend = gl_backend
-        self._ex: ProcessPoolExecutor | None = None
-
-    def _executor(self) -> ProcessPoolExecutor:
-        if self._ex is None:
-            os.environ["MUJOCO_GL"] = self.gl_backend  # inherited by the spawned workers too
-            self._ex = ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                           initializer=init_worker, initargs=(self.gl_backend,))
-        return self._ex
+    def __init__(self, engine: Engine) -> None:
+        self.engine = engine
+        self.workers = engine.workers
 
     def run(self, draws: Iterator[Draw], c: Campaign, *, out: Path, shard: str,
             on_result: Callable[[EpisodeResult], None], stop: _StopFlag) -> None:
@@ -240,8 +245,7 @@ class _Pool:
                 stale = out / "episodes" / episode_dirname(d.index)
                 if stale.exists():  # an interrupted attempt: its row never said ok
                     shutil.rmtree(stale)
-                running[self._executor().submit(run_episode, c, d, campaign_dir=out, shard=shard,
-                                                gl_backend=self.gl_backend)] = d
+                running[self.engine.submit(c, d, out=out, shard=shard)] = d
             if stop.set:  # episodes not started yet are dropped; running ones finish
                 for fut in [f for f in running if f.cancel()]:
                     del running[fut]
@@ -254,15 +258,10 @@ class _Pool:
                     r = fut.result()
                 except BrokenProcessPool as err:
                     r = _failed(d, shard, f"worker process died ({err})")
-                    self.close()
+                    self.engine.reset()
                 except Exception as err:  # noqa: BLE001 - recorded; the campaign goes on
                     r = _failed(d, shard, f"{type(err).__name__}: {err}")
                 on_result(r)
-
-    def close(self) -> None:
-        if self._ex is not None:
-            self._ex.shutdown(wait=True, cancel_futures=True)
-            self._ex = None
 
 
 def _failed(d: Draw, shard: str, error: str) -> EpisodeResult:
@@ -271,4 +270,4 @@ def _failed(d: Draw, shard: str, error: str) -> EpisodeResult:
                          dir=f"episodes/{episode_dirname(d.index)}", error=error)
 
 
-__all__ = ["Outcome", "QuietReporter", "Reporter", "prepare_campaign_dir", "run_campaign"]
+__all__ = ["Engine", "Outcome", "QuietReporter", "Reporter", "prepare_campaign_dir", "run_campaign"]

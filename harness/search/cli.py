@@ -3,7 +3,8 @@
 ::
 
     hil search SPEC [--episodes N] [--seed S] [--strategy random|cem|mutate] [--shard i/N]
-                    [--workers W] [--out DIR] [--resume] [--set PATH=VALUE ...] [--no-progress]
+                    [--workers W] [--engine process|dask] [--scheduler ADDRESS]
+                    [--out DIR] [--resume] [--set PATH=VALUE ...] [--no-progress]
     hil search merge OUT SHARD_DIR...
     hil search cases CAMPAIGN
     hil search report CAMPAIGN
@@ -52,6 +53,12 @@ def run_parser() -> argparse.ArgumentParser:
                    help="run slice i of N (episodes with index %% N == i); e.g. the Kubernetes completion index")
     p.add_argument("--workers", type=int, default=None,
                    help=f"episodes at once, each in its own process (default: the cores, {os.cpu_count()})")
+    p.add_argument("--engine", choices=("process", "dask"), default=None,
+                   help="where episodes run: a process pool here (default), or a Dask cluster (a local one of "
+                        "--workers processes, or --scheduler's)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="a running Dask scheduler, e.g. tcp://10.0.0.5:8786 (implies --engine dask; its workers "
+                        "set the parallelism)")
     p.add_argument("--out", type=Path, default=None, help="campaign folder (default campaigns/<name>-<time>)")
     p.add_argument("--resume", action="store_true", help="continue the campaign in --out (same spec and shard)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",
@@ -97,6 +104,7 @@ def main(argv: Sequence[str]) -> int:
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from harness.search.campaign import run_campaign
+    from harness.search.engine import DaskEngine, EngineKind
     from harness.search.progress import CampaignProgress
     from harness.search.shard import Shard, parse_shard
     from harness.search.spec import load_spec
@@ -107,6 +115,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
     workers = args.workers if args.workers is not None else (os.cpu_count() or 1)
     if workers < 1:
         raise ConfigError(f"--workers {workers}: expected at least 1")
+    kind = EngineKind(args.engine) if args.engine else (EngineKind.DASK if args.scheduler else EngineKind.PROCESS)
+    if args.scheduler is not None and kind is not EngineKind.DASK:
+        raise ConfigError(f"--scheduler {args.scheduler}: needs --engine dask (a process pool has no scheduler)")
+    if args.scheduler is not None and not args.scheduler.strip():
+        raise ConfigError("--scheduler '': expected a Dask scheduler address, e.g. tcp://10.0.0.5:8786")
     c = load_spec(args.spec, overrides=args.overrides, episodes=args.episodes, seed=args.seed,
                   strategy=args.strategy)
     out = args.out
@@ -117,8 +130,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
     backend = select_backend()
     console.print(f"campaign {c.name} [dim]{c.campaign_id}[/dim]: {c.scenario}, {c.strategy.kind.value}, "
                   f"searching {', '.join(d.name for d in c.dims)}; renderer {backend.upper()}; folder {out}")
-    oc = run_campaign(c, out=out, gl_backend=backend, shard=shard, workers=workers, resume=args.resume,
-                      reporter=CampaignProgress(console, live=not args.no_progress))
+    reporter = CampaignProgress(console, live=not args.no_progress)
+    if kind is EngineKind.DASK:
+        with DaskEngine(gl_backend=backend, scheduler=args.scheduler, workers=workers) as engine:
+            console.print(f"engine: {engine.describe()} (up in {engine.start_s:.1f} s)", highlight=False)
+            oc = run_campaign(c, out=out, gl_backend=backend, shard=shard, resume=args.resume, reporter=reporter,
+                              engine=engine)
+    else:
+        oc = run_campaign(c, out=out, gl_backend=backend, shard=shard, workers=workers, resume=args.resume,
+                          reporter=reporter)
     _print_summary(console, oc.summary, out)
     if oc.stopped:
         console.print(f"[red]stopped[/red]: {len(oc.ran)} episodes ran this time; continue with --resume --out {out}")

@@ -1,0 +1,222 @@
+"""Where a campaign's episodes run: a local process pool, or a Dask cluster.
+
+Both engines give ``run_campaign`` (campaign.py) a ``concurrent.futures`` executor
+and take the same draws in the same order, so a campaign seed gives the same
+episodes and corner cases on either (an episode depends only on its draw).
+
+* ``ProcessEngine``: a ``spawn`` ``ProcessPoolExecutor`` on this machine; each episode
+  writes straight into the campaign folder.
+* ``DaskEngine``: a Dask ``distributed`` cluster, through ``Client.get_executor()``.
+  Dask over Ray: pure-Python wheels that install here, a ``LocalCluster`` of worker
+  processes that runs on two cores, and a ``concurrent.futures`` executor that plugs
+  into the pool's loop unchanged. ``--scheduler ADDRESS`` connects to a running
+  cluster (``dask scheduler`` / ``dask worker`` on other hosts); without it a
+  ``LocalCluster`` of ``workers`` processes (one thread each, no dashboard, bound to
+  127.0.0.1) is started and closed with the campaign. A worker may be on another host
+  with no shared disk: it runs the episode in a folder of its own and ships the
+  episode folder back as a tar archive, which this process unpacks into the campaign
+  folder (``tarfile``'s ``data`` filter: no absolute paths, links or devices).
+
+Dask moves tasks and results with pickle: a scheduler must only be reachable by
+trusted hosts (a private network, or ``tls://`` with ``distributed.security``).
+"""
+
+from __future__ import annotations
+
+import enum
+import io
+import json
+import multiprocessing
+import os
+import shutil
+import tarfile
+import tempfile
+import time
+from concurrent.futures import Executor, Future, ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from harness.search.episode import EpisodeResult, episode_dirname, init_worker, run_episode
+from harness.search.sampling import Draw
+from harness.search.spec import Campaign
+from timing.errors import ConfigError
+
+
+class EngineKind(enum.Enum):
+    """``hil search --engine``."""
+
+    PROCESS = "process"
+    DASK = "dask"
+
+
+class ProcessEngine:
+    """Episodes in a ``spawn`` process pool of ``workers`` processes on this machine."""
+
+    kind = EngineKind.PROCESS
+
+    def __init__(self, *, workers: int, gl_backend: str) -> None:
+        self.workers = workers
+        self.gl_backend = gl_backend
+        self._ex: ProcessPoolExecutor | None = None
+
+    def submit(self, c: Campaign, d: Draw, *, out: Path, shard: str) -> Future[EpisodeResult]:
+        if self._ex is None:
+            os.environ["MUJOCO_GL"] = self.gl_backend  # inherited by the spawned workers too
+            self._ex = ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                           initializer=init_worker, initargs=(self.gl_backend,))
+        return self._ex.submit(run_episode, c, d, campaign_dir=out, shard=shard, gl_backend=self.gl_backend)
+
+    def reset(self) -> None:
+        """Drop a broken pool (a worker was killed); the next submit starts a new one."""
+        self.close()
+
+    def close(self) -> None:
+        if self._ex is not None:
+            self._ex.shutdown(wait=True, cancel_futures=True)
+            self._ex = None
+
+    def describe(self) -> str:
+        return f"process pool, {self.workers} workers"
+
+
+def shipped_episode(c: Campaign, d: Draw, *, shard: str, gl_backend: str) -> tuple[str, bytes, int]:
+    """A Dask task: run one episode in a scratch folder of this worker.
+
+    Returns (the EpisodeResult as JSON, the episode folder as an uncompressed tar
+    archive, ns spent packing it). Never raises for a failed episode (its status
+    says ``error``)."""
+    os.environ.setdefault("MUJOCO_GL", gl_backend)
+    with tempfile.TemporaryDirectory(prefix="hil-episode-") as tmp:
+        # A Dask task runs on a worker thread: signal handlers are the main thread's.
+        r = run_episode(c, d, campaign_dir=Path(tmp), shard=shard, gl_backend=gl_backend,
+                        install_signal_handlers=False)
+        t0 = time.perf_counter_ns()
+        buf = io.BytesIO()
+        folder = Path(tmp) / "episodes" / episode_dirname(d.index)
+        with tarfile.open(fileobj=buf, mode="w") as tar:
+            if folder.is_dir():
+                tar.add(folder, arcname=episode_dirname(d.index))
+        return json.dumps(r.as_dict()), buf.getvalue(), time.perf_counter_ns() - t0
+
+
+class _Shipped(Future[EpisodeResult]):
+    """An episode's result once unpacked here; cancelling it cancels its Dask task
+    too (a task already running is dropped and its episode is run again by
+    ``--resume``)."""
+
+    inner: Future[Any] | None = None
+
+    def cancel(self) -> bool:
+        if self.inner is not None:
+            self.inner.cancel()
+        return super().cancel()
+
+
+class DaskEngine:
+    """Episodes as tasks on a Dask cluster (see the module docstring).
+
+    ``overhead_ns`` adds up, per episode, what the engine costs on the way back:
+    packing the folder on the worker and transferring and unpacking it here.
+
+    Raises (constructor):
+        ConfigError: ``distributed`` is not installed, or the scheduler cannot be
+            reached within ``timeout_s``.
+    """
+
+    kind = EngineKind.DASK
+
+    def __init__(self, *, gl_backend: str, scheduler: str | None = None, workers: int = 1,
+                 timeout_s: float = 20.0) -> None:
+        try:
+            import dask
+            from distributed import Client, LocalCluster
+        except ImportError as err:
+            raise ConfigError(f"--engine dask: the Dask 'distributed' package is not installed ({err}); "
+                              "pip install distributed") from err
+        self.gl_backend = gl_backend
+        self.scheduler = scheduler
+        self._cluster: Any = None
+        self.overhead_ns: list[int] = []
+        t0 = time.perf_counter()
+        try:
+            if scheduler is None:
+                os.environ["MUJOCO_GL"] = gl_backend  # the worker processes inherit it
+                # Workers start the simulator's own processes: they must not be daemonic.
+                with dask.config.set({"distributed.worker.daemon": False}):
+                    self._cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                                 host="127.0.0.1", dashboard_address=None, silence_logs=40)
+                self.client = Client(self._cluster, timeout=timeout_s)
+            else:
+                self.client = Client(scheduler, timeout=timeout_s)
+        except (OSError, TimeoutError) as err:
+            self.close()
+            raise ConfigError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({err})") from err
+        self.start_s = time.perf_counter() - t0
+        threads = sum(w.get("nthreads", 1) for w in self.client.scheduler_info()["workers"].values())
+        self.workers = max(1, threads)
+        self._ex: Executor = self.client.get_executor(pure=False)
+
+    def submit(self, c: Campaign, d: Draw, *, out: Path, shard: str) -> Future[EpisodeResult]:
+        done = _Shipped()
+        inner = self._ex.submit(shipped_episode, c, d, shard=shard, gl_backend=self.gl_backend)
+        done.inner = inner
+
+        def unpack(f: Future[tuple[str, bytes, int]]) -> None:
+            if f.cancelled() or done.cancelled():  # the campaign was stopped: nothing to keep
+                done.cancel()
+                return
+            err = f.exception()
+            if err is not None:
+                done.set_exception(err)
+                return
+            try:
+                text, archive, pack_ns = f.result()
+                t0 = time.perf_counter_ns()
+                unpack_episode(archive, out / "episodes")
+                self.overhead_ns.append(pack_ns + time.perf_counter_ns() - t0)
+                done.set_result(EpisodeResult(**json.loads(text)))
+            except Exception as e:  # noqa: BLE001 - recorded as the episode's error
+                done.set_exception(e)
+
+        inner.add_done_callback(unpack)
+        return done
+
+    def reset(self) -> None:
+        """Nothing to rebuild: Dask reschedules a lost worker's tasks itself."""
+
+    def close(self) -> None:
+        client = getattr(self, "client", None)
+        if client is not None:
+            client.close()
+        if self._cluster is not None:
+            self._cluster.close()
+            self._cluster = None
+
+    def describe(self) -> str:
+        where = f"scheduler {self.scheduler}" if self.scheduler else "local cluster on 127.0.0.1"
+        return f"Dask, {where}, {self.workers} worker threads"
+
+    def __enter__(self) -> DaskEngine:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def unpack_episode(archive: bytes, episodes_dir: Path) -> None:
+    """Unpack a shipped episode folder into ``episodes_dir`` (replacing a stale one).
+
+    Raises:
+        tarfile.TarError: the archive is damaged or holds a path outside one folder.
+    """
+    with tarfile.open(fileobj=io.BytesIO(archive), mode="r") as tar:
+        names = {m.name.split("/", 1)[0] for m in tar.getmembers()}
+        if len(names) > 1:
+            raise tarfile.TarError(f"an episode archive holds {len(names)} folders")
+        for name in names:
+            if (episodes_dir / name).exists():
+                shutil.rmtree(episodes_dir / name)
+        tar.extractall(episodes_dir, filter="data")
+
+
+__all__ = ["DaskEngine", "EngineKind", "ProcessEngine", "shipped_episode", "unpack_episode"]

@@ -1,0 +1,135 @@
+"""Campaigns on a real Dask cluster of worker processes (``hil search --engine dask``):
+the same campaign seed gives the same episodes and corner cases as the process pool
+and as a sharded run merged, whether the CLI starts its own local cluster or joins a
+running one with ``--scheduler``. No mocks: ``distributed.LocalCluster`` with
+``processes=True`` (each worker its own process, one thread), on 127.0.0.1."""
+
+from __future__ import annotations
+
+import os
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from harness.search.campaign import run_campaign
+from harness.search.merge import merge
+from harness.search.spec import load_spec
+from tests.conftest import GL_BACKEND
+from timing.errors import ConfigError
+
+distributed = pytest.importorskip("distributed")
+
+ROOT = Path(__file__).resolve().parents[2]
+pytestmark = pytest.mark.slow
+
+SPEC = {"name": "dask-search", "seed": 11, "episodes": 2,
+        "run": {"mode": "lockstep", "duration_s": 1.5, "scenario": {"name": "stopped_car"},
+                "target": {"command": ["{python}", "-m", "targets.echo", "--throttle", "0.3"]},
+                "corner_cases": {"history_s": 0.5, "after_s": 0.2}},
+        "params": {"gap_m": [15, 30], "ego_speed_mps": [6, 12]}, "latency": {"ms": [0, 200]},
+        "strategy": {"kind": "random"}}
+
+
+def hil(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "harness.cli", *args], cwd=ROOT, capture_output=True, text=True,
+                          timeout=300, env=dict(os.environ, MUJOCO_GL=GL_BACKEND), check=False)
+
+
+def episodes(folder: Path) -> dict[int, tuple]:
+    con = sqlite3.connect(folder / "campaign.sqlite")
+    try:
+        return {r[0]: r[1:] for r in con.execute("SELECT episode, seed, params, status, trace_hash FROM episodes")}
+    finally:
+        con.close()
+
+
+def cases(folder: Path) -> list[tuple]:
+    con = sqlite3.connect(folder / "campaign.sqlite")
+    try:
+        return con.execute("SELECT episode, case_id, vehicle, sim_time_ns, kind, cause, severity, mcap_path FROM "
+                           "cases ORDER BY episode, case_id").fetchall()
+    finally:
+        con.close()
+
+
+@pytest.fixture(scope="module")
+def spec_file(tmp_path_factory) -> Path:
+    p = tmp_path_factory.mktemp("spec") / "dask.yaml"
+    p.write_text(yaml.safe_dump(SPEC))
+    return p
+
+
+@pytest.fixture(scope="module")
+def pooled(spec_file, tmp_path_factory) -> Path:
+    """The campaign on the process pool: the reference."""
+    out = tmp_path_factory.mktemp("pool") / "pool"
+    oc = run_campaign(load_spec(spec_file), out=out, gl_backend=GL_BACKEND, workers=2, install_signal_handlers=False)
+    assert oc.complete, [r.error for r in oc.ran]
+    return out
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A running cluster as a user would start one: a scheduler and two worker processes."""
+    import dask
+
+    os.environ["MUJOCO_GL"] = GL_BACKEND
+    with dask.config.set({"distributed.worker.daemon": False}):
+        lc = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                      dashboard_address=None, silence_logs=40)
+    try:
+        yield lc
+    finally:
+        lc.close()
+
+
+def test_a_local_dask_cluster_runs_the_same_episodes_and_cases_as_the_pool(spec_file, pooled, tmp_path):
+    out = tmp_path / "dask"
+    p = hil("search", str(spec_file), "--engine", "dask", "--workers", "2", "--out", str(out), "--no-progress")
+    assert p.returncode == 0, (p.stdout, p.stderr)
+    assert "engine: Dask, local cluster on 127.0.0.1, 2 worker threads" in p.stdout
+    assert "Traceback" not in p.stderr
+    assert episodes(out) == episodes(pooled) and len(episodes(out)) == 2
+    assert all(v[2] == "ok" for v in episodes(out).values())
+    got = cases(out)
+    assert got and got == cases(pooled), "the same corner cases with the same ids"
+    for *_, mcap_path in got:  # shipped back from the worker into this campaign folder
+        assert (out / mcap_path).is_file()
+    assert (out / "episodes" / "e00001" / "config.json").is_file() and (out / "report.html").is_file()
+
+
+def test_a_shard_on_a_running_cluster_merges_into_the_pooled_campaign(spec_file, pooled, cluster, tmp_path):
+    addr = cluster.scheduler_address
+    assert addr.startswith("tcp://127.0.0.1:")
+    workers = cluster.scheduler_info["workers"]
+    pids = {w: cluster.get_client().run(os.getpid)[w] for w in workers}
+    assert len(set(pids.values())) == 2 and os.getpid() not in pids.values(), "worker processes, not threads"
+    p = hil("search", str(spec_file), "--scheduler", addr, "--shard", "0/2", "--out", str(tmp_path / "s0"),
+            "--no-progress")
+    assert p.returncode == 0, (p.stdout, p.stderr)
+    assert f"scheduler {addr}, 2 worker threads" in p.stdout
+    ran = {k: tp.states.get("released", 0) + tp.states.get("memory", 0) + tp.states.get("forgotten", 0)
+           for k, tp in cluster.scheduler.task_prefixes.items()}
+    assert "shipped_episode" in cluster.scheduler.task_prefixes, ran
+    p = hil("search", str(spec_file), "--shard", "1/2", "--workers", "1", "--out", str(tmp_path / "s1"),
+            "--no-progress")
+    assert p.returncode == 0, (p.stdout, p.stderr)
+    r = merge(tmp_path / "merged", [tmp_path / "s0", tmp_path / "s1"])
+    assert r.summary["episodes"]["complete"]
+    assert episodes(tmp_path / "merged") == episodes(pooled)
+    assert cases(tmp_path / "merged") == cases(pooled)
+
+
+def test_scheduler_mistakes_are_one_line(spec_file, tmp_path):
+    from harness.search.engine import DaskEngine
+
+    p = hil("search", str(spec_file), "--engine", "process", "--scheduler", "tcp://127.0.0.1:1",
+            "--out", str(tmp_path / "x"))
+    assert p.returncode == 2 and "--scheduler tcp://127.0.0.1:1: needs --engine dask" in p.stderr
+    assert "Traceback" not in p.stderr and not (tmp_path / "x").exists()
+    with pytest.raises(ConfigError, match="--scheduler tcp://127.0.0.1:1: cannot reach the Dask scheduler"):
+        DaskEngine(gl_backend=GL_BACKEND, scheduler="tcp://127.0.0.1:1", timeout_s=1.0)
