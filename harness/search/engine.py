@@ -99,6 +99,11 @@ def shipped_episode(c: Campaign, d: Draw, *, shard: str, gl_backend: str) -> tup
         return json.dumps(r.as_dict()), buf.getvalue(), time.perf_counter_ns() - t0
 
 
+def _is_daemon() -> bool:
+    """On a worker: whether its process is daemonic (and so may not have children)."""
+    return bool(multiprocessing.current_process().daemon)
+
+
 class _Shipped(Future[EpisodeResult]):
     """An episode's result once unpacked here; cancelling it cancels its Dask task
     too (a task already running is dropped and its episode is run again by
@@ -119,8 +124,8 @@ class DaskEngine:
     packing the folder on the worker and transferring and unpacking it here.
 
     Raises (constructor):
-        ConfigError: ``distributed`` is not installed, or the scheduler cannot be
-            reached within ``timeout_s``.
+        ConfigError: ``distributed`` is not installed, the scheduler cannot be
+            reached within ``timeout_s``, or its workers are daemonic processes.
     """
 
     kind = EngineKind.DASK
@@ -151,8 +156,14 @@ class DaskEngine:
         except (OSError, TimeoutError) as err:
             self.close()
             raise ConfigError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({err})") from err
+        daemonic = sorted(w for w, d in self.client.run(_is_daemon).items() if d)
+        if daemonic:
+            self.close()
+            raise ConfigError(f"--scheduler {scheduler}: Dask workers {', '.join(daemonic[:3])} are daemonic processes, "
+                              "which cannot start an episode's processes; start them with "
+                              "DASK_DISTRIBUTED__WORKER__DAEMON=False")
         self.start_s = time.perf_counter() - t0
-        threads = sum(w.get("nthreads", 1) for w in self.client.scheduler_info()["workers"].values())
+        threads = sum(self.client.nthreads().values())
         self.workers = max(1, threads)
         self._ex: Executor = self.client.get_executor(pure=False)
 
@@ -172,7 +183,7 @@ class DaskEngine:
             try:
                 text, archive, pack_ns = f.result()
                 t0 = time.perf_counter_ns()
-                unpack_episode(archive, out / "episodes")
+                unpack_episode(archive, out / "episodes", name=episode_dirname(d.index))
                 self.overhead_ns.append(pack_ns + time.perf_counter_ns() - t0)
                 done.set_result(EpisodeResult(**json.loads(text)))
             except Exception as e:  # noqa: BLE001 - recorded as the episode's error
@@ -203,20 +214,25 @@ class DaskEngine:
         self.close()
 
 
-def unpack_episode(archive: bytes, episodes_dir: Path) -> None:
-    """Unpack a shipped episode folder into ``episodes_dir`` (replacing a stale one).
+def unpack_episode(archive: bytes, episodes_dir: Path, *, name: str) -> None:
+    """Unpack a shipped episode folder ``name`` into ``episodes_dir`` (replacing a
+    stale one). Only that folder is accepted, and only regular files and folders
+    inside it (``tarfile``'s ``data`` filter).
 
     Raises:
-        tarfile.TarError: the archive is damaged or holds a path outside one folder.
+        tarfile.TarError: the archive is damaged, or holds anything but ``name/...``
+            (another episode's folder, an absolute path, ``..``, a link outside).
     """
     with tarfile.open(fileobj=io.BytesIO(archive), mode="r") as tar:
-        names = {m.name.split("/", 1)[0] for m in tar.getmembers()}
-        if len(names) > 1:
-            raise tarfile.TarError(f"an episode archive holds {len(names)} folders")
-        for name in names:
-            if (episodes_dir / name).exists():
-                shutil.rmtree(episodes_dir / name)
-        tar.extractall(episodes_dir, filter="data")
+        members = tar.getmembers()
+        strays = [m.name for m in members if m.name != name and not m.name.startswith(name + "/")]
+        if strays or not members:
+            raise tarfile.TarError(f"an archive for episode folder {name} holds "
+                                   f"{', '.join(strays[:3]) if strays else 'nothing'}")
+        target = episodes_dir / name
+        if target.exists():
+            shutil.rmtree(target)
+        tar.extractall(episodes_dir, members=members, filter="data")
 
 
 __all__ = ["DaskEngine", "EngineKind", "ProcessEngine", "shipped_episode", "unpack_episode"]

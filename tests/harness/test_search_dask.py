@@ -133,3 +133,61 @@ def test_scheduler_mistakes_are_one_line(spec_file, tmp_path):
     assert "Traceback" not in p.stderr and not (tmp_path / "x").exists()
     with pytest.raises(ConfigError, match="--scheduler tcp://127.0.0.1:1: cannot reach the Dask scheduler"):
         DaskEngine(gl_backend=GL_BACKEND, scheduler="tcp://127.0.0.1:1", timeout_s=1.0)
+
+
+def test_daemonic_workers_are_refused_before_any_episode(spec_file, tmp_path):
+    """Dask's default workers are daemonic and may not start an episode's processes:
+    said at once, with the setting that fixes it, instead of every episode failing."""
+    from harness.search.engine import DaskEngine
+
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None, silence_logs=40) as lc:
+        with pytest.raises(ConfigError, match="are daemonic processes.*DASK_DISTRIBUTED__WORKER__DAEMON=False"):
+            DaskEngine(gl_backend=GL_BACKEND, scheduler=lc.scheduler_address)
+
+
+def _tar(entries: dict[str, bytes]) -> bytes:
+    import io
+    import tarfile
+
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as tar:
+        for name, data in entries.items():
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            tar.addfile(info, io.BytesIO(data))
+    return buf.getvalue()
+
+
+def test_a_shipped_episode_unpacks_only_into_its_own_folder(tmp_path):
+    import tarfile
+
+    from harness.search.engine import unpack_episode
+
+    eps = tmp_path / "campaign" / "episodes"
+    (eps / "e00003").mkdir(parents=True)
+    (eps / "e00003" / "stale.txt").write_text("an interrupted attempt")
+    (tmp_path / "campaign" / "campaign.sqlite").write_text("keep")
+    unpack_episode(_tar({"e00003/run.mcap": b"mcap", "e00003/config.json": b"{}"}), eps, name="e00003")
+    assert sorted(p.name for p in (eps / "e00003").iterdir()) == ["config.json", "run.mcap"]
+    for bad, says in [({"e00004/run.mcap": b"x"}, "e00004/run.mcap"), ({"../campaign.sqlite": b"x"}, "\\.\\./"),
+                      ({"e00003/ok": b"x", "/etc/x": b"x"}, "/etc/x"), ({}, "nothing")]:
+        with pytest.raises(tarfile.TarError, match=f"episode folder e00003 holds .*{says}"):
+            unpack_episode(_tar(bad), eps, name="e00003")
+    with pytest.raises(tarfile.TarError):  # a member escaping through .. inside the folder
+        unpack_episode(_tar({"e00003/../../campaign.sqlite": b"x"}), eps, name="e00003")
+    assert (tmp_path / "campaign" / "campaign.sqlite").read_text() == "keep" and not (eps / "e00004").exists()
+
+
+def test_the_local_cluster_is_worker_processes_on_loopback_only():
+    from harness.search.engine import DaskEngine
+
+    with DaskEngine(gl_backend=GL_BACKEND, workers=2) as eng:
+        sched = eng._cluster.scheduler
+        assert sched.address.startswith("tcp://127.0.0.1:") and sched.http_server.address == "127.0.0.1"
+        info = eng.client.scheduler_info()
+        assert all(w.startswith("tcp://127.0.0.1:") for w in info["workers"]), info["workers"]
+        assert sorted(eng.client.nthreads().values()) == [1, 1] and eng.workers == 2
+        pids = eng.client.run(os.getpid)
+        assert len(set(pids.values())) == 2 and os.getpid() not in pids.values()
+        assert not any(eng.client.run(lambda: __import__("multiprocessing").current_process().daemon).values())
