@@ -634,6 +634,9 @@ class Recorder:
     # --- writer thread ----------------------------------------------------------------
 
     def _run(self) -> None:
+        from harness.engine.procs import lower_thread_priority
+
+        lower_thread_priority()  # the run's frames and controls go first when the cores are busy
         get = self._queue.get
         main = threading.main_thread()
         while True:

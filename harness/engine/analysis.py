@@ -48,6 +48,9 @@ class AnalysisThread:
     def _run(self) -> None:
         import time
 
+        from harness.engine.procs import lower_thread_priority
+
+        lower_thread_priority()
         start = time.thread_time_ns()
         while True:
             item = self._q.get()

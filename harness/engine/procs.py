@@ -52,6 +52,19 @@ def ask_realtime(priority: int) -> str:
     return f"SCHED_FIFO priority {priority}"
 
 
+def lower_thread_priority(nice: int = 10) -> None:
+    """Make the calling thread yield the CPU to the run's latency-critical threads
+    (Linux: a thread's nice value is its own; raising it needs no privilege). The
+    analysis and recording threads call this, so the loop thread that moves frames
+    and controls is served first when the cores are busy."""
+    try:
+        import threading
+
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+    except (OSError, AttributeError):
+        pass
+
+
 def widen_pipe(conn: Connection, size: int = 1 << 20) -> None:
     """Let a pipe hold ``size`` bytes, so a child never blocks on a busy reader."""
     try:
