@@ -6,10 +6,11 @@ episodes and corner cases on either (an episode depends only on its draw).
 
 * ``ProcessEngine``: a ``spawn`` ``ProcessPoolExecutor`` on this machine; each episode
   writes straight into the campaign folder.
-* ``DaskEngine``: a Dask ``distributed`` cluster, through ``Client.get_executor()``.
-  Dask over Ray: pure-Python wheels that install here, a ``LocalCluster`` of worker
-  processes that runs on two cores, and a ``concurrent.futures`` executor that plugs
-  into the pool's loop unchanged. ``--scheduler ADDRESS`` connects to a running
+* ``DaskEngine``: a Dask ``distributed`` cluster, each episode a task whose result
+  comes back as a ``concurrent.futures`` future into the pool's loop unchanged. Dask
+  over Ray: pure-Python wheels that install here, a ``LocalCluster`` of worker
+  processes that runs on two cores, and futures that plug into that loop (a stopped
+  campaign can tell a running episode, left to finish, from a queued one, dropped). ``--scheduler ADDRESS`` connects to a running
   cluster (``dask scheduler`` / ``dask worker`` on other hosts); without it a
   ``LocalCluster`` of ``workers`` processes (one thread each, no dashboard, bound to
   127.0.0.1) is started and closed with the campaign. A worker may be on another host
@@ -32,7 +33,8 @@ import shutil
 import tarfile
 import tempfile
 import time
-from concurrent.futures import Executor, Future, ProcessPoolExecutor
+import uuid
+from concurrent.futures import Future, InvalidStateError, ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -104,16 +106,27 @@ def _is_daemon() -> bool:
     return bool(multiprocessing.current_process().daemon)
 
 
-class _Shipped(Future[EpisodeResult]):
-    """An episode's result once unpacked here; cancelling it cancels its Dask task
-    too (a task already running is dropped and its episode is run again by
-    ``--resume``)."""
+def _executing_keys(dask_worker: Any) -> list[str]:
+    """On a worker (``Client.run``): the keys of the tasks it is running now."""
+    return [str(ts.key) for ts in dask_worker.state.executing]
 
-    inner: Future[Any] | None = None
+
+class _Shipped(Future[EpisodeResult]):
+    """An episode's result once unpacked here. Cancelling it cancels its Dask task
+    unless a worker is running it already: as in the process pool, a stopped
+    campaign lets running episodes finish and drops only those not started."""
+
+    def __init__(self, engine: DaskEngine, task: Any) -> None:
+        super().__init__()
+        self.engine = engine
+        self.task = task
 
     def cancel(self) -> bool:
-        if self.inner is not None:
-            self.inner.cancel()
+        if self.done():
+            return False
+        if str(self.task.key) in self.engine.executing():
+            return False
+        self.task.cancel()
         return super().cancel()
 
 
@@ -165,32 +178,37 @@ class DaskEngine:
         self.start_s = time.perf_counter() - t0
         threads = sum(self.client.nthreads().values())
         self.workers = max(1, threads)
-        self._ex: Executor = self.client.get_executor(pure=False)
 
     def submit(self, c: Campaign, d: Draw, *, out: Path, shard: str) -> Future[EpisodeResult]:
-        done = _Shipped()
-        inner = self._ex.submit(shipped_episode, c, d, shard=shard, gl_backend=self.gl_backend)
-        done.inner = inner
+        task = self.client.submit(shipped_episode, c, d, shard=shard, gl_backend=self.gl_backend, pure=False,
+                                  key=f"hil-episode-{c.campaign_id}-{d.index}-{uuid.uuid4().hex[:8]}")
+        done = _Shipped(self, task)
 
-        def unpack(f: Future[tuple[str, bytes, int]]) -> None:
-            if f.cancelled() or done.cancelled():  # the campaign was stopped: nothing to keep
-                done.cancel()
-                return
-            err = f.exception()
-            if err is not None:
-                done.set_exception(err)
+        def unpack(f: Any) -> None:  # on a thread of the client's
+            if done.cancelled():  # the campaign was stopped before this episode started
                 return
             try:
                 text, archive, pack_ns = f.result()
                 t0 = time.perf_counter_ns()
                 unpack_episode(archive, out / "episodes", name=episode_dirname(d.index))
                 self.overhead_ns.append(pack_ns + time.perf_counter_ns() - t0)
-                done.set_result(EpisodeResult(**json.loads(text)))
-            except Exception as e:  # noqa: BLE001 - recorded as the episode's error
-                done.set_exception(e)
+                result: EpisodeResult | BaseException = EpisodeResult(**json.loads(text))
+            except BaseException as e:  # noqa: BLE001 - recorded as the episode's error
+                result = e
+            try:
+                if isinstance(result, BaseException):
+                    done.set_exception(result)
+                else:
+                    done.set_result(result)
+            except InvalidStateError:  # cancelled meanwhile
+                pass
 
-        inner.add_done_callback(unpack)
+        task.add_done_callback(unpack)
         return done
+
+    def executing(self) -> set[str]:
+        """Keys of the tasks the cluster's workers are running now."""
+        return {k for keys in self.client.run(_executing_keys).values() for k in keys}
 
     def reset(self) -> None:
         """Nothing to rebuild: Dask reschedules a lost worker's tasks itself."""
