@@ -100,7 +100,9 @@ def calibration_config(cfg: RunConfig, *, truth_path: Path, transport: Transport
         # where the harness connects (or connects where the harness listens).
         z = tgt["zenoh"]
         side = ["--connect", z["listen"][0]] if z["listen"] else ["--listen", (z["connect"] or ["tcp/127.0.0.1:{port}"])[0]]
-        args += ["--transport", "zenoh", *side, "--vehicle", "{vehicle_id}", "--key-prefix", z["key_prefix"]]
+        # No --key-prefix: the harness hands a target it starts the run's keys in
+        # HIL_ZENOH_KEY_PREFIX (per-run keys, so no other target can answer).
+        args += ["--transport", "zenoh", *side, "--vehicle", "{vehicle_id}"]
     tgt["args"] = args
     data["progress"] = False
     return parse_config(data, source="calibrate")
