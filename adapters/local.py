@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO
 
 from adapters import protocol
-from adapters.process import die_with_parent, end_process
+from adapters.process import die_with_parent, end_process, prioritise_this_thread
 from adapters.link import Link, Received
 from adapters.messages import Hello, MsgType
 from adapters.shm import (DEFAULT_INLINE_BELOW, DEFAULT_SLOT_BYTES, DEFAULT_SLOTS, ENV_SHM, SHM_FRAMES,
@@ -164,6 +164,7 @@ class LocalLink(Link):
 
     def _read_loop(self) -> None:
         assert self._sock is not None
+        prioritise_this_thread()  # receipt stamps must not wait behind analysis or recording
         sock = self._sock
         while True:
             try:

@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from adapters.link import ProtocolFault, Received
+from adapters.process import prioritise_this_thread
 from adapters.protocol import ErrorCode
 from adapters.messages import CameraInfo, Command, ErrorMsg, Estimate, Heartbeat, ImageEncoding
 from harness import foxglove_out
@@ -188,6 +189,7 @@ class SimLoop:
         # The links' readers and the engine's pumps stamp and hand over in threads:
         # let them have the interpreter within 0.5 ms, not Python's default 5 ms.
         sys.setswitchinterval(0.0005)
+        boosted = prioritise_this_thread()  # (root) served before the analysis and recording threads
         cpu0 = time.thread_time_ns()
         try:
             return self._run()
@@ -197,6 +199,8 @@ class SimLoop:
             self.stats.analysis_cpu_ns = self.analysis.cpu_ns
             self.stats.analysis_dropped = self.analysis.dropped
             sys.setswitchinterval(switch)
+            if boosted:
+                prioritise_this_thread(0)
             gc.set_threshold(*thresholds)
             gc.unfreeze()
 
