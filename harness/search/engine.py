@@ -166,8 +166,10 @@ class DaskEngine:
                 self.client = Client(self._cluster, timeout=timeout_s)
             else:
                 self.client = Client(scheduler, timeout=timeout_s)
-        except (OSError, TimeoutError) as err:
+        except (OSError, TimeoutError, RuntimeError) as err:
             self.close()
+            if scheduler is None:
+                raise ConfigError(f"--engine dask: the local Dask cluster did not start ({err})") from err
             raise ConfigError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({err})") from err
         daemonic = sorted(w for w, d in self.client.run(_is_daemon).items() if d)
         if daemonic:
