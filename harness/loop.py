@@ -68,6 +68,10 @@ from timing.records import FrameStatus, PipelineRecord
 MAX_PROTOCOL_EVENTS = 200  # per vehicle; beyond, counted (summary: protocol_events_unwritten)
 TICK_NS = 20_000_000         # observers' on_tick and the live display, at most this often
 PHYSICS_END_TIMEOUT_S = 10.0
+# How long a thread of the run process may hold the interpreter while another waits:
+# the loop thread gets it back within this of a frame or an estimate arriving, even
+# while the analysis and recording threads are busy (Python's default is 5 ms).
+SWITCH_INTERVAL_S = 0.0001
 
 
 def encode_image(rgb: np.ndarray, camera: CameraConfig) -> tuple[bytes, ImageEncoding]:
@@ -186,9 +190,8 @@ class SimLoop:
         gc.collect()
         gc.freeze()
         gc.set_threshold(thresholds[0], thresholds[1], 1_000_000)
-        # The links' readers and the engine's pumps stamp and hand over in threads:
-        # let them have the interpreter within 0.5 ms, not Python's default 5 ms.
-        sys.setswitchinterval(0.0005)
+        # The links' readers and the engine's pumps stamp and hand over in threads.
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
         boosted = prioritise_this_thread()  # (root) served before the analysis and recording threads
         cpu0 = time.thread_time_ns()
         try:

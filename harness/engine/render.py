@@ -94,6 +94,11 @@ def render_main(conn: Connection, jobs: Connection, spec: RenderSpec, parent_pid
     from multiprocessing.connection import wait
 
     die_with_parent(parent_pid)
+    # On the capture path: served before the targets and the run's analysis where the
+    # harness may (root). Set before the GL context, so its render threads inherit it.
+    from adapters.process import prioritise_this_thread
+
+    prioritise_this_thread()
     slots: dict[str, FrameSlots] = {}
     try:
         from scenarios.sim import Simulation
