@@ -105,8 +105,10 @@ def render_main(conn: Connection, jobs: Connection, spec: RenderSpec, parent_pid
 
         sim = Simulation(spec.world)
         sim.open_renderer()
-        for name in spec.vehicles:  # first renders compile shaders: keep them out of the run
-            sim.render(name)
+        # The first render compiles shaders and the first encode sets the encoder up:
+        # both happen here, not on the run's first frame.
+        for name in spec.vehicles:
+            encode_image(sim.render(name), jpeg=spec.jpeg, quality=spec.jpeg_quality)
             if spec.visible_boxes:
                 sim.camera_truth(name, min_visible_px=spec.min_visible_px)
         slots = {v: FrameSlots(slot_bytes=spec.slot_bytes, name=spec.shm[v]) for v in spec.vehicles}
