@@ -277,8 +277,12 @@ def serve_endpoint(ep: Endpoint) -> None:
     if not fd_text or not fd_text.isdigit():
         raise TransportError("HIL_LOCAL_FD is not set: a local target is started by the harness "
                              "(hil run), not by hand")
-    sock = socket.socket(fileno=int(fd_text))
-    ring = ShmReader.from_env()
+    serve_socket(ep, socket.socket(fileno=int(fd_text)), ShmReader.from_env())
+
+
+def serve_socket(ep: Endpoint, sock: socket.socket, ring: ShmReader | None) -> None:
+    """Serve one harness's stream on ``sock`` (frames inline or through ``ring``) until
+    it ends; closes both. The shared target serves each vehicle's socket with this."""
     decoder = LocalStreamDecoder()
     send: Callable[[bytes], None] = sock.sendall
     if ring is not None:
@@ -310,4 +314,4 @@ def serve_endpoint(ep: Endpoint) -> None:
             ring.close()
 
 
-__all__ = ["ENV_FD", "LocalLink", "LocalStats", "serve_endpoint"]
+__all__ = ["ENV_FD", "LocalLink", "LocalStats", "serve_endpoint", "serve_socket"]

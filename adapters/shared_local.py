@@ -27,10 +27,10 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 from adapters.batching import ENV_CTL, BatchedEndpoint, BatchScheduler
-from adapters.local import _RECV_BYTES, _SOCK_BUF, LocalLink, _advertising
+from adapters.local import _SOCK_BUF, LocalLink, serve_socket
 from adapters.process import die_with_parent, end_process
-from adapters.shm import SHM_FRAMES, LocalStreamDecoder, Notice, ShmReader, ShmRing
-from timing.errors import ProtocolError, TargetError, TransportError
+from adapters.shm import ShmReader, ShmRing
+from timing.errors import TargetError, TransportError
 
 _ATTACH = struct.Struct("<II")
 _HAS_RING = 1
@@ -151,35 +151,7 @@ class SharedLocalLink(LocalLink):
 
 def _serve_socket(ep: BatchedEndpoint, sock: socket.socket, ring: ShmReader | None) -> None:
     """One vehicle's socket, as ``adapters.local.serve_endpoint`` serves its one."""
-    decoder = LocalStreamDecoder()
-    send: Callable[[bytes], None] = sock.sendall
-    if ring is not None:
-        send = _advertising(send, SHM_FRAMES)
-    try:
-        ep.start(send)
-        while not ep.stopped:
-            try:
-                data = sock.recv(_RECV_BYTES)
-            except OSError:
-                break
-            t_rx = ep.clock.now_ns()
-            if not data:
-                break
-            for item in decoder.feed(data):
-                if isinstance(item, Notice):
-                    if ring is None:
-                        item = ProtocolError("shared-memory notice, but no frame ring was negotiated", offset=0)
-                    else:
-                        got = ring.read(item)
-                        if got is None:
-                            continue  # overwritten before it was read: the harness counted it
-                        item = got
-                ep.on_message(item, t_rx)
-    finally:
-        ep.join()
-        sock.close()
-        if ring is not None:
-            ring.close()
+    serve_socket(ep, sock, ring)
 
 
 def serve_shared(scheduler: BatchScheduler, make_endpoint: Callable[[], BatchedEndpoint],
