@@ -62,6 +62,12 @@ def _start(out: Path, *sets: str) -> subprocess.Popen[str]:
     return subprocess.Popen(args, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+def _wait_for_frames(p: subprocess.Popen[str], out: Path) -> None:
+    """Until the run records frames: by then its loop runs and every child has started."""
+    assert _wait_for(lambda: (out / "run.mcap").exists() and (out / "run.mcap").stat().st_size > 50_000, 90), \
+        p.stderr.read() if p.poll() is not None and p.stderr else "no frames recorded"
+
+
 def _shm() -> set[str]:
     return {p.name for p in Path("/dev/shm").glob("psm_*")}
 
@@ -72,9 +78,7 @@ def test_sigkill_mid_run_leaves_no_process_and_no_shared_memory(tmp_path):
     out = tmp_path / "run"
     p = _start(out, "duration_s=60")
     try:
-        # The loop runs once frames are recorded; by then every child has started.
-        assert _wait_for(lambda: (out / "run.mcap").exists() and (out / "run.mcap").stat().st_size > 50_000, 90), \
-            p.stderr.read() if p.poll() is not None else "no frames recorded"
+        _wait_for_frames(p, out)
         kids = _children(p.pid)
         names = {Path(f"/proc/{k}/cmdline").read_bytes().replace(b"\0", b" ")[:200] for k in kids if _alive(k)}
         assert len(kids) >= 3, names  # physics, a render worker, the target (and the resource tracker)
@@ -123,8 +127,7 @@ def test_a_render_worker_crashing_ends_the_run_cleanly(tmp_path):
     out = tmp_path / "run"
     p = _start(out, "duration_s=60")
     try:
-        assert _wait_for(lambda: (out / "run.mcap").exists() and (out / "run.mcap").stat().st_size > 50_000, 90), \
-            p.stderr.read() if p.poll() is not None else "no frames recorded"
+        _wait_for_frames(p, out)
         kids = _children(p.pid)
         workers = [k for k in kids if b"multiprocessing.spawn" in _cmdline(k)]
         assert len(workers) >= 2, [_cmdline(k)[:120] for k in kids]  # physics + render worker(s)
