@@ -35,7 +35,7 @@ from scenarios.render import SceneRenderer
 from scenarios.vehicle import EgoActuators, VehicleLimits, VehicleState
 from scenarios.visibility import pixel_boxes, silhouette_area
 from scenarios.world import VehicleSpec, WorldSpec, build_mjcf, camera_name
-from timing.errors import SimulationError
+from hil_errors import SimulationError
 
 
 @dataclass(frozen=True)
