@@ -118,7 +118,9 @@ class LocalLink(Link):
             self._ring = None
         return hello
 
-    def _open(self) -> None:
+    def _socket_and_ring(self) -> socket.socket:
+        """Make the frame ring (if asked for and possible) and the socket pair; keeps
+        our end and returns the target's."""
         use_shm, slots, slot_bytes = self._shm
         if use_shm:
             try:
@@ -130,6 +132,10 @@ class LocalLink(Link):
             s.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, _SOCK_BUF)
             s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, _SOCK_BUF)
         self._sock = ours
+        return theirs
+
+    def _open(self) -> None:
+        theirs = self._socket_and_ring()
         env = dict(os.environ if self._env is None else self._env)
         env[ENV_FD] = str(theirs.fileno())
         env.pop(ENV_SHM, None)

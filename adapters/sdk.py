@@ -201,16 +201,22 @@ class Endpoint:
 
     # -- inference worker --------------------------------------------------------
 
+    def _next_frame(self) -> tuple[Frame, int] | None:
+        """Wait for the newest pending frame (and its receipt time); None once stopped."""
+        with self._cv:
+            while self._pending is None and not self._stopped.is_set():
+                self._cv.wait()
+            if self._stopped.is_set():
+                return None
+            assert self._pending is not None
+            item, self._pending = self._pending, None
+            return item
+
     def _work(self) -> None:
         while True:
-            with self._cv:
-                while self._pending is None and not self._stopped.is_set():
-                    self._cv.wait()
-                if self._stopped.is_set():
-                    return
-                assert self._pending is not None
-                frame, t_rx = self._pending
-                self._pending = None
+            if (item := self._next_frame()) is None:
+                return
+            frame, t_rx = item
             t_start = self.clock.now_ns()
             try:
                 result = self.infer(frame)

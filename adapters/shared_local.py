@@ -27,9 +27,9 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 from adapters.batching import ENV_CTL, BatchedEndpoint, BatchScheduler
-from adapters.local import _SOCK_BUF, LocalLink, serve_socket
+from adapters.local import LocalLink, serve_socket
 from adapters.process import die_with_parent, end_process
-from adapters.shm import ShmReader, ShmRing
+from adapters.shm import ShmReader
 from timing.errors import TargetError, TransportError
 
 _ATTACH = struct.Struct("<II")
@@ -120,17 +120,7 @@ class SharedLocalLink(LocalLink):
         self.host = host
 
     def _open(self) -> None:
-        use_shm, slots, slot_bytes = self._shm
-        if use_shm:
-            try:
-                self._ring = ShmRing(slots=slots, slot_bytes=slot_bytes)
-            except TransportError as err:  # an optimisation only: frames go inline
-                self.stats.last_error = f"no shared-memory frame ring, frames go inline: {err}"
-        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
-        for s in (ours, theirs):
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, _SOCK_BUF)
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, _SOCK_BUF)
-        self._sock = ours
+        theirs = self._socket_and_ring()
         self._proc = self.host.proc  # for the exit reason; never ended by this link
         try:
             self.host.attach(self.vehicle_id, theirs.fileno(), None if self._ring is None else self._ring.fd)

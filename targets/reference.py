@@ -182,14 +182,9 @@ class ReferenceEndpoint(Endpoint):
 
     def _work(self) -> None:
         while True:
-            with self._cv:
-                while self._pending is None and not self._stopped.is_set():
-                    self._cv.wait()
-                if self._stopped.is_set():
-                    return
-                assert self._pending is not None
-                frame, t_rx = self._pending
-                self._pending = None
+            if (item := self._next_frame()) is None:
+                return
+            frame, t_rx = item
             fid = frame.frame_id
             try:
                 self._handle(frame, t_rx)
