@@ -10,20 +10,20 @@ STAMP  := $(VENV)/.installed
 run: $(STAMP)
 	$(BIN)/hil run hil_configs/demo.yaml
 
-# The type checker first (what it checks and how strictly: [tool.mypy] in pyproject.toml), then the suite.
+# The type checker first (tools/typecheck.py; how strictly: [tool.mypy] in pyproject.toml), then the suite.
 test: $(STAMP)
 	@bash tools/install_chromium.sh
-	$(BIN)/python -m mypy
+	$(BIN)/python tools/typecheck.py
 	$(BIN)/python -m pytest -q
 
 install: $(STAMP)
 
-$(STAMP): pyproject.toml constraints.txt Makefile tools/check_system.sh
+$(STAMP): pyproject.toml sdk/pyproject.toml setup.py constraints.txt Makefile tools/check_system.sh
 	@bash tools/check_system.sh "$(PYTHON)"
 	@test -x $(BIN)/python || $$(bash tools/check_system.sh --print-python "$(PYTHON)") -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[dev,ai]" -c constraints.txt
-	@$(BIN)/python -m scenarios.gl || bash tools/check_system.sh --gl-help
+	$(BIN)/python -m pip install --quiet -e ./sdk -e ".[dev,ai]" -c constraints.txt
+	@$(BIN)/python -m hil.scenarios.gl || bash tools/check_system.sh --gl-help
 	@touch $(STAMP)
 
 clean:

@@ -34,15 +34,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
 
-from adapters import protocol, transports
-from adapters.messages import ErrorMsg, Estimate, Frame, Inference, Message
-from adapters.sdk import CommandFn, Endpoint
-from timing.clock import Clock, MonotonicClock
-from timing.errors import ConfigError, ProtocolError, TransportError
+from hil.adapters import protocol, transports
+from hil.adapters.messages import ErrorMsg, Estimate, Frame, Inference, Message
+from hil.adapters.sdk import CommandFn, Endpoint
+from hil.common.errors import ConfigError, ProtocolError, TransportError
+from hil.timing.clock import Clock, MonotonicClock
 
 BatchInferFn = Callable[[Sequence[Frame]], Sequence[Inference]]
 ENV_BATCH_LOG = "HIL_BATCH_LOG"
-ENV_CTL = "HIL_LOCAL_CTL"  # a shared local target's control socket (adapters.shared_local)
+ENV_CTL = "HIL_LOCAL_CTL"  # a shared local target's control socket (hil.adapters.shared_local)
 DEFAULT_WINDOW_NS = 2_000_000
 DEFAULT_MAX_BATCH = 16
 BATCH_LOG_HEADER = "batch,batch_size,vehicle_id,frame_id,t_rx_ns,t_infer_start_ns,t_infer_end_ns\n"
@@ -317,8 +317,8 @@ def serve_batched(infer_batch: BatchInferFn, *, target_name: str, transport: str
     """Serve ``infer_batch`` to many vehicles from this one process (a shared target).
 
     ``transport``: ``local`` (started by the harness with ``target.shared: true``:
-    vehicles arrive over ``HIL_LOCAL_CTL``, ``adapters.shared_local``) or ``zenoh``
-    (one session, the keys of each of ``vehicles``, ``adapters.shared_zenoh``).
+    vehicles arrive over ``HIL_LOCAL_CTL``, ``hil.adapters.shared_local``) or ``zenoh``
+    (one session, the keys of each of ``vehicles``, ``hil.adapters.shared_zenoh``).
     ``announce`` gets one line when serving ends (default: stderr): the batch counts.
 
     Raises:
@@ -331,7 +331,7 @@ def serve_batched(infer_batch: BatchInferFn, *, target_name: str, transport: str
         return BatchedEndpoint(scheduler, target_name=target_name, on_command=on_command)
 
     try:
-        # The transport's serve_shared, from the table in adapters.transports.
+        # The transport's serve_shared, from the table in hil.adapters.transports.
         kind = transports.transport_of(transport)
         serve_shared = transports.shared_serve_function(kind)
         if kind is transports.Transport.LOCAL:

@@ -1,7 +1,7 @@
 """How many camera frames per second a real CAN (FD) bus carries: the bit-level math.
 
 ``bus_capacity`` counts every bit a frame costs on the wire, in the phase it is sent in,
-for the frames the CAN transport (``adapters.can_transport``) sends:
+for the frames the CAN transport (``hil.adapters.can_transport``) sends:
 
 * CAN FD frame with a 29-bit id and bit rate switch. At the **nominal** bitrate: SOF,
   base id, SRR, IDE, extended id, RRS, FDF, res, BRS (36 bits), then CRC delimiter,
@@ -36,7 +36,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from timing.errors import ConfigError
+from hil.common.errors import ConfigError
 
 FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
 TYPICAL_STUFF_RATE = 0.033  # stuff bits per stuffable bit on random data

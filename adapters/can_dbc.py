@@ -1,4 +1,4 @@
-"""The small messages as native CAN FD frames: ``hil.dbc`` <-> ``adapters.messages``.
+"""The small messages as native CAN FD frames: ``hil.dbc`` <-> ``hil.adapters.messages``.
 
 ``hil.dbc`` (shipped next to this module) defines every frame with signals, so an ECU
 developer reads and writes them with the usual tools; this module loads it with
@@ -36,9 +36,9 @@ try:
 except ImportError as err:  # pragma: no cover - depends on the install
     raise ImportError("the CAN transport needs cantools: pip install 'cantools>=39'") from err
 
-from adapters.messages import (Bye, ClockId, Control, DetectedObject, DrivingState, ErrorMsg, Estimate,
-                               Heartbeat, Hello, Message, ObjectClass, SyncRequest, SyncResponse)
-from timing.errors import ProtocolError
+from hil.adapters.messages import (Bye, ClockId, Control, DetectedObject, DrivingState, ErrorMsg, Estimate,
+                                   Heartbeat, Hello, Message, ObjectClass, SyncRequest, SyncResponse)
+from hil.common.errors import ProtocolError
 
 DBC_PATH = Path(__file__).with_name("hil.dbc")
 MESSAGE_MASK = 0x1FFF0000  # priority + message number

@@ -1,9 +1,9 @@
 """One side of a vehicle's CAN link on an open bus, shared by the harness's ``CanLink``
-and the target's ``serve_endpoint`` (``adapters.can_transport`` documents the wire).
+and the target's ``serve_endpoint`` (``hil.adapters.can_transport`` documents the wire).
 
 A reader thread owns ``bus.recv``: it stamps each frame on the side's ``Clock`` when
 ``recv`` returns, reassembles ISO-TP (can-isotp's state machine driven frame by frame,
-so a message is stamped with its last frame), decodes DBC frames (``adapters.can_dbc``),
+so a message is stamped with its last frame), decodes DBC frames (``hil.adapters.can_dbc``),
 sends this side's heartbeat every 250 ms and watches the other side's. A sender thread
 runs ISO-TP transmissions (waiting for flow control), so a camera frame in flight never
 delays receive stamps. DBC frames are sent at once from the caller's thread.
@@ -27,11 +27,11 @@ try:
 except ImportError as err:  # pragma: no cover - depends on the install
     raise ImportError("the CAN transport needs can-isotp: pip install 'can-isotp>=2.0'") from err
 
-from adapters import protocol
-from adapters.can_dbc import MESSAGE_MASK, VEHICLE_MASK, HilCan, Role
-from adapters.messages import Bye, Heartbeat, Hello, Message, MsgType
-from timing.clock import Clock
-from timing.errors import ProtocolError, TransportError
+from hil.adapters import protocol
+from hil.adapters.can_dbc import MESSAGE_MASK, VEHICLE_MASK, HilCan, Role
+from hil.adapters.messages import Bye, Heartbeat, Hello, Message, MsgType
+from hil.common.errors import ProtocolError, TransportError
+from hil.timing.clock import Clock
 
 HEARTBEAT_PERIOD_S = 0.25
 HEARTBEAT_TIMEOUT_S = 0.75  # three missed heartbeats
@@ -141,7 +141,7 @@ class CanPeer:
                         return
             if len(self._tx_box) >= TX_QUEUE_LIMIT:
                 raise TransportError(f"ISO-TP send queue full ({TX_QUEUE_LIMIT} messages waiting): the CAN bus "
-                                     f"does not carry what is sent; see adapters.can_capacity.bus_capacity")
+                                     f"does not carry what is sent; see hil.adapters.can_capacity.bus_capacity")
             self._tx_box.append((buf, is_frame))
             self._tx_cv.notify()
 

@@ -1,7 +1,7 @@
 """The CAN transport: a device on a CAN FD bus (python-can, cantools, can-isotp).
 
 Two ways over the wire (PROTOCOL.md section 10.3 has the full specification, ``hil.dbc``
-the frames, ``adapters.can_dbc`` the id layout ``P << 26 | M << 16 | vehicle``):
+the frames, ``hil.adapters.can_dbc`` the id layout ``P << 26 | M << 16 | vehicle``):
 
 ================  =========  ===========================================  =========
 message           direction  on CAN                                       priority
@@ -20,7 +20,7 @@ anything else     both       ISO-TP, PROTOCOL.md bytes                    6 (FC 
 ================  =========  ===========================================  =========
 
 "Anything else": a message the DBC frames cannot carry exactly (see
-``adapters.can_dbc``) and bytes that are not a valid message (``Link.send_raw``).
+``hil.adapters.can_dbc``) and bytes that are not a valid message (``Link.send_raw``).
 ISO-TP (ISO 15765-2) runs on CAN FD 64-byte frames, block size 0, STmin 0, with one
 address pair per vehicle per direction: HIL_ISOTP_UP_DATA/UP_FC (harness -> target)
 and HIL_ISOTP_DOWN_DATA/DOWN_FC (target -> harness); ``max_frame_size`` is
@@ -40,11 +40,11 @@ mapped onto it), not the harness clock, so it is not used.
 Camera frames are newest-wins: while one is in transmission, a newer frame replaces
 the one waiting (``CanLink.frames_superseded`` counts them; the harness sees them as
 dropped). ``camera_over="none"`` is a mixed target: frames travel over Zenoh
-(``adapters.mixed``) and sending one here raises.
+(``hil.adapters.mixed``) and sending one here raises.
 
 python-can's ``virtual`` interface works within one process and has no bit timing
-(``adapters.can_capacity`` gives a real bus's limits). Only buses on this machine are
-accepted (``adapters.can_interfaces``): network interfaces would send frames off it.
+(``hil.adapters.can_capacity`` gives a real bus's limits). Only buses on this machine are
+accepted (``hil.adapters.can_interfaces``): network interfaces would send frames off it.
 """
 
 from __future__ import annotations
@@ -57,18 +57,18 @@ try:
 except ImportError as err:  # pragma: no cover - depends on the install
     raise ImportError("the CAN transport needs python-can: pip install 'python-can>=4.6,<5'") from err
 
-from adapters import protocol
-from adapters.can_capacity import CapacityReport, bus_capacity
-from adapters.can_dbc import MAX_VEHICLE_ID, VEHICLE_MASK, Role
-from adapters.can_peer import HEARTBEAT_TIMEOUT_S, CanPeer, CanStats
-from adapters.link import Link, Received
-from adapters.messages import Bye, Hello, Message
-from adapters.can_interfaces import LOCAL_INTERFACES
-from timing.clock import Clock
-from timing.errors import ConfigError, ProtocolError, TransportError
+from hil.adapters import protocol
+from hil.adapters.can_capacity import CapacityReport, bus_capacity
+from hil.adapters.can_dbc import MAX_VEHICLE_ID, VEHICLE_MASK, Role
+from hil.adapters.can_interfaces import LOCAL_INTERFACES
+from hil.adapters.can_peer import HEARTBEAT_TIMEOUT_S, CanPeer, CanStats
+from hil.adapters.link import Link, Received
+from hil.adapters.messages import Bye, Hello, Message
+from hil.common.errors import ConfigError, ProtocolError, TransportError
+from hil.timing.clock import Clock
 
 if TYPE_CHECKING:
-    from adapters.sdk import Endpoint
+    from hil.adapters.sdk import Endpoint
 
 def check_interface(interface: str) -> None:
     """Raise ``ConfigError`` unless ``interface`` is a local bus (``LOCAL_INTERFACES``)."""

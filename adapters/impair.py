@@ -44,10 +44,10 @@ from typing import Any
 
 import numpy as np
 
-from adapters import protocol
-from adapters.messages import Bye, Estimate, Hello, MsgType, SyncRequest, SyncResponse
-from timing.clock import Clock
-from timing.errors import ProtocolError
+from hil.adapters import protocol
+from hil.adapters.messages import Bye, Estimate, Hello, MsgType, SyncRequest, SyncResponse
+from hil.common.errors import ProtocolError
+from hil.timing.clock import Clock
 
 
 class Direction(str, Enum):

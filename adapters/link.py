@@ -22,15 +22,15 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from adapters import protocol, transports
-from adapters.impair import LinkImpairment
-from adapters.stream import StreamDecoder
-from adapters.messages import (Bye, CameraInfo, Command, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
-                               Message, SyncRequest,
-                               SyncResponse)
-from timing.clock import Clock
-from timing.sync import SyncSample
-from timing.errors import ProtocolError, TargetError, TransportError
+from hil.adapters import protocol, transports
+from hil.adapters.impair import LinkImpairment
+from hil.adapters.messages import (Bye, CameraInfo, Command, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
+                                   Message, SyncRequest,
+                                   SyncResponse)
+from hil.adapters.stream import StreamDecoder
+from hil.common.errors import ProtocolError, TargetError, TransportError
+from hil.timing.clock import Clock
+from hil.timing.sync import SyncSample
 
 
 @dataclass(frozen=True)
@@ -344,12 +344,12 @@ class Link(ABC):
     def _close_transport(self) -> None: ...
 
 
-TRANSPORTS = transports.NAMES  # the transport names, from the table in adapters.transports
+TRANSPORTS = transports.NAMES  # the transport names, from the table in hil.adapters.transports
 
 
 def open_link(transport: str | transports.Transport, **options: object) -> Link:
     """Build the link for ``transport`` by name (not yet opened). The link class is
-    looked up in :data:`adapters.transports.BACKENDS` and its module imported only
+    looked up in :data:`hil.adapters.transports.BACKENDS` and its module imported only
     now, so zenoh and python-can stay optional and this module imports no transport.
 
     Raises:

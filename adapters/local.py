@@ -6,13 +6,13 @@ Messages travel back-to-back on the stream (PROTOCOL.md section 10.1). The child
 stdout and stderr go to a log file so a failure can be explained in one line.
 
 Camera frames of ``shm_inline_below`` bytes and more go through shared memory when
-the target says it can read them (``adapters.shm``: a ring of slots in an anonymous
+the target says it can read them (``hil.adapters.shm``: a ring of slots in an anonymous
 segment whose descriptor is in ``HIL_LOCAL_SHM``; HELLO capability bit 0); the
 socket then carries a 32-byte notice in place of the frame. A frame larger than a
 slot, and every frame to a target without the capability, goes inline.
 
 Both halves live here: ``LocalLink`` (harness) and ``serve_endpoint`` (the child,
-used by ``adapters.sdk.serve``).
+used by ``hil.adapters.sdk.serve``).
 """
 
 from __future__ import annotations
@@ -28,17 +28,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO
 
-from adapters import protocol
-from adapters.process import die_with_parent, end_process, prioritise_this_thread
-from adapters.link import Link, Received
-from adapters.messages import Hello, MsgType
-from adapters.shm import (DEFAULT_INLINE_BELOW, DEFAULT_SLOT_BYTES, DEFAULT_SLOTS, ENV_SHM, SHM_FRAMES,
-                          LocalStreamDecoder, Notice, ShmReader, ShmRing)
-from timing.clock import Clock
-from timing.errors import ProtocolError, TargetError, TransportError
+from hil.adapters import protocol
+from hil.adapters.link import Link, Received
+from hil.adapters.messages import Hello, MsgType
+from hil.adapters.process import die_with_parent, end_process, prioritise_this_thread
+from hil.adapters.shm import (DEFAULT_INLINE_BELOW, DEFAULT_SLOT_BYTES, DEFAULT_SLOTS, ENV_SHM, SHM_FRAMES,
+                              LocalStreamDecoder, Notice, ShmReader, ShmRing)
+from hil.common.errors import ProtocolError, TargetError, TransportError
+from hil.timing.clock import Clock
 
 if TYPE_CHECKING:
-    from adapters.sdk import Endpoint
+    from hil.adapters.sdk import Endpoint
 
 ENV_FD = "HIL_LOCAL_FD"
 _SOCK_BUF = 4 * 1024 * 1024

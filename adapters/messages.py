@@ -6,7 +6,7 @@ origin at the image's top-left corner. Object positions are in the camera-ground
 frame: origin on the road directly under the camera, x forward along the camera's
 heading, y left, z up.
 
-Byte layouts are in ``PROTOCOL.md``; ``adapters.protocol`` encodes and decodes.
+Byte layouts are in ``PROTOCOL.md``; ``hil.adapters.protocol`` encodes and decodes.
 """
 
 from __future__ import annotations
@@ -196,7 +196,7 @@ class Command:
     """A line of text for the control software of a target (harness -> target, e.g.
     ``"swap detector cv"``), or the target's reply to it (target -> harness, same
     ``seq``). Sent only to a target whose HELLO announced ``CAP_COMMANDS``
-    (``adapters.protocol``). ``t_sender_ns``: the sender's clock at send."""
+    (``hil.adapters.protocol``). ``t_sender_ns``: the sender's clock at send."""
 
     vehicle_id: int
     seq: int

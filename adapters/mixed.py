@@ -8,9 +8,9 @@ takes FRAMEs over Zenoh and does everything else on CAN:
 message                     over   how
 ==========================  =====  ===================================================
 FRAME                       Zenoh  one message per sample on ``{prefix}/v{vehicle}/h2t``
-                                   (``adapters.zenoh_transport.Keys``), put with
+                                   (``hil.adapters.zenoh_transport.Keys``), put with
                                    congestion control BLOCK
-HELLO, ESTIMATE, SYNC_*,    CAN    as the CAN transport (``adapters.can_transport``,
+HELLO, ESTIMATE, SYNC_*,    CAN    as the CAN transport (``hil.adapters.can_transport``,
 HEARTBEAT, ERROR, BYE              ``camera_over="none"``): DBC frames or ISO-TP
 ==========================  =====  ===================================================
 
@@ -38,15 +38,15 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from adapters import protocol
-from adapters.can_peer import HEARTBEAT_TIMEOUT_S
-from adapters.can_transport import CanLink, check_interface
-from adapters.can_transport import serve_endpoint as serve_can
-from adapters.link import Received
-from adapters.messages import Bye, Hello, MsgType
-from adapters.zenoh_transport import CONGESTION, DEFAULT_LEASE_MS, Keys, make_config
-from timing.clock import Clock
-from timing.errors import ConfigError, TargetError, TransportError
+from hil.adapters import protocol
+from hil.adapters.can_peer import HEARTBEAT_TIMEOUT_S
+from hil.adapters.can_transport import CanLink, check_interface
+from hil.adapters.can_transport import serve_endpoint as serve_can
+from hil.adapters.link import Received
+from hil.adapters.messages import Bye, Hello, MsgType
+from hil.adapters.zenoh_transport import CONGESTION, DEFAULT_LEASE_MS, Keys, make_config
+from hil.common.errors import ConfigError, TargetError, TransportError
+from hil.timing.clock import Clock
 
 try:
     import zenoh
@@ -56,7 +56,7 @@ except ImportError as _err:  # pragma: no cover - depends on the install
 if TYPE_CHECKING:
     import can
 
-    from adapters.sdk import Endpoint
+    from hil.adapters.sdk import Endpoint
 
 
 @dataclass
@@ -204,8 +204,8 @@ def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str =
 
     Args:
         bus: an open python-can bus to use (tests pass a ``virtual`` one); the caller
-            keeps ownership. Other CAN options as ``adapters.can_transport.serve_endpoint``,
-            Zenoh options as ``adapters.zenoh_transport.serve_endpoint``.
+            keeps ownership. Other CAN options as ``hil.adapters.can_transport.serve_endpoint``,
+            Zenoh options as ``hil.adapters.zenoh_transport.serve_endpoint``.
 
     Raises:
         ConfigError: an option is invalid, or neither ``listen`` nor ``connect`` is given.

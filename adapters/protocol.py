@@ -24,12 +24,12 @@ from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
 
-from adapters.messages import (
-    Bye, CameraInfo, ClockId, Command, Control, DetectedObject, DrivingState, ErrorMsg, Estimate,
-    Frame, Heartbeat, Hello, ImageEncoding, Message, MsgType, ObjectClass, SyncRequest,
-    SyncResponse,
-)
-from timing.errors import ProtocolError
+from hil.adapters.messages import (
+                                   Bye, CameraInfo, ClockId, Command, Control, DetectedObject, DrivingState, ErrorMsg, Estimate,
+                                   Frame, Heartbeat, Hello, ImageEncoding, Message, MsgType, ObjectClass, SyncRequest,
+                                   SyncResponse,
+                                   )
+from hil.common.errors import ProtocolError
 
 MAGIC = b"HILP"
 VERSION = 1
@@ -270,7 +270,7 @@ def encode(msg: Message, *, payload_crc: bool = False) -> bytes:
     """Encode one message into its wire bytes (header + payload).
 
     Args:
-        msg: any message of ``adapters.messages``. Times are integer ns (i64), ids
+        msg: any message of ``hil.adapters.messages``. Times are integer ns (i64), ids
             u32 (vehicle) and u64 (frame, sequence); floats must be finite float32.
         payload_crc: also protect the payload with a CRC-32 (sets ``FLAG_PAYLOAD_CRC``).
 
@@ -582,8 +582,8 @@ __all__ = [
 
 
 def __getattr__(name: str) -> object:
-    # StreamDecoder moved to adapters.stream (which imports this module); keep the old
+    # StreamDecoder moved to hil.adapters.stream (which imports this module); keep the old
     # name working without an import back.
     if name == "StreamDecoder":
-        return importlib.import_module("adapters.stream").StreamDecoder
-    raise AttributeError(f"module 'adapters.protocol' has no attribute {name!r}")
+        return importlib.import_module("hil.adapters.stream").StreamDecoder
+    raise AttributeError(f"module 'hil.adapters.protocol' has no attribute {name!r}")

@@ -2,8 +2,8 @@
 
 An AI developer writes one function and calls ``serve``::
 
-    from adapters.sdk import serve
-    from adapters.messages import Inference, Control, DrivingState
+    from hil.adapters.messages import Inference, Control, DrivingState
+    from hil.adapters.sdk import serve
 
     def infer(frame):
         return Inference(DrivingState.SAFE, Control(throttle=0.2))
@@ -31,12 +31,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from adapters import protocol, transports
-from adapters.stream import StreamDecoder
-from adapters.messages import (Bye, ClockId, Command, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
-                               Inference, Message, SyncRequest, SyncResponse)
-from timing.clock import Clock, MonotonicClock
-from timing.errors import ProtocolError, TransportError
+from hil.adapters import protocol, transports
+from hil.adapters.messages import (Bye, ClockId, Command, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
+                                   Inference, Message, SyncRequest, SyncResponse)
+from hil.adapters.stream import StreamDecoder
+from hil.common.errors import ProtocolError, TransportError
+from hil.timing.clock import Clock, MonotonicClock
 
 InferFn = Callable[[Frame], Inference]
 CommandFn = Callable[[str], str]  # a COMMAND's text -> the reply's text
@@ -235,7 +235,7 @@ class Endpoint:
             self.stats.estimates_sent += 1
 
 
-TRANSPORTS = transports.NAMES  # the transport names, from the table in adapters.transports
+TRANSPORTS = transports.NAMES  # the transport names, from the table in hil.adapters.transports
 
 
 def add_transport_args(parser: argparse.ArgumentParser) -> None:
@@ -278,7 +278,7 @@ def _zenoh_security(args: argparse.Namespace) -> dict[str, object]:
     out: dict[str, object] = {}
     tls: dict[str, object] = {}
     for item in getattr(args, "tls", None) or []:
-        from adapters.zenoh_options import tls_key_problem
+        from hil.adapters.zenoh_options import tls_key_problem
 
         key, sep, value = item.partition("=")
         problem = "KEY=VALUE, e.g. listen_certificate=dev.pem" if not sep or not key else tls_key_problem(key)
@@ -340,7 +340,7 @@ def serve(infer: InferFn, *, target_name: str, transport: str | transports.Trans
     kind = transports.transport_of(transport)
     if kind is transports.Transport.LOCAL and transport_options:
         raise TransportError(f"the local transport takes no options; got {sorted(transport_options)}")
-    # The transport's serve_endpoint, from the table in adapters.transports (local: the
+    # The transport's serve_endpoint, from the table in hil.adapters.transports (local: the
     # socket in HIL_LOCAL_FD plus the shared-memory frame ring of HIL_LOCAL_SHM).
     transports.serve_function(kind)(ep, **transport_options)
     return ep.stats

@@ -26,11 +26,11 @@ import threading
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
-from adapters.batching import ENV_CTL, BatchedEndpoint, BatchScheduler
-from adapters.local import LocalLink, serve_socket
-from adapters.process import die_with_parent, end_process
-from adapters.shm import ShmReader
-from timing.errors import TargetError, TransportError
+from hil.adapters.batching import ENV_CTL, BatchedEndpoint, BatchScheduler
+from hil.adapters.local import LocalLink, serve_socket
+from hil.adapters.process import die_with_parent, end_process
+from hil.adapters.shm import ShmReader
+from hil.common.errors import TargetError, TransportError
 
 _ATTACH = struct.Struct("<II")
 _HAS_RING = 1
@@ -40,7 +40,7 @@ class SharedLocalTarget:
     """The one target process of a shared local target, and its control socket.
 
     Args:
-        command: the program (it must serve ``HIL_LOCAL_CTL``, e.g. ``targets.cnn --shared``).
+        command: the program (it must serve ``HIL_LOCAL_CTL``, e.g. ``hil.targets.cnn --shared``).
         log_path: receives its stdout and stderr.
         env: extra environment entries (e.g. ``HIL_BATCH_LOG``).
 
@@ -140,7 +140,7 @@ class SharedLocalLink(LocalLink):
 
 
 def _serve_socket(ep: BatchedEndpoint, sock: socket.socket, ring: ShmReader | None) -> None:
-    """One vehicle's socket, as ``adapters.local.serve_endpoint`` serves its one."""
+    """One vehicle's socket, as ``hil.adapters.local.serve_endpoint`` serves its one."""
     serve_socket(ep, sock, ring)
 
 

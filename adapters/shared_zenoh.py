@@ -1,9 +1,9 @@
 """A shared target over Zenoh: one session subscribed to every served vehicle's keys.
 
-Each vehicle keeps the keys, handshake and liveness of ``adapters.zenoh_transport``
+Each vehicle keeps the keys, handshake and liveness of ``hil.adapters.zenoh_transport``
 (``{prefix}/{vehicle}/h2t`` and so on): a harness reaches vehicle ``v`` of the
 shared target as it would reach a target of its own, at the one endpoint the shared
-target listens on. Each vehicle is served by ``adapters.zenoh_target``'s
+target listens on. Each vehicle is served by ``hil.adapters.zenoh_target``'s
 one-harness loop on its own thread with a ``BatchedEndpoint``; all of them feed one
 ``BatchScheduler``. It serves one run per vehicle (or, with ``keep_serving``, run
 after run) until SIGTERM/Ctrl-C.
@@ -16,10 +16,10 @@ import sys
 import threading
 from collections.abc import Callable, Mapping, Sequence
 
-from adapters.batching import BatchedEndpoint, BatchScheduler
-from adapters.zenoh_target import _serve_one, _security, startup_line
-from adapters.zenoh_transport import CLOSE_TIMEOUT_S, DEFAULT_LEASE_MS, Keys, _open_session, close_session, make_config
-from timing.errors import ConfigError
+from hil.adapters.batching import BatchedEndpoint, BatchScheduler
+from hil.adapters.zenoh_target import _serve_one, _security, startup_line
+from hil.adapters.zenoh_transport import CLOSE_TIMEOUT_S, DEFAULT_LEASE_MS, Keys, _open_session, close_session, make_config
+from hil.common.errors import ConfigError
 
 
 def serve_shared(scheduler: BatchScheduler, make_endpoint: Callable[[], BatchedEndpoint], *,

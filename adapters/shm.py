@@ -40,10 +40,10 @@ import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from adapters.messages import Message
-from adapters.protocol import (HEADER_SIZE, MAGIC, STREAM_BUFFER_LIMIT, Header, decode, decode_header,
-                               magic_error)
-from timing.errors import ProtocolError, TransportError
+from hil.adapters.messages import Message
+from hil.adapters.protocol import (HEADER_SIZE, MAGIC, STREAM_BUFFER_LIMIT, Header, decode, decode_header,
+                                   magic_error)
+from hil.common.errors import ProtocolError, TransportError
 
 ENV_SHM = "HIL_LOCAL_SHM"
 SHM_FRAMES = 0x0000_0001  # HELLO capability bit 0: the target reads frames from the ring
@@ -332,7 +332,7 @@ class LocalStreamDecoder:
     once the ring is negotiated, notices, back to back. ``feed`` returns
     ``Message``, ``Notice`` and ``ProtocolError`` items in order.
 
-    Follows PROTOCOL.md section 8 as ``adapters.stream.StreamDecoder`` does, with
+    Follows PROTOCOL.md section 8 as ``hil.adapters.stream.StreamDecoder`` does, with
     ``NOTICE_MAGIC`` as a second magic: a bad header or notice is reported once, then
     the decoder skips to the next magic of either kind. Never holds more than
     ``STREAM_BUFFER_LIMIT`` bytes.

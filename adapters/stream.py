@@ -7,10 +7,10 @@ completed and resynchronises on the next magic after a bad header (PROTOCOL.md,
 
 from __future__ import annotations
 
-from adapters.messages import Message
-from adapters.protocol import (HEADER_SIZE, MAGIC, STREAM_BUFFER_LIMIT, Header, as_view, decode,
-                               decode_header, magic_error)
-from timing.errors import ProtocolError
+from hil.adapters.messages import Message
+from hil.adapters.protocol import (HEADER_SIZE, MAGIC, STREAM_BUFFER_LIMIT, Header, as_view, decode,
+                                   decode_header, magic_error)
+from hil.common.errors import ProtocolError
 
 
 class StreamDecoder:

@@ -20,7 +20,7 @@ whenever it has sent nothing for 250 ms, so unacknowledged data times out within
 about a second.
 
 Both halves live here: ``TcpLink`` (harness) and ``serve_endpoint`` (the target, used
-by ``adapters.sdk.serve``). Standard library only.
+by ``hil.adapters.sdk.serve``). Standard library only.
 """
 
 from __future__ import annotations
@@ -33,14 +33,14 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from adapters import protocol
-from adapters.link import Link, Received
-from adapters.messages import Heartbeat, Hello
-from timing.clock import Clock
-from timing.errors import TargetError, TransportError
+from hil.adapters import protocol
+from hil.adapters.link import Link, Received
+from hil.adapters.messages import Heartbeat, Hello
+from hil.common.errors import TargetError, TransportError
+from hil.timing.clock import Clock
 
 if TYPE_CHECKING:
-    from adapters.sdk import Endpoint
+    from hil.adapters.sdk import Endpoint
 
 DEFAULT_PORT = 7600
 DEFAULT_ADDRESS = f"127.0.0.1:{DEFAULT_PORT}"

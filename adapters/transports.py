@@ -1,8 +1,8 @@
 """The transports, registered as data: one table from transport kind to its halves.
 
 Each :class:`Transport` names, as ``"module:attribute"`` strings, its harness-side
-link class (a :class:`adapters.link.Link`), its target-side serve function
-(``serve_endpoint(ep, **options)``, driving an :class:`adapters.sdk.Endpoint`) and,
+link class (a :class:`hil.adapters.link.Link`), its target-side serve function
+(``serve_endpoint(ep, **options)``, driving an :class:`hil.adapters.sdk.Endpoint`) and,
 where it has one, the serve function of a shared target (one process serving many
 vehicles, ``serve_shared(scheduler, make_endpoint, **options)``). They are imported
 by :mod:`importlib` only when a run asks for that transport, so zenoh and python-can
@@ -13,7 +13,7 @@ transport, and the transports import ``link`` and ``sdk`` without a circle.
 Adding a transport is one row in :data:`BACKENDS` (and one member of
 :class:`Transport`); config, the SDK command line and ``open_link`` take it from here.
 
-Raises: :class:`hil_errors.TransportError` for an unknown transport name (listing the
+Raises: :class:`hil.common.errors.TransportError` for an unknown transport name (listing the
 valid ones) or a transport without the half asked for.
 """
 
@@ -25,10 +25,10 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import TYPE_CHECKING, cast
 
-from hil_errors import TransportError
+from hil.common.errors import TransportError
 
 if TYPE_CHECKING:
-    from adapters.link import Link
+    from hil.adapters.link import Link
 
 
 class Transport(str, Enum):
@@ -46,7 +46,7 @@ class Backend:
     """Where a transport's halves live, as ``"module:attribute"``.
 
     Attributes:
-        link: the harness-side :class:`adapters.link.Link` subclass.
+        link: the harness-side :class:`hil.adapters.link.Link` subclass.
         serve: the target side, ``serve_endpoint(ep, **options) -> None``.
         shared: a shared target's ``serve_shared(scheduler, make_endpoint, **options)``,
             or None where the transport cannot serve many vehicles from one process.
@@ -58,13 +58,13 @@ class Backend:
 
 
 BACKENDS: dict[Transport, Backend] = {
-    Transport.LOCAL: Backend("adapters.local:LocalLink", "adapters.local:serve_endpoint",
-                             shared="adapters.shared_local:serve_shared"),
-    Transport.ZENOH: Backend("adapters.zenoh_transport:ZenohLink", "adapters.zenoh_target:serve_endpoint",
-                             shared="adapters.shared_zenoh:serve_shared"),
-    Transport.CAN: Backend("adapters.can_transport:CanLink", "adapters.can_transport:serve_endpoint"),
-    Transport.MIXED: Backend("adapters.mixed:MixedLink", "adapters.mixed:serve_endpoint"),
-    Transport.TCP: Backend("adapters.tcp:TcpLink", "adapters.tcp:serve_endpoint"),
+    Transport.LOCAL: Backend("hil.adapters.local:LocalLink", "hil.adapters.local:serve_endpoint",
+                             shared="hil.adapters.shared_local:serve_shared"),
+    Transport.ZENOH: Backend("hil.adapters.zenoh_transport:ZenohLink", "hil.adapters.zenoh_target:serve_endpoint",
+                             shared="hil.adapters.shared_zenoh:serve_shared"),
+    Transport.CAN: Backend("hil.adapters.can_transport:CanLink", "hil.adapters.can_transport:serve_endpoint"),
+    Transport.MIXED: Backend("hil.adapters.mixed:MixedLink", "hil.adapters.mixed:serve_endpoint"),
+    Transport.TCP: Backend("hil.adapters.tcp:TcpLink", "hil.adapters.tcp:serve_endpoint"),
 }
 
 NAMES: tuple[str, ...] = tuple(t.value for t in Transport)  # in table order: local, zenoh, can, mixed, tcp

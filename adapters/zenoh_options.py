@@ -1,7 +1,7 @@
 """Zenoh endpoint and TLS option checks that need no ``zenoh`` import.
 
-The run config (``harness.config_target``) validates with these before anything
-starts, and ``adapters.zenoh_transport`` applies the same rules when it builds a
+The run config (``hil.harness.config.target``) validates with these before anything
+starts, and ``hil.adapters.zenoh_transport`` applies the same rules when it builds a
 session, so a config that can never open a session is refused up front.
 """
 

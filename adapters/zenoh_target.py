@@ -1,7 +1,7 @@
 """Target side of the Zenoh transport: serve an ``Endpoint`` to one harness, or to
 harness after harness (a target on a bench device), until stopped.
 
-The keys, handshake and liveness are those of ``adapters.zenoh_transport`` (its
+The keys, handshake and liveness are those of ``hil.adapters.zenoh_transport`` (its
 module docstring). Serving starts with one line on stderr that says where the
 target listens or connects, its keys, clock and capabilities, so that a person who
 started it by hand (``hil target cv --transport zenoh --listen tcp/0.0.0.0:7447``)
@@ -23,24 +23,24 @@ from typing import TYPE_CHECKING
 
 import zenoh
 
-from adapters import protocol
-from adapters.messages import Bye, MsgType
-from adapters.zenoh_transport import (
-    BYE_LINGER_S,
-    CLOSE_TIMEOUT_S,
-    DEFAULT_LEASE_MS,
-    Keys,
-    _is,
-    _open_session,
-    close_session,
-    make_config,
-)
-from timing.errors import ConfigError, TransportError
+from hil.adapters import protocol
+from hil.adapters.messages import Bye, MsgType
+from hil.adapters.zenoh_transport import (
+                                          BYE_LINGER_S,
+                                          CLOSE_TIMEOUT_S,
+                                          DEFAULT_LEASE_MS,
+                                          Keys,
+                                          _is,
+                                          _open_session,
+                                          close_session,
+                                          make_config,
+                                          )
+from hil.common.errors import ConfigError, TransportError
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
 
-    from adapters.sdk import Endpoint
+    from hil.adapters.sdk import Endpoint
 
 __all__ = ["serve_endpoint", "startup_line"]
 
@@ -69,7 +69,7 @@ def _security(listen: Sequence[str], connect: Sequence[str], tls: Mapping[str, o
 
 
 def _fresh(ep: Endpoint) -> Endpoint:
-    from adapters.sdk import Endpoint
+    from hil.adapters.sdk import Endpoint
 
     return Endpoint(ep.infer, target_name=ep.target_name, clock=ep.clock, clock_id=ep.clock_id,
                     clock_resolution_ns=ep.clock_resolution_ns, on_command=ep.on_command)
@@ -85,7 +85,7 @@ def serve_endpoint(ep: Endpoint, *, listen: Sequence[str] = (), connect: Sequenc
     liveliness token goes away (with ``keep_serving``: then wait for the next
     harness), or SIGTERM/Ctrl-C (then the target says BYE). Listens on ``listen``
     (how a harness reaches a device, e.g. ``tcp/0.0.0.0:7447``) and/or connects to
-    ``connect``. ``usrpwd`` as ``adapters.zenoh_transport.config_entries`` (a
+    ``connect``. ``usrpwd`` as ``hil.adapters.zenoh_transport.config_entries`` (a
     ``dictionary_file`` admits only the peers it lists). ``announce`` gets the
     startup line (default: stderr).
 

@@ -61,12 +61,12 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import TYPE_CHECKING
 
-from adapters import protocol, transports
-from adapters.link import Link, Received
-from adapters.messages import Heartbeat, MsgType
-from adapters.zenoh_options import TLS_KEYS, endpoint_problem
-from timing.clock import Clock
-from timing.errors import ConfigError, TransportError
+from hil.adapters import protocol, transports
+from hil.adapters.link import Link, Received
+from hil.adapters.messages import Heartbeat, MsgType
+from hil.adapters.zenoh_options import TLS_KEYS, endpoint_problem
+from hil.common.errors import ConfigError, TransportError
+from hil.timing.clock import Clock
 
 try:
     import zenoh
@@ -74,7 +74,7 @@ except ImportError as _err:  # pragma: no cover - depends on the install
     raise ImportError("the zenoh transport needs eclipse-zenoh: pip install eclipse-zenoh==1.10.2") from _err
 
 if TYPE_CHECKING:
-    from adapters.sdk import Endpoint
+    from hil.adapters.sdk import Endpoint
 
 MODES = ("peer", "client")
 CONGESTION = MappingProxyType({"block": zenoh.CongestionControl.BLOCK, "drop": zenoh.CongestionControl.DROP})
@@ -398,9 +398,9 @@ class ZenohLink(Link):
 
 
 def serve_endpoint(ep: Endpoint, **options: object) -> None:
-    """Target side: serve ``ep`` (``adapters.zenoh_target.serve_endpoint``, where the
+    """Target side: serve ``ep`` (``hil.adapters.zenoh_target.serve_endpoint``, where the
     options are documented; kept here for its importers, and reached through the
-    table in :mod:`adapters.transports` because ``zenoh_target`` imports this module).
+    table in :mod:`hil.adapters.transports` because ``zenoh_target`` imports this module).
 
     Raises:
         ConfigError: a bad option. TransportError: the session cannot be opened.

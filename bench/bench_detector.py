@@ -26,15 +26,15 @@ import time
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-import scenarios  # noqa: E402
-from adapters.messages import Control, DrivingState, Estimate  # noqa: E402
-from harness.config import CameraConfig  # noqa: E402
-from harness.detector import DetectorConfig  # noqa: E402
-from harness.detector_observer import DetectorObserver  # noqa: E402
-from scenarios.ground_truth import CameraTruth, RefStateRules  # noqa: E402
-from scenarios.sim import Simulation  # noqa: E402
-from scenarios.world import CameraSpec  # noqa: E402
-from timing.records import FrameStatus, PipelineRecord  # noqa: E402
+from hil.adapters.messages import Control, DrivingState, Estimate  # noqa: E402
+from hil.harness.analysis.detector import DetectorConfig  # noqa: E402
+from hil.harness.analysis.detector_observer import DetectorObserver  # noqa: E402
+from hil.harness.config.model import CameraConfig  # noqa: E402
+from hil import scenarios  # noqa: E402
+from hil.scenarios.ground_truth import CameraTruth, RefStateRules  # noqa: E402
+from hil.scenarios.sim import Simulation  # noqa: E402
+from hil.scenarios.world import CameraSpec  # noqa: E402
+from hil.timing.records import FrameStatus, PipelineRecord  # noqa: E402
 
 
 class _Null:

@@ -31,13 +31,13 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from scenarios.gl import select_backend
+from hil.scenarios.gl import select_backend
 
 BACKEND = select_backend()  # before anything imports mujoco
 
-from harness.search.campaign import run_campaign
-from harness.search.engine import DaskEngine, ProcessEngine
-from harness.search.spec import Campaign, StrategySpec, load_spec
+from hil.harness.search.campaign import run_campaign
+from hil.harness.search.engine import DaskEngine, ProcessEngine
+from hil.harness.search.spec import Campaign, StrategySpec, load_spec
 
 
 def timed(c: Campaign, engine: Any, out: Path) -> dict[str, float]:

@@ -10,7 +10,7 @@ comparisons of each kind from the pool (seeded):
 * unchanged: BASE = base run i, RUN = base run j (i != j) -> must pass;
 * regressed: BASE = base run i, RUN = slow run j -> must fail;
 
-and judges each pair with the gate (``harness.compare``: bootstrap of the per-frame
+and judges each pair with the gate (``hil.harness.report.compare``: bootstrap of the per-frame
 samples in run.mcap, default tolerances and alpha) and, for contrast, with the old
 point comparison of the two summaries (``--point``). It prints the pass counts, the
 checks that failed and how often, the size of the injected regression as measured
@@ -54,13 +54,13 @@ def _loadavg() -> str:
 
 def record(pool: Path, *, runs: int, duration_s: float, delay_ms: float) -> None:
     """Record ``runs`` base and ``runs`` slow runs into ``pool``, interleaved."""
-    from scenarios.gl import select_backend
+    from hil.scenarios.gl import select_backend
 
     backend = select_backend()
-    from harness.config import load_config
-    from harness.run import execute, prepare_out_dir
+    from hil.harness.config.model import load_config
+    from hil.harness.run.driver import execute, prepare_out_dir
 
-    from timing.errors import HilError
+    from hil.common.errors import HilError
 
     slow_cmd = [sys.executable, str(ROOT / "bench" / "slow_cv_target.py"), "--delay-ms", f"{delay_ms:g}"]
     pool.mkdir(parents=True, exist_ok=True)
@@ -91,8 +91,8 @@ def record(pool: Path, *, runs: int, duration_s: float, delay_ms: float) -> None
 
 
 def judge(pool: Path, *, pairs: int, seed: int) -> None:
-    from harness.compare import GateSettings, compare, load_run
-    from harness.run_folder import load_summary
+    from hil.harness.record.run_folder import load_summary
+    from hil.harness.report.compare import GateSettings, compare, load_run
 
     base = sorted(p for p in pool.glob("base-*") if (p / "summary.json").is_file())
     slow = sorted(p for p in pool.glob("slow-*") if (p / "summary.json").is_file())
@@ -142,10 +142,10 @@ def judge(pool: Path, *, pairs: int, seed: int) -> None:
 
 def _noise_table(runs: list) -> None:
     """Between-run spread of each stage's figures over the base runs: what the gate's
-    ``noise`` defaults stand for (harness.compare_tolerances)."""
+    ``noise`` defaults stand for (hil.harness.report.compare_tolerances)."""
     import numpy as np
 
-    from timing.gate import Metric
+    from hil.timing.gate import Metric
 
     vs = [r.vehicles["ego0"] for r in runs if "ego0" in r.vehicles]
     metrics = ("p1", "p50", "p99", "std")

@@ -3,13 +3,13 @@ baseline's, against the 15 ms goal for a 320x240 frame.
 
     .venv/bin/python bench/bench_inference.py [--frames 200] [--no-pin] [--strict]
 
-Frames: ``--frames`` labelled simulator frames (``harness.dataset``, a held-out seed:
+Frames: ``--frames`` labelled simulator frames (``hil.training.dataset``, a held-out seed:
 roads, curves, cars, pedestrians, obstacles), JPEG q70-95 as the wire carries them.
 The process is pinned to one core (``sched_setaffinity``; ``--no-pin`` leaves it
 free) with one torch thread and one OpenCV thread. For each frame, interleaved so
 machine noise hits all alike, it times (``time.perf_counter_ns``):
 
-* decode: ``adapters.sdk.decode_image`` (JPEG -> BGR);
+* decode: ``hil.adapters.sdk.decode_image`` (JPEG -> BGR);
 * detector: preprocessing (resize to 160x120) + the net + peak decoding;
 * steering: the road crop (66x200 YUV) + the net;
 * cnn infer: the whole ``CnnTarget.infer`` (decode, both nets, ranging, decision);
@@ -32,7 +32,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from scenarios.gl import select_backend
+from hil.scenarios.gl import select_backend
 
 select_backend()
 
@@ -40,13 +40,13 @@ import cv2
 import numpy as np
 import torch
 
-from adapters.messages import CameraInfo, Frame, ImageEncoding
-from adapters.sdk import decode_image
-from harness import dataset
-from targets.cnn.models import decode
-from targets.cnn.preprocess import detector_input, steering_input
-from targets.cnn.target import CnnTarget
-from targets.cv_baseline import CvBaseline
+from hil.adapters.messages import CameraInfo, Frame, ImageEncoding
+from hil.adapters.sdk import decode_image
+from hil.targets.cnn.models import decode
+from hil.targets.cnn.preprocess import detector_input, steering_input
+from hil.targets.cnn.target import CnnTarget
+from hil.targets.cv_baseline import CvBaseline
+from hil.training import dataset
 
 GOAL_MS = 15.0
 WARMUP = 10

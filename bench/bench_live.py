@@ -54,7 +54,7 @@ def _viewer(url: str, got: dict[str, int], stop: threading.Event) -> None:
 
 def one_run(config: str, sets: list[str], *, live: bool, folder: Path) -> dict[str, Any]:
     out = folder / ("live" if live else "plain")
-    cmd = [sys.executable, "-m", "harness.cli", "run", config, "--no-progress", "--out", str(out)]
+    cmd = [sys.executable, "-m", "hil.harness.cli.main", "run", config, "--no-progress", "--out", str(out)]
     for s in sets:
         cmd += ["--set", s]
     if live:

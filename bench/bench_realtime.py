@@ -37,13 +37,13 @@ def _load() -> str:
 
 def floor(seconds: float) -> dict[str, object]:
     """The physics process pacing the demo's world with nothing else to do."""
-    from scenarios import gl
+    from hil.scenarios import gl
 
     gl.select_backend()
-    import scenarios
-    from harness.config import load_config
-    from harness.engine.physics import PhysicsSpec, physics_main
-    from harness.run import build_world
+    from hil.harness.config.model import load_config
+    from hil.harness.engine.physics import PhysicsSpec, physics_main
+    from hil.harness.run.driver import build_world
+    from hil import scenarios
 
     cfg = load_config(ROOT / "hil_configs/demo.yaml")
     world, rules = build_world(cfg)
@@ -128,7 +128,7 @@ def main() -> int:
         for n in a.lockstep_vehicles:
             for w in sorted({1, min(n, 2)}):
                 r = run("hil_configs/scale.yaml", f"scenario.params.n_vehicles={n}", "mode=lockstep",
-                        "duration_s=6", 'target.command=["{python}", "-m", "targets.echo"]',
+                        "duration_s=6", 'target.command=["{python}", "-m", "hil.targets.echo"]',
                         f"engine.render_workers={w}", "truth.visible_boxes=false")
                 print(f"| {n} | {w} | {r['frames']} | {r['run_wall_s']:.2f} | "
                       f"{float(r['frames']) / float(r['run_wall_s']):.0f} | {r['load']} |", flush=True)

@@ -1,4 +1,4 @@
-"""Recorder benchmark: can ``harness.recorder.Recorder`` keep up with a full run's load?
+"""Recorder benchmark: can ``hil.harness.record.recorder.Recorder`` keep up with a full run's load?
 
 The load is what a 4-vehicle run at 20 fps records, generated synthetically at that
 rate: per vehicle and frame one JPEG camera image (320x240, q85, ~12 KB, made with
@@ -42,8 +42,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from harness.channels import register_all
-from harness.recorder import Recorder, _image_json  # the exact bytes the writer makes
+from hil.harness.record.channels import register_all
+from hil.harness.record.recorder import Recorder, _image_json  # the exact bytes the writer makes
 
 Msg = tuple[str, str, Any, int]  # (kind, topic, payload, log_time_ns)
 
@@ -147,7 +147,7 @@ def views_cost(msgs: list[Msg], *, vehicles: list[str], folder: Path, repeat: in
 def annotation_encode_cost(n: int) -> dict[str, float]:
     """µs to build and encode one frame's ImageAnnotations (2 truth + 1 AI box, 4
     labels): JSON as written, and foxglove-sdk protobuf (if installed)."""
-    from harness.foxglove_out import FoxgloveViews
+    from hil.harness.record.foxglove_out import FoxgloveViews
 
     fv = FoxgloveViews(["ego0"], camera=CAMERA, offset_ns=0)
     boxes = [{"cls": "vehicle", "box_px": [150, 118, 165, 127], "path_s_m": 45.0}] * 2

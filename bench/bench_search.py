@@ -3,7 +3,7 @@
 For each worker count it runs a fresh random campaign of ``--episodes`` episodes of
 a spec (default ``hil_configs/search.yaml``: the stopped-car scene, 4 simulated
 seconds, the OpenCV baseline target, 320x240 JPEG at 20 fps, a drawn link latency)
-through ``harness.search.campaign.run_campaign`` — the process pool, spawn start-up
+through ``hil.harness.search.campaign.run_campaign`` — the process pool, spawn start-up
 included — and reports wall time, episodes/min, virtual km/h, simulated seconds per
 wall second, and the scaling ratio against 1 worker (efficiency = ratio / workers).
 
@@ -32,14 +32,14 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from scenarios.gl import select_backend
+from hil.scenarios.gl import select_backend
 
 BACKEND = select_backend()  # before anything imports mujoco
 
-from harness.search.campaign import run_campaign
-from harness.search.episode import run_episode
-from harness.search.sampling import draw_generation
-from harness.search.spec import Campaign, StrategySpec, load_spec
+from hil.harness.search.campaign import run_campaign
+from hil.harness.search.episode import run_episode
+from hil.harness.search.sampling import draw_generation
+from hil.harness.search.spec import Campaign, StrategySpec, load_spec
 
 
 def floor(c: Campaign, n: int, tmp: Path) -> tuple[float, float, float]:

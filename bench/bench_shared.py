@@ -3,14 +3,14 @@
     flock -o /tmp/hil-cpu.lock .venv/bin/python bench/bench_shared.py [--vehicles 1,2,4,8] \
         [--seconds 4] [--fps 10] [--device cpu] [--window-ms 2] [--shared-threads 1] [--per-vehicle]
 
-For each N and each placement, the real target program (``python -m targets.cnn``,
+For each N and each placement, the real target program (``python -m hil.targets.cnn``,
 one torch thread) serves N vehicles over the local transport:
 
 * **per-vehicle**: N target processes, one ``LocalLink`` each (today's placement);
 * **shared**: one process (``--shared``) that batches frames arriving within
-  ``--window-ms`` (``adapters.batching``), N ``SharedLocalLink``s to it.
+  ``--window-ms`` (``hil.adapters.batching``), N ``SharedLocalLink``s to it.
 
-Every vehicle sends a labelled simulator frame (``harness.dataset``, JPEG, 320x240)
+Every vehicle sends a labelled simulator frame (``hil.training.dataset``, JPEG, 320x240)
 at ``--fps``, all vehicles at the same instants (aligned cameras: the most frames
 at once), for ``--seconds`` after a one-second warm-up. Per vehicle, from each
 estimate's stamps: ``inference`` = t_infer_end - t_infer_start (target clock; the
@@ -44,18 +44,18 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from scenarios.gl import select_backend
+from hil.scenarios.gl import select_backend
 
 select_backend()
 
 import numpy as np
 
-from adapters.link import Received
-from adapters.local import LocalLink
-from adapters.messages import CameraInfo, Estimate, ImageEncoding
-from adapters.shared_local import SharedLocalLink, SharedLocalTarget
-from harness import dataset
-from timing.clock import MonotonicClock
+from hil.adapters.link import Received
+from hil.adapters.local import LocalLink
+from hil.adapters.messages import CameraInfo, Estimate, ImageEncoding
+from hil.adapters.shared_local import SharedLocalLink, SharedLocalTarget
+from hil.timing.clock import MonotonicClock
+from hil.training import dataset
 
 WARMUP_S = 1.0
 
@@ -88,8 +88,8 @@ def batch_cost(frames: list[tuple[bytes, CameraInfo, float]], *, device: str, th
     per frame (interleaved across sizes so machine noise hits all alike)."""
     import torch
 
-    from adapters.messages import Frame
-    from targets.cnn.target import CnnTarget
+    from hil.adapters.messages import Frame
+    from hil.targets.cnn.target import CnnTarget
 
     torch.set_num_threads(threads)
     target = CnnTarget(device=device)
@@ -116,7 +116,7 @@ def run_one(n: int, *, shared: bool, frames: list[tuple[bytes, CameraInfo, float
     """Serve ``n`` vehicles; returns per-vehicle samples and the batch sizes seen."""
     clock = MonotonicClock()
     rx: queue.Queue[Received] = queue.Queue(maxsize=100_000)
-    cmd = [sys.executable, "-m", "targets.cnn", "--threads", "1", "--device", device]
+    cmd = [sys.executable, "-m", "hil.targets.cnn", "--threads", "1", "--device", device]
     batch_log = tmp / f"batches-{n}.csv"
     host = None
     links = []

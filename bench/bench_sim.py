@@ -10,7 +10,7 @@ measures, interleaved round by round so machine noise hits both alike:
   N cameras, nothing else (the floor);
 * bare render + seg: the same plus one segmentation render per camera (what
   ``truth.visible_boxes`` costs at the very least);
-* the sim loop (``harness.loop.SimLoop``, lockstep) on the real engine — the physics
+* the sim loop (``hil.harness.run.loop.SimLoop``, lockstep) on the real engine — the physics
   process, the render pool (one worker per spare core) and the run process — with
   in-process echo links (no transport, no target process: the harness's own cost):
   physics, scripted motion, JPEG encoding, ground truth, MCAP recording with images,
@@ -39,27 +39,27 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from scenarios.gl import select_backend
+from hil.scenarios.gl import select_backend
 
 select_backend()
 
 import mujoco
 import numpy as np
 
-import scenarios
-from adapters.link import LinkStats, Received
-from adapters.messages import Control, DrivingState, Estimate
-from harness.channels import register_all
-from harness.config import parse_config
-from harness.engine.pool import Engine, auto_workers
-from harness.loop import SimLoop, engine_specs
-from harness.recorder import Recorder
-from harness.vehicle_state import VehicleRun
-from scenarios.ground_truth import RefStateRules
-from scenarios.road import ROAD_GROUP
-from scenarios.sim import Simulation
-from scenarios.world import CameraSpec, camera_name
-from timing.clock import MonotonicClock
+from hil.adapters.link import LinkStats, Received
+from hil.adapters.messages import Control, DrivingState, Estimate
+from hil.harness.config.model import parse_config
+from hil.harness.engine.pool import Engine, auto_workers
+from hil.harness.record.channels import register_all
+from hil.harness.record.recorder import Recorder
+from hil.harness.run.loop import SimLoop, engine_specs
+from hil.harness.run.vehicle_state import VehicleRun
+from hil import scenarios
+from hil.scenarios.ground_truth import RefStateRules
+from hil.scenarios.road import ROAD_GROUP
+from hil.scenarios.sim import Simulation
+from hil.scenarios.world import CameraSpec, camera_name
+from hil.timing.clock import MonotonicClock
 
 FPS = 10.0
 STEP_S = 0.002

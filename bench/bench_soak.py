@@ -71,7 +71,7 @@ def main() -> int:
         ts, run_mb, eng_mb = [], [], []
         while p.poll() is None:
             r = rss_mb(p.pid)
-            kids = [k for k in children(p.pid) if b"harness.engine" in Path(f"/proc/{k}/cmdline").read_bytes()
+            kids = [k for k in children(p.pid) if b"hil.harness.engine" in Path(f"/proc/{k}/cmdline").read_bytes()
                     or b"multiprocessing" in Path(f"/proc/{k}/cmdline").read_bytes()]
             e = sum(x for k in kids if (x := rss_mb(k)) is not None)
             if r is not None:

@@ -34,7 +34,7 @@ def _load() -> str:
 def bench_study(out: Path, duration: float) -> None:
     print(f"study: load before {_load()}")
     t0 = time.monotonic()
-    p = subprocess.run([sys.executable, "-m", "harness.cli", "study", "hil_configs/study.yaml", "--vehicles",
+    p = subprocess.run([sys.executable, "-m", "hil.harness.cli.main", "study", "hil_configs/study.yaml", "--vehicles",
                         "1", "2", "4", "8", "--duration", f"{duration:g}", "--out", str(out)], cwd=ROOT)
     wall = time.monotonic() - t0
     doc = json.loads((out / "results.json").read_text())
@@ -48,9 +48,9 @@ def bench_impair(out: Path, *, delay_ms: float, jitter_ms: float, loss: float, d
     from tests.conftest import read_mcap
 
     print(f"impair: load before {_load()}")
-    subprocess.run([sys.executable, "-m", "harness.cli", "run", "hil_configs/demo.yaml", "--out", str(out),
+    subprocess.run([sys.executable, "-m", "hil.harness.cli.main", "run", "hil_configs/demo.yaml", "--out", str(out),
                     "--no-progress", "--set", f"duration_s={duration:g}", "--set", "recording.images=false",
-                    "--set", 'target.command=["{python}", "-m", "targets.echo"]',
+                    "--set", 'target.command=["{python}", "-m", "hil.targets.echo"]',
                     "--set", f"target.impair.uplink.delay_ms={delay_ms:g}",
                     "--set", f"target.impair.uplink.jitter_ms={jitter_ms:g}",
                     "--set", f"target.impair.downlink.loss={loss:g}"], cwd=ROOT, check=False,

@@ -27,14 +27,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from adapters.link import open_link  # noqa: E402
-from timing.clock import MonotonicClock  # noqa: E402
-from timing.sync import ClockSync, SyncSample  # noqa: E402
+from hil.adapters.link import open_link  # noqa: E402
+from hil.timing.clock import MonotonicClock  # noqa: E402
+from hil.timing.sync import ClockSync, SyncSample  # noqa: E402
 
 
 def loopback_accuracy(transport: str, tmp: Path) -> dict[str, object] | None:
     clock = MonotonicClock()
-    cmd = [sys.executable, "-m", "targets.echo"]
+    cmd = [sys.executable, "-m", "hil.targets.echo"]
     opts: dict[str, object] = {"vehicle_id": 0, "clock": clock}
     proc = None
     if transport == "local":
@@ -113,11 +113,11 @@ def simulated_accuracy(offset_s: float, skew_ppm: float, seed: int) -> tuple[flo
 
 
 def stamping_cost(n: int = 20_000) -> dict[str, float]:
-    from harness.config_timing import TimingConfig
-    from harness.recorder import Recorder
-    from harness.channels import register_all
-    from harness.timing_observer import TimingObserver
-    from timing.records import FrameStatus, PipelineRecord
+    from hil.harness.analysis.timing_observer import TimingObserver
+    from hil.harness.config.timing import TimingConfig
+    from hil.harness.record.channels import register_all
+    from hil.harness.record.recorder import Recorder
+    from hil.timing.records import FrameStatus, PipelineRecord
 
     clock = MonotonicClock()
     floor = []

@@ -6,7 +6,7 @@ Run: ``.venv/bin/python bench/bench_transports.py`` (about a minute; ``--rounds`
 suite.
 
 What is timed: from ``Link.send_frame`` to the ESTIMATE coming out of ``Link.recv``
-in the calling thread, to ``targets.echo``'s logic (answers at once), for a raw RGB8
+in the calling thread, to ``hil.targets.echo``'s logic (answers at once), for a raw RGB8
 image (230 400 bytes, a 230 504-byte FRAME message) and a JPEG (q85, ~12 KB):
 
 * local (child process; frames through the shared-memory ring where negotiated, and
@@ -58,10 +58,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from adapters import protocol  # noqa: E402
-from adapters.link import Link, open_link  # noqa: E402
-from adapters.messages import CameraInfo, Control, DrivingState, Estimate, Frame, ImageEncoding  # noqa: E402
-from timing.clock import MonotonicClock  # noqa: E402
+from hil.adapters import protocol  # noqa: E402
+from hil.adapters.link import Link, open_link  # noqa: E402
+from hil.adapters.messages import CameraInfo, Control, DrivingState, Estimate, Frame, ImageEncoding  # noqa: E402
+from hil.timing.clock import MonotonicClock  # noqa: E402
 
 CAM = CameraInfo(277.0, 277.0, 160.0, 120.0, 1.3)
 REPLY = bytes(80)
@@ -122,7 +122,7 @@ def child_main(kind: str, args: list[str]) -> None:
     elif kind == "zenoh":
         import zenoh
 
-        from adapters.zenoh_transport import make_config
+        from hil.adapters.zenoh_transport import make_config
         session = zenoh.open(make_config(listen=[args[0]]))
         pub = session.declare_publisher(ZKEY_PONG, congestion_control=zenoh.CongestionControl.BLOCK)
         # Zenoh undeclares an entity when its Python object is dropped: keep it.
@@ -263,7 +263,7 @@ def raw_handoff() -> Iterator[RoundTrip]:
 def raw_zenoh(payload: bytes) -> Iterator[RoundTrip]:
     import zenoh
 
-    from adapters.zenoh_transport import make_config
+    from hil.adapters.zenoh_transport import make_config
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     proc = spawn_child("zenoh", endpoint, stdin=subprocess.PIPE)
     session = zenoh.open(make_config(connect=[endpoint]))
@@ -331,7 +331,7 @@ def opened(link: Link) -> Iterator[Link]:
 
 @contextlib.contextmanager
 def local_link(**options: object) -> Iterator[Link]:
-    with opened(open_link("local", command=[sys.executable, "-m", "targets.echo"], vehicle_id=0,
+    with opened(open_link("local", command=[sys.executable, "-m", "hil.targets.echo"], vehicle_id=0,
                           clock=MonotonicClock(), **options)) as link:
         yield link
 
@@ -339,7 +339,7 @@ def local_link(**options: object) -> Iterator[Link]:
 @contextlib.contextmanager
 def zenoh_link() -> Iterator[Link]:
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "targets.echo", "--transport", "zenoh", "--listen",
+    proc = subprocess.Popen([sys.executable, "-m", "hil.targets.echo", "--transport", "zenoh", "--listen",
                              f"tcp/127.0.0.1:{port}"], cwd=ROOT, stdin=subprocess.DEVNULL)
     try:
         with opened(open_link("zenoh", vehicle_id=0, clock=MonotonicClock(),
@@ -352,7 +352,7 @@ def zenoh_link() -> Iterator[Link]:
 @contextlib.contextmanager
 def tcp_link() -> Iterator[Link]:
     address = f"127.0.0.1:{free_port()}"
-    proc = subprocess.Popen([sys.executable, "-m", "targets.echo", "--transport", "tcp", "--listen", address],
+    proc = subprocess.Popen([sys.executable, "-m", "hil.targets.echo", "--transport", "tcp", "--listen", address],
                             cwd=ROOT, stdin=subprocess.DEVNULL)
     try:
         with opened(open_link("tcp", vehicle_id=0, clock=MonotonicClock(), connect=address)) as link:
@@ -388,11 +388,11 @@ def tcp_c_link(exe: Path) -> Iterator[Link]:
 
 @contextlib.contextmanager
 def device_thread(serve: Callable[..., None], **options: object) -> Iterator[object]:
-    """``targets.echo`` served by ``serve`` (CAN or mixed) on a virtual bus, in a thread."""
+    """``hil.targets.echo`` served by ``serve`` (CAN or mixed) on a virtual bus, in a thread."""
     import can
 
-    from adapters.sdk import Endpoint
-    from targets.echo import Echo
+    from hil.adapters.sdk import Endpoint
+    from hil.targets.echo import Echo
 
     bus = can.Bus(interface="virtual", channel=options["channel"], fd=True, ignore_config=True)
     ep = Endpoint(Echo().infer, target_name="echo")
@@ -410,7 +410,7 @@ def device_thread(serve: Callable[..., None], **options: object) -> Iterator[obj
 
 @contextlib.contextmanager
 def can_link() -> Iterator[Link]:
-    from adapters.can_transport import serve_endpoint
+    from hil.adapters.can_transport import serve_endpoint
     channel = f"bench-{uuid.uuid4().hex}"
     with device_thread(serve_endpoint, channel=channel), \
             opened(open_link("can", vehicle_id=0, clock=MonotonicClock(), interface="virtual",
@@ -420,7 +420,7 @@ def can_link() -> Iterator[Link]:
 
 @contextlib.contextmanager
 def mixed_link() -> Iterator[Link]:
-    from adapters.mixed import serve_endpoint
+    from hil.adapters.mixed import serve_endpoint
     channel, port = f"bench-{uuid.uuid4().hex}", free_port()
     with device_thread(serve_endpoint, channel=channel, listen=[f"tcp/127.0.0.1:{port}"]), \
             opened(open_link("mixed", vehicle_id=0, clock=MonotonicClock(), interface="virtual", channel=channel,
@@ -454,7 +454,7 @@ def can_rates(n: int = 3000) -> tuple[float, float]:
     """(estimates/s a CanLink receives, raw virtual-bus CAN FD frames/s between two threads)."""
     import can
 
-    from adapters.can_transport import serve_endpoint
+    from hil.adapters.can_transport import serve_endpoint
     channel = f"bench-{uuid.uuid4().hex}"
     with device_thread(serve_endpoint, channel=channel) as ep, \
             opened(open_link("can", vehicle_id=0, clock=MonotonicClock(), interface="virtual",
@@ -487,8 +487,8 @@ def protocol_cpu_us(raw_img: bytes, n: int = 2000) -> float:
     """Median µs of the protocol work of one local round trip through the ring, in one
     thread with no I/O: build and encode the FRAME, write its slot, decode the notice,
     read and decode the slot, encode the ESTIMATE and stream-decode it."""
-    from adapters.shm import LocalStreamDecoder, ShmReader, ShmRing
-    from adapters.stream import StreamDecoder
+    from hil.adapters.shm import LocalStreamDecoder, ShmReader, ShmRing
+    from hil.adapters.stream import StreamDecoder
 
     est = Estimate(0, 1, DrivingState.SAFE, Control(0.0, 0.1, 0.0), (), 1, 2, 3, 4)
     times = []

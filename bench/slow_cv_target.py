@@ -19,8 +19,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from adapters.messages import Frame, Inference  # noqa: E402
-from targets import cv_baseline  # noqa: E402
+from hil.adapters.messages import Frame, Inference  # noqa: E402
+from hil.targets import cv_baseline  # noqa: E402
 
 
 def main(argv: Sequence[str] | None = None) -> int:

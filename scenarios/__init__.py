@@ -16,7 +16,7 @@ typed scenario library), ``vehicle`` (ego dynamics), ``sim`` (the MuJoCo simulat
 from __future__ import annotations
 
 # Import for the side effect of registering the built-in library.
-from scenarios import library as _library  # noqa: F401  (registration)
-from scenarios.registry import ScenarioDef, get, names, register
+from hil.scenarios import library as _library  # noqa: F401  (registration)
+from hil.scenarios.registry import ScenarioDef, get, names, register
 
 __all__ = ["ScenarioDef", "get", "names", "register"]

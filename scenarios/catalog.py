@@ -5,7 +5,7 @@ from __future__ import annotations
 import textwrap
 from typing import Any
 
-from scenarios.registry import ScenarioDef, get, names
+from hil.scenarios.registry import ScenarioDef, get, names
 
 
 def as_dict(name: str | None = None) -> dict[str, Any]:

@@ -12,7 +12,7 @@ import os
 import subprocess
 import sys
 
-from hil_errors import SimulationError
+from hil.common.errors import SimulationError
 
 _PROBE = (
     "import os, sys; os.environ['MUJOCO_GL'] = sys.argv[1]; "
@@ -64,7 +64,7 @@ def select_backend() -> str:
 
 
 def main() -> int:
-    """``python -m scenarios.gl``: say which backend works, or what to install."""
+    """``python -m hil.scenarios.gl``: say which backend works, or what to install."""
     try:
         print(f"MuJoCo headless rendering: {select_backend()}")
     except SimulationError as err:

@@ -14,18 +14,18 @@ import math
 
 import numpy as np
 
-from scenarios.motion import (
-    LaneChange,
-    LateralProfile,
-    Script,
-    SpeedChange,
-    SpeedProfile,
-)
-from scenarios.params import Param
-from scenarios.path import Path
-from scenarios.registry import register
-from scenarios.road import RoadSpec
-from scenarios.world import PAINTS, CameraSpec, VehicleSpec, WorldSpec, pedestrian
+from hil.scenarios.motion import (
+                                  LaneChange,
+                                  LateralProfile,
+                                  Script,
+                                  SpeedChange,
+                                  SpeedProfile,
+                                  )
+from hil.scenarios.params import Param
+from hil.scenarios.path import Path
+from hil.scenarios.registry import register
+from hil.scenarios.road import RoadSpec
+from hil.scenarios.world import PAINTS, CameraSpec, VehicleSpec, WorldSpec, pedestrian
 
 LANE_W = 3.7
 RIGHT_LANE_Y = -LANE_W / 2

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from scenarios.path import Path
+from hil.scenarios.path import Path
 
 
 @dataclass(frozen=True)

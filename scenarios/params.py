@@ -6,7 +6,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from hil_errors import ConfigError
+from hil.common.errors import ConfigError
 
 
 @dataclass(frozen=True)

@@ -5,9 +5,9 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
-from scenarios.params import Param, resolve_params
-from scenarios.world import CameraSpec, WorldSpec
-from hil_errors import ConfigError
+from hil.common.errors import ConfigError
+from hil.scenarios.params import Param, resolve_params
+from hil.scenarios.world import CameraSpec, WorldSpec
 
 BuildFn = Callable[..., WorldSpec]
 
@@ -56,7 +56,7 @@ class _Registry:
         return sorted(self._defs)
 
 
-# The one registry, filled at import by scenarios.library (read-only afterwards).
+# The one registry, filled at import by hil.scenarios.library (read-only afterwards).
 _REGISTRY = _Registry()
 
 

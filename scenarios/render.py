@@ -8,7 +8,7 @@ and so costs a fraction of a colour image. The segment ids are decoded straight 
 entity indices through a lookup table, without the per-pixel (object id, type)
 pairs ``mujoco.Renderer`` builds.
 
-Call ``scenarios.gl.select_backend()`` before importing this module.
+Call ``hil.scenarios.gl.select_backend()`` before importing this module.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from scenarios.road import ROAD_GROUP
-from hil_errors import SimulationError
+from hil.common.errors import SimulationError
+from hil.scenarios.road import ROAD_GROUP
 
 BACKGROUND = -1
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scenarios.path import Path
+from hil.scenarios.path import Path
 
 ROAD_GROUP = 2
 CHORD_M = 2.0  # longest chord of an arc

@@ -8,7 +8,7 @@ camera tick the kinematics are brought up to the current instant (``mj_kinematic
 after the step leaves them one step behind), so images and ground truth show the
 same sim time.
 
-Call ``scenarios.gl.select_backend()`` before this module is imported (it imports
+Call ``hil.scenarios.gl.select_backend()`` before this module is imported (it imports
 ``mujoco``, which fixes its OpenGL backend at import).
 """
 
@@ -20,22 +20,22 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from scenarios.ground_truth import (
-    CameraTruth,
-    Collision,
-    EgoTruth,
-    EntityState,
-    GroundTruth,
-    RefStateRules,
-    VisibleBox,
-)
-from scenarios.motion import ScriptTable
-from scenarios.path import Path
-from scenarios.render import SceneRenderer
-from scenarios.vehicle import EgoActuators, VehicleLimits, VehicleState
-from scenarios.visibility import pixel_boxes, silhouette_area
-from scenarios.world import VehicleSpec, WorldSpec, build_mjcf, camera_name
-from hil_errors import SimulationError
+from hil.scenarios.ground_truth import (
+                                        CameraTruth,
+                                        Collision,
+                                        EgoTruth,
+                                        EntityState,
+                                        GroundTruth,
+                                        RefStateRules,
+                                        VisibleBox,
+                                        )
+from hil.common.errors import SimulationError
+from hil.scenarios.motion import ScriptTable
+from hil.scenarios.path import Path
+from hil.scenarios.render import SceneRenderer
+from hil.scenarios.vehicle import EgoActuators, VehicleLimits, VehicleState
+from hil.scenarios.visibility import pixel_boxes, silhouette_area
+from hil.scenarios.world import VehicleSpec, WorldSpec, build_mjcf, camera_name
 
 
 @dataclass(frozen=True)

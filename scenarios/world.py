@@ -22,16 +22,16 @@ import math
 from dataclasses import dataclass, field
 from enum import Enum
 
-from scenarios.motion import Script
-from scenarios.path import Path
-from scenarios.road import (
-    GRASS_RGBA,
-    MARKING_RGBA,
-    ROAD_GROUP,
-    ROAD_RGBA,
-    RoadSpec,
-    road_xml,
-)
+from hil.scenarios.motion import Script
+from hil.scenarios.path import Path
+from hil.scenarios.road import (
+                                GRASS_RGBA,
+                                MARKING_RGBA,
+                                ROAD_GROUP,
+                                ROAD_RGBA,
+                                RoadSpec,
+                                road_xml,
+                                )
 
 ENTITY_GROUP = 0
 EGO_RGBA = (0.1, 0.25, 0.8, 1.0)
@@ -152,7 +152,7 @@ class WorldSpec:
 
 
 def _check_no_overlap(vehicles: tuple[VehicleSpec, ...]) -> None:
-    from hil_errors import ConfigError
+    from hil.common.errors import ConfigError
 
     names = [v.name for v in vehicles]
     dup = {n for n in names if names.count(n) > 1}

@@ -2,13 +2,14 @@
 
     python sdk/build_wheel.py [--out dist/]
 
-The wheel holds the packages ``adapters`` (wire codec, stream decoder, the SDK's
+What goes in it is ``sdk/pyproject.toml`` (the same file ``pip install -e ./sdk``
+reads): the packages ``hil.adapters`` (wire codec, stream decoder, the SDK's
 ``Endpoint``/``serve``/``decode_image``, every transport's target endpoint),
-``timing`` (clocks, the clock-sync estimator) and ``hil_errors`` (the exception
-tree), from this repository's own files: there is one copy of the code. It
-depends on numpy only; extras add a transport's library (``zenoh``, ``can``) or
-JPEG decoding (``jpeg``). Written with the standard library (a wheel is a zip
-file with three metadata files, PEP 427), so it builds offline with no build
+``hil.timing`` (clocks, the clock-sync estimator) and ``hil.common`` (the exception
+tree, object classes), from this repository's own folders: there is one copy of the
+code. It depends on numpy only; extras add a transport's library (``zenoh``,
+``can``) or JPEG decoding (``jpeg``). Written with the standard library (a wheel is
+a zip file with three metadata files, PEP 427), so it builds offline with no build
 backend.
 
 Exit 0 with the wheel's path on stdout; 2 with one line on stderr for a bad option.
@@ -23,45 +24,39 @@ import sys
 import tomllib
 import zipfile
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-NAME = "hil-target-sdk"
-PACKAGES = ("adapters", "timing", "hil_errors")
 DATA_SUFFIXES = (".py", ".dbc")
-REQUIRES = ["numpy>=1.26,<2.5"]
-EXTRAS = {
-    "zenoh": ["eclipse-zenoh==1.10.2"],
-    "can": ["python-can>=4.6,<5", "cantools>=39", "can-isotp>=2.0"],
-    "jpeg": ["opencv-python-headless>=4.9"],
-}
-SUMMARY = "Target SDK of the HIL timing harness: serve an AI's infer(frame) over local, tcp, zenoh or CAN"
 
 
-def version() -> str:
-    """The harness's version (pyproject.toml): both distributions move together."""
-    with open(ROOT / "pyproject.toml", "rb") as f:
-        return str(tomllib.load(f)["project"]["version"])
+def project() -> dict[str, Any]:
+    """sdk/pyproject.toml: the one definition of the distribution."""
+    with open(ROOT / "sdk" / "pyproject.toml", "rb") as f:
+        return tomllib.load(f)
 
 
-def files() -> list[Path]:
-    """The packaged files, relative to the repository root, in a stable order."""
+def files(package_dir: dict[str, str]) -> list[tuple[str, Path]]:
+    """``(name in the wheel, file)`` of every packaged file, in a stable order:
+    ``hil/adapters/sdk.py`` from ``adapters/sdk.py``."""
     out = []
-    for pkg in PACKAGES:
-        for p in sorted((ROOT / pkg).rglob("*")):
+    for pkg, folder in sorted(package_dir.items()):
+        src = (ROOT / "sdk" / folder).resolve()
+        for p in sorted(src.rglob("*")):
             if p.is_file() and p.suffix in DATA_SUFFIXES and "__pycache__" not in p.parts:
-                out.append(p.relative_to(ROOT))
+                out.append(("/".join([*pkg.split("."), *p.relative_to(src).parts]), p))
     return out
 
 
-def metadata(ver: str) -> str:
-    lines = ["Metadata-Version: 2.1", f"Name: {NAME}", f"Version: {ver}", f"Summary: {SUMMARY}",
-             "Requires-Python: >=3.11"]
-    lines += [f"Requires-Dist: {r}" for r in REQUIRES]
-    for extra, reqs in EXTRAS.items():
+def metadata(proj: dict[str, Any]) -> str:
+    lines = ["Metadata-Version: 2.1", f"Name: {proj['name']}", f"Version: {proj['version']}",
+             f"Summary: {proj['description']}", f"Requires-Python: {proj['requires-python']}"]
+    lines += [f"Requires-Dist: {r}" for r in proj["dependencies"]]
+    for extra, reqs in proj["optional-dependencies"].items():
         lines.append(f"Provides-Extra: {extra}")
         lines += [f'Requires-Dist: {r}; extra == "{extra}"' for r in reqs]
     lines.append("Description-Content-Type: text/markdown")
-    return "\n".join(lines) + "\n\n" + (ROOT / "sdk" / "README.md").read_text(encoding="utf-8")
+    return "\n".join(lines) + "\n\n" + (ROOT / "sdk" / proj["readme"]).read_text(encoding="utf-8")
 
 
 def _record_line(name: str, data: bytes) -> str:
@@ -71,16 +66,18 @@ def _record_line(name: str, data: bytes) -> str:
 
 def build(out_dir: Path) -> Path:
     """Write the wheel into ``out_dir`` (created); returns its path."""
-    ver = version()
-    dist_info = f"{NAME.replace('-', '_')}-{ver}.dist-info"
-    wheel = out_dir / f"{NAME.replace('-', '_')}-{ver}-py3-none-any.whl"
+    conf = project()
+    proj = conf["project"]
+    stem = f"{proj['name'].replace('-', '_')}-{proj['version']}"
+    dist_info = f"{stem}.dist-info"
+    wheel = out_dir / f"{stem}-py3-none-any.whl"
     out_dir.mkdir(parents=True, exist_ok=True)
-    entries: list[tuple[str, bytes]] = [(p.as_posix(), (ROOT / p).read_bytes()) for p in files()]
+    entries = [(name, p.read_bytes()) for name, p in files(conf["tool"]["setuptools"]["package-dir"])]
     entries += [
-        (f"{dist_info}/METADATA", metadata(ver).encode()),
+        (f"{dist_info}/METADATA", metadata(proj).encode()),
         (f"{dist_info}/WHEEL", b"Wheel-Version: 1.0\nGenerator: sdk/build_wheel.py\nRoot-Is-Purelib: true\n"
                                b"Tag: py3-none-any\n"),
-        (f"{dist_info}/top_level.txt", ("\n".join(PACKAGES) + "\n").encode()),
+        (f"{dist_info}/top_level.txt", b"hil\n"),
     ]
     record = "\n".join(_record_line(n, d) for n, d in entries) + f"\n{dist_info}/RECORD,,\n"
     with zipfile.ZipFile(wheel, "w", compression=zipfile.ZIP_DEFLATED) as z:

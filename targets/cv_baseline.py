@@ -1,7 +1,7 @@
 """A classical OpenCV driving AI: colour-blob vehicle detection, pinhole ranging,
 rule-based SAFE/SLOW/STOP, lane keeping from the markings. It sees only the frame.
 
-    python -m targets.cv_baseline --cruise-speed 10
+    python -m hil.targets.cv_baseline --cruise-speed 10
 
 Units: metres, seconds, radians, pixels. Camera frame for positions: origin on the
 road under the camera, x forward, y left (the ``CameraInfo`` of each frame gives
@@ -66,8 +66,8 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from adapters.messages import (CameraInfo, Control, DetectedObject, DrivingState, Frame, ImageEncoding,
-                               Inference, ObjectClass)
+from hil.adapters.messages import (CameraInfo, Control, DetectedObject, DrivingState, Frame, ImageEncoding,
+                                   Inference, ObjectClass)
 
 VEHICLE_W_M, VEHICLE_H_M, CLEARANCE_M = 1.8, 1.4, 0.1
 CAMERA_TO_CENTRE_M = 2.3  # camera mount ahead of the vehicle centre (the yaw pivot)
@@ -395,14 +395,14 @@ def _clip01(x: float) -> float:
     return 0.0 if x < 0 else 1.0 if x > 1 else x
 
 
-def main(argv: Sequence[str] | None = None, *, prog: str = "python -m targets.cv_baseline") -> int:
+def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.targets.cv_baseline") -> int:
     """Serve the baseline through the target SDK; 2 when the transport is unusable
     (for example when started by hand rather than by the harness)."""
     p = argparse.ArgumentParser(prog=prog,
                                 description="A classical OpenCV driving AI served over the target SDK.")
     p.add_argument("--cruise-speed", type=float, default=10.0, help="speed to hold when the lane is clear (m/s)")
     p.add_argument("--name", default="cv-baseline", help="target name reported in HELLO")
-    from adapters.sdk import TransportError, add_transport_args, serve, transport_options
+    from hil.adapters.sdk import TransportError, add_transport_args, serve, transport_options
 
     add_transport_args(p)
     a = p.parse_args(argv)

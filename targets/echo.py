@@ -2,7 +2,7 @@
 busy inference time. It is the floor for transport benchmarks and the known-latency
 target of timing tests (it never looks at the image).
 
-    python -m targets.echo --infer-ms 20 --throttle 0.1
+    python -m hil.targets.echo --infer-ms 20 --throttle 0.1
 """
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import os
 import time
 from collections.abc import Sequence
 
-from adapters.messages import Control, DrivingState, Frame, Inference
-from timing.clock import Clock, MonotonicClock, OffsetClock
+from hil.adapters.messages import Control, DrivingState, Frame, Inference
+from hil.timing.clock import Clock, MonotonicClock, OffsetClock
 
 
 class Echo:
@@ -69,7 +69,7 @@ def _clock(a: argparse.Namespace) -> Clock:
     return MonotonicClock()
 
 
-def main(argv: Sequence[str] | None = None, *, prog: str = "python -m targets.echo") -> int:
+def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.targets.echo") -> int:
     p = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
     p.add_argument("--infer-ms", type=float, default=0.0, help="busy time per frame (ms)")
     p.add_argument("--throttle", type=float, default=0.0)
@@ -82,7 +82,7 @@ def main(argv: Sequence[str] | None = None, *, prog: str = "python -m targets.ec
     p.add_argument("--clock-skew-ppm", type=float, default=0.0, help="... running this much fast (ppm)")
     p.add_argument("--bad-stamps", choices=("zero", "future", "backwards"), default=None,
                    help="stamp with a broken clock: for tests of absurd timestamps")
-    from adapters.sdk import add_transport_args, serve, transport_options
+    from hil.adapters.sdk import add_transport_args, serve, transport_options
 
     add_transport_args(p)
     a = p.parse_args(argv)

@@ -22,7 +22,7 @@ handed to the transport), the stamps it sent, and the faults injected. Frames th
 the SDK skipped (a newer frame came while inference ran) are written too: they are
 true drops. Line kinds: ``config``, ``frame``, ``skipped``, ``step``, ``malformed``.
 
-    python -m targets.reference --truth truth.jsonl --clock-offset-s 2.5 --clock-skew-ppm 300 \\
+    python -m hil.targets.reference --truth truth.jsonl --clock-offset-s 2.5 --clock-skew-ppm 300 \\
         --infer-ms 20 --spike-frames 55 --drop-frames 65 --reorder-frames 75 --step-frame 100
 
 Needs only the target SDK (adapters): no harness or simulator code.
@@ -40,10 +40,10 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import IO, Any
 
-from adapters import protocol
-from adapters.messages import Control, DrivingState, Estimate, Frame, Inference, Message
-from adapters.sdk import Endpoint
-from timing.errors import ProtocolError, TransportError
+from hil.adapters import protocol
+from hil.adapters.messages import Control, DrivingState, Estimate, Frame, Inference, Message
+from hil.adapters.sdk import Endpoint
+from hil.common.errors import ProtocolError, TransportError
 
 TRUTH_VERSION = 1
 
@@ -265,7 +265,7 @@ def _frames(text: str) -> frozenset[int]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m targets.reference", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m hil.targets.reference", description=__doc__.splitlines()[0])
     p.add_argument("--truth", type=Path, default=None, help="write the injected truth here (JSON lines)")
     p.add_argument("--name", default="reference")
     p.add_argument("--clock-offset-s", type=float, default=2.5, help="target clock ahead of the host's (s)")
@@ -286,7 +286,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from adapters.sdk import add_transport_args, transport_options
+    from hil.adapters.sdk import add_transport_args, transport_options
 
     p = build_parser()
     add_transport_args(p)
@@ -314,11 +314,11 @@ def serve_endpoint(ep: Endpoint, transport: str, options: dict[str, object]) -> 
         TransportError: another transport, or it cannot be used.
     """
     if transport == "local":
-        from adapters.local import serve_endpoint as serve_local
+        from hil.adapters.local import serve_endpoint as serve_local
 
         serve_local(ep)
     elif transport == "zenoh":
-        from adapters.zenoh_transport import serve_endpoint as serve_zenoh
+        from hil.adapters.zenoh_transport import serve_endpoint as serve_zenoh
 
         serve_zenoh(ep, **options)  # type: ignore[arg-type]
     else:

@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from scenarios.gl import select_backend
+from hil.scenarios.gl import select_backend
 
 GL_BACKEND = select_backend()
 

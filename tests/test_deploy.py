@@ -110,7 +110,7 @@ def test_the_dask_manifest_wires_client_workers_and_scheduler_together():
     """The client Job's command is a valid ``hil search --scheduler`` line naming the
     scheduler's Service and port, and the workers join that address as non-daemonic
     single-thread processes (an episode starts processes of its own)."""
-    from harness.search.cli import run_parser
+    from hil.harness.search.cli import run_parser
 
     docs = {(d["kind"], d["metadata"]["name"]): d
             for d in yaml.safe_load_all((ROOT / "deploy" / "dask-cluster.yaml").read_text())}

@@ -1,7 +1,8 @@
-"""The import graph: no circles inside a package, and the never-arrows of DESIGN.md
-(``timing`` imports only ``hil_errors``; ``scenarios`` and ``adapters`` never import
-``harness``; ``targets`` never imports ``harness`` or ``scenarios``). Imports inside
-functions count (a lazy import is still an arrow); ``if TYPE_CHECKING:`` ones do not."""
+"""The import graph: no circles inside a package, the never-arrows of DESIGN.md
+(``timing`` imports only ``common``, the leaf; ``scenarios`` and ``adapters`` never
+import ``harness``; ``targets`` never imports ``harness`` or ``scenarios``), and every
+import of ours through the ``hil`` namespace. Imports inside functions count (a lazy
+import is still an arrow); ``if TYPE_CHECKING:`` ones do not."""
 
 from __future__ import annotations
 
@@ -11,7 +12,14 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("hil_errors", "timing", "scenarios", "adapters", "targets", "harness")
+# Folder -> what it installs as: every folder is hil.<folder> (setup.py).
+FOLDERS = ("common", "timing", "scenarios", "adapters", "targets", "harness", "training")
+
+
+def _top(module: str) -> str | None:
+    """The folder of ours a module name belongs to (``hil.timing.sync`` -> ``timing``)."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 and parts[0] == "hil" and parts[1] in FOLDERS else None
 
 
 def _imports(path: Path) -> set[str]:
@@ -37,7 +45,7 @@ def _imports(path: Path) -> set[str]:
 
 
 def _graph(package: str) -> dict[str, set[str]]:
-    files = {".".join(p.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__"): p
+    files = {"hil." + ".".join(p.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__"): p
              for p in sorted((ROOT / package).rglob("*.py"))}
     return {m: {i for i in _imports(p) if i in files and i != m} for m, p in files.items()}
 
@@ -78,30 +86,48 @@ def test_cycle_finder_finds_a_cycle() -> None:
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 
 
-@pytest.mark.parametrize("package", ["hil_errors", "timing", "scenarios", "adapters", "targets"])
+@pytest.mark.parametrize("package", FOLDERS)
 def test_no_import_circles(package: str) -> None:
     assert _cycles(_graph(package)) == []
 
 
-def test_the_table_imports_no_transport_and_the_error_tree_imports_nothing_of_ours() -> None:
-    ours = ("adapters", "timing", "scenarios", "harness", "targets", "hil_errors")
-    table = {i for i in _imports(ROOT / "adapters" / "transports.py") if i.split(".")[0] in ours}
-    assert table <= {"hil_errors", "hil_errors.TransportError"}
-    errors = {i for i in _imports(ROOT / "hil_errors" / "__init__.py") if i.split(".")[0] in ours}
-    assert errors == set()
+def test_the_table_imports_no_transport_and_the_leaf_imports_nothing_of_ours() -> None:
+    table = {i for i in _imports(ROOT / "adapters" / "transports.py") if _top(i)}
+    assert table <= {"hil.common.errors", "hil.common.errors.TransportError"}
+    leaf = {i for p in (ROOT / "common").rglob("*.py") for i in _imports(p) if _top(i) not in (None, "common")}
+    assert leaf == set()
 
 
 @pytest.mark.parametrize("package, allowed", [
-    ("hil_errors", set()),
-    ("timing", {"hil_errors"}),
-    ("scenarios", {"hil_errors", "timing"}),
-    ("adapters", {"hil_errors", "timing"}),
-    ("targets", {"hil_errors", "timing", "adapters"}),
+    ("common", set()),
+    ("timing", {"common"}),
+    ("scenarios", {"common", "timing"}),
+    ("adapters", {"common", "timing"}),
+    ("targets", {"common", "timing", "adapters"}),
+    ("training", {"common", "timing", "adapters", "scenarios", "targets"}),
 ])
 def test_never_arrows(package: str, allowed: set[str]) -> None:
     crossing = {}
     for p in sorted((ROOT / package).rglob("*.py")):
-        tops = {i.split(".")[0] for i in _imports(p)} & set(PACKAGES)
+        tops = {t for i in _imports(p) if (t := _top(i))}
         if tops - allowed - {package}:
             crossing[str(p.relative_to(ROOT))] = sorted(tops - allowed - {package})
     assert crossing == {}
+
+
+def test_nothing_of_ours_is_imported_by_a_global_top_level_name() -> None:
+    """``import timing`` would work from the repository root and load a second copy of
+    the package next to ``hil.timing``: every import of ours names the namespace."""
+    bare = {}
+    for folder in (*FOLDERS, "tests", "bench", "tools", "sdk"):
+        for p in sorted((ROOT / folder).rglob("*.py")):
+            found = sorted(i for i in _imports(p) if i.split(".")[0] in (*FOLDERS, "hil_errors"))
+            if found:
+                bare[str(p.relative_to(ROOT))] = found
+    assert bare == {}
+
+
+def test_harness_modules_live_in_rooms() -> None:
+    """harness/ holds rooms (folders), not a flat hall of modules."""
+    flat = sorted(p.name for p in (ROOT / "harness").glob("*.py") if p.name != "__init__.py")
+    assert flat == []

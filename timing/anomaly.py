@@ -35,10 +35,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from hil_errors import ConfigError
-from timing.pipeline import Mapper, Split, Violation, causality_violations, split_stages
-from timing.records import FrameStatus, PipelineRecord
-from timing.sync import SyncEvent, SyncEventKind
+from hil.common.errors import ConfigError
+from hil.timing.pipeline import Mapper, Split, Violation, causality_violations, split_stages
+from hil.timing.records import FrameStatus, PipelineRecord
+from hil.timing.sync import SyncEvent, SyncEventKind
 
 
 class AnomalyKind(str, Enum):

@@ -19,9 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from timing.anomaly import is_sane
-from hil_errors import HilError
-from timing.records import PipelineRecord
+from hil.common.errors import HilError
+from hil.timing.anomaly import is_sane
+from hil.timing.records import PipelineRecord
 
 LOWEST_US = 1
 HIGHEST_US = 60_000_000
@@ -99,7 +99,7 @@ class StageHistograms:
         if stage not in self._hist:
             if len(self._hist) >= MAX_STAGES:
                 raise ValueError(f"more than {MAX_STAGES} stages; got new stage {stage!r}: "
-                                 "stage names must come from a fixed set (timing.records.STAGES)")
+                                 "stage names must come from a fixed set (hil.timing.records.STAGES)")
             self._hist[stage], self._moments[stage] = _new_histogram(), _Moments()
         return self._hist[stage], self._moments[stage]
 
@@ -141,7 +141,7 @@ class StageHistograms:
 
     def record_record(self, rec: PipelineRecord) -> bool:
         """Record every sync-free stage of a record; an insane record (see
-        ``timing.anomaly.is_sane``) is skipped and counted in ``excluded_records``."""
+        ``hil.timing.anomaly.is_sane``) is skipped and counted in ``excluded_records``."""
         if not is_sane(rec)[0]:
             self.excluded_records += 1
             return False

@@ -23,8 +23,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import NamedTuple, Protocol
 
-from timing.records import PipelineRecord
-from timing.sync import Mapped, SyncState
+from hil.timing.records import PipelineRecord
+from hil.timing.sync import Mapped, SyncState
 
 CROSS_CLOCK_STAGES: tuple[str, ...] = ("uplink", "downlink")
 

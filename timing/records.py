@@ -16,7 +16,7 @@ table in DESIGN.md) and derives the stage durations that need no clock sync:
   exact without sync because each clock's offset cancels within its own difference.
 
 Splitting ``transport`` into uplink and downlink needs the target clock mapped onto
-the harness clock (``timing.sync``). All values are integer nanoseconds.
+the harness clock (``hil.timing.sync``). All values are integer nanoseconds.
 """
 
 from __future__ import annotations

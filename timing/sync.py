@@ -44,7 +44,7 @@ from enum import Enum
 
 import numpy as np
 
-from hil_errors import ConfigError, HilError
+from hil.common.errors import ConfigError, HilError
 
 
 class NotSyncedError(HilError):

@@ -7,7 +7,7 @@
 * ``render``   — a pool of worker processes, each with its own MuJoCo mirror and
   EGL context, that render, encode and (optionally) segment the cameras of the
   vehicles assigned to it. Images travel to the links through shared memory.
-* the run process (``harness.loop``) — links to the targets (receipt stamped by the
+* the run process (``hil.harness.run.loop``) — links to the targets (receipt stamped by the
   transport, kernel timestamps where the socket gives them), recording, timing
   analysis and the detector, all fed by bounded queues.
 

@@ -48,7 +48,7 @@ class AnalysisThread:
     def _run(self) -> None:
         import time
 
-        from harness.engine.procs import lower_thread_priority
+        from hil.harness.engine.procs import lower_thread_priority
 
         lower_thread_priority()
         start = time.thread_time_ns()

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from harness.engine.procs import ask_realtime, die_with_parent
+from hil.harness.engine.procs import ask_realtime, die_with_parent
 
 SPIN_NS = 60_000          # spin the last 60 µs before a due instant (sleep overshoots)
 BIN_NS = 10_000           # lateness histogram resolution: 10 µs
@@ -39,8 +39,8 @@ OVER_10MS_NS = 10_000_000
 class PhysicsSpec:
     """What the physics process needs; pickled once at start."""
 
-    world: Any                      # scenarios.world.WorldSpec
-    rules: Any                      # scenarios.ground_truth.RefStateRules
+    world: Any                      # hil.scenarios.world.WorldSpec
+    rules: Any                      # hil.scenarios.ground_truth.RefStateRules
     realtime: bool
     total_steps: int
     wall_per_step_ns: float
@@ -107,7 +107,7 @@ def physics_main(conn: Connection, jobs: list[Connection], spec: PhysicsSpec, pa
     which gets the world state of its vehicles' camera instants directly."""
     die_with_parent(parent_pid)
     scheduling = ask_realtime(spec.realtime_priority)
-    from scenarios.sim import Simulation  # no renderer here: physics only
+    from hil.scenarios.sim import Simulation  # no renderer here: physics only
 
     sim = Simulation(spec.world, rules=spec.rules)
     keeper = _Keeper(conn, jobs, sim, spec)

@@ -13,10 +13,10 @@ from collections.abc import Iterator
 from dataclasses import replace
 from typing import Any
 
-from harness.engine.physics import PhysicsSpec, physics_main
-from harness.engine.procs import Pump, widen_pipe
-from harness.engine.render import FrameSlots, RenderSpec, render_main
-from timing.errors import SimulationError
+from hil.common.errors import SimulationError
+from hil.harness.engine.physics import PhysicsSpec, physics_main
+from hil.harness.engine.procs import Pump, widen_pipe
+from hil.harness.engine.render import FrameSlots, RenderSpec, render_main
 
 START_TIMEOUT_S = 60.0
 

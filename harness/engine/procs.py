@@ -86,7 +86,7 @@ class Pump:
         self._thread.start()
 
     def _run(self) -> None:
-        from adapters.process import prioritise_this_thread
+        from hil.adapters.process import prioritise_this_thread
 
         prioritise_this_thread()  # world states and frames are on the capture path
         while True:

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from harness.engine.procs import die_with_parent
+from hil.harness.engine.procs import die_with_parent
 
 SLOTS = 8  # frames of one camera in flight between a worker and the links
 
@@ -44,7 +44,7 @@ def encode_image(rgb: np.ndarray, *, jpeg: bool, quality: int) -> tuple[bytes | 
 
 @dataclass(frozen=True)
 class RenderSpec:
-    world: Any                     # scenarios.world.WorldSpec
+    world: Any                     # hil.scenarios.world.WorldSpec
     vehicles: tuple[str, ...]      # the cameras this worker serves
     shm: dict[str, str]            # vehicle -> shared-memory block name
     slot_bytes: int
@@ -96,12 +96,12 @@ def render_main(conn: Connection, jobs: Connection, spec: RenderSpec, parent_pid
     die_with_parent(parent_pid)
     # On the capture path: served before the targets and the run's analysis where the
     # harness may (root). Set before the GL context, so its render threads inherit it.
-    from adapters.process import prioritise_this_thread
+    from hil.adapters.process import prioritise_this_thread
 
     prioritise_this_thread()
     slots: dict[str, FrameSlots] = {}
     try:
-        from scenarios.sim import Simulation
+        from hil.scenarios.sim import Simulation
 
         sim = Simulation(spec.world)
         sim.open_renderer()

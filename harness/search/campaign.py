@@ -29,19 +29,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
-from harness.search.db import DB_NAME, CampaignDB, now_text
-from harness.search.engine import ProcessEngine
-from harness.search.episode import EpisodeResult, Status, episode_dirname
-from harness.search.sampling import (
-    Draw,
-    Past,
-    draw_generation,
-    generation_of,
-    is_guided,
-)
-from harness.search.shard import Shard
-from harness.search.spec import Campaign
-from timing.errors import ConfigError
+from hil.harness.search.db import DB_NAME, CampaignDB, now_text
+from hil.harness.search.engine import ProcessEngine
+from hil.harness.search.episode import EpisodeResult, Status, episode_dirname
+from hil.harness.search.sampling import (
+                                         Draw,
+                                         Past,
+                                         draw_generation,
+                                         generation_of,
+                                         is_guided,
+                                         )
+from hil.common.errors import ConfigError
+from hil.harness.search.shard import Shard
+from hil.harness.search.spec import Campaign
 
 
 class Reporter(Protocol):
@@ -171,7 +171,7 @@ def run_campaign(c: Campaign, *, out: Path, gl_backend: str, shard: Shard | None
         oc.stopped = stop.set
         oc.wall_s = round(time.perf_counter() - t0, 3)
         db.finish_shard(shard_row, wall_s=oc.wall_s, episodes=len(oc.ran))
-    from harness.search.report import write_outputs
+    from hil.harness.search.report import write_outputs
 
     oc.summary = write_outputs(out)
     return oc

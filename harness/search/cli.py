@@ -23,7 +23,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from timing.errors import HilError
+from hil.common.errors import HilError
 
 EXIT_OK, EXIT_INCOMPLETE, EXIT_USAGE = 0, 1, 2
 SUBCOMMANDS = ("merge", "cases", "report")
@@ -103,13 +103,13 @@ def main(argv: Sequence[str]) -> int:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from harness.search.campaign import run_campaign
-    from harness.search.engine import DaskEngine, EngineKind
-    from harness.search.progress import CampaignProgress
-    from harness.search.shard import Shard, parse_shard
-    from harness.search.spec import load_spec
-    from scenarios.gl import select_backend
-    from timing.errors import ConfigError
+    from hil.common.errors import ConfigError
+    from hil.harness.search.campaign import run_campaign
+    from hil.harness.search.engine import DaskEngine, EngineKind
+    from hil.harness.search.progress import CampaignProgress
+    from hil.harness.search.shard import Shard, parse_shard
+    from hil.harness.search.spec import load_spec
+    from hil.scenarios.gl import select_backend
 
     shard = parse_shard(args.shard) if args.shard is not None else Shard()
     workers = args.workers if args.workers is not None else (os.cpu_count() or 1)
@@ -151,7 +151,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _console():
-    from harness.progress import make_console
+    from hil.harness.cli.progress import make_console
 
     return make_console()
 
@@ -181,7 +181,7 @@ def _print_summary(console, s: dict, folder: Path) -> None:
 
 
 def _cmd_merge(args: argparse.Namespace) -> int:
-    from harness.search.merge import merge
+    from hil.harness.search.merge import merge
 
     r = merge(args.out, args.shards)
     console = _console()
@@ -197,8 +197,8 @@ def _cmd_merge(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from harness.search.db import open_campaign_db
-    from harness.search.report import write_outputs
+    from hil.harness.search.db import open_campaign_db
+    from hil.harness.search.report import write_outputs
 
     open_campaign_db(args.campaign).close()
     s = write_outputs(args.campaign)
@@ -209,9 +209,9 @@ def _cmd_report(args: argparse.Namespace) -> int:
 def _cmd_cases(args: argparse.Namespace) -> int:
     from rich.table import Table
 
-    from harness.replayable import Reproducibility, reproducibility
-    from harness.search.db import open_campaign_db
-    from harness.search.summary import case_cause
+    from hil.harness.cases.replayable import Reproducibility, reproducibility
+    from hil.harness.search.db import open_campaign_db
+    from hil.harness.search.summary import case_cause
 
     with open_campaign_db(args.campaign) as db:
         cases = db.cases()

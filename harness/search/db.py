@@ -26,10 +26,10 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, Self
 
-from harness import __version__
-from harness.search.episode import EpisodeResult
-from harness.search.spec import Campaign
-from timing.errors import ConfigError
+from hil.common.errors import ConfigError
+from hil.harness import __version__
+from hil.harness.search.episode import EpisodeResult
+from hil.harness.search.spec import Campaign
 
 DB_NAME = "campaign.sqlite"
 

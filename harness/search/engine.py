@@ -38,10 +38,10 @@ from concurrent.futures import Future, InvalidStateError, ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from harness.search.episode import EpisodeResult, episode_dirname, init_worker, run_episode
-from harness.search.sampling import Draw
-from harness.search.spec import Campaign
-from timing.errors import ConfigError
+from hil.common.errors import ConfigError
+from hil.harness.search.episode import EpisodeResult, episode_dirname, init_worker, run_episode
+from hil.harness.search.sampling import Draw
+from hil.harness.search.spec import Campaign
 
 
 class EngineKind(enum.Enum):

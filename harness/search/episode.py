@@ -1,7 +1,7 @@
 """One episode: a lockstep run of the campaign's config with its draw, in a worker.
 
 ``run_episode`` is what a pool worker executes: it builds the episode's run config,
-runs it (``harness.run.execute``) into its own run folder ``CAMPAIGN/episodes/eNNNNN``
+runs it (``hil.harness.run.driver.execute``) into its own run folder ``CAMPAIGN/episodes/eNNNNN``
 (``config.json`` + ``run.mcap`` + ``corner_cases.sqlite``: ``hil replay`` takes it as
 it is), then reads back what the campaign keeps: the outcome, the corner cases, the
 distance every ego drove (virtual km, from ``/ground_truth``) and a hash of the
@@ -26,9 +26,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from harness.search.sampling import Draw, score
-from harness.search.spec import Campaign
-from timing.errors import ConfigError, HilError
+from hil.common.errors import ConfigError, HilError
+from hil.harness.search.sampling import Draw, score
+from hil.harness.search.spec import Campaign
 
 ERROR_FILE = "episode-error.txt"
 
@@ -87,7 +87,7 @@ def run_episode(campaign: Campaign, draw: Draw, *, campaign_dir: Path, shard: st
                 install_signal_handlers: bool = True) -> EpisodeResult:
     """Run one episode into ``campaign_dir/episodes/eNNNNN`` and return its result
     (never raises for a failed episode: its status says ``error``)."""
-    from harness.run import execute, prepare_out_dir
+    from hil.harness.run.driver import execute, prepare_out_dir
 
     rel = f"episodes/{episode_dirname(draw.index)}"
     out = campaign_dir / rel
@@ -172,7 +172,7 @@ def trace_stats(mcap_path: Path) -> tuple[float, str]:
 
 
 def _cases(out: Path) -> list[dict[str, Any]]:
-    from harness.corner_cases import DB_NAME, read_cases
+    from hil.harness.cases.recorder import DB_NAME, read_cases
 
     if not (out / DB_NAME).is_file():
         return []

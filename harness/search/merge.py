@@ -18,8 +18,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from harness.search.db import DB_NAME, CampaignDB, open_campaign_db
-from timing.errors import ConfigError
+from hil.common.errors import ConfigError
+from hil.harness.search.db import DB_NAME, CampaignDB, open_campaign_db
 
 
 @dataclass(frozen=True)
@@ -110,7 +110,7 @@ def merge(out: Path, sources: Sequence[Path]) -> MergeResult:
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
         raise
-    from harness.search.report import write_outputs
+    from hil.harness.search.report import write_outputs
 
     summary = write_outputs(out)
     return MergeResult(out=out, episodes=len(owner), cases=sum(len(x[3]) for x in loaded), linked=linked,

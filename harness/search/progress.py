@@ -15,12 +15,12 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from harness.search.episode import EpisodeResult, Status
-from harness.search.shard import Shard
+from hil.harness.search.episode import EpisodeResult, Status
+from hil.harness.search.shard import Shard
 
 
 class CampaignProgress:
-    """A ``Reporter`` (harness.search.campaign) for people: ``live`` shows a bar."""
+    """A ``Reporter`` (hil.harness.search.campaign) for people: ``live`` shows a bar."""
 
     def __init__(self, console: Console, *, live: bool) -> None:
         self.console = console

@@ -20,10 +20,10 @@ from html import escape
 from pathlib import Path
 from typing import Any
 
-from harness import report_plots as rp
-from harness.search.db import DB_NAME, CampaignDB
-from harness.search.summary import build_summary, case_cause, episode_class
-from timing.errors import ConfigError
+from hil.common.errors import ConfigError
+from hil.harness.report import plots as rp
+from hil.harness.search.db import DB_NAME, CampaignDB
+from hil.harness.search.summary import build_summary, case_cause, episode_class
 
 SUMMARY_NAME = "summary.json"
 REPORT_NAME = "report.html"
@@ -266,8 +266,8 @@ def _thumbnails(folder: Path | None, cases: list[dict[str, Any]]) -> dict[tuple[
     from its episode's run.mcap; cases whose frame cannot be read get none."""
     if folder is None:
         return {}
-    from harness.report_cases import thumbnail_for_case
-    from harness.run_folder import read_run
+    from hil.harness.record.run_folder import read_run
+    from hil.harness.report.cases import thumbnail_for_case
 
     out: dict[tuple[Any, Any], str] = {}
     runs: dict[str, Any] = {}

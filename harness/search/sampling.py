@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from harness.search.spec import Campaign, StrategyKind
+from hil.harness.search.spec import Campaign, StrategyKind
 
 RANDOM_STREAM = 0x5EA
 GUIDED_STREAM = 0xC3E

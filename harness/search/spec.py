@@ -48,16 +48,16 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, Field, ValidationError
 
-from harness.config import (
-    LatencyConfig,
-    LatencyKind,
-    RunConfig,
-    dump_config,
-    load_config,
-    parse_config,
-)
-from harness.config_types import MODEL_CONFIG, Float, Int
-from timing.errors import ConfigError
+from hil.harness.config.model import (
+                                      LatencyConfig,
+                                      LatencyKind,
+                                      RunConfig,
+                                      dump_config,
+                                      load_config,
+                                      parse_config,
+                                      )
+from hil.common.errors import ConfigError
+from hil.harness.config.types import MODEL_CONFIG, Float, Int
 
 LATENCY_PREFIX = "latency."
 # Latency fields a search may draw (whichever of these LatencyConfig has: a drop
@@ -269,7 +269,7 @@ def resolve_spec(data: Mapping[str, Any], *, source: str = "<spec>", base_dir: P
         raise ConfigError(f"{source}: spec error at {loc}: got {e['input']!r}; expected "
                           f"{e['msg'].removeprefix('Input should be ').removeprefix('Value error, ')}") from err
     run = _run_config(spec, source, base_dir, overrides)
-    import scenarios
+    from hil import scenarios
 
     sdef = scenarios.get(run.scenario.name)
     base_params = sdef.resolve(run.scenario.params)

@@ -22,8 +22,8 @@ import math
 from collections import Counter
 from typing import Any
 
-from harness.search.db import CampaignDB
-from harness.search.episode import Status
+from hil.harness.search.db import CampaignDB
+from hil.harness.search.episode import Status
 
 SCHEMA_VERSION = 1
 BINS = 5

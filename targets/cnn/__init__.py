@@ -7,8 +7,8 @@ control, composed modularly and served through the target SDK.
 - ``geometry``    position from a box
 - ``decision``    in-path test, low-confidence overrides, the baseline's rules
 - ``commands``    model swaps and status over the transport
-- ``target``      ``CnnTarget.infer`` and ``main`` (``python -m targets.cnn``)
+- ``target``      ``CnnTarget.infer`` and ``main`` (``python -m hil.targets.cnn``)
 
-Training lives in the harness (``hil train``, ``harness/train.py``,
-``harness/dataset.py``): this package never sees the simulator or ground truth.
+Training lives in the harness (``hil train``, ``training/train.py``,
+``training/dataset.py``): this package never sees the simulator or ground truth.
 """

@@ -35,9 +35,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from adapters.messages import DetectedObject, DrivingState, ObjectClass
-from targets.cnn.geometry import PRIORS
-from targets.cv_baseline import CAMERA_TO_CENTRE_M, WHEELBASE_M, CvBaseline
+from hil.adapters.messages import DetectedObject, DrivingState, ObjectClass
+from hil.targets.cnn.geometry import PRIORS
+from hil.targets.cv_baseline import CAMERA_TO_CENTRE_M, WHEELBASE_M, CvBaseline
 
 
 @dataclass(frozen=True)

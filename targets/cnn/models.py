@@ -7,7 +7,7 @@ of 100, 50 and 10 units on a 66 x 200 YUV crop of the road. ReLU instead of the
 paper's unspecified activation. Two outputs: the steering angle (rad, positive left)
 and the log-variance of its error, trained as a Gaussian negative log-likelihood:
 the net's own estimate of how far it may be off, which the control software uses
-to override a low-confidence output (``targets.cnn.decision``).
+to override a low-confidence output (``hil.targets.cnn.decision``).
 
 Detection: ``Detector``, a single-shot anchor-free detector in the style of
 CenterNet (Zhou et al. 2019, "Objects as Points") instead of the paper's SSD
@@ -38,7 +38,7 @@ except ImportError as err:  # pragma: no cover - depends on the install
     raise ImportError("the CNN target needs torch: pip install -e '.[ai]' -c constraints.txt "
                       "(torch==2.13.0, the CPU build)") from err
 
-from targets.cnn.preprocess import DET_H, DET_W, STEER_H, STEER_W
+from hil.targets.cnn.preprocess import DET_H, DET_W, STEER_H, STEER_W
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
 DETECTOR_FILE, STEERING_FILE = "detector.pt", "steering.pt"

@@ -1,6 +1,6 @@
 """Image preprocessing shared by inference and training (numpy + OpenCV, no torch).
 
-Both nets see the frame the wire carries, decoded to BGR (``adapters.sdk.decode_image``):
+Both nets see the frame the wire carries, decoded to BGR (``hil.adapters.sdk.decode_image``):
 
 * detector: the whole frame resized (area averaging) to ``DET_W`` x ``DET_H`` =
   160 x 120, RGB, uint8 (the net normalises);

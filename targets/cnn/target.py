@@ -1,24 +1,24 @@
 """The CNN driving AI: detector + steering CNN + pinhole ranging + the baseline's
 rules, served through the target SDK like any user's AI.
 
-    python -m targets.cnn [--detector cnn|cv] [--steering cnn|cv] [--transport ...]
+    python -m hil.targets.cnn [--detector cnn|cv] [--steering cnn|cv] [--transport ...]
     hil target cnn --transport zenoh --listen tcp/0.0.0.0:7447
 
 Per frame (``CnnTarget.infer``; it sees only what the wire carries):
 
-1. decode the image (``adapters.sdk.decode_image``);
+1. decode the image (``hil.adapters.sdk.decode_image``);
 2. steering: the steering CNN on the road crop, or the OpenCV baseline's lane
    keeping (``--steering cv``); a CNN output whose own error estimate is too high
    falls back to the baseline for that frame and slows the car down;
 3. detection: the CNN detector (class, confidence, box), each box ranged with the
-   pinhole model and the class's size priors (``targets.cnn.geometry``), or the
+   pinhole model and the class's size priors (``hil.targets.cnn.geometry``), or the
    baseline's colour-blob vehicles (``--detector cv``); uncertain CNN detections in
    the path make the baseline look too;
-4. decision and control (``targets.cnn.decision``): SAFE/SLOW/STOP on the nearest
+4. decision and control (``hil.targets.cnn.decision``): SAFE/SLOW/STOP on the nearest
    object in the driven path with the baseline's thresholds.
 
 Models are chosen by the command line (the run config's ``target.args``) and can be
-swapped during a run by a COMMAND over the transport (``targets.cnn.commands``).
+swapped during a run by a COMMAND over the transport (``hil.targets.cnn.commands``).
 Weights come from the package (``targets/weights``); nothing is downloaded.
 Inference runs on ``--threads`` torch threads (default 1: one core). The SDK stamps
 ``t_infer_start``/``t_infer_end`` around ``infer`` (the run's ``inference`` stage);
@@ -40,13 +40,13 @@ from pathlib import Path
 
 import numpy as np
 
-from adapters.messages import Control, DetectedObject, Frame, Inference, ObjectClass
-from adapters.sdk import decode_image
-from targets.cnn import commands
-from targets.cnn.decision import Policy, decide, in_path, nearest_in_path
-from targets.cnn.geometry import estimate_position
-from targets.cnn.preprocess import DET_H, DET_W, detector_input, steering_input
-from targets.cv_baseline import MAX_STEER_RAD, CvBaseline
+from hil.adapters.messages import Control, DetectedObject, Frame, Inference, ObjectClass
+from hil.adapters.sdk import decode_image
+from hil.targets.cnn import commands
+from hil.targets.cnn.decision import Policy, decide, in_path, nearest_in_path
+from hil.targets.cnn.geometry import estimate_position
+from hil.targets.cnn.preprocess import DET_H, DET_W, detector_input, steering_input
+from hil.targets.cv_baseline import MAX_STEER_RAD, CvBaseline
 
 _CLASS = {0: ObjectClass.VEHICLE, 1: ObjectClass.PEDESTRIAN, 2: ObjectClass.OBSTACLE}
 STAGES = ("decode", "steering", "detector", "decision", "total")
@@ -72,7 +72,7 @@ class CnnStats:
 
 class CnnTarget:
     """``infer`` is the function the SDK serves, ``infer_batch`` the one a shared
-    target's scheduler serves (``adapters.batching``), ``command`` the COMMAND handler.
+    target's scheduler serves (``hil.adapters.batching``), ``command`` the COMMAND handler.
 
     Raises:
         FileNotFoundError, ValueError: missing or unfit weights (``models.load``), or
@@ -81,10 +81,10 @@ class CnnTarget:
 
     def __init__(self, *, detector: str = "cnn", steering: str = "cnn", policy: Policy | None = None,
                  cruise_speed_mps: float = 10.0, weights_dir: Path | None = None, device: str = "cpu") -> None:
-        """``device``: ``cpu``, ``cuda``, ``cuda:N`` or ``auto`` (``targets.cnn.device``);
+        """``device``: ``cpu``, ``cuda``, ``cuda:N`` or ``auto`` (``hil.targets.cnn.device``);
         the weights are loaded there and the nets run there."""
-        from targets.cnn import models
-        from targets.cnn.device import device_name, parse_device
+        from hil.targets.cnn import models
+        from hil.targets.cnn.device import device_name, parse_device
 
         for slot, name in (("detector", detector), ("steering", steering)):
             if name not in commands.MODELS:
@@ -278,7 +278,7 @@ def _iou(a: Sequence[float], b: Sequence[float]) -> float:
     return inter / union if union > 0 else 0.0
 
 
-def main(argv: Sequence[str] | None = None, *, prog: str = "python -m targets.cnn") -> int:
+def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.targets.cnn") -> int:
     """Serve the CNN target through the target SDK; 2 when the transport is unusable
     (started by hand rather than by the harness) or the weights are missing."""
     p = argparse.ArgumentParser(prog=prog,
@@ -308,7 +308,7 @@ def main(argv: Sequence[str] | None = None, *, prog: str = "python -m targets.cn
     g.add_argument("--max-batch", type=int, default=16, help="most frames per batch")
     g.add_argument("--batch-log", default=None,
                    help="CSV of every frame's batch (default: $HIL_BATCH_LOG, set by the harness)")
-    from adapters.sdk import TransportError, add_transport_args, serve, transport_options
+    from hil.adapters.sdk import TransportError, add_transport_args, serve, transport_options
 
     add_transport_args(p)
     a = p.parse_args(argv)
@@ -326,18 +326,18 @@ def main(argv: Sequence[str] | None = None, *, prog: str = "python -m targets.cn
     except (FileNotFoundError, ValueError, ImportError) as err:
         print(f"cnn: {err}", file=sys.stderr)
         return 2
-    from targets.cnn.device import hello_name
+    from hil.targets.cnn.device import hello_name
 
     name = hello_name(a.name, target.device, detail=target.device_name)
     print(f"cnn: device {target.device} ({target.device_name}), torch threads {torch.get_num_threads()}",
           file=sys.stderr, flush=True)
-    from adapters.batching import started_shared
+    from hil.adapters.batching import started_shared
 
     try:
         # local: shared exactly when the harness started it so (target.shared), whatever
         # --shared says, so one config's args serve both placements; zenoh: --shared.
         if started_shared() if a.transport == "local" else a.shared:
-            from adapters.batching import ConfigError, parse_vehicles, serve_batched
+            from hil.adapters.batching import ConfigError, parse_vehicles, serve_batched
 
             try:
                 vehicles = parse_vehicles(a.vehicles)

@@ -17,15 +17,15 @@ from pathlib import Path
 
 import pytest
 
-from adapters.link import Link, open_link
-from timing.clock import MonotonicClock
+from hil.adapters.link import Link, open_link
+from hil.timing.clock import MonotonicClock
 
 TRANSPORT_NAMES = ("local", "zenoh", "can", "tcp")
 
 
 @contextlib.contextmanager
 def local_pair(tmp_path: Path, echo_args: list[str]) -> Iterator[Link]:
-    link = open_link("local", command=[sys.executable, "-m", "targets.echo", *echo_args], vehicle_id=0,
+    link = open_link("local", command=[sys.executable, "-m", "hil.targets.echo", *echo_args], vehicle_id=0,
                      clock=MonotonicClock(), log_path=tmp_path / "target.log")
     try:
         link.open(hello_timeout_s=20)

@@ -16,9 +16,9 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
-from adapters.link import Link
-from timing.clock import MonotonicClock
-from timing.errors import TransportError
+from hil.adapters.link import Link
+from hil.common.errors import TransportError
+from hil.timing.clock import MonotonicClock
 
 try:
     import can
@@ -32,7 +32,7 @@ else:
 
 
 def parse_echo_args(args: list[str]) -> argparse.Namespace:
-    """The options of ``python -m targets.echo`` that shape the target (transport
+    """The options of ``python -m hil.targets.echo`` that shape the target (transport
     options are the pair's business)."""
     p = argparse.ArgumentParser(prog="echo (CAN pair)")
     p.add_argument("--infer-ms", type=float, default=0.0)
@@ -48,10 +48,10 @@ def can_target(channel: str, echo_args: list[str], *, vehicle_id: int = 0) -> It
     """The echo target serving ``vehicle_id`` on virtual ``channel`` in a thread; on exit
     it is stopped (if the harness did not say BYE) and joined, and its bus shut down.
     An exception in the target thread is raised here."""
-    from adapters.can_transport import serve_endpoint
-    from adapters.messages import Frame, Inference
-    from adapters.sdk import Endpoint
-    from targets.echo import Echo
+    from hil.adapters.can_transport import serve_endpoint
+    from hil.adapters.messages import Frame, Inference
+    from hil.adapters.sdk import Endpoint
+    from hil.targets.echo import Echo
 
     a = parse_echo_args(echo_args)
     echo = Echo(infer_ms=a.infer_ms, throttle=a.throttle, brake=a.brake)
@@ -93,7 +93,7 @@ def can_target(channel: str, echo_args: list[str], *, vehicle_id: int = 0) -> It
 
 @contextlib.contextmanager
 def can_pair(tmp_path: Path, echo_args: list[str]) -> Iterator[Link]:
-    from adapters.link import open_link
+    from hil.adapters.link import open_link
 
     del tmp_path  # nothing to log: the target runs in this process
     channel = f"hil-test-{uuid.uuid4().hex}"

@@ -10,10 +10,10 @@ import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-from adapters.link import Link
-from adapters.tcp import TcpLink
+from hil.adapters.link import Link
+from hil.adapters.tcp import TcpLink
 from tests.adapters.pair_zenoh import ROOT, end_process, free_port
-from timing.clock import MonotonicClock
+from hil.timing.clock import MonotonicClock
 
 SKIP_REASON: str | None = None
 
@@ -21,11 +21,11 @@ SKIP_REASON: str | None = None
 @contextlib.contextmanager
 def tcp_echo(log_path: Path, args: Sequence[str] = (), *, listen: str | None = None,
              connect: str | None = None) -> Iterator[subprocess.Popen[bytes]]:
-    """``python -m targets.echo --transport tcp (--listen|--connect) ADDRESS *args``,
+    """``python -m hil.targets.echo --transport tcp (--listen|--connect) ADDRESS *args``,
     ended by PID on exit (it normally leaves by itself on the harness's BYE)."""
     where = ["--listen", listen] if listen else ["--connect", str(connect)]
     with open(log_path, "ab") as log:
-        proc = subprocess.Popen([sys.executable, "-m", "targets.echo", "--transport", "tcp", *where, *args],
+        proc = subprocess.Popen([sys.executable, "-m", "hil.targets.echo", "--transport", "tcp", *where, *args],
                                 cwd=ROOT, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdin=subprocess.DEVNULL,
                                 stdout=log, stderr=log)
         try:

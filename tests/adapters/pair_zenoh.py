@@ -11,8 +11,8 @@ import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-from adapters.link import Link
-from timing.clock import MonotonicClock
+from hil.adapters.link import Link
+from hil.timing.clock import MonotonicClock
 
 try:
     import zenoh  # noqa: F401
@@ -33,11 +33,11 @@ def free_port() -> int:
 
 @contextlib.contextmanager
 def echo_target(log_path: Path, port: int, args: Sequence[str] = ()) -> Iterator[subprocess.Popen[bytes]]:
-    """``python -m targets.echo --transport zenoh --listen tcp/127.0.0.1:PORT *args``,
+    """``python -m hil.targets.echo --transport zenoh --listen tcp/127.0.0.1:PORT *args``,
     ended by PID on exit (it normally leaves by itself on the harness's BYE)."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     with open(log_path, "ab") as log:
-        proc = subprocess.Popen([sys.executable, "-m", "targets.echo", "--transport", "zenoh",
+        proc = subprocess.Popen([sys.executable, "-m", "hil.targets.echo", "--transport", "zenoh",
                                  "--listen", f"tcp/127.0.0.1:{port}", *args],
                                 cwd=ROOT, env=env, stdin=subprocess.DEVNULL, stdout=log, stderr=log)
         try:
@@ -63,7 +63,7 @@ def end_process(proc: subprocess.Popen[bytes], grace_s: float = 3.0) -> None:
 
 @contextlib.contextmanager
 def zenoh_pair(tmp_path: Path, echo_args: list[str]) -> Iterator[Link]:
-    from adapters.zenoh_transport import ZenohLink
+    from hil.adapters.zenoh_transport import ZenohLink
 
     port = free_port()
     with echo_target(tmp_path / "target.log", port, echo_args):

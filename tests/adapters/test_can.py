@@ -20,17 +20,17 @@ pytest.importorskip("isotp", reason="can-isotp is not installed (pip install 'ca
 
 import can  # noqa: E402
 
-from adapters import protocol  # noqa: E402
-from adapters.can_capacity import bus_capacity, classic_frame_time_s, fd_frame_time_s, isotp_frame_lengths  # noqa: E402
-from adapters.can_dbc import DBC_PATH, MAX_DBC_OBJECTS, HilCan, Role, load_database  # noqa: E402
-from adapters.can_transport import CanLink, serve_endpoint  # noqa: E402
-from adapters.link import open_link  # noqa: E402
-from adapters.messages import (Bye, CameraInfo, ClockId, Control, DetectedObject, DrivingState, ErrorMsg,  # noqa: E402
-                               Estimate, Frame, Heartbeat, Hello, ImageEncoding, Inference, ObjectClass,
-                               SyncRequest, SyncResponse)
-from adapters.sdk import Endpoint  # noqa: E402
-from timing.clock import MonotonicClock  # noqa: E402
-from timing.errors import ConfigError, ProtocolError, TargetError  # noqa: E402
+from hil.adapters import protocol  # noqa: E402
+from hil.adapters.can_capacity import bus_capacity, classic_frame_time_s, fd_frame_time_s, isotp_frame_lengths  # noqa: E402
+from hil.adapters.can_dbc import DBC_PATH, MAX_DBC_OBJECTS, HilCan, Role, load_database  # noqa: E402
+from hil.adapters.can_transport import CanLink, serve_endpoint  # noqa: E402
+from hil.adapters.link import open_link  # noqa: E402
+from hil.adapters.messages import (Bye, CameraInfo, ClockId, Control, DetectedObject, DrivingState, ErrorMsg,  # noqa: E402
+                                   Estimate, Frame, Heartbeat, Hello, ImageEncoding, Inference, ObjectClass,
+                                   SyncRequest, SyncResponse)
+from hil.adapters.sdk import Endpoint  # noqa: E402
+from hil.common.errors import ConfigError, ProtocolError, TargetError  # noqa: E402
+from hil.timing.clock import MonotonicClock  # noqa: E402
 
 CAM = CameraInfo(277.0, 277.0, 160.0, 120.0, 1.3)
 OBJ = DetectedObject(ObjectClass.PEDESTRIAN, 0.75, (10.5, 20.0, 30.25, 80.0), (12.5, -1.25, 0.0))

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import time
 
-from adapters.messages import CameraInfo, Estimate, ImageEncoding
-from adapters.link import Link
+from hil.adapters.link import Link
+from hil.adapters.messages import CameraInfo, Estimate, ImageEncoding
 
 CAM = CameraInfo(277.0, 277.0, 160.0, 120.0, 1.3)
 

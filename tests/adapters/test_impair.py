@@ -14,11 +14,11 @@ from pathlib import Path
 
 import pytest
 
-from adapters import protocol
-from adapters.impair import Action, Impairment, LinkImpairment
-from adapters.link import Received
-from adapters.messages import Control, DrivingState, Estimate, SyncRequest
-from timing.clock import MonotonicClock
+from hil.adapters import protocol
+from hil.adapters.impair import Action, Impairment, LinkImpairment
+from hil.adapters.link import Received
+from hil.adapters.messages import Control, DrivingState, Estimate, SyncRequest
+from hil.timing.clock import MonotonicClock
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -56,7 +56,7 @@ def _sync_bytes(seq: int) -> bytes:
 
 def _frame_like(seq: int) -> bytes:
     # A COMMAND-sized message stands in for traffic; the stage only reads the header.
-    from adapters.messages import Command
+    from hil.adapters.messages import Command
     return protocol.encode(Command(0, seq, "x" * 100, 0))
 
 
@@ -160,7 +160,7 @@ def test_sync_probes_pass_unless_asked_and_downlink_is_restamped_at_release():
 
 
 def test_config_refuses_a_bad_value_in_one_line(tmp_path):
-    p = subprocess.run([sys.executable, "-m", "harness.cli", "run", "hil_configs/demo.yaml", "--out",
+    p = subprocess.run([sys.executable, "-m", "hil.harness.cli.main", "run", "hil_configs/demo.yaml", "--out",
                         str(tmp_path / "r"), "--set", "target.impair.uplink.loss=1.5"],
                        cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert p.returncode == 2, p.stderr
@@ -176,9 +176,9 @@ def test_a_run_measures_the_injected_uplink_delay_back(tmp_path, gl_backend):
     from tests.conftest import read_mcap
 
     out = tmp_path / "run"
-    p = subprocess.run([sys.executable, "-m", "harness.cli", "run", "hil_configs/demo.yaml", "--out", str(out),
+    p = subprocess.run([sys.executable, "-m", "hil.harness.cli.main", "run", "hil_configs/demo.yaml", "--out", str(out),
                         "--no-progress", "--set", "duration_s=3", "--set", "recording.images=false",
-                        "--set", 'target.command=["{python}", "-m", "targets.echo"]',
+                        "--set", 'target.command=["{python}", "-m", "hil.targets.echo"]',
                         "--set", "target.impair.uplink.delay_ms=20", "--set", "target.impair.uplink.jitter_ms=2",
                         "--set", "target.impair.downlink.loss=0.1"],
                        cwd=ROOT, capture_output=True, text=True, timeout=180,

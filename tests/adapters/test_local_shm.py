@@ -17,16 +17,16 @@ from pathlib import Path
 
 import pytest
 
-from adapters import protocol, shm
-from adapters.link import Link, open_link
-from adapters.local import LocalLink
-from adapters.messages import CameraInfo, Estimate, Frame, Hello, ImageEncoding, SyncRequest
-from adapters.shm import (NOTICE_SIZE, SHM_FRAMES, LocalStreamDecoder, Notice, ShmReader, ShmRing,
-                          decode_notice, encode_notice)
-from adapters.stream import StreamDecoder
+from hil.adapters import protocol, shm
+from hil.adapters.link import Link, open_link
+from hil.adapters.local import LocalLink
+from hil.adapters.messages import CameraInfo, Estimate, Frame, Hello, ImageEncoding, SyncRequest
+from hil.adapters.shm import (NOTICE_SIZE, SHM_FRAMES, LocalStreamDecoder, Notice, ShmReader, ShmRing,
+                              decode_notice, encode_notice)
+from hil.adapters.stream import StreamDecoder
 from tests.adapters import test_conformance as conformance
-from timing.clock import MonotonicClock
-from timing.errors import ProtocolError, TransportError
+from hil.common.errors import ProtocolError, TransportError
+from hil.timing.clock import MonotonicClock
 
 ROOT = Path(__file__).resolve().parents[2]
 CAM = CameraInfo(277.0, 277.0, 160.0, 120.0, 1.3)
@@ -47,8 +47,8 @@ LEGACY_TARGET = textwrap.dedent("""
     import os, socket, sys
     sys.path.insert(0, sys.argv[1])
     import argparse
-    from adapters.sdk import Endpoint
-    from targets.echo import Echo
+    from hil.adapters.sdk import Endpoint
+    from hil.targets.echo import Echo
     assert "HIL_LOCAL_SHM" in os.environ  # offered, and ignored
     p = argparse.ArgumentParser()
     for opt in ("--infer-ms", "--throttle", "--brake"):
@@ -82,7 +82,7 @@ def local(tmp_path: Path, command: list[str], **options: object) -> Iterator[Loc
 
 
 def echo(*args: str) -> list[str]:
-    return [sys.executable, "-m", "targets.echo", *args]
+    return [sys.executable, "-m", "hil.targets.echo", *args]
 
 
 def legacy(tmp_path: Path, *args: str) -> list[str]:
@@ -348,7 +348,7 @@ def test_ring_is_gone_after_close_and_after_a_crash(tmp_path):
 
 
 def test_hello_capability_is_added_only_to_the_hello():
-    from adapters.local import _advertising
+    from hil.adapters.local import _advertising
 
     sent: list[bytes] = []
     wrapped = _advertising(sent.append, SHM_FRAMES)

@@ -25,16 +25,16 @@ pytest.importorskip("isotp", reason="can-isotp is not installed (pip install 'ca
 import can  # noqa: E402
 import zenoh  # noqa: E402
 
-from adapters.link import Link, open_link  # noqa: E402
-from adapters.messages import CameraInfo, Estimate, Frame, ImageEncoding, Inference  # noqa: E402
-from adapters.mixed import MixedLink, serve_endpoint  # noqa: E402
-from adapters.sdk import TRANSPORTS, Endpoint, add_transport_args, transport_options  # noqa: E402
-from adapters.zenoh_transport import Keys, make_config  # noqa: E402
+from hil.adapters.link import Link, open_link  # noqa: E402
+from hil.adapters.messages import CameraInfo, Estimate, Frame, ImageEncoding, Inference  # noqa: E402
+from hil.adapters.mixed import MixedLink, serve_endpoint  # noqa: E402
+from hil.adapters.sdk import TRANSPORTS, Endpoint, add_transport_args, transport_options  # noqa: E402
+from hil.adapters.zenoh_transport import Keys, make_config  # noqa: E402
 from tests.adapters import test_conformance as conformance  # noqa: E402
 from tests.adapters.pair_can import can_target, parse_echo_args  # noqa: E402
 from tests.adapters.pair_zenoh import free_port  # noqa: E402
-from timing.clock import MonotonicClock  # noqa: E402
-from timing.errors import ConfigError, TargetError, TransportError  # noqa: E402
+from hil.common.errors import ConfigError, TargetError, TransportError  # noqa: E402
+from hil.timing.clock import MonotonicClock  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 CAM = CameraInfo(277.0, 277.0, 160.0, 120.0, 1.3)
@@ -75,7 +75,7 @@ def mixed_target(channel: str, port: int, echo_args: list[str] = (), *, vehicle_
     """The echo target as a mixed device in a thread: frames from Zenoh (listening on
     127.0.0.1:``port``), everything else on virtual ``channel``. ``--exit-after-frames
     N``: the device drops off both networks on the frame after the N-th."""
-    from targets.echo import Echo
+    from hil.targets.echo import Echo
 
     a = parse_echo_args(list(echo_args))
     echo = Echo(infer_ms=a.infer_ms, throttle=a.throttle, brake=a.brake)
@@ -289,8 +289,8 @@ def test_target_programs_take_mixed_with_both_option_sets():
 
 
 def test_sdk_serve_dispatches_mixed():
-    from adapters.sdk import serve
-    from targets.echo import Echo
+    from hil.adapters.sdk import serve
+    from hil.targets.echo import Echo
 
     channel, port = f"hil-mixed-{uuid.uuid4().hex}", free_port()
     bus = can.Bus(interface="virtual", channel=channel, fd=True, ignore_config=True)
@@ -311,8 +311,8 @@ def test_sdk_serve_dispatches_mixed():
 
 
 def test_run_config_with_mixed_builds_a_mixed_link(tmp_path):
-    from harness.config import Transport, load_config
-    from harness.target_launch import make_link
+    from hil.harness.config.model import Transport, load_config
+    from hil.harness.run.target_launch import make_link
 
     cfg = load_config(ROOT / "hil_configs/can.yaml", overrides=[
         "target.transport=mixed", "target.can.interface=virtual", "target.can.channel=bus{vehicle_id}",
@@ -330,8 +330,8 @@ def test_run_config_with_mixed_builds_a_mixed_link(tmp_path):
 
 
 def test_whole_run_against_a_mixed_device(tmp_path):
-    from harness.config import load_config
-    from harness.run import execute, prepare_out_dir
+    from hil.harness.config.model import load_config
+    from hil.harness.run.driver import execute, prepare_out_dir
     from tests.conftest import GL_BACKEND, read_mcap
 
     channel, port = f"hil-mixed-run-{uuid.uuid4().hex}", free_port()

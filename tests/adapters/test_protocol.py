@@ -13,17 +13,17 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from adapters.messages import (
-    Bye, CameraInfo, ClockId, Command, Control, DetectedObject, DrivingState, ErrorMsg, Estimate,
-    Frame, Heartbeat, Hello, ImageEncoding, MsgType, ObjectClass, SyncRequest, SyncResponse,
-)
-from adapters.protocol import (
-    FLAG_PAYLOAD_CRC, MAX_COMMAND_LEN, ErrorCode, HEADER_SIZE, MAGIC, MAX_NAME_LEN, MAX_OBJECTS, MAX_PAYLOAD,
-    STREAM_BUFFER_LIMIT, VERSION, Header, decode, decode_header, encode,
-    encode_frame,
-)
-from adapters.stream import StreamDecoder
-from timing.errors import ProtocolError
+from hil.adapters.messages import (
+                                   Bye, CameraInfo, ClockId, Command, Control, DetectedObject, DrivingState, ErrorMsg, Estimate,
+                                   Frame, Heartbeat, Hello, ImageEncoding, MsgType, ObjectClass, SyncRequest, SyncResponse,
+                                   )
+from hil.adapters.protocol import (
+                                   FLAG_PAYLOAD_CRC, MAX_COMMAND_LEN, ErrorCode, HEADER_SIZE, MAGIC, MAX_NAME_LEN, MAX_OBJECTS, MAX_PAYLOAD,
+                                   STREAM_BUFFER_LIMIT, VERSION, Header, decode, decode_header, encode,
+                                   encode_frame,
+                                   )
+from hil.adapters.stream import StreamDecoder
+from hil.common.errors import ProtocolError
 
 SETTINGS = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

@@ -48,10 +48,13 @@ def test_wheel_holds_the_target_side_only(tmp_path):
     with zipfile.ZipFile(out.stdout.strip()) as z:
         names = z.namelist()
         meta = z.read(next(n for n in names if n.endswith("/METADATA"))).decode()
-    tops = {n.split("/")[0] for n in names}
-    assert tops == {"adapters", "timing", "hil_errors", "hil_target_sdk-0.1.0.dist-info"}
-    assert {"adapters/sdk.py", "adapters/tcp.py", "adapters/hil.dbc", "timing/clock.py",
-            "hil_errors/__init__.py"} <= set(names)
+    tops = {"/".join(n.split("/")[:2]) for n in names}
+    assert tops == {"hil/adapters", "hil/timing", "hil/common", "hil_target_sdk-0.1.0.dist-info/METADATA",
+                    "hil_target_sdk-0.1.0.dist-info/WHEEL", "hil_target_sdk-0.1.0.dist-info/RECORD",
+                    "hil_target_sdk-0.1.0.dist-info/top_level.txt"}
+    assert {"hil/adapters/sdk.py", "hil/adapters/tcp.py", "hil/adapters/hil.dbc", "hil/timing/clock.py",
+            "hil/common/errors.py"} <= set(names)
+    assert not any(n.startswith("hil/__init__") for n in names)  # hil is a namespace shared with the harness
     required = [ln for ln in meta.splitlines() if ln.startswith("Requires-Dist:") and "extra ==" not in ln]
     assert required == ["Requires-Dist: numpy>=1.26,<2.5"]
 
@@ -67,9 +70,9 @@ def test_bad_out_is_one_line_and_exit_2(tmp_path):
 @pytest.mark.slow
 def test_fresh_venv_has_the_sdk_and_nothing_heavy(fresh_python, tmp_path):
     code = textwrap.dedent("""
-        import importlib, adapters.sdk, adapters.tcp, adapters.local
-        print("SDK", adapters.sdk.__file__)
-        for name in ("mujoco", "cv2", "pydantic", "scipy", "harness", "scenarios", "targets", "zenoh", "can"):
+        import importlib, hil.adapters.sdk, hil.adapters.tcp, hil.adapters.local
+        print("SDK", hil.adapters.sdk.__file__)
+        for name in ("mujoco", "cv2", "pydantic", "scipy", "hil.harness", "hil.scenarios", "hil.targets", "zenoh", "can"):
             try:
                 importlib.import_module(name)
                 print("HAS", name)
@@ -85,14 +88,14 @@ def test_fresh_venv_has_the_sdk_and_nothing_heavy(fresh_python, tmp_path):
 
 @pytest.mark.slow
 def test_fresh_venv_serves_a_real_run(fresh_python, tmp_path):
-    from harness.config import load_config
-    from harness.run import execute, prepare_out_dir
+    from hil.harness.config.model import load_config
+    from hil.harness.run.driver import execute, prepare_out_dir
     from tests.conftest import GL_BACKEND
 
     prog = tmp_path / "device_ai.py"
     prog.write_text(textwrap.dedent("""
-        from adapters.messages import Control, DrivingState, Inference
-        from adapters.sdk import decode_image, serve
+        from hil.adapters.messages import Control, DrivingState, Inference
+        from hil.adapters.sdk import decode_image, serve
 
         def infer(frame):
             img = decode_image(frame)

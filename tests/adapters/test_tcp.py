@@ -11,15 +11,15 @@ from pathlib import Path
 
 import pytest
 
-from adapters import protocol
-from adapters.messages import ClockId, Heartbeat, Hello
-from adapters.stream import StreamDecoder
-from adapters.tcp import RealtimeMapper, TcpLink, parse_address, recv_stamped, serve_endpoint
+from hil.adapters import protocol
+from hil.adapters.messages import ClockId, Heartbeat, Hello
+from hil.adapters.stream import StreamDecoder
+from hil.adapters.tcp import RealtimeMapper, TcpLink, parse_address, recv_stamped, serve_endpoint
 from tests.adapters.pair_tcp import tcp_echo
 from tests.adapters.pair_zenoh import free_port
 from tests.adapters.test_conformance import next_estimate, send_frame
-from timing.clock import MonotonicClock, OffsetClock
-from timing.errors import TransportError
+from hil.common.errors import TransportError
+from hil.timing.clock import MonotonicClock, OffsetClock
 
 
 @pytest.mark.parametrize("text, expected", [
@@ -208,8 +208,8 @@ def test_t0p_does_not_wait_for_the_reader_thread(stamps, tmp_path):
 
 
 def test_config_address_is_checked_before_the_run():
-    from harness.config import load_config
-    from timing.errors import ConfigError
+    from hil.common.errors import ConfigError
+    from hil.harness.config.model import load_config
 
     root = Path(__file__).resolve().parents[2]
     cfg = load_config(root / "hil_configs" / "tcp.yaml", overrides=["target.tcp.mode=listen",

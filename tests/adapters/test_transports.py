@@ -1,14 +1,14 @@
-"""The transport table (adapters.transports); the import graph it keeps acyclic is
+"""The transport table (hil.adapters.transports); the import graph it keeps acyclic is
 checked in tests/test_imports.py."""
 
 from __future__ import annotations
 
 import pytest
 
-from adapters import transports
-from adapters.link import TRANSPORTS, Link, open_link
-from adapters.transports import BACKENDS, NAMES, Transport
-from hil_errors import TransportError
+from hil.adapters import transports
+from hil.adapters.link import TRANSPORTS, Link, open_link
+from hil.adapters.transports import BACKENDS, NAMES, Transport
+from hil.common.errors import TransportError
 
 
 def test_every_transport_has_a_row_and_its_halves_resolve() -> None:
@@ -24,8 +24,8 @@ def test_every_transport_has_a_row_and_its_halves_resolve() -> None:
 
 
 def test_the_config_takes_the_same_enum() -> None:
-    from harness.config import Transport as ConfigTransport
-    from harness.config import parse_config
+    from hil.harness.config.model import Transport as ConfigTransport
+    from hil.harness.config.model import parse_config
 
     assert ConfigTransport is Transport
     assert parse_config({"target": {"transport": "tcp", "command": ["x"]}}).target.transport is Transport.TCP
@@ -34,7 +34,7 @@ def test_the_config_takes_the_same_enum() -> None:
 def test_unknown_transport_is_one_error_listing_the_valid_ones() -> None:
     with pytest.raises(TransportError, match=r"unknown transport 'pigeon'; valid: local, zenoh, can, mixed, tcp"):
         open_link("pigeon")
-    from adapters.sdk import serve
+    from hil.adapters.sdk import serve
 
     with pytest.raises(TransportError, match="unknown transport 'pigeon'"):
         serve(lambda frame: None, target_name="t", transport="pigeon")  # type: ignore[arg-type,return-value]

@@ -18,14 +18,14 @@ import pytest
 
 zenoh = pytest.importorskip("zenoh")
 
-from adapters.link import open_link  # noqa: E402
-from adapters.messages import Control, DrivingState, Estimate, Frame, Hello, ImageEncoding, Inference  # noqa: E402
-from adapters.sdk import Endpoint  # noqa: E402
-from adapters.zenoh_transport import Keys, ZenohLink, config_entries, make_config, serve_endpoint  # noqa: E402
+from hil.adapters.link import open_link  # noqa: E402
+from hil.adapters.messages import Control, DrivingState, Estimate, Frame, Hello, ImageEncoding, Inference  # noqa: E402
+from hil.adapters.sdk import Endpoint  # noqa: E402
+from hil.adapters.zenoh_transport import Keys, ZenohLink, config_entries, make_config, serve_endpoint  # noqa: E402
 from tests.adapters.pair_zenoh import echo_target, free_port  # noqa: E402
 from tests.adapters.test_conformance import CAM, next_estimate, send_frame  # noqa: E402
-from timing.clock import MonotonicClock  # noqa: E402
-from timing.errors import ConfigError, TargetError, TransportError  # noqa: E402
+from hil.common.errors import ConfigError, TargetError, TransportError  # noqa: E402
+from hil.timing.clock import MonotonicClock  # noqa: E402
 
 
 def cfg_json(cfg: zenoh.Config, key: str) -> object:

@@ -12,14 +12,14 @@ from pathlib import Path
 import pytest
 
 from tests.adapters.pair_zenoh import ROOT, SKIP_REASON, end_process, free_port
-from timing.errors import ConfigError, TargetError
+from hil.common.errors import ConfigError, TargetError
 
 pytestmark = pytest.mark.skipif(SKIP_REASON is not None, reason=SKIP_REASON or "")
 
 
 def _link(port: int, **options: object):
-    from adapters.zenoh_transport import ZenohLink
-    from timing.clock import MonotonicClock
+    from hil.adapters.zenoh_transport import ZenohLink
+    from hil.timing.clock import MonotonicClock
 
     return ZenohLink(vehicle_id=0, clock=MonotonicClock(), connect=[f"tcp/127.0.0.1:{port}"], **options)
 
@@ -29,7 +29,7 @@ def test_only_a_harness_with_the_password_gets_a_session(tmp_path: Path):
     users = tmp_path / "users.txt"
     users.write_text("hil:s3cret\n")
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "targets.echo", "--transport", "zenoh", "--listen",
+    proc = subprocess.Popen([sys.executable, "-m", "hil.targets.echo", "--transport", "zenoh", "--listen",
                              f"tcp/127.0.0.1:{port}", "--auth-dictionary", str(users), "--keep-serving"],
                             cwd=ROOT, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             text=True)
@@ -57,7 +57,7 @@ def test_nothing_listening_is_not_a_refusal():
 
 
 def test_auth_config_takes_the_password_from_the_environment(monkeypatch):
-    from harness.config import parse_config
+    from hil.harness.config.model import parse_config
 
     cfg = parse_config({"target": {"transport": "zenoh", "command": [], "zenoh": {"auth": {"user": "hil"}}}})
     monkeypatch.delenv("HIL_ZENOH_PASSWORD", raising=False)
@@ -71,7 +71,7 @@ def test_auth_config_takes_the_password_from_the_environment(monkeypatch):
 
 
 def test_target_cli_tls_options_are_checked(tmp_path: Path):
-    p = subprocess.run([sys.executable, "-m", "targets.echo", "--transport", "zenoh", "--listen",
+    p = subprocess.run([sys.executable, "-m", "hil.targets.echo", "--transport", "zenoh", "--listen",
                         f"tcp/127.0.0.1:{free_port()}", "--tls", "root_ca=ca.pem"], cwd=ROOT, capture_output=True,
                        text=True, timeout=60, check=False)
     assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr

@@ -30,8 +30,8 @@ def _thaw_and_kill(pid: int) -> None:
 
 @pytest.mark.slow
 def test_closing_a_link_to_a_frozen_target_is_bounded(tmp_path: Path):
-    from adapters.zenoh_transport import CLOSE_TIMEOUT_S, ZenohLink
-    from timing.clock import MonotonicClock
+    from hil.adapters.zenoh_transport import CLOSE_TIMEOUT_S, ZenohLink
+    from hil.timing.clock import MonotonicClock
 
     port = free_port()
     with echo_target(tmp_path / "t.log", port) as proc:
@@ -55,12 +55,12 @@ def test_closing_a_link_to_a_frozen_target_is_bounded(tmp_path: Path):
 
 
 def _target_children(pid: int) -> list[int]:
-    """The harness's child processes that run ``targets.echo`` (not its own workers)."""
+    """The harness's child processes that run ``hil.targets.echo`` (not its own workers)."""
     out: list[int] = []
     for task in Path(f"/proc/{pid}/task").iterdir():
         with open(task / "children") as f:
             for child in (int(c) for c in f.read().split()):
-                if b"targets.echo" in Path(f"/proc/{child}/cmdline").read_bytes():
+                if b"hil.targets.echo" in Path(f"/proc/{child}/cmdline").read_bytes():
                     out.append(child)
     return out
 
@@ -68,9 +68,9 @@ def _target_children(pid: int) -> list[int]:
 @pytest.mark.slow
 def test_a_run_whose_zenoh_target_freezes_keeps_its_outputs(tmp_path: Path):
     out, port = tmp_path / "r", free_port()
-    target = json.dumps(["{python}", "-m", "targets.echo", "--transport", "zenoh",
+    target = json.dumps(["{python}", "-m", "hil.targets.echo", "--transport", "zenoh",
                          "--listen", f"tcp/127.0.0.1:{port}"])
-    cmd = [sys.executable, "-m", "harness.cli", "run", "hil_configs/remote.yaml", "--out", str(out),
+    cmd = [sys.executable, "-m", "hil.harness.cli.main", "run", "hil_configs/remote.yaml", "--out", str(out),
            "--no-progress", "--set", "duration_s=60", "--set", f"target.command={target}",
            "--set", f"target.zenoh.connect=['tcp/127.0.0.1:{port}']", "--set", "corner_cases.enabled=false"]
     proc = subprocess.Popen(cmd, cwd=ROOT, env=dict(os.environ, MUJOCO_GL=GL_BACKEND),

@@ -26,11 +26,11 @@ def _first_line(proc: subprocess.Popen[str], timeout_s: float) -> str:
 
 @pytest.mark.slow
 def test_hil_target_announces_itself_and_serves_run_after_run():
-    from adapters.zenoh_transport import ZenohLink
-    from timing.clock import MonotonicClock
+    from hil.adapters.zenoh_transport import ZenohLink
+    from hil.timing.clock import MonotonicClock
 
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "harness.cli", "target", "echo", "--transport", "zenoh",
+    proc = subprocess.Popen([sys.executable, "-m", "hil.harness.cli.main", "target", "echo", "--transport", "zenoh",
                              "--listen", f"tcp/127.0.0.1:{port}"], cwd=ROOT, stdin=subprocess.DEVNULL,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             env=dict(os.environ, PYTHONUNBUFFERED="1"))
@@ -57,11 +57,11 @@ def test_hil_target_announces_itself_and_serves_run_after_run():
 
 @pytest.mark.slow
 def test_once_serves_one_harness():
-    from adapters.zenoh_transport import ZenohLink
-    from timing.clock import MonotonicClock
+    from hil.adapters.zenoh_transport import ZenohLink
+    from hil.timing.clock import MonotonicClock
 
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "harness.cli", "target", "echo", "--transport", "zenoh",
+    proc = subprocess.Popen([sys.executable, "-m", "hil.harness.cli.main", "target", "echo", "--transport", "zenoh",
                              "--listen", f"tcp/127.0.0.1:{port}", "--once"], cwd=ROOT, stdin=subprocess.DEVNULL,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:

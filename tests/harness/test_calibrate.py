@@ -2,7 +2,7 @@
 
 The fast tests check the judging itself on hand-made truth (sound quantile bounds,
 missed and double-flagged faults, false alarms). The slow ones run the real harness
-in real time against ``targets.reference``: every injected fault flagged exactly
+in real time against ``hil.targets.reference``: every injected fault flagged exactly
 once, no anomaly the truth does not show, every figure inside its stated bound;
 and a clean 60 s run that raises no anomaly at all."""
 
@@ -15,12 +15,12 @@ from pathlib import Path
 
 import pytest
 
-from harness.calibrate import TRUTH_FILE, Calibration, calibrate, calibration_config
-from harness.calibrate_checks import RunData, Truth, load_truth, quantile_checks
-from harness.calibrate_faults import Cause, fault_checks, kind_table
-from harness.config import Transport, load_config
+from hil.harness.check.calibrate import TRUTH_FILE, Calibration, calibrate, calibration_config
+from hil.harness.check.calibrate_checks import RunData, Truth, load_truth, quantile_checks
+from hil.harness.check.calibrate_faults import Cause, fault_checks, kind_table
+from hil.harness.config.model import Transport, load_config
 from tests.conftest import GL_BACKEND, read_mcap
-from timing.errors import ConfigError
+from hil.common.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "hil_configs" / "calibrate.yaml"
@@ -119,7 +119,7 @@ def test_truth_file_errors_name_the_line(tmp_path):
 
 def test_only_the_reference_target_is_calibrated(tmp_path):
     demo = load_config(ROOT / "hil_configs" / "demo.yaml")
-    with pytest.raises(ConfigError, match="targets.reference"):
+    with pytest.raises(ConfigError, match="hil.targets.reference"):
         calibration_config(demo, truth_path=tmp_path / TRUTH_FILE)
     cfg = calibration_config(load_config(CONFIG), truth_path=tmp_path / TRUTH_FILE, transport=Transport.ZENOH)
     assert cfg.target.transport == Transport.ZENOH and str(tmp_path / TRUTH_FILE) in cfg.target.args
@@ -135,12 +135,12 @@ def test_only_the_reference_target_is_calibrated(tmp_path):
 
 @pytest.mark.parametrize("argv, says", [
     (["calibrate", "/no/such.yaml"], "config file not found"),
-    (["calibrate", str(ROOT / "hil_configs" / "demo.yaml")], "targets.reference"),
+    (["calibrate", str(ROOT / "hil_configs" / "demo.yaml")], "hil.targets.reference"),
     (["calibrate", "--transport", "can"], "invalid choice"),
 ])
 def test_bad_input_exits_2_with_one_line(tmp_path, argv, says):
     out = tmp_path / "out"
-    p = subprocess.run([sys.executable, "-m", "harness.cli", *argv, "--out", str(out)], cwd=ROOT,
+    p = subprocess.run([sys.executable, "-m", "hil.harness.cli.main", *argv, "--out", str(out)], cwd=ROOT,
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 2, p.stderr
     assert says in p.stderr and len(p.stderr.strip().splitlines()) == 1 and "Traceback" not in p.stderr

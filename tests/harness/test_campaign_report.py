@@ -7,7 +7,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from harness.search.report import build_page
+from hil.harness.search.report import build_page
 
 
 def _summary() -> dict[str, Any]:

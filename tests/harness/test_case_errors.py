@@ -5,9 +5,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from harness.cli import EXIT_EARLY, EXIT_OK, run_exit_code
-from harness.corner_cases import CaseRecorder
-from harness.recorder import Recorder
+from hil.harness.cases.recorder import CaseRecorder
+from hil.harness.cli.main import EXIT_EARLY, EXIT_OK, run_exit_code
+from hil.harness.record.recorder import Recorder
 
 
 def test_an_unexpected_error_writing_a_case_is_reported(tmp_path: Path):

@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness.case_windows import write_case_windows
-from harness.channels import register_all
-from harness.corner_cases import CaseRecorder, Trigger, group_cases, read_cases
-from harness.recorder import Recorder
+from hil.harness.cases.recorder import CaseRecorder, Trigger, group_cases, read_cases
+from hil.harness.cases.windows import write_case_windows
+from hil.harness.record.channels import register_all
+from hil.harness.record.recorder import Recorder
 from tests.conftest import read_mcap
-from timing.errors import ConfigError
+from hil.common.errors import ConfigError
 
 MS = 1_000_000
 META = {"name": "r", "scenario": "stopped_car", "seed": 3, "config_hash": "h", "scenario_params": {"gap_m": 20.0}}

@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def hil(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
     env = dict(os.environ, MUJOCO_GL=GL_BACKEND)
-    return subprocess.run([sys.executable, "-m", "harness.cli", *args], cwd=ROOT, env=env,
+    return subprocess.run([sys.executable, "-m", "hil.harness.cli.main", *args], cwd=ROOT, env=env,
                           capture_output=True, text=True, timeout=timeout, check=False)
 
 
@@ -81,9 +81,9 @@ def test_target_exits_at_once(tmp_path):
 def test_stopped_run_finalizes_mcap(tmp_path, sig):
     out = tmp_path / "r"
     env = dict(os.environ, MUJOCO_GL=GL_BACKEND)
-    proc = subprocess.Popen([sys.executable, "-m", "harness.cli", "run", "hil_configs/demo.yaml", "--out", str(out),
+    proc = subprocess.Popen([sys.executable, "-m", "hil.harness.cli.main", "run", "hil_configs/demo.yaml", "--out", str(out),
                              "--no-progress", "--set", "duration_s=60", "--set",
-                             'target.command=["{python}", "-m", "targets.echo"]'],
+                             'target.command=["{python}", "-m", "hil.targets.echo"]'],
                             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         # Wait (bounded) until the run is recording: its target has answered frames.
@@ -111,7 +111,7 @@ def test_stopped_run_finalizes_mcap(tmp_path, sig):
 
 def test_clock_shows_synced_targets():
     p = hil("clock", "hil_configs/demo.yaml", "--bursts", "2", "--set", "timing.sync.interval_s=0.1",
-            "--set", 'target.command=["{python}", "-m", "targets.echo", "--clock-offset-s", "2.5"]')
+            "--set", 'target.command=["{python}", "-m", "hil.targets.echo", "--clock-offset-s", "2.5"]')
     assert p.returncode == 0, p.stderr
     assert "ego0" in p.stdout and "synced" in p.stdout
     assert "+2500.0" in p.stdout.replace("\u202f", "")  # offset shown in ms: +2500.0xx ms
@@ -143,7 +143,7 @@ def test_switching_scenario_by_name_says_how_to_reset_its_params(tmp_path):
 def test_final_table_fits_80_columns_without_cut_headers():
     from rich.console import Console
 
-    from harness.progress import final_table
+    from hil.harness.cli.progress import final_table
 
     s = {"name": "demo", "sim_time_s": 15.0, "wall_time_s": 15.2,
          "realtime": {"mode": "realtime", "achieved_factor": 1.0, "late_steps": 1900},
@@ -161,7 +161,7 @@ def test_final_table_fits_80_columns_without_cut_headers():
 
 
 def test_realtime_warning_says_what_was_not_kept():
-    from harness.cli import realtime_warning
+    from hil.harness.cli.main import realtime_warning
 
     rt = {"mode": "realtime", "requested_factor": 1.0, "achieved_factor": 1.0, "late_steps": 1900,
           "late_tolerance_ms": 10.0, "max_lateness_ms": 62.0, "kept_realtime": False}

@@ -11,15 +11,15 @@ import cv2
 import numpy as np
 import pytest
 
-from harness.config import parse_config
-from harness.run import execute, prepare_out_dir
+from hil.harness.config.model import parse_config
+from hil.harness.run.driver import execute, prepare_out_dir
 from tests.conftest import GL_BACKEND, read_mcap
 
 
 def _run(tmp_path, **cfg):
     base = {"name": "t", "duration_s": 3.0, "progress": False,
             "scenario": {"name": "stopped_car", "params": {"gap_m": 40.0, "ego_speed_mps": 6.0}},
-            "target": {"command": [sys.executable, "-m", "targets.echo", "--throttle", "0.2"]}}
+            "target": {"command": [sys.executable, "-m", "hil.targets.echo", "--throttle", "0.2"]}}
     for k, v in cfg.items():
         base[k] = v
     out = prepare_out_dir(tmp_path / "run")
@@ -77,7 +77,7 @@ def test_mcap_accounts_for_every_frame(tmp_path):
 
 def test_control_reaches_the_vehicle(tmp_path):
     # A target that brakes hard stops the car: the estimate's control is really applied.
-    result = _run(tmp_path, target={"command": [sys.executable, "-m", "targets.echo", "--brake", "1.0"]})
+    result = _run(tmp_path, target={"command": [sys.executable, "-m", "hil.targets.echo", "--brake", "1.0"]})
     out = result.summary["vehicles"]["ego0"]["outcome"]
     assert out["final_speed_mps"] < 0.2
     assert out["min_gap_m"] > 30  # 40 m gap, 6 m/s, 8 m/s^2 braking: stops in ~2.3 m
@@ -93,7 +93,7 @@ def test_lockstep_is_deterministic(tmp_path):
 
 
 def test_target_dying_mid_run_keeps_the_recording(tmp_path):
-    result = _run(tmp_path, target={"command": [sys.executable, "-m", "targets.echo", "--exit-after-frames", "10"]})
+    result = _run(tmp_path, target={"command": [sys.executable, "-m", "hil.targets.echo", "--exit-after-frames", "10"]})
     s = result.summary
     assert "gone" in s["ended_by"] and "exited with code 3" in s["ended_by"]
     v = s["vehicles"]["ego0"]
@@ -106,7 +106,7 @@ def test_target_dying_mid_run_keeps_the_recording(tmp_path):
 
 @pytest.mark.slow
 def test_demo_stops_before_the_car(tmp_path):
-    from harness.config import load_config
+    from hil.harness.config.model import load_config
 
     cfg = load_config("hil_configs/demo.yaml", overrides=["progress=false"])
     result = execute(cfg, out_dir=prepare_out_dir(tmp_path / "demo"), gl_backend=GL_BACKEND,

@@ -17,13 +17,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from harness.cli import main as hil_main
-from harness.compare import Method, Tolerance, Tolerances, Verdict, compare, load_run, parse_tolerances
-from harness.compare_samples import RunSamples, VehicleSamples
-from harness.config import parse_config
-from harness.run import execute, prepare_out_dir
+from hil.harness.cli.main import main as hil_main
+from hil.harness.config.model import parse_config
+from hil.harness.report.compare import Method, Tolerance, Tolerances, Verdict, compare, load_run, parse_tolerances
+from hil.harness.report.compare_samples import RunSamples, VehicleSamples
+from hil.harness.run.driver import execute, prepare_out_dir
 from tests.conftest import GL_BACKEND
-from timing.stats import summarize_ns
+from hil.timing.stats import summarize_ns
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -33,7 +33,7 @@ def _run(root: Path, name: str, infer_ms: float) -> Path:
     cfg = parse_config({
         "name": name, "duration_s": 1.5, "progress": False,
         "scenario": {"name": "stopped_car", "params": {"gap_m": 40.0, "ego_speed_mps": 6.0}},
-        "target": {"command": [sys.executable, "-m", "targets.echo", "--infer-ms", str(infer_ms)]}})
+        "target": {"command": [sys.executable, "-m", "hil.targets.echo", "--infer-ms", str(infer_ms)]}})
     execute(cfg, out_dir=out, gl_backend=GL_BACKEND, install_signal_handlers=False)
     return out
 
@@ -158,7 +158,7 @@ def test_limits_drop_rate_and_early_end() -> None:
 
 
 def test_tolerances_file_errors_name_the_key(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from timing.errors import ConfigError
+    from hil.common.errors import ConfigError
 
     with pytest.raises(ConfigError, match=r"p99\.rel: got 'x'"):
         parse_tolerances({"p99": {"rel": "x"}})
@@ -214,7 +214,7 @@ def test_bad_inputs_give_one_line_and_exit_2(runs: dict[str, Path], tmp_path: Pa
 
 def test_cli_subprocess_exit_codes(runs: dict[str, Path]) -> None:
     def hil(*args: str) -> subprocess.CompletedProcess[str]:
-        return subprocess.run([sys.executable, "-m", "harness.cli", *args], cwd=ROOT, capture_output=True,
+        return subprocess.run([sys.executable, "-m", "hil.harness.cli.main", *args], cwd=ROOT, capture_output=True,
                               text=True, timeout=60, check=False)
 
     p = hil("compare", str(runs["base"]), str(runs["slow"]))
@@ -295,7 +295,7 @@ def test_run_to_run_noise_comes_from_the_tolerances(tmp_path: Path) -> None:
     zero = {"rel": 0, "abs_ms": 0}
     quiet = parse_tolerances({"noise": {"p50": zero, "p99": zero, "std": zero}})
     assert _by_metric(compare(sb, sr, quiet, base_samples=xb, run_samples=xr))["p50"].verdict == Verdict.REGRESSION
-    from timing.errors import ConfigError
+    from hil.common.errors import ConfigError
 
     assert parse_tolerances({"noise": {"p50": 0.1}}).noise_of("p50") == Tolerance(0.1, 1.0)  # a number sets rel
     with pytest.raises(ConfigError, match=r"noise\.p50: got -1"):

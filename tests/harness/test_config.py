@@ -1,4 +1,4 @@
-"""harness.config: loading, overrides, one-line errors, canonical hash."""
+"""hil.harness.config.model: loading, overrides, one-line errors, canonical hash."""
 
 from __future__ import annotations
 
@@ -8,17 +8,17 @@ from pathlib import Path
 import pydantic
 import pytest
 
-from harness.config import (
-    Encoding,
-    Mode,
-    RunConfig,
-    Transport,
-    config_hash,
-    dump_config,
-    load_config,
-    parse_config,
-)
-from timing.errors import ConfigError, HilError
+from hil.harness.config.model import (
+                                      Encoding,
+                                      Mode,
+                                      RunConfig,
+                                      Transport,
+                                      config_hash,
+                                      dump_config,
+                                      load_config,
+                                      parse_config,
+                                      )
+from hil.common.errors import ConfigError, HilError
 
 DEMO = Path(__file__).resolve().parents[2] / "hil_configs" / "demo.yaml"
 
@@ -52,7 +52,7 @@ def test_demo_loads_with_its_documented_values() -> None:
     assert (cfg.camera.width, cfg.camera.height, cfg.camera.fps) == (320, 240, 20.0)
     assert cfg.camera.encoding is Encoding.JPEG
     assert cfg.target.transport is Transport.LOCAL
-    assert cfg.target.command == ["{python}", "-m", "targets.cv_baseline"]
+    assert cfg.target.command == ["{python}", "-m", "hil.targets.cv_baseline"]
     assert cfg.target.estimate_timeout_s == 0.5
     assert cfg.camera_period_steps == 25
 

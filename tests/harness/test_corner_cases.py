@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from harness.case_windows import write_case_windows
-from harness.config import parse_config
-from harness.run import execute, prepare_out_dir
+from hil.harness.cases.windows import write_case_windows
+from hil.harness.config.model import parse_config
+from hil.harness.run.driver import execute, prepare_out_dir
 from tests.conftest import GL_BACKEND, read_mcap
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def blind_run(out: Path):
     cfg = {"name": "blind", "seed": 3, "mode": "lockstep", "duration_s": 4.0, "progress": False,
            "scenario": {"name": "stopped_car", "params": {"gap_m": 20.0, "ego_speed_mps": 8.0}},
-           "target": {"command": [sys.executable, "-m", "targets.echo", "--throttle", "0.3"]},
+           "target": {"command": [sys.executable, "-m", "hil.targets.echo", "--throttle", "0.3"]},
            "corner_cases": {"history_s": 2.0, "after_s": 0.5}}
     return execute(parse_config(cfg), out_dir=prepare_out_dir(out), gl_backend=GL_BACKEND,
                    install_signal_handlers=False)
@@ -36,7 +36,7 @@ def blind(tmp_path_factory):
 
 
 def hil(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "harness.cli", *args], cwd=ROOT, capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "hil.harness.cli.main", *args], cwd=ROOT, capture_output=True, text=True,
                           timeout=300, env=dict(os.environ, MUJOCO_GL=GL_BACKEND))
 
 

@@ -7,10 +7,10 @@ import math
 
 import pytest
 
-from adapters.messages import Control, DetectedObject, DrivingState, Estimate, ObjectClass
-from harness.detector import (Cause, CornerCaseDetector, DetectorConfig, FrameTruth, MismatchKind,
-                              TruthObject, link_anomalies, match, nearest_point_in_camera_frame)
-from timing.anomaly import Anomaly, AnomalyKind, Severity
+from hil.adapters.messages import Control, DetectedObject, DrivingState, Estimate, ObjectClass
+from hil.harness.analysis.detector import (Cause, CornerCaseDetector, DetectorConfig, FrameTruth, MismatchKind,
+                                           TruthObject, link_anomalies, match, nearest_point_in_camera_frame)
+from hil.timing.anomaly import Anomaly, AnomalyKind, Severity
 
 S, W, P = DrivingState.SAFE, DrivingState.SLOW, DrivingState.STOP
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import math
 
-from adapters.messages import Control, DetectedObject, DrivingState, Estimate, ObjectClass
-from harness.detector import Cause, CornerCaseDetector, DetectorConfig, FrameTruth, Mismatch, MismatchKind, TruthObject
-from harness.late_reaction import EgoView
-from timing.anomaly import Severity
+from hil.adapters.messages import Control, DetectedObject, DrivingState, Estimate, ObjectClass
+from hil.harness.analysis.detector import Cause, CornerCaseDetector, DetectorConfig, FrameTruth, Mismatch, MismatchKind, TruthObject
+from hil.harness.analysis.late_reaction import EgoView
+from hil.timing.anomaly import Severity
 
 S, W, P = DrivingState.SAFE, DrivingState.SLOW, DrivingState.STOP
 MS = 1_000_000

@@ -6,15 +6,15 @@ from __future__ import annotations
 
 import pytest
 
-import scenarios
-from adapters.messages import Control, DrivingState, Estimate
-from harness.config import CameraConfig
-from harness.detector import DetectorConfig, MismatchKind
-from harness.detector_observer import DetectorObserver
-from scenarios.ground_truth import CameraTruth, GroundTruth, RefStateRules
-from scenarios.sim import Simulation
-from scenarios.world import CameraSpec
-from timing.records import FrameStatus, PipelineRecord
+from hil.adapters.messages import Control, DrivingState, Estimate
+from hil.harness.analysis.detector import DetectorConfig, MismatchKind
+from hil.harness.analysis.detector_observer import DetectorObserver
+from hil.harness.config.model import CameraConfig
+from hil import scenarios
+from hil.scenarios.ground_truth import CameraTruth, GroundTruth, RefStateRules
+from hil.scenarios.sim import Simulation
+from hil.scenarios.world import CameraSpec
+from hil.timing.records import FrameStatus, PipelineRecord
 
 MS = 1_000_000
 

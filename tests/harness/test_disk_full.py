@@ -31,7 +31,7 @@ def test_disk_filling_during_the_run_ends_it_and_keeps_the_summary(tmp_path):
     try:
         out = disk / "run"
         env = dict(os.environ, MUJOCO_GL=GL_BACKEND)
-        p = subprocess.run([sys.executable, "-m", "harness.cli", "run", "hil_configs/demo.yaml", "--no-progress",
+        p = subprocess.run([sys.executable, "-m", "hil.harness.cli.main", "run", "hil_configs/demo.yaml", "--no-progress",
                             "--out", str(out), "--set", "duration_s=40",
                             "--set", "camera.encoding=raw", "--set", "camera.width=640", "--set", "camera.height=480"],
                            cwd=ROOT, env=env, capture_output=True, text=True, timeout=180, check=False)

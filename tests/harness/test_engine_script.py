@@ -19,11 +19,11 @@ ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = """
 import sys
 from pathlib import Path
-from harness.config import parse_config
-from harness.run import execute, prepare_out_dir
+from hil.harness.config.model import parse_config
+from hil.harness.run.driver import execute, prepare_out_dir
 print("script body ran", flush=True)
 cfg = parse_config({"name": "script", "mode": "lockstep", "duration_s": 0.5, "progress": False,
-                    "target": {"command": [sys.executable, "-m", "targets.echo"]}})
+                    "target": {"command": [sys.executable, "-m", "hil.targets.echo"]}})
 r = execute(cfg, out_dir=prepare_out_dir(Path(sys.argv[1])), gl_backend=sys.argv[2],
             install_signal_handlers=False)
 print("frames", r.summary["vehicles"]["ego0"]["frames_sent"], flush=True)

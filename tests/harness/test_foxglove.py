@@ -13,10 +13,10 @@ from typing import Any
 import pytest
 from mcap.reader import make_reader
 
-from harness import foxglove_out
-from harness.channels import register_all
-from harness.recorder import Recorder, TimeAnchor
-from timing.errors import ConfigError
+from hil.common.errors import ConfigError
+from hil.harness.record import foxglove_out
+from hil.harness.record.channels import register_all
+from hil.harness.record.recorder import Recorder, TimeAnchor
 
 ANCHOR = TimeAnchor(realtime_ns=1_795_000_000_000_000_000, monotonic_ns=2_000_000_000)
 CAMERA = {"width": 320, "height": 240, "fovy_deg": 60.0, "mount_forward_m": 2.3, "mount_lateral_m": 0.0,
@@ -198,11 +198,11 @@ def test_a_bad_field_is_caught_by_the_check() -> None:
 
 def test_shipped_layout_is_current_and_names_topics_the_run_writes(tmp_path: Path) -> None:
     pytest.importorskip("foxglove.layouts")
-    from harness.foxglove_layout import build_layout
+    from hil.harness.record.foxglove_layout import build_layout
 
     root = Path(__file__).resolve().parents[2]
     shipped = json.loads((root / "hil_configs" / "foxglove_layout.json").read_text())
-    assert shipped == json.loads(build_layout(["ego0"])), "regenerate: python -m harness.foxglove_layout ego0"
+    assert shipped == json.loads(build_layout(["ego0"])), "regenerate: python -m hil.harness.record.foxglove_layout ego0"
     path = tmp_path / "e.mcap"
     _record(path)
     written = {topic for topic, *_ in _messages(path)} | {"/ego0/camera", "/scene"}  # written by the loop

@@ -17,10 +17,10 @@ from types import SimpleNamespace
 
 import pytest
 
-from harness.config import parse_config
-from harness.corner_cases import read_cases
-from harness.detector import Cause, MismatchKind
-from harness.run import execute, prepare_out_dir
+from hil.harness.analysis.detector import Cause, MismatchKind
+from hil.harness.cases.recorder import read_cases
+from hil.harness.config.model import parse_config
+from hil.harness.run.driver import execute, prepare_out_dir
 from tests.conftest import GL_BACKEND, read_mcap
 from tests.harness.test_detector_causes import cause_from_evidence
 
@@ -43,7 +43,7 @@ def lockstep_run(out: Path, scenario: str, latency_ms: int):
     cfg = {"name": f"{scenario}-{latency_ms}", "seed": 1, "mode": "lockstep", "duration_s": duration,
            "progress": False, "scenario": {"name": scenario, "params": params}, "camera": {"fps": 10.0},
            # A generous timeout: no frame is dropped for the machine's load.
-           "target": {"command": [sys.executable, "-m", "targets.cv_baseline"], "estimate_timeout_s": 10.0},
+           "target": {"command": [sys.executable, "-m", "hil.targets.cv_baseline"], "estimate_timeout_s": 10.0},
            "lockstep": {"latency": {"kind": "constant", "ms": latency_ms} if latency_ms else {"kind": "none"}}}
     return execute(parse_config(cfg), out_dir=prepare_out_dir(out), gl_backend=GL_BACKEND,
                    install_signal_handlers=False)

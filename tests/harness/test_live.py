@@ -13,13 +13,13 @@ from typing import Any
 
 import pytest
 
-from harness.channels import register_all
-from harness.recorder import Recorder, TimeAnchor
+from hil.harness.record.channels import register_all
+from hil.harness.record.recorder import Recorder, TimeAnchor
 
 pytest.importorskip("foxglove")
 ws_client = pytest.importorskip("websockets.sync.client")
 
-from harness.live import LiveView  # noqa: E402
+from hil.harness.record.live import LiveView  # noqa: E402
 
 ANCHOR = TimeAnchor(realtime_ns=1_795_000_000_000_000_000, monotonic_ns=2_000_000_000)
 CONFIG = {"recording": {"live": True},

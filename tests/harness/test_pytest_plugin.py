@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 
-from harness.pytest_plugin import HilRunner, HilRunResult
+from hil.harness.cli.pytest_plugin import HilRunner, HilRunResult
 from tests.conftest import GL_BACKEND
 
 USER_TEST = '''
@@ -21,7 +21,7 @@ import sys
 CONFIG = {
     "name": "budget", "duration_s": 1.0,
     "scenario": {"name": "stopped_car", "params": {"gap_m": 40.0, "ego_speed_mps": 6.0}},
-    "target": {"command": [sys.executable, "-m", "targets.echo", "--infer-ms", "5"]},
+    "target": {"command": [sys.executable, "-m", "hil.targets.echo", "--infer-ms", "5"]},
 }
 
 
@@ -42,15 +42,15 @@ CFG_YAML = '''
 name: budget
 duration_s: 3.0
 scenario: {name: stopped_car, params: {gap_m: 40.0, ego_speed_mps: 6.0}}
-target: {command: ["{python}", "-m", "targets.echo", "--infer-ms", "5"]}
+target: {command: ["{python}", "-m", "hil.targets.echo", "--infer-ms", "5"]}
 '''
 
 
 def test_fixture_in_a_users_test_session(tmp_path: Path) -> None:
     (tmp_path / "test_user.py").write_text(USER_TEST)
     (tmp_path / "cfg.yaml").write_text(CFG_YAML)
-    registered = any(e.value == "harness.pytest_plugin" for e in entry_points(group="pytest11"))
-    plugin = [] if registered else ["-p", "harness.pytest_plugin"]  # installed: the entry point loads it
+    registered = any(e.value == "hil.harness.cli.pytest_plugin" for e in entry_points(group="pytest11"))
+    plugin = [] if registered else ["-p", "hil.harness.cli.pytest_plugin"]  # installed: the entry point loads it
     env = dict(os.environ, MUJOCO_GL=GL_BACKEND)
     p = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *plugin,
                         "--rootdir", str(tmp_path), str(tmp_path / "test_user.py")],
@@ -105,8 +105,8 @@ def test_config_mistake_fails_the_test_in_one_line(tmp_path: Path) -> None:
 
 
 def test_packaged_configs_resolve_from_any_working_directory(tmp_path: Path, monkeypatch) -> None:
-    from harness.pytest_plugin import _resolve
-    from timing.errors import ConfigError
+    from hil.common.errors import ConfigError
+    from hil.harness.cli.pytest_plugin import _resolve
 
     monkeypatch.chdir(tmp_path)  # a user's project: no hil_configs/ of its own
     found = _resolve("hil_configs/regression.yaml", tmp_path)
@@ -128,8 +128,8 @@ def _readme_block(marker: str) -> str:
 def test_the_readme_fixture_sample_runs_as_shown(tmp_path: Path) -> None:
     # Exactly the README's test, in a project folder of its own (not the checkout).
     (tmp_path / "test_readme.py").write_text(_readme_block("def test_my_ai_budget(hil_run)"))
-    registered = any(e.value == "harness.pytest_plugin" for e in entry_points(group="pytest11"))
-    plugin = [] if registered else ["-p", "harness.pytest_plugin"]
+    registered = any(e.value == "hil.harness.cli.pytest_plugin" for e in entry_points(group="pytest11"))
+    plugin = [] if registered else ["-p", "hil.harness.cli.pytest_plugin"]
     p = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *plugin,
                         "--rootdir", str(tmp_path), str(tmp_path / "test_readme.py")],
                        cwd=tmp_path, env=dict(os.environ, MUJOCO_GL=GL_BACKEND), capture_output=True, text=True,

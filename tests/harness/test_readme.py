@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from harness.config import load_config
+from hil.harness.config.model import load_config
 from tests.harness.test_cli import ROOT, hil
 
 README = (ROOT / "README.md").read_text(encoding="utf-8")
@@ -56,7 +56,7 @@ EXAMPLES = [  # (as the README writes it, the config, the overrides)
 
 @pytest.mark.parametrize(("text", "config", "overrides"), EXAMPLES)
 def test_readme_examples_validate(text: str, config: str, overrides: list[str]):
-    import scenarios
+    from hil import scenarios
 
     assert text in README, text
     cfg = load_config(ROOT / config, overrides=overrides)

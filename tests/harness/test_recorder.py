@@ -20,11 +20,11 @@ import pytest
 from mcap.exceptions import EndOfFile, McapError
 from mcap.reader import NonSeekingReader, make_reader
 
-from harness import foxglove_schemas as fx
-from harness import recorder as recorder_module
-from harness.recorder import Recorder, RecorderStats, iter_salvaged_messages
-from hil_errors import RecordingError
-from timing.errors import ConfigError, HilError
+from hil.common.errors import RecordingError
+from hil.common.errors import ConfigError, HilError
+from hil.harness.record import foxglove_schemas as fx
+from hil.harness.record import recorder as recorder_module
+from hil.harness.record.recorder import Recorder, RecorderStats, iter_salvaged_messages
 
 STATE_SCHEMA = {"type": "object", "properties": {"i": {"type": "integer"}}}
 
@@ -314,7 +314,7 @@ def test_copy_of_open_file_reads_up_to_last_complete_chunk(tmp_path: Path) -> No
 
 _CHILD = """
 import sys
-from harness.recorder import Recorder
+from hil.harness.record.recorder import Recorder
 rec = Recorder(sys.argv[1], chunk_size=4096, chunk_duration_ns=None)
 rec.register_json_channel("/s", "S", {})
 for i in range(500):

@@ -13,12 +13,12 @@ from pathlib import Path
 
 import pytest
 
-from harness.config import SEED_MAX, parse_config
-from harness.out_dir import LOCK_NAME, PROBE_BYTES, held_claims, release_out_dir
-from harness.run import prepare_out_dir
+from hil.harness.config.model import SEED_MAX, parse_config
+from hil.harness.record.out_dir import LOCK_NAME, PROBE_BYTES, held_claims, release_out_dir
+from hil.harness.run.driver import prepare_out_dir
 from tests.harness.test_cli import ROOT, assert_one_line_error, hil
-from timing.clock import MonotonicClock
-from timing.errors import ConfigError, TargetError
+from hil.common.errors import ConfigError, TargetError
+from hil.timing.clock import MonotonicClock
 
 
 @pytest.fixture
@@ -36,7 +36,7 @@ def claimed(tmp_path: Path):
 def test_a_folder_held_by_a_run_is_refused_in_another_process(tmp_path: Path, claimed: list[Path]):
     out = tmp_path / "r"
     claimed.append(prepare_out_dir(out))
-    code = ("import sys; from harness.run import prepare_out_dir; from timing.errors import ConfigError\n"
+    code = ("import sys; from hil.harness.run.driver import prepare_out_dir; from hil.common.errors import ConfigError\n"
             "try:\n    prepare_out_dir(__import__('pathlib').Path(sys.argv[1]))\n"
             "except ConfigError as e:\n    print(e); sys.exit(2)\n")
     p = subprocess.run([sys.executable, "-c", code, str(out)], cwd=ROOT, capture_output=True, text=True,
@@ -82,8 +82,8 @@ def test_a_disk_that_takes_no_bytes_is_refused_with_one_line(tmp_path: Path):
         from pathlib import Path
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096))
-        from harness.run import prepare_out_dir
-        from timing.errors import ConfigError
+        from hil.common.errors import ConfigError
+        from hil.harness.run.driver import prepare_out_dir
         try:
             prepare_out_dir(Path(sys.argv[1]))
         except ConfigError as e:
@@ -188,8 +188,8 @@ def not_a_program(tmp_path: Path) -> Path:
 
 
 def test_exec_format_error_is_a_target_error(tmp_path: Path, not_a_program: Path):
-    from adapters.link import open_link
-    from harness.target_launch import TargetProcess
+    from hil.adapters.link import open_link
+    from hil.harness.run.target_launch import TargetProcess
 
     with pytest.raises(TargetError, match="cannot be started: Exec format error"):
         TargetProcess([str(not_a_program)], log_path=tmp_path / "t.log")

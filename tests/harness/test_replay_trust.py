@@ -11,15 +11,15 @@ from pathlib import Path
 
 import pytest
 
-from harness.corner_cases import DB_NAME, SCHEMA
-from harness.replay_trust import check_replay_command, is_trusted
+from hil.harness.cases.recorder import DB_NAME, SCHEMA
+from hil.harness.cases.replay_trust import check_replay_command, is_trusted
 from tests.harness.test_cli import assert_one_line_error, hil
-from timing.errors import ConfigError
+from hil.common.errors import ConfigError
 
 
 def foreign_run(folder: Path, command: list[str]) -> Path:
     """A run folder as someone else could send it: one case, a config naming ``command``."""
-    from harness.recorder import Recorder
+    from hil.harness.record.recorder import Recorder
 
     folder.mkdir()
     with Recorder(folder / "run.mcap") as rec:  # the per-frame latencies replay applies
@@ -50,12 +50,12 @@ def test_replay_refuses_a_foreign_command_without_asking_or_the_flag(tmp_path: P
 
 def test_trusted_commands():
     assert is_trusted([])  # the target runs elsewhere: nothing is started
-    assert is_trusted(["{python}", "-m", "targets.cv_baseline"], ["--cruise-speed", "5"])
-    assert is_trusted([sys.executable, "-m", "targets.echo", "--throttle", "0.3"])
-    assert is_trusted(["{python}", "-m", "targets.cnn", "--detector", "cv"])
+    assert is_trusted(["{python}", "-m", "hil.targets.cv_baseline"], ["--cruise-speed", "5"])
+    assert is_trusted([sys.executable, "-m", "hil.targets.echo", "--throttle", "0.3"])
+    assert is_trusted(["{python}", "-m", "hil.targets.cnn", "--detector", "cv"])
     assert not is_trusted(["{python}", "-m", "targets.nope"])
     assert not is_trusted(["{python}", "-c", "import os"])
-    assert not is_trusted(["/usr/bin/python3", "-m", "targets.echo"])  # another interpreter: any code
+    assert not is_trusted(["/usr/bin/python3", "-m", "hil.targets.echo"])  # another interpreter: any code
 
 
 def test_a_current_configs_command_is_trusted(tmp_path: Path):

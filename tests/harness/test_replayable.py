@@ -9,11 +9,11 @@ from pathlib import Path
 
 import pytest
 
-from harness.cli import main as hil_main
-from harness.config import parse_config
-from harness.corner_cases import read_cases
-from harness.replayable import Reproducibility, reproducibility
-from harness.run import execute, prepare_out_dir
+from hil.harness.cases.recorder import read_cases
+from hil.harness.cases.replayable import Reproducibility, reproducibility
+from hil.harness.cli.main import main as hil_main
+from hil.harness.config.model import parse_config
+from hil.harness.run.driver import execute, prepare_out_dir
 from tests.conftest import GL_BACKEND
 
 
@@ -32,7 +32,7 @@ def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     cfg = parse_config({
         "name": "replayable", "duration_s": 2.0, "progress": False, "mode": "lockstep",
         "scenario": {"name": "stopped_car", "params": {"gap_m": 15.0, "ego_speed_mps": 10.0}},
-        "target": {"command": [sys.executable, "-m", "targets.echo", "--throttle", "0.3"]},
+        "target": {"command": [sys.executable, "-m", "hil.targets.echo", "--throttle", "0.3"]},
         "timing": {"thresholds": {"deadline_ms": {"end_to_end": 0.01}}},
         "corner_cases": {"on_anomalies": ["deadline_miss"]}})
     execute(cfg, out_dir=out, gl_backend=GL_BACKEND, install_signal_handlers=False)

@@ -18,12 +18,12 @@ import cv2
 import numpy as np
 import pytest
 
-from harness.cli import main as hil_main
-from harness.config import parse_config
-from harness.recorder import Recorder
-from harness.report import build_report, write_report
-from harness.run import execute, prepare_out_dir
-from harness.run_folder import Event, read_run
+from hil.harness.cli.main import main as hil_main
+from hil.harness.config.model import parse_config
+from hil.harness.record.recorder import Recorder
+from hil.harness.record.run_folder import Event, read_run
+from hil.harness.report.run_report import build_report, write_report
+from hil.harness.run.driver import execute, prepare_out_dir
 from tests.conftest import GL_BACKEND
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -41,7 +41,7 @@ def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     cfg = parse_config({
         "name": "rpt", "duration_s": 2.0, "progress": False,
         "scenario": {"name": "stopped_car", "params": {"gap_m": 40.0, "ego_speed_mps": 6.0}},
-        "target": {"command": [sys.executable, "-m", "targets.echo", "--infer-ms", "60"],
+        "target": {"command": [sys.executable, "-m", "hil.targets.echo", "--infer-ms", "60"],
                    "estimate_timeout_s": 0.1},
         # The cases below are written by hand with known content; the run's own
         # detector is tested in test_corner_cases.py.
@@ -64,7 +64,7 @@ def _svgs(html: str) -> list[ET.Element]:
 
 def test_report_is_self_contained_and_has_every_section(run_dir: Path) -> None:
     env = dict(os.environ, MUJOCO_GL=GL_BACKEND)
-    p = subprocess.run([sys.executable, "-m", "harness.cli", "report", str(run_dir)], cwd=ROOT, env=env,
+    p = subprocess.run([sys.executable, "-m", "hil.harness.cli.main", "report", str(run_dir)], cwd=ROOT, env=env,
                        capture_output=True, text=True, timeout=60, check=False)
     assert p.returncode == 0, p.stderr
     assert "report.html" in p.stdout

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness.search.sampling import Past, draw_generation, episode_seed, score
-from harness.search.shard import Shard, parse_shard
-from harness.search.spec import load_spec, resolve_spec
-from timing.errors import ConfigError
+from hil.common.errors import ConfigError
+from hil.harness.search.sampling import Past, draw_generation, episode_seed, score
+from hil.harness.search.shard import Shard, parse_shard
+from hil.harness.search.spec import load_spec, resolve_spec
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -105,7 +105,7 @@ def test_campaign_id_names_the_resolved_spec(tmp_path):
     # The shipped spec loads (its base is found next to it) and overrides apply.
     c = load_spec(ROOT / "hil_configs" / "search.yaml", overrides=["duration_s=2"], episodes=5, strategy="mutate")
     assert c.episodes == 5 and c.strategy.kind.value == "mutate" and c.run["duration_s"] == 2.0
-    assert c.run["target"]["command"][-1] == "targets.cv_baseline"
+    assert c.run["target"]["command"][-1] == "hil.targets.cv_baseline"
 
 
 def test_guided_generations_concentrate_on_the_worst_episodes():
@@ -145,7 +145,7 @@ def test_cli_bad_input_is_one_line_and_writes_nothing(tmp_path):
     env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
 
     def hil(*args):
-        return subprocess.run([sys.executable, "-m", "harness.cli", "search", *args], cwd=ROOT, capture_output=True,
+        return subprocess.run([sys.executable, "-m", "hil.harness.cli.main", "search", *args], cwd=ROOT, capture_output=True,
                               text=True, timeout=120, env=env, check=False)
 
     for args, msg in [((str(bad),), "params.gap_m: empty range [40, 40]"),
@@ -157,7 +157,7 @@ def test_cli_bad_input_is_one_line_and_writes_nothing(tmp_path):
         assert p.returncode == 2, (args, p.stdout, p.stderr)
         assert msg in p.stderr and "Traceback" not in p.stderr and p.stderr.count("\n") == 1, p.stderr
     assert not (tmp_path / "out").exists() and not (tmp_path / "m").exists()
-    p = subprocess.run([sys.executable, "-m", "harness.cli", "--help"], cwd=ROOT, capture_output=True, text=True,
+    p = subprocess.run([sys.executable, "-m", "hil.harness.cli.main", "--help"], cwd=ROOT, capture_output=True, text=True,
                        check=False)
     assert "search" in p.stdout
 
@@ -172,7 +172,7 @@ def test_the_kubernetes_manifest_runs_the_search_command_for_each_index():
     (ctr,) = spec_["template"]["spec"]["containers"]
     env = {e["name"]: e.get("value") for e in ctr["env"]}
     assert int(env["SHARDS"]) == spec_["completions"]
-    from harness.search.cli import run_parser
+    from hil.harness.search.cli import run_parser
 
     seen = []
     for i in range(spec_["completions"]):

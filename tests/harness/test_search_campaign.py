@@ -18,20 +18,20 @@ from pathlib import Path
 import pytest
 import yaml
 
-from harness.search.campaign import run_campaign
-from harness.search.episode import run_episode
-from harness.search.merge import merge
-from harness.search.sampling import draw_generation
-from harness.search.spec import load_spec
+from hil.harness.search.campaign import run_campaign
+from hil.harness.search.episode import run_episode
+from hil.harness.search.merge import merge
+from hil.harness.search.sampling import draw_generation
+from hil.harness.search.spec import load_spec
 from tests.conftest import GL_BACKEND
-from timing.errors import ConfigError
+from hil.common.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.slow
 
 SPEC = {"name": "blind-search", "seed": 5, "episodes": 4,
         "run": {"mode": "lockstep", "duration_s": 2.0, "scenario": {"name": "stopped_car"},
-                "target": {"command": ["{python}", "-m", "targets.echo", "--throttle", "0.3"]},
+                "target": {"command": ["{python}", "-m", "hil.targets.echo", "--throttle", "0.3"]},
                 "corner_cases": {"history_s": 1.0, "after_s": 0.3,
                                  "on_anomalies": ["deadline_miss", "latency_spike", "jitter"]},
                 "timing": {"thresholds": {"deadline_ms": {"end_to_end": 0.01}}}},
@@ -40,7 +40,7 @@ SPEC = {"name": "blind-search", "seed": 5, "episodes": 4,
 
 
 def hil(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "harness.cli", *args], cwd=ROOT, capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "hil.harness.cli.main", *args], cwd=ROOT, capture_output=True, text=True,
                           timeout=300, env=dict(os.environ, MUJOCO_GL=GL_BACKEND), check=False)
 
 
@@ -102,7 +102,7 @@ def test_campaign_finds_cases_and_summarizes_them(campaign):
 
 
 def test_an_episode_is_reproducible_from_its_seed_and_parameters(campaign, tmp_path):
-    from harness.search.db import CampaignDB
+    from hil.harness.search.db import CampaignDB
 
     with CampaignDB(campaign.out_dir / "campaign.sqlite", readonly=True) as db:
         camp = db.campaign()  # the campaign back from its stored spec
@@ -214,8 +214,8 @@ def test_an_existing_campaign_is_resumed_not_overwritten(campaign, spec_file):
 
 
 def test_a_guided_campaign_draws_each_generation_from_the_last(spec_file, tmp_path):
-    from harness.search.db import CampaignDB
-    from harness.search.sampling import Past
+    from hil.harness.search.db import CampaignDB
+    from hil.harness.search.sampling import Past
 
     c = load_spec(spec_file, strategy="mutate")
     c = type(c).from_json({**c.as_json(), "strategy": {**c.as_json()["strategy"], "generation": 2, "explore": 0.0}})
@@ -231,7 +231,7 @@ def test_a_guided_campaign_draws_each_generation_from_the_last(spec_file, tmp_pa
 
 def test_sigterm_stops_the_campaign_and_resume_finishes_it(spec_file, tmp_path):
     out = tmp_path / "stopped"
-    cmd = [sys.executable, "-m", "harness.cli", "search", str(spec_file), "--out", str(out), "--workers", "1",
+    cmd = [sys.executable, "-m", "hil.harness.cli.main", "search", str(spec_file), "--out", str(out), "--workers", "1",
            "--no-progress", "--episodes", "6"]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=dict(os.environ, MUJOCO_GL=GL_BACKEND))

@@ -15,11 +15,11 @@ from pathlib import Path
 import pytest
 import yaml
 
-from harness.search.campaign import run_campaign
-from harness.search.merge import merge
-from harness.search.spec import load_spec
+from hil.harness.search.campaign import run_campaign
+from hil.harness.search.merge import merge
+from hil.harness.search.spec import load_spec
 from tests.conftest import GL_BACKEND
-from timing.errors import ConfigError
+from hil.common.errors import ConfigError
 
 distributed = pytest.importorskip("distributed")
 
@@ -28,14 +28,14 @@ pytestmark = pytest.mark.slow
 
 SPEC = {"name": "dask-search", "seed": 11, "episodes": 2,
         "run": {"mode": "lockstep", "duration_s": 1.5, "scenario": {"name": "stopped_car"},
-                "target": {"command": ["{python}", "-m", "targets.echo", "--throttle", "0.3"]},
+                "target": {"command": ["{python}", "-m", "hil.targets.echo", "--throttle", "0.3"]},
                 "corner_cases": {"history_s": 0.5, "after_s": 0.2}},
         "params": {"gap_m": [15, 30], "ego_speed_mps": [6, 12]}, "latency": {"ms": [0, 200]},
         "strategy": {"kind": "random"}}
 
 
 def hil(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "harness.cli", *args], cwd=ROOT, capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "hil.harness.cli.main", *args], cwd=ROOT, capture_output=True, text=True,
                           timeout=300, env=dict(os.environ, MUJOCO_GL=GL_BACKEND), check=False)
 
 
@@ -124,7 +124,7 @@ def test_a_shard_on_a_running_cluster_merges_into_the_pooled_campaign(spec_file,
 
 
 def test_scheduler_mistakes_are_one_line(spec_file, tmp_path):
-    from harness.search.engine import DaskEngine
+    from hil.harness.search.engine import DaskEngine
 
     p = hil("search", str(spec_file), "--engine", "process", "--scheduler", "tcp://127.0.0.1:1",
             "--out", str(tmp_path / "x"))
@@ -137,7 +137,7 @@ def test_scheduler_mistakes_are_one_line(spec_file, tmp_path):
 def test_daemonic_workers_are_refused_before_any_episode(spec_file, tmp_path):
     """Dask's default workers are daemonic and may not start an episode's processes:
     said at once, with the setting that fixes it, instead of every episode failing."""
-    from harness.search.engine import DaskEngine
+    from hil.harness.search.engine import DaskEngine
 
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
                                   dashboard_address=None, silence_logs=40) as lc:
@@ -161,7 +161,7 @@ def _tar(entries: dict[str, bytes]) -> bytes:
 def test_a_shipped_episode_unpacks_only_into_its_own_folder(tmp_path):
     import tarfile
 
-    from harness.search.engine import unpack_episode
+    from hil.harness.search.engine import unpack_episode
 
     eps = tmp_path / "campaign" / "episodes"
     (eps / "e00003").mkdir(parents=True)
@@ -179,7 +179,7 @@ def test_a_shipped_episode_unpacks_only_into_its_own_folder(tmp_path):
 
 
 def test_the_local_cluster_is_worker_processes_on_loopback_only():
-    from harness.search.engine import DaskEngine
+    from hil.harness.search.engine import DaskEngine
 
     with DaskEngine(gl_backend=GL_BACKEND, workers=2) as eng:
         sched = eng._cluster.scheduler
@@ -194,7 +194,7 @@ def test_the_local_cluster_is_worker_processes_on_loopback_only():
 
 def test_sigterm_lets_running_episodes_finish_and_resume_completes(spec_file, tmp_path):
     out = tmp_path / "stopped"
-    cmd = [sys.executable, "-m", "harness.cli", "search", str(spec_file), "--engine", "dask", "--workers", "1",
+    cmd = [sys.executable, "-m", "hil.harness.cli.main", "search", str(spec_file), "--engine", "dask", "--workers", "1",
            "--out", str(out), "--no-progress", "--episodes", "4"]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=dict(os.environ, MUJOCO_GL=GL_BACKEND))

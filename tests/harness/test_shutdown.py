@@ -56,7 +56,7 @@ def _wait_for(pred, timeout_s: float) -> bool:
 
 def _start(out: Path, *sets: str) -> subprocess.Popen[str]:
     env = dict(os.environ, MUJOCO_GL=GL_BACKEND)
-    args = [sys.executable, "-m", "harness.cli", "run", "hil_configs/demo.yaml", "--no-progress", "--out", str(out)]
+    args = [sys.executable, "-m", "hil.harness.cli.main", "run", "hil_configs/demo.yaml", "--no-progress", "--out", str(out)]
     for s in sets:
         args += ["--set", s]
     return subprocess.Popen(args, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -1,4 +1,4 @@
-"""hil study (harness/study.py, harness/study_report.py): bad input is one line and
+"""hil study (harness/study/study.py, harness/study/report.py): bad input is one line and
 exit 2 before any run; the largest-N rule; a tiny real study (N = 1, 2; 2 s runs) in
 both placements writes its table, plots and a report that opens with its reading."""
 
@@ -13,13 +13,13 @@ from pathlib import Path
 
 import pytest
 
-from harness.study_report import largest_holding
+from hil.harness.study.report import largest_holding
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def _hil(*argv: str, timeout: float = 60, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "harness.cli", *argv], cwd=ROOT, capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "hil.harness.cli.main", *argv], cwd=ROOT, capture_output=True, text=True,
                           timeout=timeout, env=env)
 
 

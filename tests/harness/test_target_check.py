@@ -9,7 +9,9 @@ import sys
 
 import pytest
 
-from harness import cli, target_check
+from hil.harness.cli import main as cli
+
+from hil.harness.check import target_check
 from tests.adapters.pair_tcp import tcp_echo
 from tests.adapters.pair_zenoh import free_port
 from tests.targets import c_build
@@ -63,7 +65,7 @@ def test_c_target_passes_over_tcp(capsys, tmp_path):
 def test_python_cv_target_passes(capsys):
     # Before the SDK answered a bad version with UNSUPPORTED_VERSION (PROTOCOL.md
     # section 9) this failed on "unsupported version".
-    code = target_check.main(["local", "--", sys.executable, "-m", "targets.cv_baseline"])
+    code = target_check.main(["local", "--", sys.executable, "-m", "hil.targets.cv_baseline"])
     out = capsys.readouterr().out
     assert code == 0, out
     assert _rows(out)["unsupported version"] == "PASS"

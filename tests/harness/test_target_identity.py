@@ -28,7 +28,7 @@ def _free_port() -> int:
 
 def _hil(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
     env = dict(os.environ, MUJOCO_GL=GL_BACKEND)
-    return subprocess.run([sys.executable, "-m", "harness.cli", *args], cwd=ROOT, env=env, capture_output=True,
+    return subprocess.run([sys.executable, "-m", "hil.harness.cli.main", *args], cwd=ROOT, env=env, capture_output=True,
                           text=True, timeout=timeout, check=False)
 
 
@@ -42,7 +42,7 @@ def test_a_leftover_target_on_the_port_is_never_measured(tmp_path):
     port = _free_port()
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     env.pop("HIL_ZENOH_KEY_PREFIX", None)
-    leftover = subprocess.Popen([sys.executable, "-m", "targets.echo", "--transport", "zenoh", "--listen",
+    leftover = subprocess.Popen([sys.executable, "-m", "hil.targets.echo", "--transport", "zenoh", "--listen",
                                  f"tcp/127.0.0.1:{port}", "--vehicle", "0", "--keep-serving"], env=env,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:

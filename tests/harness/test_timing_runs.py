@@ -7,15 +7,15 @@ import sys
 
 import pytest
 
-from harness.config import parse_config
-from harness.run import execute, prepare_out_dir
+from hil.harness.config.model import parse_config
+from hil.harness.run.driver import execute, prepare_out_dir
 from tests.conftest import GL_BACKEND, read_mcap
 
 
 def _run(tmp_path, echo_args, **extra):
     cfg = {"name": "timing", "duration_s": 3.0, "progress": False, "mode": "realtime",
            "scenario": {"name": "stopped_car", "params": {"gap_m": 40.0, "ego_speed_mps": 4.0}},
-           "target": {"command": [sys.executable, "-m", "targets.echo", *echo_args]},
+           "target": {"command": [sys.executable, "-m", "hil.targets.echo", *echo_args]},
            "timing": {"sync": {"interval_s": 0.25, "burst": 4}}, **extra}
     return execute(parse_config(cfg), out_dir=prepare_out_dir(tmp_path / "r"), gl_backend=GL_BACKEND,
                    install_signal_handlers=False)
@@ -73,7 +73,7 @@ def test_lockstep_link_drops_are_seeded_and_counted(tmp_path):
     def run(sub):
         cfg = {"name": "lossy", "seed": 5, "mode": "lockstep", "duration_s": 3.0, "progress": False,
                "scenario": {"name": "stopped_car", "params": {"gap_m": 40.0, "ego_speed_mps": 4.0}},
-               "target": {"command": [sys.executable, "-m", "targets.echo"]},
+               "target": {"command": [sys.executable, "-m", "hil.targets.echo"]},
                "lockstep": {"latency": {"kind": "constant", "ms": 20.0, "drop_prob": 0.3}}}
         r = execute(parse_config(cfg), out_dir=prepare_out_dir(tmp_path / sub), gl_backend=GL_BACKEND,
                     install_signal_handlers=False)

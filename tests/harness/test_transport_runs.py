@@ -13,11 +13,11 @@ from pathlib import Path
 
 import pytest
 
-from harness.config import load_config
-from harness.run import execute, prepare_out_dir
+from hil.harness.config.model import load_config
+from hil.harness.run.driver import execute, prepare_out_dir
 from tests.adapters.pair_can import can_target
 from tests.conftest import GL_BACKEND, read_mcap
-from timing.errors import ConfigError
+from hil.common.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -43,7 +43,7 @@ def _check_run(result, *, frames: int) -> None:
 def test_run_over_zenoh_loopback(tmp_path):
     cfg = load_config(ROOT / "hil_configs/remote.yaml", overrides=[
         "duration_s=2", "progress=false", f"target.zenoh.base_port={_free_port()}",
-        'target.command=["{python}", "-m", "targets.echo", "--transport", "zenoh", '
+        'target.command=["{python}", "-m", "hil.targets.echo", "--transport", "zenoh", '
         '"--listen", "tcp/127.0.0.1:{port}", "--throttle", "0.1"]'])
     result = execute(cfg, out_dir=prepare_out_dir(tmp_path / "r"), gl_backend=GL_BACKEND,
                      install_signal_handlers=False)
@@ -107,11 +107,11 @@ def test_remote_host_in_another_network_namespace(tmp_path):
         for cmd in sh:
             subprocess.run(cmd.split(), check=True, capture_output=True)
         log = open(tmp_path / "target.log", "wb")
-        target = subprocess.Popen(["ip", "netns", "exec", ns_t, sys.executable, "-m", "harness.cli", "target",
+        target = subprocess.Popen(["ip", "netns", "exec", ns_t, sys.executable, "-m", "hil.harness.cli.main", "target",
                                    "echo", "--transport", "zenoh", "--listen", f"tcp/{ip_t}:7447",
                                    "--throttle", "0.1"], cwd=ROOT, stdout=log, stderr=log)
         out = tmp_path / "run"
-        p = subprocess.run(["ip", "netns", "exec", ns_h, sys.executable, "-m", "harness.cli", "run",
+        p = subprocess.run(["ip", "netns", "exec", ns_h, sys.executable, "-m", "hil.harness.cli.main", "run",
                             "hil_configs/remote.yaml", "--out", str(out), "--no-progress",
                             "--set", "duration_s=3", "--set", "target.command=[]",
                             "--set", f'target.zenoh.connect=["tcp/{ip_t}:7447"]'],

@@ -13,8 +13,8 @@ import pytest
 
 def build(name: str, params: dict[str, float] | None = None, *, seed: int = 0, **camera: Any) -> Any:
     """The ``WorldSpec`` of scenario ``name`` (320x240 camera unless overridden)."""
-    import scenarios
-    from scenarios.world import CameraSpec
+    from hil import scenarios
+    from hil.scenarios.world import CameraSpec
 
     return scenarios.get(name).build(params=params or {}, seed=seed, camera=CameraSpec(**camera),
                                      physics_step_s=0.002)
@@ -23,7 +23,7 @@ def build(name: str, params: dict[str, float] | None = None, *, seed: int = 0, *
 @pytest.fixture
 def make_sim() -> Iterator[Callable[..., Any]]:
     """``make_sim(name, params, seed=..., **camera)`` -> an open Simulation, closed after the test."""
-    from scenarios.sim import Simulation
+    from hil.scenarios.sim import Simulation
 
     opened: list[Any] = []
 
@@ -58,8 +58,8 @@ def drive_with_baseline(sim: Any, *, duration_s: float, steps_per_frame: int = 2
                         cruise_speed_mps: float = 10.0) -> Drive:
     """Closed loop in one process: every ``steps_per_frame`` physics steps each ego's
     camera is JPEG-encoded, the baseline infers and its control is applied."""
-    from adapters.messages import CameraInfo, Frame, ImageEncoding
-    from targets.cv_baseline import CvBaseline
+    from hil.adapters.messages import CameraInfo, Frame, ImageEncoding
+    from hil.targets.cv_baseline import CvBaseline
 
     k = sim.intrinsics()
     cam = sim.world.camera

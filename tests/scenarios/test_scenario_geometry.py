@@ -8,16 +8,16 @@ import math
 import numpy as np
 import pytest
 
-from scenarios.motion import (
-    LaneChange,
-    LateralProfile,
-    Script,
-    SpeedChange,
-    SpeedProfile,
-)
-from scenarios.path import Path
-from scenarios.road import RoadSpec, road_xml
-from scenarios.visibility import pixel_boxes, silhouette_area
+from hil.scenarios.motion import (
+                                  LaneChange,
+                                  LateralProfile,
+                                  Script,
+                                  SpeedChange,
+                                  SpeedProfile,
+                                  )
+from hil.scenarios.path import Path
+from hil.scenarios.road import RoadSpec, road_xml
+from hil.scenarios.visibility import pixel_boxes, silhouette_area
 
 
 def s_curve() -> Path:
@@ -164,7 +164,7 @@ def test_pixel_boxes_bound_each_entity() -> None:
 
 
 def test_vehicle_bank_follows_the_same_rules_as_one_vehicle() -> None:
-    from scenarios.vehicle import VehicleBank, VehicleLimits, VehicleState, step_command
+    from hil.scenarios.vehicle import VehicleBank, VehicleLimits, VehicleState, step_command
 
     lim = VehicleLimits()
     rng = np.random.default_rng(0)

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from conftest import build  # tests/scenarios/conftest.py
 
-import scenarios
-from scenarios.world import CameraSpec, EntityClass, VehicleSpec, WorldSpec, build_mjcf
-from timing.errors import ConfigError
+from hil.common.errors import ConfigError
+from hil import scenarios
+from hil.scenarios.world import CameraSpec, EntityClass, VehicleSpec, WorldSpec, build_mjcf
 
 SIX = {"stopped_car", "pedestrian_occluded", "lead_brake", "cut_in", "curved_road", "multi_vehicle"}
 
@@ -124,7 +124,7 @@ def test_pedestrian_is_a_scripted_pedestrian_with_a_jacket_the_baseline_can_see(
 def test_npc_paints_avoid_the_hues_the_baseline_ignores() -> None:
     import colorsys
 
-    from scenarios.world import PAINTS
+    from hil.scenarios.world import PAINTS
 
     for rgba in PAINTS:
         h, s, v = colorsys.rgb_to_hsv(*rgba[:3])

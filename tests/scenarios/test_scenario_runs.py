@@ -12,13 +12,13 @@ from pathlib import Path
 
 import pytest
 
-from harness.config import parse_config
-from harness.run import execute, prepare_out_dir
+from hil.harness.config.model import parse_config
+from hil.harness.run.driver import execute, prepare_out_dir
 from tests.conftest import GL_BACKEND, read_mcap
-from timing.errors import ConfigError
+from hil.common.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
-ECHO = [sys.executable, "-m", "targets.echo"]
+ECHO = [sys.executable, "-m", "hil.targets.echo"]
 
 
 def run(tmp: Path, **cfg: object):
@@ -32,7 +32,7 @@ def run(tmp: Path, **cfg: object):
 
 def hil(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
     env = dict(os.environ, MUJOCO_GL=GL_BACKEND)
-    return subprocess.run([sys.executable, "-m", "harness.cli", *args], cwd=ROOT, env=env, capture_output=True,
+    return subprocess.run([sys.executable, "-m", "hil.harness.cli.main", *args], cwd=ROOT, env=env, capture_output=True,
                           text=True, timeout=timeout, check=False)
 
 
@@ -52,7 +52,7 @@ def truth_hash(mcap: Path) -> str:
 
 def test_lockstep_truth_trace_is_byte_identical_for_a_seed(tmp_path: Path) -> None:
     # The OpenCV baseline closes the loop: images -> AI -> control -> physics.
-    cfg = {"mode": "lockstep", "duration_s": 2.0, "target": {"command": [sys.executable, "-m", "targets.cv_baseline"],
+    cfg = {"mode": "lockstep", "duration_s": 2.0, "target": {"command": [sys.executable, "-m", "hil.targets.cv_baseline"],
                                                              "estimate_timeout_s": 10.0},
            "scenario": {"name": "cut_in", "params": {"cut_in_at_s": 0.5, "lane_change_s": 1.0}}}
     a = run(tmp_path / "a", **cfg)

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from conftest import build  # tests/scenarios/conftest.py
 
-from scenarios.ground_truth import GroundTruth, RefState, RefStateRules, StateChanges
-from scenarios.motion import SpeedChange, SpeedProfile
-from scenarios.world import CameraSpec, VehicleSpec, WorldSpec
+from hil.scenarios.ground_truth import GroundTruth, RefState, RefStateRules, StateChanges
+from hil.scenarios.motion import SpeedChange, SpeedProfile
+from hil.scenarios.world import CameraSpec, VehicleSpec, WorldSpec
 
 
 def run_until(sim, t_s: float) -> None:
@@ -143,13 +143,13 @@ def _two_cars(offset_m: float) -> WorldSpec:
     ego = VehicleSpec("ego0", 0.0, -1.85, ego=True)
     near = VehicleSpec("near", 22.25, -1.85 + offset_m, rgba=(0.9, 0.8, 0.1, 1.0))
     far = VehicleSpec("far", 42.25, -1.85, rgba=(0.8, 0.1, 0.1, 1.0))
-    from scenarios.road import RoadSpec
+    from hil.scenarios.road import RoadSpec
 
     return WorldSpec(roads=(RoadSpec(),), vehicles=(ego, near, far), camera=CameraSpec())
 
 
 def test_boxes_are_exact_and_occlusion_aware() -> None:
-    from scenarios.sim import Simulation
+    from hil.scenarios.sim import Simulation
 
     with Simulation(_two_cars(offset_m=6.0)) as sim:  # both in plain view
         ct = sim.camera_truth("ego0")
@@ -180,7 +180,7 @@ def test_boxes_are_exact_and_occlusion_aware() -> None:
 
 
 def test_camera_mount_pose_moves_the_view() -> None:
-    from scenarios.sim import Simulation
+    from hil.scenarios.sim import Simulation
 
     def box(**cam: float) -> tuple[int, int, int, int]:
         with Simulation(build("stopped_car", {"gap_m": 20.0}, **cam)) as sim:

@@ -15,14 +15,14 @@ from pathlib import Path
 
 import pytest
 
-from adapters import protocol
-from adapters.link import Link
-from adapters.local import LocalLink
-from adapters.messages import (Bye, CameraInfo, ClockId, Command, Control, DrivingState, ErrorMsg, Estimate, Frame,
-                               ImageEncoding, SyncRequest)
-from adapters.tcp import TcpLink
+from hil.adapters import protocol
+from hil.adapters.link import Link
+from hil.adapters.local import LocalLink
+from hil.adapters.messages import (Bye, CameraInfo, ClockId, Command, Control, DrivingState, ErrorMsg, Estimate, Frame,
+                                   ImageEncoding, SyncRequest)
+from hil.adapters.tcp import TcpLink
 from tests.targets import c_build
-from timing.clock import MonotonicClock
+from hil.timing.clock import MonotonicClock
 
 pytestmark = pytest.mark.skipif(c_build.unavailable() is not None, reason=str(c_build.unavailable()))
 
@@ -203,8 +203,8 @@ def test_real_run(transport, tmp_path, monkeypatch):
     """A whole harness run against the sanitized C target, raw frames (its AI looks
     at them): every frame accounted for, target times in order, clock synced, no
     anomalies, and a clean sanitizer log."""
-    from harness.config import load_config
-    from harness.run import execute, prepare_out_dir
+    from hil.harness.config.model import load_config
+    from hil.harness.run.driver import execute, prepare_out_dir
     from tests.conftest import GL_BACKEND, read_mcap
 
     for k, v in c_build.SAN_ENV.items():
@@ -248,7 +248,7 @@ def test_large_frames_and_oversized_lengths(tmp_path):
     """A 640x480 frame (more than the target's first buffer) is answered; a header
     announcing more than MAX_PAYLOAD is refused at offset 12 before any allocation;
     an idle target sends HEARTBEATs."""
-    from adapters.messages import Heartbeat
+    from hil.adapters.messages import Heartbeat
 
     big = bytearray(protocol.encode(SyncRequest(4, 1, 5)))
     big[12:16] = (protocol.MAX_PAYLOAD + 1).to_bytes(4, "little")

@@ -16,12 +16,12 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from adapters.messages import (CameraInfo, DetectedObject, DrivingState, Frame, ImageEncoding,  # noqa: E402
-                               ObjectClass)
-from targets.cnn import commands, geometry, models  # noqa: E402
-from targets.cnn.decision import Policy, decide, in_path, path_y  # noqa: E402
-from targets.cnn.target import CnnTarget, main  # noqa: E402
-from targets.cv_baseline import CvBaseline  # noqa: E402
+from hil.adapters.messages import (CameraInfo, DetectedObject, DrivingState, Frame, ImageEncoding,  # noqa: E402
+                                   ObjectClass)
+from hil.targets.cnn import commands, geometry, models  # noqa: E402
+from hil.targets.cnn.decision import Policy, decide, in_path, path_y  # noqa: E402
+from hil.targets.cnn.target import CnnTarget, main  # noqa: E402
+from hil.targets.cv_baseline import CvBaseline  # noqa: E402
 
 CAM = CameraInfo(207.846, 207.846, 160.0, 120.0, 1.3, 0.0)  # 320 x 240, 60 deg, 1.3 m
 PKG = Path(models.__file__).resolve().parent
@@ -257,16 +257,16 @@ def test_imports_only_what_the_wire_carries():
         tree = ast.parse(path.read_text())
         mods = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
         mods |= {n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
-        roots = {m.split(".")[0] for m in mods}
+        roots = {m.removeprefix("hil.").split(".")[0] for m in mods}  # hil.adapters.x -> adapters
         assert not roots & {"scenarios", "harness", "mujoco", "urllib", "requests", "http", "socket"}, path
         assert roots <= {"__future__", "argparse", "math", "sys", "threading", "time", "collections",
-                         "dataclasses", "pathlib", "typing", "cv2", "numpy", "torch", "adapters", "targets"}, \
+                         "dataclasses", "pathlib", "typing", "cv2", "numpy", "torch", "adapters", "targets", "common"}, \
             (path, roots)
         assert "hub" not in path.read_text().replace("github", ""), path  # no torch.hub downloads
 
 
 def test_serving_loads_nothing_of_the_simulator_or_the_harness():
-    code = ("import sys; from targets.cnn.target import CnnTarget; CnnTarget(); "
+    code = ("import sys; from hil.targets.cnn.target import CnnTarget; CnnTarget(); "
             "bad = [m for m in sys.modules if m.split('.')[0] in ('scenarios', 'harness', 'mujoco')]; "
             "print(bad); sys.exit(1 if bad else 0)")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)

@@ -22,7 +22,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from adapters.messages import CameraInfo, DrivingState, Frame, ImageEncoding  # noqa: E402
+from hil.adapters.messages import CameraInfo, DrivingState, Frame, ImageEncoding  # noqa: E402
 
 LANE_HALF_WIDTH_M, CAR_HALF_WIDTH_M = 3.7 / 2, 0.9
 
@@ -38,11 +38,11 @@ class Drive:
 
 
 def drive(name: str, params: dict[str, float], seed: int, duration_s: float) -> Drive:
-    from harness.dataset import lane_pose_error
-    from scenarios import get
-    from scenarios.sim import Simulation
-    from scenarios.world import CameraSpec
-    from targets.cnn.target import CnnTarget
+    from hil.scenarios import get
+    from hil.scenarios.sim import Simulation
+    from hil.scenarios.world import CameraSpec
+    from hil.targets.cnn.target import CnnTarget
+    from hil.training.dataset import lane_pose_error
 
     torch.set_num_threads(1)
     ai = CnnTarget()

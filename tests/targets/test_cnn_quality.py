@@ -3,7 +3,7 @@ never used in training (``HELDOUT_SEED_BASE``; training uses seed 0).
 
 Thresholds: detector mAP50 >= 0.8 (mean over vehicle, pedestrian, obstacle of AP at
 IoU 0.5; boxes >= 16 px tall and >= 30 % visible are evaluated, the rest ignored:
-KITTI's moderate floor scaled to 240 rows, harness/train.py), and vehicles, on which
+KITTI's moderate floor scaled to 240 rows, training/train.py), and vehicles, on which
 the closed loop stops, AP50 >= 0.8 down to 8 px (a car 36 m away); steering mean absolute error against the expert <= 6 mrad and
 95th percentile <= 20 mrad (training measured ~2-3 mrad and ~10 mrad on its own
 validation split: targets/weights/MODEL_CARD.md).
@@ -15,15 +15,17 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from harness import dataset, train  # noqa: E402
-from targets.cnn import models  # noqa: E402
+from hil.training import train  # noqa: E402
+
+from hil.targets.cnn import models  # noqa: E402
+from hil.training import dataset
 
 N_FRAMES = 500
 
 
 @pytest.fixture(scope="module")
 def heldout():
-    from scenarios.gl import select_backend
+    from hil.scenarios.gl import select_backend
 
     select_backend()
     torch.set_num_threads(2)

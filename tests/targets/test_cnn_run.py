@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from adapters import protocol
-from adapters.messages import CameraInfo, Command, Estimate, Frame, ImageEncoding
-from adapters.sdk import Endpoint
-from timing.errors import TransportError
+from hil.adapters import protocol
+from hil.adapters.messages import CameraInfo, Command, Estimate, Frame, ImageEncoding
+from hil.adapters.sdk import Endpoint
+from hil.common.errors import TransportError
 
 CAM = CameraInfo(207.846, 207.846, 160.0, 120.0, 1.3)
 
@@ -57,11 +57,11 @@ def _next(link, kind, timeout_s: float = 30.0):
 @pytest.mark.slow
 def test_models_are_swapped_by_a_command_over_the_transport(tmp_path: Path):
     pytest.importorskip("torch")
-    from adapters.link import open_link
-    from timing.clock import MonotonicClock
+    from hil.adapters.link import open_link
+    from hil.timing.clock import MonotonicClock
 
     log = tmp_path / "t.log"
-    link = open_link("local", command=[sys.executable, "-m", "targets.cnn", "--name", "cnn-test"],
+    link = open_link("local", command=[sys.executable, "-m", "hil.targets.cnn", "--name", "cnn-test"],
                      vehicle_id=0, clock=MonotonicClock(), log_path=log)
     try:
         hello = link.open(hello_timeout_s=60)
@@ -87,10 +87,10 @@ def test_models_are_swapped_by_a_command_over_the_transport(tmp_path: Path):
 
 
 def test_a_target_without_commands_is_not_sent_any(tmp_path: Path):
-    from adapters.link import open_link
-    from timing.clock import MonotonicClock
+    from hil.adapters.link import open_link
+    from hil.timing.clock import MonotonicClock
 
-    link = open_link("local", command=[sys.executable, "-m", "targets.echo"], vehicle_id=0, clock=MonotonicClock(),
+    link = open_link("local", command=[sys.executable, "-m", "hil.targets.echo"], vehicle_id=0, clock=MonotonicClock(),
                      log_path=tmp_path / "t.log")
     try:
         link.open(hello_timeout_s=30)
@@ -103,8 +103,8 @@ def test_a_target_without_commands_is_not_sent_any(tmp_path: Path):
 @pytest.mark.slow
 def test_short_run_reports_inference_time_from_the_targets_stamps(tmp_path: Path):
     pytest.importorskip("torch")
-    from harness.config import load_config
-    from harness.run import execute, prepare_out_dir
+    from hil.harness.config.model import load_config
+    from hil.harness.run.driver import execute, prepare_out_dir
     from tests.conftest import GL_BACKEND
 
     cfg = load_config("hil_configs/cnn.yaml", overrides=["duration_s=3", "progress=false"])
@@ -132,12 +132,12 @@ def test_served_over_zenoh_like_on_a_remote_host(tmp_path: Path):
     import os
     import subprocess
 
-    from adapters.zenoh_transport import ZenohLink
-    from timing.clock import MonotonicClock
+    from hil.adapters.zenoh_transport import ZenohLink
+    from hil.timing.clock import MonotonicClock
 
     port = free_port()
     with open(tmp_path / "t.log", "ab") as log:
-        proc = subprocess.Popen([sys.executable, "-m", "harness.cli", "target", "cnn", "--transport", "zenoh",
+        proc = subprocess.Popen([sys.executable, "-m", "hil.harness.cli.main", "target", "cnn", "--transport", "zenoh",
                                  "--listen", f"tcp/127.0.0.1:{port}"], cwd=ROOT,
                                 env=dict(os.environ, PYTHONUNBUFFERED="1"), stdin=subprocess.DEVNULL,
                                 stdout=log, stderr=log)
@@ -162,8 +162,8 @@ def test_a_configured_swap_is_recorded_in_the_run(tmp_path: Path):
     # target.commands sends "swap detector cv" at 1 s of sim time; the command and the
     # target's reply both land in the run's /events.
     pytest.importorskip("torch")
-    from harness.config import load_config
-    from harness.run import execute, prepare_out_dir
+    from hil.harness.config.model import load_config
+    from hil.harness.run.driver import execute, prepare_out_dir
     from tests.conftest import GL_BACKEND, read_mcap
 
     root = Path(__file__).resolve().parents[2]

@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from adapters import protocol
-from adapters.batching import BatchedEndpoint, BatchLog, BatchScheduler, parse_vehicles
-from adapters.messages import (CameraInfo, Control, DrivingState, Estimate, Frame, Hello, ImageEncoding, Inference,
-                               SyncRequest, SyncResponse)
+from hil.adapters import protocol
+from hil.adapters.batching import BatchedEndpoint, BatchLog, BatchScheduler, parse_vehicles
+from hil.adapters.messages import (CameraInfo, Control, DrivingState, Estimate, Frame, Hello, ImageEncoding, Inference,
+                                   SyncRequest, SyncResponse)
 
 torch = pytest.importorskip("torch")
 
@@ -34,7 +34,7 @@ def _frame(vehicle_id: int, frame_id: int, *, seed: int = 0) -> Frame:
 
 
 def test_device_option_cpu_auto_and_refusals():
-    from targets.cnn.device import hello_name, parse_device
+    from hil.targets.cnn.device import hello_name, parse_device
 
     assert parse_device("cpu").type == "cpu"
     assert parse_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
@@ -49,7 +49,7 @@ def test_device_option_cpu_auto_and_refusals():
 
 
 def test_target_loads_its_weights_on_the_device_and_names_it():
-    from targets.cnn.target import CnnTarget
+    from hil.targets.cnn.target import CnnTarget
 
     t = CnnTarget(device="auto")
     want = "cuda" if torch.cuda.is_available() else "cpu"
@@ -59,7 +59,7 @@ def test_target_loads_its_weights_on_the_device_and_names_it():
 
 
 def test_bad_device_is_one_line_and_exit_2(capsys):
-    from targets.cnn.target import main
+    from hil.targets.cnn.target import main
 
     assert main(["--device", "gpu"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -67,7 +67,7 @@ def test_bad_device_is_one_line_and_exit_2(capsys):
 
 
 def test_a_batch_answers_as_each_frame_alone():
-    from targets.cnn.target import CnnTarget
+    from hil.targets.cnn.target import CnnTarget
 
     torch.set_num_threads(1)
     t = CnnTarget()
@@ -191,7 +191,7 @@ def test_newest_frame_per_vehicle_wins_and_no_vehicle_starves():
 
 
 def test_an_output_the_wire_cannot_carry_fails_that_frame_not_the_service():
-    from adapters.messages import ErrorMsg
+    from hil.adapters.messages import ErrorMsg
 
     def bad_for_vehicle_1(frames):
         return [Inference(DrivingState.SAFE, Control(0.0, 2.0 if f.vehicle_id == 1 else 0.5, 0.0), ())
@@ -227,8 +227,8 @@ def test_scheduler_and_vehicle_options_are_checked():
 
 _ECHO_SHARED = """
 import sys
-from adapters.batching import serve_batched
-from adapters.messages import Control, DrivingState, Inference
+from hil.adapters.batching import serve_batched
+from hil.adapters.messages import Control, DrivingState, Inference
 def infer_batch(frames):
     return [Inference(DrivingState.SAFE, Control(0.0, float(f.vehicle_id) / 10, 0.0), ()) for f in frames]
 serve_batched(infer_batch, target_name="echo-shared", window_ns=50_000_000, max_batch=8)
@@ -236,8 +236,8 @@ serve_batched(infer_batch, target_name="echo-shared", window_ns=50_000_000, max_
 
 
 def test_one_local_process_serves_every_vehicle_on_its_own_socket(tmp_path: Path):
-    from adapters.shared_local import SharedLocalLink, SharedLocalTarget
-    from timing.clock import MonotonicClock
+    from hil.adapters.shared_local import SharedLocalLink, SharedLocalTarget
+    from hil.timing.clock import MonotonicClock
 
     clock = MonotonicClock()
     host = SharedLocalTarget([sys.executable, "-c", _ECHO_SHARED], log_path=tmp_path / "t.log",
@@ -271,8 +271,8 @@ def test_one_local_process_serves_every_vehicle_on_its_own_socket(tmp_path: Path
 
 
 def test_shared_target_config_needs_local_or_zenoh():
-    from harness.config import load_config, parse_config
-    from timing.errors import ConfigError
+    from hil.common.errors import ConfigError
+    from hil.harness.config.model import load_config, parse_config
 
     with pytest.raises(ConfigError, match="target.shared"):
         parse_config({"target": {"transport": "tcp", "shared": True}})
@@ -339,11 +339,11 @@ def test_shared_zenoh_target_one_session_each_vehicles_keys(tmp_path: Path):
     (started once), every vehicle's link on the same endpoint under its own keys."""
     import queue
 
-    from harness.config import parse_config
-    from harness.shared_target import BATCH_LOG_NAME, LOG_NAME
-    from harness.target_launch import make_link
+    from hil.harness.config.model import parse_config
+    from hil.harness.run.shared_target import BATCH_LOG_NAME, LOG_NAME
+    from hil.harness.run.target_launch import make_link
     from tests.adapters.pair_zenoh import free_port
-    from timing.clock import MonotonicClock
+    from hil.timing.clock import MonotonicClock
 
     port = free_port()
     script = _ECHO_SHARED.replace('window_ns=50_000_000, max_batch=8)',
@@ -375,11 +375,11 @@ def test_shared_zenoh_target_one_session_each_vehicles_keys(tmp_path: Path):
 def test_the_shared_configs_args_also_serve_one_vehicle_per_target(tmp_path: Path):
     """``--set target.shared=false`` on shared.yaml: the same args (``--shared`` too)
     start an ordinary per-vehicle target on the local transport."""
-    from adapters.local import LocalLink
-    from timing.clock import MonotonicClock
+    from hil.adapters.local import LocalLink
+    from hil.timing.clock import MonotonicClock
 
     clock = MonotonicClock()
-    link = LocalLink(command=[sys.executable, "-m", "targets.cnn", "--shared", "--device", "auto",
+    link = LocalLink(command=[sys.executable, "-m", "hil.targets.cnn", "--shared", "--device", "auto",
                               "--batch-window-ms", "2"], vehicle_id=0, clock=clock, log_path=tmp_path / "t.log")
     try:
         assert link.open(hello_timeout_s=60).target_name.startswith("cnn@")
@@ -393,9 +393,9 @@ def test_link_faults_apply_to_each_vehicle_of_a_shared_target(tmp_path: Path):
     """``target.impair`` with ``target.shared``: each vehicle's link gets its stage."""
     import queue
 
-    from harness.config import parse_config
-    from harness.target_launch import make_link
-    from timing.clock import MonotonicClock
+    from hil.harness.config.model import parse_config
+    from hil.harness.run.target_launch import make_link
+    from hil.timing.clock import MonotonicClock
 
     cfg = parse_config({"target": {"transport": "local", "shared": True, "command": ["{python}", "-c", _ECHO_SHARED],
                                    "impair": {"uplink": {"delay_ms": 40}}}})

@@ -1,4 +1,4 @@
-"""The CNN target's training side (harness/dataset.py, harness/train.py): seeded
+"""The CNN target's training side (training/dataset.py, training/train.py): seeded
 data with sane labels, deterministic training, the AP metric, the ``hil train`` CLI."""
 
 from __future__ import annotations
@@ -11,7 +11,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from harness import dataset, train  # noqa: E402
+from hil.training import train  # noqa: E402
+
+from hil.training import dataset
 
 
 def _box(cls: str, box: tuple[int, int, int, int], visible: float = 1.0) -> dataset.LabelBox:
@@ -20,7 +22,7 @@ def _box(cls: str, box: tuple[int, int, int, int], visible: float = 1.0) -> data
 
 @pytest.fixture(scope="module")
 def frames() -> list[dataset.Sample]:
-    from scenarios.gl import select_backend
+    from hil.scenarios.gl import select_backend
 
     select_backend()
     return list(dataset.generate(seed=123, n_frames=48))

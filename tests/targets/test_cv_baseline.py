@@ -13,10 +13,10 @@ import cv2
 import numpy as np
 import pytest
 
-from adapters.messages import (CameraInfo, DrivingState, Frame, ImageEncoding, Inference,
-                               ObjectClass)
-from targets import cv_baseline
-from targets.cv_baseline import CvBaseline
+from hil.adapters.messages import (CameraInfo, DrivingState, Frame, ImageEncoding, Inference,
+                                   ObjectClass)
+from hil.targets import cv_baseline
+from hil.targets.cv_baseline import CvBaseline
 
 LANE_Y = -1.85  # world y of the ego lane's centre in the stopped_car scenario
 CAMERA_AHEAD_OF_BUMPER_M = 0.05
@@ -31,17 +31,17 @@ class Shot:
 
 @pytest.fixture(scope="module")
 def sim_mod() -> Iterator[object]:
-    from scenarios.gl import select_backend
+    from hil.scenarios.gl import select_backend
 
     select_backend()  # before the first import of mujoco
-    from scenarios import sim
+    from hil.scenarios import sim
 
     yield sim
 
 
 def _world(gap_m: float, speed_mps: float = 0.0, lateral_offset_m: float = 0.0):
-    from scenarios import get
-    from scenarios.world import CameraSpec
+    from hil.scenarios import get
+    from hil.scenarios.world import CameraSpec
 
     return get("stopped_car").build(
         params={"gap_m": gap_m, "ego_speed_mps": speed_mps, "lateral_offset_m": lateral_offset_m},
@@ -248,7 +248,7 @@ def test_imports_only_what_the_wire_carries() -> None:
             top.update(a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom):
             top.add(node.module or "")
-    assert top <= {"__future__", "argparse", "math", "sys", "collections.abc", "cv2", "numpy", "adapters.messages"}
+    assert top <= {"__future__", "argparse", "math", "sys", "collections.abc", "cv2", "numpy", "hil.adapters.messages"}
     every = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
     assert not any(m and m.split(".")[0] in ("scenarios", "harness", "timing") for m in every)
 
@@ -257,11 +257,11 @@ def test_main_serves_the_baseline(tmp_path: Path) -> None:
     # The real program as a child process on the local transport.
     import sys
 
-    from adapters.link import open_link
-    from adapters.messages import Estimate
-    from timing.clock import MonotonicClock
+    from hil.adapters.link import open_link
+    from hil.adapters.messages import Estimate
+    from hil.timing.clock import MonotonicClock
 
-    link = open_link("local", command=[sys.executable, "-m", "targets.cv_baseline", "--name", "cv-test",
+    link = open_link("local", command=[sys.executable, "-m", "hil.targets.cv_baseline", "--name", "cv-test",
                                        "--cruise-speed", "7.5"],
                      vehicle_id=0, clock=MonotonicClock(), log_path=tmp_path / "t.log")
     try:

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import pytest
 
-from adapters import protocol
-from adapters.messages import CameraInfo, Control, DrivingState, Estimate, Frame, ImageEncoding
-from targets.reference import (Faults, InjectedClock, ReferenceEndpoint, bad_crc_bytes, bad_length_bytes)
-from timing.errors import ProtocolError
+from hil.adapters import protocol
+from hil.adapters.messages import CameraInfo, Control, DrivingState, Estimate, Frame, ImageEncoding
+from hil.common.errors import ProtocolError
+from hil.targets.reference import (Faults, InjectedClock, ReferenceEndpoint, bad_crc_bytes, bad_length_bytes)
 
 ROOT = Path(__file__).resolve().parents[2]
 CAM = CameraInfo(277.0, 277.0, 160.0, 120.0, 1.3)
@@ -128,8 +128,8 @@ def test_reference_target_needs_no_harness_code():
                     raise ImportError(f"blocked: {name}")
                 return None
         sys.meta_path.insert(0, Block())
-        import targets.reference
-        targets.reference.build_parser()
+        import hil.targets.reference
+        hil.targets.reference.build_parser()
         print("OK")
     """)
     p = subprocess.run([sys.executable, "-I", "-c", code], cwd=ROOT, capture_output=True, text=True,

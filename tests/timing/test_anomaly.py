@@ -12,13 +12,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from timing.anomaly import Anomaly, AnomalyDetector, AnomalyKind, Severity, Thresholds, is_sane
-from timing.clock import ManualClock, OffsetClock
-from timing.errors import ConfigError
-from timing.histogram import StageHistograms
-from timing.pipeline import split_stages
-from timing.records import FrameStatus, PipelineRecord
-from timing.sync import ClockSync, SyncEvent, SyncEventKind, SyncSample, SyncState
+from hil.common.errors import ConfigError
+from hil.timing.anomaly import Anomaly, AnomalyDetector, AnomalyKind, Severity, Thresholds, is_sane
+from hil.timing.clock import ManualClock, OffsetClock
+from hil.timing.histogram import StageHistograms
+from hil.timing.pipeline import split_stages
+from hil.timing.records import FrameStatus, PipelineRecord
+from hil.timing.sync import ClockSync, SyncEvent, SyncEventKind, SyncSample, SyncState
 
 MS = 1_000_000
 US = 1_000

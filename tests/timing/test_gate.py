@@ -1,11 +1,11 @@
-"""timing.gate: the block bootstrap and the test behind hil compare's verdicts."""
+"""hil.timing.gate: the block bootstrap and the test behind hil compare's verdicts."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from timing.gate import Metric, block_length, block_resample_rows, compare_metric, z_of
+from hil.timing.gate import Metric, block_length, block_resample_rows, compare_metric, z_of
 
 
 def test_block_resamples_keep_runs_of_consecutive_frames() -> None:

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from timing.histogram import MAX_STAGES, StageHistograms
-from timing.records import FrameStatus, PipelineRecord
-from timing.stats import summarize_ns
+from hil.timing.histogram import MAX_STAGES, StageHistograms
+from hil.timing.records import FrameStatus, PipelineRecord
+from hil.timing.stats import summarize_ns
 
 MS = 1_000_000
 

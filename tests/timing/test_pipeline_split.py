@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from timing.clock import ManualClock, OffsetClock
-from timing.pipeline import CROSS_CLOCK_STAGES, Split, causality_violations, split_stages
-from timing.records import FrameStatus, PipelineRecord
-from timing.sync import ClockSync, SyncSample, SyncState
+from hil.timing.clock import ManualClock, OffsetClock
+from hil.timing.pipeline import CROSS_CLOCK_STAGES, Split, causality_violations, split_stages
+from hil.timing.records import FrameStatus, PipelineRecord
+from hil.timing.sync import ClockSync, SyncSample, SyncState
 
 MS = 1_000_000
 US = 1_000

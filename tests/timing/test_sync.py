@@ -8,10 +8,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from timing.clock import ManualClock, OffsetClock
-from timing.errors import ConfigError
-from timing.sync import (ClockSync, NotSyncedError, SyncConfig, SyncEventKind, SyncSample,
-                         SyncState)
+from hil.common.errors import ConfigError
+from hil.timing.clock import ManualClock, OffsetClock
+from hil.timing.sync import (ClockSync, NotSyncedError, SyncConfig, SyncEventKind, SyncSample,
+                             SyncState)
 
 MS = 1_000_000
 US = 1_000

@@ -11,13 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness.channels import register_all
-from harness.config_timing import TimingConfig
-from harness.recorder import Recorder
-from harness.timing_observer import TimingObserver
+from hil.harness.analysis.timing_observer import TimingObserver
+from hil.harness.config.timing import TimingConfig
+from hil.harness.record.channels import register_all
+from hil.harness.record.recorder import Recorder
 from tests.timing.truth import MS, START_NS, Scenario, TargetClock, Truth, drive, simulate
-from timing.anomaly import AnomalyDetector, AnomalyKind
-from timing.records import FrameStatus, PipelineRecord
+from hil.timing.anomaly import AnomalyDetector, AnomalyKind
+from hil.timing.records import FrameStatus, PipelineRecord
 
 
 def observe(tmp_path: Path, sc: Scenario) -> tuple[TimingObserver, dict[int, Truth]]:

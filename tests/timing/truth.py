@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from timing.records import FrameStatus, PipelineRecord
-from timing.sync import SyncSample
+from hil.timing.records import FrameStatus, PipelineRecord
+from hil.timing.sync import SyncSample
 
 MS = 1_000_000
 US = 1_000

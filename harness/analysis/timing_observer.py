@@ -1,0 +1,304 @@
+"""Timing analysis of a run: clock sync per target, cross-clock stage splits,
+timing anomalies and streaming stage statistics.
+
+Records are analysed in completion order, each once the sync has *accepted* a
+sample newer than its ``t0'`` and holds no unconfirmed outlier (so a split is mapped
+with a model that already knows about any clock step before it). A record whose
+``[t_tx, t0']`` overlaps a detected clock step's window (last good sample before it
+→ its detection) gets no cross-clock split: its mapping is unknowable, and the old
+mapping put splits far outside their stated bound (issue 12). A record wholly
+before a step is mapped with the model from before it. Such records, and those
+whose mapped stamps break causality, are left out of the split statistics and
+counted (``splits_excluded``). When sync is lost, records older than
+``lost_after_s`` are analysed with what is known, so the queue stays bounded.
+
+The frame-rate floor counts estimates by their receipt time ``t0'`` over windows
+that are complete: a window ends before the oldest record still waiting for a
+sync sample, and at least ``handoff_margin_ns`` before now while no record flows.
+
+Writes ``/<vehicle>/clock`` (the sync state after each sample) and every anomaly
+to ``/events`` (``kind`` is the anomaly kind's lower-case name).
+"""
+
+from __future__ import annotations
+
+from array import array
+from bisect import bisect_right
+from collections import deque
+from collections.abc import Iterator
+from dataclasses import dataclass, field, replace
+from typing import Any, NamedTuple
+
+from hil.adapters.messages import Estimate
+from hil.harness.config.timing import TimingConfig
+from hil.harness.record.recorder import Recorder
+from hil.scenarios.ground_truth import GroundTruth
+from hil.timing.anomaly import Anomaly, AnomalyDetector
+from hil.timing.histogram import StageHistograms
+from hil.timing.pipeline import Split, causality_violations, split_stages
+from hil.timing.records import PipelineRecord
+from hil.timing.stats import summarize_ns
+from hil.timing.sync import ClockSync, SyncEvent, SyncEventKind, SyncSample, SyncState
+
+TICK_NS = 100_000_000
+HANDOFF_MARGIN_NS = 500_000_000  # an estimate is handed over well within this after t0'
+TICK_MEMORY = 600                # ticks remembered to date frame-rate anomalies (60 s)
+
+
+class SplitRow(NamedTuple):
+    """One frame's cross-clock split as reported (signed value and bound, ns)."""
+
+    frame_id: int
+    value_ns: int
+    uncertainty_ns: int
+
+
+class SplitColumns:
+    """A run's split rows in three int64 columns (24 bytes a frame, not a tuple
+    object each): append ``SplitRow``s, iterate them back in order."""
+
+    def __init__(self) -> None:
+        self._frame, self._value, self._unc = array("q"), array("q"), array("q")
+
+    def append(self, row: SplitRow) -> None:
+        self._frame.append(row.frame_id)
+        self._value.append(row.value_ns)
+        self._unc.append(row.uncertainty_ns)
+
+    def __len__(self) -> int:
+        return len(self._frame)
+
+    def __iter__(self) -> Iterator[SplitRow]:
+        return (SplitRow(f, v, u) for f, v, u in zip(self._frame, self._value, self._unc))
+
+
+@dataclass(frozen=True)
+class _StepWindow:
+    """A detected clock step: the last good sample before it, its detection (harness
+    ns), and the model that held before it."""
+
+    since_ns: int
+    detected_ns: int
+    before: SyncState
+
+
+@dataclass
+class _VehicleTiming:
+    sync: ClockSync
+    detector: AnomalyDetector
+    hist: StageHistograms = field(default_factory=StageHistograms)
+    pending: deque[PipelineRecord] = field(default_factory=deque)
+    step_windows: list[_StepWindow] = field(default_factory=list)
+    last_handed_t0p_ns: int | None = None
+    splits: dict[str, SplitColumns] = field(default_factory=lambda: {"uplink": SplitColumns(),
+                                                                      "downlink": SplitColumns()})
+    excluded: dict[str, int] = field(default_factory=dict)
+    anomalies: list[Anomaly] = field(default_factory=list)
+    sync_events: dict[str, int] = field(default_factory=dict)
+    sim_time_ns: int = 0
+
+
+class TimingObserver:
+    """A ``RunObserver``; ``summary()`` gives the per-vehicle timing figures."""
+
+    def __init__(self, cfg: TimingConfig, vehicles: list[str], *, recorder: Recorder,
+                 handoff_margin_ns: int = HANDOFF_MARGIN_NS) -> None:
+        """``handoff_margin_ns``: the longest the loop takes to hand a received
+        estimate over; frame-rate windows closer to now than that are judged only
+        once a record has shown them complete."""
+        self.cfg = cfg
+        self.handoff_margin_ns = handoff_margin_ns
+        self.rec = recorder
+        self.lost_after_ns = int(cfg.sync.lost_after_s * 1e9)
+        sync_cfg = cfg.sync.to_sync_config()
+        self.v: dict[str, _VehicleTiming] = {
+            name: _VehicleTiming(ClockSync(sync_cfg), AnomalyDetector(name, cfg.thresholds_for(name)))
+            for name in vehicles}
+        self._next_tick_ns = 0
+        self._ticks: deque[tuple[int, int]] = deque(maxlen=TICK_MEMORY)  # (harness ns, sim ns)
+
+    # -- observer hooks -------------------------------------------------------
+
+    def on_truth(self, gt: GroundTruth, *, t_ns: int) -> None:
+        for vt in self.v.values():
+            vt.sim_time_ns = gt.sim_time_ns
+
+    def on_sync(self, vehicle: str, sample: SyncSample) -> None:
+        vt = self.v[vehicle]
+        before = vt.sync.state()
+        events = vt.sync.add(sample)
+        for ev in events:
+            if ev.kind == SyncEventKind.CLOCK_STEP:
+                since = ev.since_ns if ev.since_ns is not None else before.last_sample_ns
+                vt.step_windows.append(_StepWindow(since if since is not None else 0, ev.harness_time_ns,
+                                                   before))
+        self._sync_events(vehicle, vt, events)
+        st = vt.sync.state()
+        if st.samples_used:
+            self.rec.write_json(f"/{vehicle}/clock", _state_json(st), log_time_ns=sample.t4_ns,
+                                publish_time_ns=sample.t1_ns)
+        self._flush(vehicle, vt, now_ns=sample.t4_ns)
+
+    def on_record(self, vehicle: str, rec: PipelineRecord, estimate: Estimate | None) -> None:
+        vt = self.v[vehicle]
+        vt.pending.append(rec)
+        if rec.t0p_ns is not None:
+            vt.last_handed_t0p_ns = max(vt.last_handed_t0p_ns or 0, rec.t0p_ns)
+        self._flush(vehicle, vt, now_ns=rec.t0p_ns or rec.t_tx_ns)
+
+    def on_tick(self, *, now_ns: int, sim_time_ns: int) -> None:
+        if now_ns < self._next_tick_ns:
+            return
+        self._next_tick_ns = now_ns + TICK_NS
+        self._ticks.append((now_ns, sim_time_ns))
+        for name, vt in self.v.items():
+            self._sync_events(name, vt, vt.sync.check(now_ns))
+            self._flush(name, vt, now_ns=now_ns)
+            found = vt.detector.on_tick(now_ns, sim_time_ns, complete_until_ns=self._complete_until(vt, now_ns))
+            self._emit(name, vt, [replace(a, sim_time_ns=self._sim_time_at(a.harness_time_ns)) for a in found])
+
+    def _sim_time_at(self, t_ns: int) -> int | None:
+        """Sim time (ns) at harness instant ``t_ns`` (a frame-rate window's end, up to
+        a few seconds back), from the ticks: the last tick at or before it."""
+        i = bisect_right(self._ticks, (t_ns, 2**63)) - 1
+        return self._ticks[i][1] if i >= 0 else None
+
+    def _complete_until(self, vt: _VehicleTiming, now_ns: int) -> int:
+        """Harness instant up to which every received estimate has been analysed:
+        before the oldest record still pending, and no later than the newest
+        handed-over ``t0'`` or ``now − handoff_margin_ns`` (receipt order is
+        completion order, so a newer ``t0'`` shows all older ones are in)."""
+        horizon = max(vt.last_handed_t0p_ns or 0, now_ns - self.handoff_margin_ns)
+        waiting = [r.t0p_ns for r in vt.pending if r.t0p_ns is not None]
+        return min(horizon, min(waiting) - 1) if waiting else horizon
+
+    # -- analysis -------------------------------------------------------------
+
+    def _sync_events(self, vehicle: str, vt: _VehicleTiming, events: list[SyncEvent]) -> None:
+        for ev in events:
+            vt.sync_events[ev.kind.value] = vt.sync_events.get(ev.kind.value, 0) + 1
+        self._emit(vehicle, vt, vt.detector.on_sync_events(events, sim_time_ns=vt.sim_time_ns))
+
+    def _flush(self, vehicle: str, vt: _VehicleTiming, *, now_ns: int, force: bool = False) -> None:
+        st = vt.sync.state()
+        covered_ns = st.last_sample_ns if st.samples_used and not vt.sync.unconfirmed else None
+        while vt.pending:
+            rec = vt.pending[0]
+            mapped_ready = rec.t0p_ns is None or (covered_ns is not None and covered_ns > rec.t0p_ns)
+            too_old = now_ns - (rec.t0p_ns or rec.t_tx_ns) > self.lost_after_ns
+            if not (mapped_ready or too_old or force):
+                return
+            vt.pending.popleft()
+            self._analyse(vehicle, vt, rec, covered=mapped_ready)
+
+    def _mapper(self, vt: _VehicleTiming, rec: PipelineRecord, *, covered: bool) -> tuple[SyncState | None, str]:
+        """The model that maps ``rec``'s target stamps, or ``None`` and why not."""
+        st = vt.sync.state()
+        if not st.samples_used:
+            return None, ""
+        lo, hi = rec.t_tx_ns, rec.t0p_ns or rec.t_tx_ns
+        for w in vt.step_windows:
+            if w.since_ns <= hi and lo <= w.detected_ns:
+                return None, "clock_step"  # the step may lie anywhere in its window
+            if hi < w.since_ns:
+                return (w.before if w.before.samples_used else None), ""
+        if not covered and vt.sync.unconfirmed:
+            return None, "unconfirmed_sync"  # maybe a step not yet confirmed
+        return st, ""
+
+    def _analyse(self, vehicle: str, vt: _VehicleTiming, rec: PipelineRecord, *, covered: bool = True) -> None:
+        mapper, why = self._mapper(vt, rec, covered=covered)
+        splits = split_stages(rec, mapper) if mapper is not None else None
+        anomalies = vt.detector.on_record(rec, splits=splits, mapper=mapper)
+        self._emit(vehicle, vt, anomalies)
+        if not vt.hist.record_record(rec):
+            return
+        if mapper is None:
+            if why and rec.t_rx_target_ns is not None and rec.t0p_ns is not None:
+                vt.excluded[why] = vt.excluded.get(why, 0) + 1
+            return
+        assert splits is not None
+        if "uplink" not in splits:
+            return
+        if causality_violations(rec, mapper):  # the mapping is wrong here: no honest split
+            vt.excluded["causality"] = vt.excluded.get("causality", 0) + 1
+            return
+        for name in ("uplink", "downlink"):
+            sp: Split = splits[name]
+            vt.splits[name].append(SplitRow(rec.frame_id, sp.value_ns, sp.uncertainty_ns))
+            if sp.value_ns >= 0:  # the streaming histograms hold only non-negative values
+                vt.hist.record(name, sp.value_ns)
+
+    def _emit(self, vehicle: str, vt: _VehicleTiming, anomalies: list[Anomaly]) -> None:
+        for a in anomalies:
+            vt.anomalies.append(a)
+            d = a.to_json()
+            d["kind"] = a.kind.value.lower()
+            d["vehicle"] = vehicle
+            t = a.harness_time_ns
+            self.rec.write_json("/events", d, log_time_ns=t, publish_time_ns=t)
+
+    # -- results --------------------------------------------------------------
+
+    def finish(self) -> None:
+        """Analyse what is still pending (end of run)."""
+        for name, vt in self.v.items():
+            self._flush(name, vt, now_ns=0, force=True)
+
+    def anomaly_count(self, vehicle: str) -> int:
+        return len(self.v[vehicle].anomalies)
+
+    def live_p(self, vehicle: str, q: float) -> float | None:
+        p = self.v[vehicle].hist.percentiles_ms("end_to_end")
+        return p.get(f"p{q:g}_ms") if p.get("count") else None  # type: ignore[return-value]
+
+    def splits(self, vehicle: str) -> dict[str, list[SplitRow]]:
+        """Every reported cross-clock split of ``vehicle``, in analysis order."""
+        return {name: list(rows) for name, rows in self.v[vehicle].splits.items()}
+
+    def summary(self, vehicle: str) -> dict[str, Any]:
+        vt = self.v[vehicle]
+        st = vt.sync.state()
+        splits: dict[str, Any] = {name: _split_summary(rows) for name, rows in vt.splits.items()}
+        counts: dict[str, int] = {}
+        for a in vt.anomalies:
+            counts[a.kind.value.lower()] = counts.get(a.kind.value.lower(), 0) + 1
+        return {
+            "clock": {
+                "synced": st.synced, "offset_ns": st.offset_ns if st.samples_used else None,
+                "ref_ns": st.ref_ns if st.samples_used else None,
+                "skew_ppm": round(st.skew_ppm, 3), "skew_uncertainty_ppm": round(st.skew_uncertainty_ppm, 3),
+                "uncertainty_ns": st.uncertainty_ns if st.samples_used else None, "delay_ns": st.delay_ns,
+                "samples_used": st.samples_used, "events": dict(vt.sync_events),
+                "rejected": dict(getattr(vt.sync, "rejected", {})),
+            },
+            "splits_ms": splits,
+            "splits_excluded": {k: vt.excluded.get(k, 0) for k in SPLIT_EXCLUSIONS},
+            "streaming_ms": vt.hist.summary_ms(),
+            "anomalies": counts,
+            "records_excluded": vt.detector.excluded,
+        }
+
+
+SPLIT_EXCLUSIONS = ("clock_step", "unconfirmed_sync", "causality")
+
+
+def _split_summary(rows: SplitColumns) -> dict[str, Any]:
+    """Exact statistics of signed split values (ms), with the bound of the smallest
+    and largest, and how many came out negative (each within its bound)."""
+    s: dict[str, Any] = summarize_ns(r.value_ns for r in rows)
+    if rows:
+        unc = sorted(r.uncertainty_ns for r in rows)
+        lo, hi = min(rows, key=lambda r: r.value_ns), max(rows, key=lambda r: r.value_ns)
+        s["uncertainty_p50_ms"] = round(unc[len(unc) // 2] / 1e6, 4)
+        s["uncertainty_max_ms"] = round(unc[-1] / 1e6, 4)
+        s["min_uncertainty_ms"] = round(lo.uncertainty_ns / 1e6, 4)
+        s["max_uncertainty_ms"] = round(hi.uncertainty_ns / 1e6, 4)
+        s["negative"] = sum(1 for r in rows if r.value_ns < 0)
+    return s
+
+
+def _state_json(st: SyncState) -> dict[str, Any]:
+    return {"offset_ns": st.offset_ns, "ref_ns": st.ref_ns, "skew_ppm": st.skew_ppm,
+            "skew_uncertainty_ppm": st.skew_uncertainty_ppm, "uncertainty_ns": st.uncertainty_ns,
+            "delay_ns": st.delay_ns, "samples_used": st.samples_used, "synced": st.synced}

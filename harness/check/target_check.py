@@ -1,0 +1,387 @@
+"""``hil target-check ENDPOINT``: a scripted session against any target, checked
+against PROTOCOL.md, for device makers before their first real run.
+
+ENDPOINT is one of::
+
+    tcp://HOST:PORT            the target listens; the checker connects (section 10.5)
+    tcp-listen://HOST:PORT     the checker listens; the target dials in
+    zenoh://tcp/HOST:PORT      a Zenoh target (section 10.2; --vehicle, --key-prefix)
+    can://INTERFACE/CHANNEL    a CAN FD target (section 10.3), e.g. can://socketcan/vcan0
+    local -- COMMAND ARGS...   a program started as a local target (section 10.1)
+
+The session: HELLO; a clock-sync burst; one FRAME of each encoding (RGB8, BGR8,
+JPEG); a HEARTBEAT; malformed messages (bad header CRC, bad version, bad payload
+CRC, bytes without a magic); a COMMAND if the target announces ``CAP_COMMANDS``;
+BYE. Each check prints one row: PASS or FAIL, the PROTOCOL.md section, and what was
+wrong with the byte offsets of the fields concerned. Exit 0 when all pass, 1 when
+any fails, 2 for a bad endpoint or option.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import zlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hil.adapters import protocol
+from hil.adapters.link import Link, Received, open_link
+from hil.adapters.messages import (Bye, CameraInfo, Command, ErrorMsg, Estimate, Frame, Heartbeat, Hello,
+                                   ImageEncoding, SyncRequest)
+from hil.adapters.tcp import parse_address
+from hil.common.errors import HilError, ProtocolError, TransportError
+from hil.timing.clock import MonotonicClock
+
+EXIT_PASS, EXIT_FAIL, EXIT_USAGE = 0, 1, 2
+CAM = CameraInfo(277.0, 277.0, 160.0, 120.0, 1.3)
+W, H = 320, 240
+KNOWN_CAPS = 0x0000_0003  # SHM_FRAMES | CAP_COMMANDS
+
+
+@dataclass
+class Check:
+    name: str
+    section: str
+    ok: bool
+    detail: str
+
+
+@dataclass
+class Session:
+    """The link under test, what it could not decode, and the rows so far."""
+
+    link: Link
+    timeout_s: float
+    decode_errors: list[str] = field(default_factory=list)
+    rows: list[Check] = field(default_factory=list)
+
+    def add(self, name: str, section: str, problems: list[str], good: str) -> bool:
+        self.rows.append(Check(name, section, not problems, "; ".join(problems) if problems else good))
+        return not problems
+
+    def wait_for(self, want: Callable[[Received], bool], timeout_s: float | None = None) -> Received | None:
+        """The first received message ``want`` accepts; the rest are kept for ``drain``."""
+        deadline = time.monotonic() + (timeout_s if timeout_s is not None else self.timeout_s)
+        while (left := deadline - time.monotonic()) > 0:
+            r = self.link.recv(timeout_s=min(left, 0.05))
+            if r is None:
+                if not self.link.alive:
+                    return None
+                continue
+            if want(r):
+                return r
+            self._seen.append(r)
+        return None
+
+    def drain(self) -> list[Received]:
+        out, self._seen = self._seen, []
+        return out
+
+    def __post_init__(self) -> None:
+        self._seen: list[Received] = []
+
+
+def parse_endpoint(endpoint: str, command: list[str], *, vehicle_id: int, key_prefix: str) -> tuple[str, dict]:
+    """ENDPOINT (and the command after ``--`` for ``local``) -> (transport, link options).
+
+    Raises:
+        TransportError: not one of the forms in the module docstring.
+    """
+    if endpoint == "local":
+        if not command:
+            raise TransportError("local: give the target's command after --, e.g. hil target-check local -- ./t")
+        return "local", {"command": command}
+    scheme, sep, rest = endpoint.partition("://")
+    if not sep:
+        raise TransportError(f"ENDPOINT {endpoint!r}: expected tcp://HOST:PORT, tcp-listen://HOST:PORT, "
+                             "zenoh://tcp/HOST:PORT, can://INTERFACE/CHANNEL or local -- COMMAND")
+    if scheme == "tcp":
+        parse_address(rest, field="ENDPOINT")
+        return "tcp", {"connect": rest}
+    if scheme == "tcp-listen":
+        parse_address(rest, field="ENDPOINT")
+        return "tcp", {"listen": rest}
+    if scheme == "zenoh":
+        return "zenoh", {"connect": [rest], "key_prefix": key_prefix}
+    if scheme == "can":
+        interface, _, channel = rest.partition("/")
+        if not interface or not channel:
+            raise TransportError(f"ENDPOINT {endpoint!r}: expected can://INTERFACE/CHANNEL, e.g. can://socketcan/vcan0")
+        return "can", {"interface": interface, "channel": channel}
+    raise TransportError(f"ENDPOINT {endpoint!r}: unknown scheme {scheme!r} (tcp, tcp-listen, zenoh, can, local)")
+
+
+def _image(encoding: ImageEncoding) -> bytes | None:
+    """A 320x240 test picture: a gradient with a dark centre; None without OpenCV (JPEG)."""
+    y, x = np.mgrid[0:H, 0:W]
+    bgr = np.stack([(x * 255 // W), (y * 255 // H), np.full_like(x, 128)], axis=-1).astype(np.uint8)
+    bgr[H // 3:2 * H // 3, W // 3:2 * W // 3] = 20
+    if encoding == ImageEncoding.BGR8:
+        return bgr.tobytes()
+    if encoding == ImageEncoding.RGB8:
+        return bgr[:, :, ::-1].tobytes()
+    try:
+        import cv2
+    except ImportError:
+        return None
+    ok, jpg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 85])
+    return jpg.tobytes() if ok else None
+
+
+def check_hello(s: Session, hello: Hello) -> None:
+    p = []
+    if not hello.target_name:
+        p.append("name is empty (name_len, offset 66)")
+    if hello.clock_resolution_ns <= 0:
+        p.append("clock_resolution_ns is 0 (offset 68)")
+    if hello.capabilities & ~KNOWN_CAPS:
+        p.append(f"capabilities 0x{hello.capabilities:08x} set bits v1 does not define (offset 72)")
+    s.add("hello", "4.1", p, f"{hello.target_name!r}, clock {hello.clock_id.name}, resolution "
+          f"{hello.clock_resolution_ns} ns, capabilities 0x{hello.capabilities:x}")
+
+
+def check_sync(s: Session, n: int = 16) -> tuple[int, int] | None:
+    """A burst of ``n`` exchanges; returns (target clock offset, round trip) of the
+    tightest one, ns, or None when any check failed."""
+    best: tuple[int, int] | None = None
+    p: list[str] = []
+    answered = 0
+    for _ in range(n):
+        before = s.link.clock.now_ns()
+        m = s.link.sync_exchange(timeout_s=s.timeout_s)
+        if m is None:
+            p.append(f"no SYNC_RESPONSE to seq {s.link._sync_seq} within {s.timeout_s:g} s")  # noqa: SLF001
+            break
+        answered += 1
+        if not before <= m.t1_ns <= m.t4_ns:
+            p.append(f"seq {m.seq}: t1 (offset 24) is not the echo of the request's ({m.t1_ns})")
+        if m.t2_target_ns > m.t3_target_ns:
+            p.append(f"seq {m.seq}: t2 (offset 32) is after t3 (offset 40) by {m.t2_target_ns - m.t3_target_ns} ns")
+        rtt = (m.t4_ns - m.t1_ns) - (m.t3_target_ns - m.t2_target_ns)
+        offset = ((m.t2_target_ns - m.t1_ns) + (m.t3_target_ns - m.t4_ns)) // 2
+        if best is None or rtt < best[1]:
+            best = (offset, rtt)
+    good = (f"{answered} of {n} answered; tightest round trip {best[1] / 1e3:.0f} µs, "
+            f"target clock offset {best[0] / 1e6:+.3f} ms") if best else ""
+    s.add("clock sync burst", "3, 4.4", p[:3], good)
+    return best if not p else None
+
+
+def check_frames(s: Session, sync: tuple[int, int] | None) -> None:
+    for k, enc in enumerate((ImageEncoding.RGB8, ImageEncoding.BGR8, ImageEncoding.JPEG)):
+        data = _image(enc)
+        name = f"frame {enc.name} -> estimate"
+        if data is None:
+            s.add(name, "4.2, 4.3", [], "skipped: JPEG needs OpenCV on the checker's side")
+            continue
+        fid = 1000 + k
+        t_tx = s.link.send_frame(frame_id=fid, sim_time_ns=fid * 50_000_000, t0_ns=s.link.clock.now_ns(),
+                                 width=W, height=H, encoding=enc, camera=CAM, ego_speed_mps=5.0, data=data)
+        r = s.wait_for(lambda r: isinstance(r.msg, (Estimate, ErrorMsg)))
+        p: list[str] = []
+        if r is None or not isinstance(r.msg, Estimate):
+            why = f"ERROR {r.msg.code}: {r.msg.message}" if r is not None and isinstance(r.msg, ErrorMsg) \
+                else f"no ESTIMATE within {s.timeout_s:g} s"
+            s.add(name, "4.2, 4.3", [why], "")
+            continue
+        e = r.msg
+        if e.frame_id != fid:
+            p.append(f"frame_id (offset 16) is {e.frame_id}, expected {fid}")
+        if e.vehicle_id != s.link.vehicle_id:
+            p.append(f"vehicle_id (offset 8) is {e.vehicle_id}, expected {s.link.vehicle_id}")
+        stamps = [("t_rx", 24, e.t_rx_target_ns), ("t_infer_start", 32, e.t_infer_start_target_ns),
+                  ("t_infer_end", 40, e.t_infer_end_target_ns), ("t_reply", 48, e.t_reply_target_ns)]
+        for (a, oa, va), (b, ob, vb) in zip(stamps, stamps[1:]):
+            if va > vb:
+                p.append(f"{a} (offset {oa}) is after {b} (offset {ob}) by {va - vb} ns")
+        if sync is not None and not p:
+            offset, rtt = sync
+            slack = rtt + 1_000_000  # the sync's own uncertainty plus 1 ms
+            rx, reply = e.t_rx_target_ns - offset, e.t_reply_target_ns - offset
+            if rx < t_tx - slack:
+                p.append(f"t_rx (offset 24) maps to {(t_tx - rx) / 1e6:.3f} ms before the frame was sent")
+            if reply > r.t_rx_ns + slack:
+                p.append(f"t_reply (offset 48) maps to {(reply - r.t_rx_ns) / 1e6:.3f} ms after the estimate arrived")
+        s.add(name, "3, 4.2, 4.3", p, f"{e.state.name}, steer {e.control.steering_rad:+.3f} rad, throttle "
+              f"{e.control.throttle:.2f}, brake {e.control.brake:.2f}, {len(e.objects)} objects; target "
+              f"{(e.t_reply_target_ns - e.t_rx_target_ns) / 1e6:.2f} ms")
+
+
+def _still_alive(s: Session) -> str | None:
+    """None when a SYNC_REQUEST is still answered, else why not."""
+    return None if s.link.sync_exchange(timeout_s=s.timeout_s) else "no SYNC_RESPONSE afterwards"
+
+
+def _expect_error(s: Session, name: str, section: str, raw: bytes, codes: tuple[int, ...], offset: int | None) -> None:
+    s.drain()
+    s.link.send_raw(raw)
+    r = s.wait_for(lambda r: isinstance(r.msg, (ErrorMsg, Estimate)))
+    p: list[str] = []
+    if r is None:
+        p.append(f"no ERROR within {s.timeout_s:g} s")
+    elif isinstance(r.msg, Estimate):
+        p.append(f"answered the bad message with an ESTIMATE (frame {r.msg.frame_id}): it must be dropped")
+    else:
+        m = r.msg
+        if m.code not in codes:
+            p.append(f"ERROR code (offset 64) is {m.code}, expected {' or '.join(map(str, codes))}")
+        if offset is not None and str(offset) not in m.message:
+            p.append(f"ERROR text does not name byte offset {offset}: {m.message!r}")
+    if (gone := _still_alive(s)) is not None:
+        p.append(f"session did not go on: {gone}")
+    s.add(name, section, p, f"ERROR {r.msg.code}: {r.msg.message[:70]!r}" if r is not None and
+          isinstance(r.msg, ErrorMsg) else "")
+
+
+def check_malformed(s: Session) -> None:
+    vid = s.link.vehicle_id
+    good = bytearray(protocol.encode(SyncRequest(vid, 900, s.link.clock.now_ns())))
+    bad_crc = bytearray(good)
+    bad_crc[60] ^= 0xFF
+    _expect_error(s, "bad header CRC", "2, 8", bytes(bad_crc), (protocol.ErrorCode.MALFORMED,), 60)
+    v2 = bytearray(good)
+    v2[4] = 2
+    v2[60:64] = zlib.crc32(bytes(v2[:60])).to_bytes(4, "little")
+    _expect_error(s, "unsupported version", "8, 9", bytes(v2), (protocol.ErrorCode.UNSUPPORTED_VERSION,), 4)
+    frame = bytearray(protocol.encode(Frame(vid, 950, 0, 1, 2, 8, 8, ImageEncoding.RGB8, CAM, 0.0, bytes(192)),
+                                      payload_crc=True))
+    frame[120] ^= 0x01
+    _expect_error(s, "bad payload CRC (frame dropped)", "6, 8", bytes(frame), (protocol.ErrorCode.MALFORMED,), 64)
+    if s.link.transport_name in ("local", "tcp"):  # a stream: bytes before a magic are skipped
+        _expect_error(s, "bytes without a magic", "8", b"\x00junk!" + bytes(protocol.encode(SyncRequest(vid, 901, 5))),
+                      (protocol.ErrorCode.MALFORMED,), 0)
+
+
+def check_heartbeat(s: Session) -> None:
+    s.drain()
+    s.link.send_raw(protocol.encode(Heartbeat(s.link.vehicle_id, s.link.clock.now_ns())))
+    p = [f"the target answered a HEARTBEAT with ERROR {r.msg.code}: {r.msg.message!r}"
+         for r in [s.wait_for(lambda r: isinstance(r.msg, ErrorMsg), timeout_s=0.3)] if r is not None]
+    if (gone := _still_alive(s)) is not None:
+        p.append(gone)
+    s.add("heartbeat accepted", "4.4", p, "no reply, session goes on")
+
+
+def check_command(s: Session) -> None:
+    hello = s.link.hello
+    if hello is None or not hello.capabilities & protocol.CAP_COMMANDS:
+        s.add("command", "4.7", [], "skipped: the target does not announce CAP_COMMANDS")
+        return
+    cmd = s.link.send_command("status")
+    r = s.wait_for(lambda r: isinstance(r.msg, Command))
+    p: list[str] = []
+    if r is None:
+        p.append(f"no COMMAND reply within {s.timeout_s:g} s")
+    else:
+        m = r.msg
+        if m.seq != cmd.seq:
+            p.append(f"reply sequence (offset 16) is {m.seq}, expected {cmd.seq}")
+        if m.vehicle_id != s.link.vehicle_id:
+            p.append(f"reply vehicle_id (offset 8) is {m.vehicle_id}, expected {s.link.vehicle_id}")
+        if not (m.text.startswith("ok") or m.text.startswith("error:")):
+            p.append(f"reply text (offset 66) starts with neither 'ok' nor 'error:': {m.text[:40]!r}")
+    s.add("command 'status'", "4.7", p, f"reply {r.msg.text[:60]!r}" if r is not None else "")
+
+
+def check_bye(s: Session) -> None:
+    s.drain()
+    s.link.send_raw(protocol.encode(Bye(s.link.vehicle_id, "target-check done")))
+    deadline = time.monotonic() + max(3.0, s.timeout_s)
+    while s.link.alive and time.monotonic() < deadline:
+        s.link.recv(timeout_s=0.05)
+    p = [] if not s.link.alive else [f"still connected {max(3.0, s.timeout_s):g} s after BYE"]
+    s.add("bye ends the session", "1", p, s.link.peer_gone_reason or "closed")
+
+
+def run_checks(link: Link, *, timeout_s: float) -> list[Check]:
+    """The scripted session on a built (not opened) link; always closes it."""
+    s = Session(link, timeout_s)
+    dispatch = link._dispatch  # noqa: SLF001 - record what the target sent that did not decode
+
+    def recording(item: object, t_rx_ns: int) -> None:
+        if isinstance(item, ProtocolError):
+            s.decode_errors.append(str(item))
+        dispatch(item, t_rx_ns)  # type: ignore[arg-type]
+
+    link._dispatch = recording  # type: ignore[method-assign]  # noqa: SLF001
+    try:
+        try:
+            hello = link.open(hello_timeout_s=max(timeout_s, 5.0))
+        except HilError as err:
+            s.add("hello", "1, 4.1", [str(err)], "")
+            return s.rows
+        check_hello(s, hello)
+        sync = check_sync(s)
+        check_frames(s, sync)
+        check_heartbeat(s)
+        check_malformed(s)
+        check_command(s)
+        check_bye(s)
+    except (TransportError, OSError) as err:
+        s.add("session", "10", [f"transport failed: {err}"], "")
+    finally:
+        link.close()
+    s.add("everything the target sent decodes", "2-5", s.decode_errors[:5],
+          f"{link.stats.messages_received} messages")
+    return s.rows
+
+
+def format_table(rows: list[Check]) -> str:
+    width = max(len(r.name) for r in rows)
+    lines = [f"{'check':<{width}}  {'PROTOCOL.md':<12}  result  detail"]
+    lines += [f"{r.name:<{width}}  §{r.section:<11}  {'PASS' if r.ok else 'FAIL':<6}  {r.detail}" for r in rows]
+    failed = sum(not r.ok for r in rows)
+    lines.append(f"{len(rows) - failed} of {len(rows)} checks passed" + (f", {failed} FAILED" if failed else ""))
+    return "\n".join(lines) + "\n"
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("target-check", help="check a target against PROTOCOL.md with a scripted session",
+                       description=__doc__.split("\n\n")[0], epilog="ENDPOINT: tcp://HOST:PORT, "
+                       "tcp-listen://HOST:PORT, zenoh://tcp/HOST:PORT, can://INTERFACE/CHANNEL, local -- COMMAND")
+    p.add_argument("endpoint", help="how to reach the target (see below)")
+    p.add_argument("target_command", nargs="*", metavar="-- COMMAND",
+                   help="local: the target's command and its options, after --")
+    p.add_argument("--vehicle", type=int, default=0, help="vehicle id the target serves (default 0)")
+    p.add_argument("--key-prefix", default="hil", help="zenoh key prefix (default hil)")
+    p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for each answer (default 5)")
+
+
+def cmd(args: argparse.Namespace) -> int:
+    command = list(args.target_command)
+    if command[:1] == ["--"]:
+        command = command[1:]
+    if command and args.endpoint != "local":
+        print(f"hil target-check: error: unexpected arguments {' '.join(command)!r} (only local takes a command)",
+              file=sys.stderr)
+        return EXIT_USAGE
+    if args.timeout <= 0 or not 0 <= args.vehicle <= 0xFFFF_FFFF:
+        print("hil target-check: error: --timeout must be > 0 and --vehicle in 0..4294967295", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        transport, options = parse_endpoint(args.endpoint, command, vehicle_id=args.vehicle,
+                                            key_prefix=args.key_prefix)
+        link = open_link(transport, vehicle_id=args.vehicle, clock=MonotonicClock(), **options)
+    except HilError as err:
+        print(f"hil target-check: error: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    rows = run_checks(link, timeout_s=args.timeout)
+    sys.stdout.write(format_table(rows))
+    return EXIT_PASS if all(r.ok for r in rows) else EXIT_FAIL
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="hil")
+    add_parser(p.add_subparsers(dest="command", required=True))
+    return cmd(p.parse_args(["target-check", *(sys.argv[1:] if argv is None else argv)]))
+
+
+__all__ = ["Check", "add_parser", "cmd", "format_table", "main", "parse_endpoint", "run_checks"]
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

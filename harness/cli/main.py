@@ -1,0 +1,265 @@
+"""The ``hil`` command line.
+
+Exit codes: 0 success; 1 the run ended early (target died, interrupted) or part of
+its outputs could not be written (a corner case); 2 a user mistake (bad config,
+missing file, target that cannot start) with a one-line message and no traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from hil.common.errors import ConfigError, HilError
+from hil.harness import __version__
+
+EXIT_OK, EXIT_EARLY, EXIT_USAGE = 0, 1, 2
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2, like every user mistake
+        self.exit(EXIT_USAGE, f"hil: error: {message} (see hil {self.prog.split()[-1]} --help)\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="hil", description="Hardware-in-the-loop timing harness for autonomous-driving AI.")
+    p.add_argument("--version", action="version", version=f"hil {__version__}")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    r = sub.add_parser("run", help="run a configuration and write a run folder")
+    r.add_argument("config", help="a hil_configs/*.yaml file")
+    r.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",
+                   help="override a config field, e.g. --set camera.fps=10 (repeatable)")
+    r.add_argument("--out", type=Path, default=None,
+                   help="run folder (default runs/<name>-<timestamp>/)")
+    r.add_argument("--no-progress", action="store_true", help="no live display")
+    r.add_argument("--live", action="store_true",
+                   help="serve the run live to Foxglove on ws://127.0.0.1:PORT (port printed; recording.live)")
+    sc = sub.add_parser("scenarios", help="list the scenarios with their parameters, ranges and defaults")
+    sc.add_argument("name", nargs="?", default=None, help="show only this scenario")
+    sc.add_argument("--json", action="store_true", help="machine-readable output")
+    from hil.harness.cases import command as cases_cmd
+    from hil.harness.cli import clock as clock_cmd
+
+    clock_cmd.add_parser(sub)
+    cases_cmd.add_parsers(sub)
+    t = sub.add_parser("target", help="serve an example AI target (on this host or a device)",
+                       description="Serve an example AI target over a transport, e.g. on a remote host: "
+                                   "hil target cv --transport zenoh --listen tcp/0.0.0.0:7447. Options after "
+                                   "the name go to the target (see hil target cv --help).",
+                       add_help=False)
+    t.add_argument("name", choices=sorted(TARGETS), help="which example target")
+    t.add_argument("target_args", nargs=argparse.REMAINDER, help="options for the target")
+    # Each command lives in its own module: add_parser(sub) and cmd(args).
+    from hil.harness.check import calibrate
+    from hil.harness.report import compare
+    from hil.harness.report import run_report as report
+    from hil.training import train
+
+    report.add_parser(sub)
+    compare.add_parser(sub)
+    train.add_parser(sub)
+    calibrate.add_parser(sub)
+    from hil.harness.check import target_check
+
+    target_check.add_parser(sub)
+    from hil.harness.search import cli as search_cli
+
+    search_cli.add_parser(sub)
+    from hil.harness.study import study
+
+    study.add_parser(sub)
+    return p
+
+
+# Commands whose module has add_parser(sub) and cmd(args), by name.
+COMMANDS = {"report": "hil.harness.report.run_report", "compare": "hil.harness.report.compare",
+            "train": "hil.training.train", "calibrate": "hil.harness.check.calibrate",
+            "study": "hil.harness.study.study"}
+# Example targets by name: module with a main(argv) -> int.
+TARGETS = {"cnn": "hil.targets.cnn.target", "cv": "hil.targets.cv_baseline", "echo": "hil.targets.echo"}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if len(argv) >= 2 and argv[0] == "target" and argv[1] in TARGETS:
+        # Everything after the name belongs to the target (including --help).
+        import importlib
+
+        target_argv = argv[2:]
+        if "--once" not in target_argv and "--keep-serving" not in target_argv:
+            target_argv = ["--keep-serving", *target_argv]  # a target on a bench serves run after run
+        return int(importlib.import_module(TARGETS[argv[1]]).main(target_argv, prog=f"hil target {argv[1]}") or 0)
+    if argv[:1] == ["target"] and (len(argv) == 1 or argv[1] in ("-h", "--help")):
+        print(_target_help(), end="", file=sys.stdout if len(argv) > 1 else sys.stderr)
+        return EXIT_OK if len(argv) > 1 else EXIT_USAGE
+    if argv and argv[0] == "search":
+        # hil search SPEC ... / hil search merge|cases|report ...: parsed by hil.harness.search.cli.
+        from hil.harness.search import cli as search_cli
+
+        return search_cli.main(argv[1:])
+    args = build_parser().parse_args(argv)
+    try:
+        if args.command == "run":
+            return _cmd_run(args)
+        if args.command in ("cases", "replay"):
+            from hil.harness.cases import command as cases_cmd
+
+            return cases_cmd.cmd_cases(args) if args.command == "cases" else cases_cmd.cmd_replay(args)
+        if args.command == "clock":
+            from hil.harness.cli import clock as clock_cmd
+
+            return clock_cmd.cmd(args)
+        if args.command == "scenarios":
+            return _cmd_scenarios(args)
+        if args.command == "target-check":
+            from hil.harness.check import target_check
+
+            return target_check.cmd(args)
+        if args.command in COMMANDS:
+            import importlib
+
+            return int(importlib.import_module(COMMANDS[args.command]).cmd(args))
+    except HilError as err:
+        print(f"hil: error: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("hil: interrupted before the run started; nothing recorded", file=sys.stderr)
+        return EXIT_EARLY
+    return EXIT_USAGE  # pragma: no cover - argparse requires a command
+
+
+# One line per example target for ``hil target --help``.
+_TARGET_SUMMARIES = {
+    "cnn": "the paper's two-CNN AI in torch (detector + steering net, baseline fallback)",
+    "cv": "the classical OpenCV baseline (colour-blob detection, pinhole ranging, lane keeping)",
+    "echo": "a fixed answer after a set busy time: the transport and timing floor",
+}
+
+
+def _target_help() -> str:
+    from hil.adapters.sdk import TRANSPORTS
+
+    names, transports = "|".join(sorted(TARGETS)), "|".join(TRANSPORTS)
+    lines = [f"usage: hil target {{{names}}} [--transport {transports}] [options of the target]", "",
+             "Serve an example AI target over a transport, e.g. on a remote host or device:",
+             "  hil target cv --transport zenoh --listen tcp/0.0.0.0:7447", "",
+             "targets:"]
+    lines += [f"  {name:<6} {_TARGET_SUMMARIES.get(name, '')}" for name in sorted(TARGETS)]
+    lines += ["", "Each target's own options: hil target NAME --help (e.g. hil target cv --help)."]
+    return "\n".join(lines) + "\n"
+
+
+def run_exit_code(summary: dict[str, object]) -> int:
+    """``hil run``'s exit code for a finished run: 1 when it ended early or a corner
+    case could not be written (``summary["corner_cases"]["errors"]``), else 0."""
+    cases = summary.get("corner_cases")
+    if summary.get("ended_by") != "duration":
+        return EXIT_EARLY
+    if isinstance(cases, dict) and cases.get("errors"):
+        return EXIT_EARLY
+    return EXIT_OK
+
+
+def realtime_warning(realtime: dict[str, object], *, sim_steps: int) -> str | None:
+    """What was not kept when a real-time run fell behind, and what to do; None when
+    it kept real time (or ran in lockstep)."""
+    if realtime.get("kept_realtime", True):
+        return None
+    achieved, requested = float(realtime["achieved_factor"]), float(realtime["requested_factor"])  # type: ignore[arg-type]
+    late, tol = int(realtime["late_steps"]), float(realtime.get("late_tolerance_ms", 10.0))  # type: ignore[call-overload, arg-type]
+    worst = float(realtime.get("max_lateness_ms", 0.0))  # type: ignore[arg-type]
+    if achieved < 0.95 * requested:
+        what = (f"the simulation ran at {achieved:.2f}x wall-clock speed where {requested:g}x was asked "
+                f"({late} of {sim_steps} physics steps more than {tol:g} ms late, worst {worst:.0f} ms)")
+    else:
+        what = (f"{late} of {sim_steps} physics steps ran more than {tol:g} ms late (worst {worst:.0f} ms), "
+                f"though the run as a whole kept pace ({achieved:.2f}x)")
+    return (f"real time was not kept: {what}; latencies were measured on a late simulation. Close other "
+            f"programs, lower camera.fps, the image size or the number of vehicles, or use mode: lockstep")
+
+
+def _cmd_scenarios(args: argparse.Namespace) -> int:
+    import json
+
+    from hil.scenarios import catalog
+
+    if args.json:
+        print(json.dumps(catalog.as_dict(args.name), indent=2))
+    else:
+        print(catalog.describe(args.name), end="")
+    return EXIT_OK
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from hil.harness.cli.progress import Progress, final_table, make_console
+    from hil.harness.config.model import load_config
+    from hil.harness.run.driver import default_out_dir, execute, prepare_out_dir
+    from hil.scenarios.gl import select_backend
+
+    overrides = [*args.overrides, "recording.live=true"] if args.live else args.overrides
+    cfg = load_config(args.config, overrides=overrides)
+    from hil import scenarios  # validate scenario and parameters before starting anything
+
+    try:
+        scenarios.get(cfg.scenario.name).resolve(cfg.scenario.params)
+    except ConfigError as err:
+        raise ConfigError(f"{err}{_scenario_switch_hint(args.overrides, str(err))}") from err
+    if cfg.target.zenoh.auth is not None:
+        cfg.target.zenoh.auth.usrpwd()  # the password's environment variable is set: checked before anything
+    out = prepare_out_dir(args.out or default_out_dir(cfg))
+    console = make_console()
+    backend = select_backend()
+    console.print(f"renderer: MuJoCo offscreen via [bold]{backend.upper()}[/bold]"
+                  + (" (software fallback: slower)" if backend == "osmesa" else ""))
+    try:
+        with Progress(console=console, enabled=cfg.progress and not args.no_progress) as progress:
+            result = execute(cfg, out_dir=out, gl_backend=backend, on_progress=progress.update,
+                             notify=console.print)
+    except (HilError, KeyboardInterrupt) as err:
+        mark_failed(out, err)
+        raise
+    s = result.summary
+    console.print(final_table(s))
+    warning = realtime_warning(s["realtime"], sim_steps=round(s["sim_time_s"] / cfg.physics_step_s))
+    if warning is not None:
+        console.print(f"[yellow]warning: {warning}[/yellow]", markup=True, highlight=False)
+    console.print(f"run.mcap:     {result.mcap_path}")
+    console.print(f"summary.json: {result.summary_path}")
+    console.print(f"report.html:  {result.out_dir / 'report.html'}")
+    if s["ended_by"] != "duration":
+        console.print(f"[red]run ended early: {s['ended_by']}[/red] (what was recorded is kept)")
+    errors = (s.get("corner_cases") or {}).get("errors") or []
+    if errors:
+        console.print(f"[red]{len(errors)} corner case(s) could not be written[/red] "
+                      f"(summary.json corner_cases.errors): {errors[0]}", highlight=False)
+    return run_exit_code(s)
+
+
+def mark_failed(out: Path, err: BaseException) -> None:
+    """Say in the run folder ``out`` that its run never produced a summary, and why
+    (``OUT/FAILED``), so a half-made folder is never taken for a run."""
+    if (out / "summary.json").exists():
+        return
+    reason = "interrupted before the run started" if isinstance(err, KeyboardInterrupt) else str(err)
+    try:
+        from hil.harness.record.out_dir import FAILED_NAME
+
+        (out / FAILED_NAME).write_text(f"this run did not start or did not finish: {reason}\n")
+    except OSError:
+        pass  # the folder itself is the problem; the error line says so
+
+
+def _scenario_switch_hint(overrides: Sequence[str], message: str) -> str:
+    """A hint when ``--set scenario.name=X`` kept the config's parameters of another scenario."""
+    switched = [o.partition("=")[2].strip() for o in overrides if o.replace(" ", "").startswith("scenario.name=")]
+    if not switched or "unknown parameter" not in message:
+        return ""
+    name = switched[-1]
+    return (f" (the config's scenario.params belong to its own scenario: add --set 'scenario.params={{}}', "
+            f"or pick the scenario with its parameters: --set 'scenario={{name: {name}, params: {{}}}}')")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

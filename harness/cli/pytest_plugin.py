@@ -1,0 +1,219 @@
+"""pytest plugin: run a hil configuration from a test and assert latency budgets.
+
+Installed with the package as the ``hil`` ``pytest11`` entry point, so any test in
+an environment where ``hil-harness`` is installed can ask for the ``hil_run``
+fixture (elsewhere: ``pytest -p hil.harness.cli.pytest_plugin``)::
+
+    def test_my_ai_budget(hil_run):
+        result = hil_run("hil_configs/regression.yaml", overrides=["duration_s=5"])
+        result.assert_budget(vehicle="ego0", stage="end_to_end", p99_ms=80)
+        result.assert_no_drops()
+
+``hil_run(config, *, overrides=(), require_complete=True)`` runs the config (a YAML
+path, relative to the working directory, else to pytest's rootdir, else to the
+checkout holding the package's ``hil_configs/``; or a mapping)
+in a fresh folder under the test's ``tmp_path`` and returns a :class:`HilRunResult`
+(``.summary``, ``.run_dir``, ``.mcap_path``). A config mistake or a target that
+cannot start fails the test with the one-line error, no traceback; a run that
+ended early (its target died) fails it unless ``require_complete=False``.
+
+Loading this module is cheap: MuJoCo and the harness are imported on the first run,
+after the GL backend is chosen (``hil.scenarios.gl.select_backend``).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+_BUDGET_KEYS = ("p50_ms", "p90_ms", "p99_ms", "max_ms", "mean_ms", "std_ms")
+
+
+@dataclass(frozen=True)
+class HilRunResult:
+    """A finished run: its folder and parsed ``summary.json``."""
+
+    run_dir: Path
+    summary: dict[str, Any]
+
+    @property
+    def mcap_path(self) -> Path:
+        return self.run_dir / "run.mcap"
+
+    def _vehicles(self, vehicle: str | None) -> list[str]:
+        known = list(self.summary.get("vehicles", {}))
+        if vehicle is None:
+            return known
+        if vehicle not in known:
+            raise AssertionError(f"no vehicle {vehicle!r} in the run (vehicles: {', '.join(known) or 'none'}); "
+                                 f"run folder {self.run_dir}")
+        return [vehicle]
+
+    def latency(self, vehicle: str, stage: str = "end_to_end") -> dict[str, Any]:
+        """The summary figures of one stage (``count``, ``p50_ms`` ... ``std_ms``).
+
+        Raises:
+            AssertionError: no such vehicle or stage, or no samples.
+        """
+        __tracebackhide__ = True
+        (v,) = self._vehicles(vehicle)
+        stages = self.summary["vehicles"][v].get("latency_ms", {})
+        st = stages.get(stage)
+        if not st or not st.get("count"):
+            raise AssertionError(f"no latency samples for {v} {stage} (stages with samples: "
+                                 f"{', '.join(k for k, s in stages.items() if s.get('count')) or 'none'}); "
+                                 f"run folder {self.run_dir}")
+        return dict(st)
+
+    def assert_budget(self, *, vehicle: str | None = None, stage: str = "end_to_end",
+                      p50_ms: float | None = None, p90_ms: float | None = None, p99_ms: float | None = None,
+                      max_ms: float | None = None, mean_ms: float | None = None,
+                      std_ms: float | None = None) -> None:
+        """Assert that ``stage`` of ``vehicle`` (default: every vehicle) stays within
+        each budget given (ms). Every violation is listed in one message.
+
+        Raises:
+            AssertionError: what, measured, budget, by how much; and the run folder.
+        """
+        __tracebackhide__ = True  # pytest shows the user's line, not this one
+        budgets = dict(zip(_BUDGET_KEYS, (p50_ms, p90_ms, p99_ms, max_ms, mean_ms, std_ms)))
+        budgets = {k: v for k, v in budgets.items() if v is not None}
+        if not budgets:
+            raise TypeError("assert_budget needs at least one budget, e.g. p99_ms=80")
+        over = []
+        for v in self._vehicles(vehicle):
+            st = self.latency(v, stage)
+            for key, budget in budgets.items():
+                measured = st.get(key)
+                if measured is not None and measured > budget:
+                    pct = f"{(measured / budget - 1) * 100:+.1f} %, " if budget > 0 else ""
+                    over.append(f"  {v} {stage} {key[:-3]} = {measured:.3f} ms > budget {budget:.3f} ms "
+                                f"(over by {measured - budget:.3f} ms, {pct}{st.get('count')} frames)")
+        if over:
+            raise AssertionError("latency budget exceeded:\n" + "\n".join(over)
+                                 + f"\nrun folder: {self.run_dir} (see report.html / run.mcap)")
+
+    def assert_drop_rate(self, max_rate: float, *, vehicle: str | None = None) -> None:
+        """Assert that each vehicle's drop rate (dropped / frames) is at most ``max_rate``.
+
+        Raises:
+            AssertionError: which vehicle, its drops and rate, the limit.
+        """
+        __tracebackhide__ = True
+        over = []
+        for v in self._vehicles(vehicle):
+            s = self.summary["vehicles"][v]
+            rate = float(s.get("drop_rate", 0.0))
+            if rate > max_rate:
+                over.append(f"  {v}: {s.get('dropped')} of {s.get('frames_sent')} frames dropped "
+                            f"(rate {rate:.4f} > {max_rate:.4f})")
+        if over:
+            raise AssertionError("dropped frames:\n" + "\n".join(over) + f"\nrun folder: {self.run_dir}")
+
+    def assert_no_drops(self, *, vehicle: str | None = None) -> None:
+        """Assert that no frame was dropped (no estimate within the timeout)."""
+        __tracebackhide__ = True
+        self.assert_drop_rate(0.0, vehicle=vehicle)
+
+
+def config_search_path(rootdir: Path | None) -> list[Path]:
+    """Where a relative config path is looked for, in order: the working directory,
+    pytest's rootdir, and the folder holding this package's ``hil_configs/`` (a
+    checkout or an editable install), so ``hil_configs/regression.yaml`` works from
+    any test session."""
+    package_root = Path(__file__).resolve().parents[2]  # harness/ sits next to hil_configs/
+    places = [Path.cwd(), *([rootdir] if rootdir is not None else []), package_root]
+    return list(dict.fromkeys(p.resolve() for p in places))
+
+
+def _resolve(config: str | os.PathLike[str], rootdir: Path | None) -> Path:
+    """The config file ``config`` names (see ``config_search_path``).
+
+    Raises:
+        hil.common.errors.ConfigError: found in none of the places (all are listed).
+    """
+    from hil.common.errors import ConfigError
+
+    p = Path(config)
+    if p.is_absolute():
+        return p
+    places = config_search_path(rootdir)
+    for base in places:
+        if (base / p).is_file():
+            return base / p
+    raise ConfigError(f"config file not found: {p} (looked in {', '.join(str(b) for b in places)})")
+
+
+def run_config(config: str | os.PathLike[str] | Mapping[str, Any], *, out_dir: Path,
+               overrides: Sequence[str] = (), require_complete: bool = True,
+               rootdir: Path | None = None) -> HilRunResult:
+    """Run ``config`` into the new folder ``out_dir`` (what the fixture calls).
+
+    Raises:
+        hil.common.errors.HilError: a config mistake, a target that cannot start.
+        AssertionError: the run ended early and ``require_complete`` is set.
+    """
+    from hil.scenarios.gl import select_backend
+
+    backend = select_backend()  # before anything imports mujoco
+    from hil.harness.config.model import load_config, parse_config
+    from hil.harness.run.driver import execute, prepare_out_dir
+
+    overrides = ["progress=false", *overrides]
+    if isinstance(config, Mapping):
+        cfg = parse_config(config, overrides=overrides)
+    else:
+        cfg = load_config(_resolve(config, rootdir), overrides=overrides)
+    from hil.harness.record.out_dir import release_out_dir
+
+    try:
+        result = execute(cfg, out_dir=prepare_out_dir(out_dir), gl_backend=backend, install_signal_handlers=False)
+    finally:
+        release_out_dir(out_dir)  # a test session runs many runs: give each folder's claim back
+    ended = result.summary.get("ended_by")
+    if not (result.out_dir / "report.html").exists():  # hil.harness.run.driver may write it already
+        from hil.harness.report.run_report import write_report
+
+        write_report(result.out_dir)
+    if require_complete and ended != "duration":
+        raise AssertionError(f"hil run ended early: {ended}; run folder {result.out_dir}")
+    return HilRunResult(result.out_dir, result.summary)
+
+
+class HilRunner:
+    """The ``hil_run`` fixture's value: call it to run a config (see module docstring)."""
+
+    def __init__(self, base_dir: Path, *, rootdir: Path | None = None) -> None:
+        self._base = base_dir
+        self._rootdir = rootdir
+        self._count = 0
+
+    def __call__(self, config: str | os.PathLike[str] | Mapping[str, Any], *, overrides: Sequence[str] = (),
+                 require_complete: bool = True) -> HilRunResult:
+        from hil.common.errors import HilError
+
+        self._count += 1
+        name = "config" if isinstance(config, Mapping) else Path(config).stem
+        out = self._base / f"hil-{self._count}-{name}"
+        try:
+            return run_config(config, out_dir=out, overrides=overrides, require_complete=require_complete,
+                              rootdir=self._rootdir)
+        except HilError as err:
+            pytest.fail(f"hil_run: {err}", pytrace=False)
+        except AssertionError as err:
+            pytest.fail(str(err), pytrace=False)
+
+
+@pytest.fixture
+def hil_run(tmp_path: Path, request: pytest.FixtureRequest) -> HilRunner:
+    """Run a hil configuration in ``tmp_path`` and get its summary back:
+    ``hil_run("hil_configs/regression.yaml", overrides=["duration_s=5"])``."""
+    return HilRunner(tmp_path, rootdir=Path(request.config.rootpath))
+
+
+__all__ = ["HilRunResult", "HilRunner", "config_search_path", "hil_run", "run_config"]

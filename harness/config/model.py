@@ -1,0 +1,625 @@
+"""Run configuration: the validated model of a ``hil_configs/*.yaml`` file.
+
+Every model is frozen and forbids unknown keys, and every field has a default, so an
+empty mapping ``{}`` is a complete config. Units are in the field names (``_s``
+seconds, ``_m`` metres, ``_deg`` degrees, ``fps`` frames per second).
+
+``load_config`` reads YAML, applies ``dotted.path=value`` overrides and validates.
+Whatever is wrong comes back as one ``ConfigError`` line that names the file, the
+YAML path, the bad value and what was expected, e.g.::
+
+    run.yaml: config error at camera.fps: got 0; expected greater than 0
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import hashlib
+import json
+import math
+import os
+import re
+from collections.abc import Callable, Mapping, Sequence
+from enum import Enum
+from pathlib import Path
+from typing import Any, get_origin
+
+import yaml
+from pydantic import (
+    BaseModel,
+    Field,
+    ValidationError,
+    model_validator,
+)
+from pydantic_core import PydanticCustomError
+
+from hil.adapters.protocol import FRAME_META_SIZE, MAX_PAYLOAD
+from hil.adapters.transports import Transport  # how the harness reaches the AI target: one enum, one table
+from hil.common.errors import ConfigError
+from hil.harness.config.cases import CornerCaseSettings, DetectorSettings
+from hil.harness.config.target import CanTargetConfig, ImpairConfig, TcpTargetConfig, ZenohTargetConfig
+from hil.harness.config.timing import TimingConfig
+from hil.harness.config.types import MODEL_CONFIG, Float, Int
+
+__all__ = [
+    "CameraConfig", "Encoding", "LatencyConfig", "LatencyKind", "LatencyStage", "LockstepConfig", "Mode",
+    "RecordingConfig", "RunConfig", "ScenarioConfig", "TargetConfig", "Transport", "TruthConfig",
+    "config_hash", "dump_config", "load_config", "parse_config",
+]
+
+FPS_MAX = 240.0
+SEED_MAX = 2**63 - 1
+PHYSICS_STEP_MAX_S = 0.05
+_PERIOD_REL_TOL = 1e-9
+_PERIOD_ERROR = "camera_period"
+_RULE_ERROR = "cross_field_rule"  # ctx: loc (the field to blame), got
+_GOT_MAX_CHARS = 60
+
+
+_MODEL_CONFIG = MODEL_CONFIG
+
+
+class Mode(str, Enum):
+    """How the simulation paces itself against the target."""
+
+    REALTIME = "realtime"  # wall-clock pace, never waits for the target
+    LOCKSTEP = "lockstep"  # waits for each estimate: deterministic, for replay
+
+
+class Encoding(str, Enum):
+    """How camera frames travel on the wire."""
+
+    RAW = "raw"
+    JPEG = "jpeg"
+
+
+class ScenarioConfig(BaseModel):
+    """Which registered scenario to build, and its parameters (units in the names)."""
+
+    model_config = _MODEL_CONFIG
+
+    name: str = "stopped_car"
+    params: dict[str, Float] = Field(default_factory=dict)
+
+
+class CameraConfig(BaseModel):
+    """The ego vehicle's camera: image size, optics, rate, encoding and mount."""
+
+    model_config = _MODEL_CONFIG
+
+    width: Int = Field(320, ge=16, le=4096)
+    height: Int = Field(240, ge=16, le=4096)
+    fovy_deg: Float = Field(60.0, ge=10, le=170)
+    fps: Float = Field(20.0, gt=0, le=FPS_MAX)
+    encoding: Encoding = Encoding.JPEG
+    jpeg_quality: Int = Field(85, ge=1, le=100)
+    shadows: bool = False
+    reflections: bool = False
+    mount_height_m: Float = Field(1.3, ge=0.2, le=5)
+    mount_forward_m: Float = Field(2.3, ge=-5, le=5)  # from the vehicle centre
+    mount_lateral_m: Float = Field(0.0, ge=-3, le=3)  # left of the vehicle centre line
+    pitch_deg: Float = Field(0.0, ge=-45, le=45)  # positive looks down
+    yaw_deg: Float = Field(0.0, ge=-180, le=180)  # positive looks left
+
+
+class TargetCommand(BaseModel):
+    """One command, sent to every vehicle's target when sim time reaches ``at_s``."""
+
+    model_config = _MODEL_CONFIG
+
+    at_s: Float = Field(ge=0)
+    command: str = Field(min_length=1, max_length=256)
+    vehicle: str | None = None  # only this vehicle's target (default: all)
+
+
+class TargetConfig(BaseModel):
+    """The AI target: how to reach it, how to start it, how long to wait for it.
+
+    ``"{python}"`` in ``command`` is replaced with ``sys.executable`` at launch;
+    ``args`` are appended to ``command``.
+    """
+
+    model_config = _MODEL_CONFIG
+
+    transport: Transport = Transport.LOCAL
+    # local: the program to start (required). zenoh/can: optional, [] = the target
+    # runs elsewhere; see harness/config/target.py for {vehicle_id} and {port}.
+    command: list[str] = Field(default_factory=lambda: ["{python}", "-m", "hil.targets.cv_baseline"])
+    args: list[str] = Field(default_factory=list)
+    zenoh: ZenohTargetConfig = Field(default_factory=ZenohTargetConfig)
+    can: CanTargetConfig = Field(default_factory=CanTargetConfig)
+    tcp: TcpTargetConfig = Field(default_factory=TcpTargetConfig)
+    impair: ImpairConfig = Field(default_factory=ImpairConfig)  # link faults in real time (config_target.py)
+    # Commands for the targets' control software at given sim times, e.g.
+    # [{at_s: 5.0, command: "swap detector cv"}] (targets announcing CAP_COMMANDS).
+    commands: list[TargetCommand] = Field(default_factory=list)
+    startup_timeout_s: Float = Field(15.0, gt=0, le=300)
+    # No estimate within this after t0: the frame counts as dropped.
+    estimate_timeout_s: Float = Field(0.5, gt=0, le=60)
+    # One target process serves every vehicle (batched; harness/run/shared_target.py):
+    # local or zenoh only.
+    shared: bool = False
+    # The HELLO target name a run accepts (prefix match), e.g. "cv_baseline" or
+    # "cnn@cuda": a foreign target answering on the endpoint is refused (exit 2).
+    expect_name: str | None = Field(None, min_length=1, max_length=256)
+
+
+class RecordingConfig(BaseModel):
+    """The recorder: its bounded queue (items), whether images are stored, and
+    whether the run is also served live to Foxglove (``hil run --live``: a WebSocket
+    server on 127.0.0.1, port printed; see harness/record/live.py)."""
+
+    model_config = _MODEL_CONFIG
+
+    queue_size: Int = Field(4096, ge=16, le=1_000_000)
+    images: bool = True
+    live: bool = False
+
+
+class TruthConfig(BaseModel):
+    """Ground truth: the reference-state thresholds (rules in scenarios/ground_truth.py)
+    and the per-camera visible boxes (a segmentation render per camera and frame)."""
+
+    model_config = _MODEL_CONFIG
+
+    comfort_decel_mps2: Float = Field(4.0, gt=0, le=15)
+    stop_margin_m: Float = Field(5.0, ge=0, le=100)
+    slow_headway_s: Float = Field(2.0, ge=0, le=20)
+    slow_ttc_s: Float = Field(4.0, ge=0, le=60)
+    visible_boxes: bool = True
+    min_visible_px: Int = Field(1, ge=1, le=100_000)
+
+
+class LatencyKind(str, Enum):
+    """How lockstep delays the application of each estimate's control (sim time)."""
+
+    NONE = "none"            # applied at the capture tick (no delay)
+    CONSTANT = "constant"    # ms
+    NORMAL = "normal"        # mean ms, std_ms; clipped to [min_ms, max_ms]
+    LOGNORMAL = "lognormal"  # median ms, shape sigma; clipped to [min_ms, max_ms]
+    RECORDED = "recorded"    # per frame, from a recorded run's pipeline records
+
+
+class LatencyStage(str, Enum):
+    """Which latency of a recorded run to replay."""
+
+    SIM_APPLY = "sim_apply"    # sim_time_apply - sim_time: exactly what the sim saw
+    TO_APPLY = "to_apply"      # t_apply - t0 (wall clock, times the recorded real-time factor)
+    END_TO_END = "end_to_end"  # t0' - t0 (wall clock, times the recorded real-time factor)
+
+
+class LatencyConfig(BaseModel):
+    """A latency profile for lockstep replay (see harness/run/latency.py)."""
+
+    model_config = _MODEL_CONFIG
+
+    kind: LatencyKind = LatencyKind.NONE
+    ms: Float = Field(100.0, ge=0, le=60_000)
+    std_ms: Float = Field(20.0, ge=0, le=60_000)
+    sigma: Float = Field(0.5, gt=0, le=5)
+    min_ms: Float = Field(0.0, ge=0, le=60_000)
+    max_ms: Float = Field(5_000.0, ge=0, le=60_000)
+    path: str | None = None  # a recorded run's folder or its run.mcap
+    stage: LatencyStage = LatencyStage.SIM_APPLY
+    # Each frame's control is lost on the link with this probability (seeded per
+    # vehicle and frame; constant/normal/lognormal profiles): a dropped frame.
+    drop_prob: Float = Field(0.0, ge=0, le=1)
+
+
+class CapturePhase(str, Enum):
+    """When each vehicle's camera captures within the camera period (real time)."""
+
+    SPREAD = "spread"    # vehicle i at i/N of the period: no capture burst
+    ALIGNED = "aligned"  # every camera at the same instant (lockstep always is)
+
+
+class EngineConfig(BaseModel):
+    """The run's processes: physics pacing and the render pool (harness/engine)."""
+
+    model_config = _MODEL_CONFIG
+
+    render_workers: Int = Field(0, ge=0, le=256)  # 0: one per spare core, at most one per vehicle
+    capture_phase: CapturePhase = CapturePhase.SPREAD
+    late_tolerance_ms: Float = Field(1.0, gt=0, le=1000)  # a physics step later than this is late
+    realtime_priority: Int = Field(10, ge=0, le=99)  # SCHED_FIFO for the physics process (0: don't ask)
+
+
+class LockstepConfig(BaseModel):
+    """Lockstep-only settings."""
+
+    model_config = _MODEL_CONFIG
+
+    latency: LatencyConfig = Field(default_factory=LatencyConfig)
+
+
+class RunConfig(BaseModel):
+    """One run: pacing, duration, physics step, scenario, camera, target, recording.
+
+    Raises ``pydantic.ValidationError`` when built directly; ``load_config`` and
+    ``parse_config`` turn that into a one-line ``ConfigError``.
+    """
+
+    model_config = _MODEL_CONFIG
+
+    name: str = Field("run", pattern=r"^[A-Za-z0-9_.-]+$")
+    # At most a signed 64-bit integer: the corner-case index stores it as an SQLite INTEGER.
+    seed: Int = Field(0, ge=0, le=SEED_MAX)
+    mode: Mode = Mode.REALTIME
+    duration_s: Float = Field(20.0, gt=0, le=86400)
+    realtime_factor: Float = Field(1.0, gt=0, le=100)
+    physics_step_s: Float = Field(0.002, gt=0, le=PHYSICS_STEP_MAX_S)
+    scenario: ScenarioConfig = Field(default_factory=ScenarioConfig)
+    camera: CameraConfig = Field(default_factory=CameraConfig)
+    target: TargetConfig = Field(default_factory=TargetConfig)
+    recording: RecordingConfig = Field(default_factory=RecordingConfig)
+    truth: TruthConfig = Field(default_factory=TruthConfig)
+    lockstep: LockstepConfig = Field(default_factory=LockstepConfig)
+    timing: TimingConfig = Field(default_factory=TimingConfig)
+    detector: DetectorSettings = Field(default_factory=DetectorSettings)
+    corner_cases: CornerCaseSettings = Field(default_factory=CornerCaseSettings)
+    engine: EngineConfig = Field(default_factory=EngineConfig)
+    progress: bool = True
+
+    @model_validator(mode="after")
+    def _camera_period_fits_physics_step(self) -> RunConfig:
+        fps, step = self.camera.fps, self.physics_step_s
+        if not _period_fits(fps, step):
+            raise PydanticCustomError(_PERIOD_ERROR, _period_message(fps, step), {"fps": fps})
+        cam = self.camera
+        if cam.encoding == Encoding.RAW and 3 * cam.width * cam.height + FRAME_META_SIZE > MAX_PAYLOAD:
+            most = (MAX_PAYLOAD - FRAME_META_SIZE) // 3
+            raise PydanticCustomError(_RULE_ERROR, f"a raw frame (3 bytes a pixel) within the wire's payload limit "
+                                      f"of {MAX_PAYLOAD // 2**20} MiB, at most {most} pixels (e.g. 2560x2048), "
+                                      f"but {cam.width}x{cam.height} needs {3 * cam.width * cam.height / 2**20:.1f} "
+                                      f"MiB; use camera.encoding: jpeg or a smaller image",
+                                      {"loc": ("camera", "width"), "got": cam.width})
+        lat = self.lockstep.latency
+        if (lat.kind != LatencyKind.NONE or lat.drop_prob > 0) and self.mode != Mode.LOCKSTEP:
+            raise PydanticCustomError(_RULE_ERROR, "mode: lockstep (a latency profile delays control in "
+                                      "lockstep only; in realtime the target's own latency applies)",
+                                      {"loc": ("lockstep", "latency", "kind"), "got": lat.kind.value})
+        if lat.kind == LatencyKind.RECORDED:
+            if not lat.path:
+                raise PydanticCustomError(_RULE_ERROR, "a recorded run's folder or run.mcap in "
+                                          "lockstep.latency.path", {"loc": ("lockstep", "latency", "path"),
+                                                                    "got": None})
+            if not (Path(lat.path).is_file() or (Path(lat.path) / "run.mcap").is_file()):
+                raise PydanticCustomError(_RULE_ERROR, "an existing run.mcap or a run folder holding one",
+                                          {"loc": ("lockstep", "latency", "path"), "got": lat.path})
+        if lat.min_ms > lat.max_ms:
+            raise PydanticCustomError(_RULE_ERROR, f"at most max_ms ({lat.max_ms:g})",
+                                      {"loc": ("lockstep", "latency", "min_ms"), "got": lat.min_ms})
+        if self.target.zenoh.auth is not None and self.target.transport != Transport.ZENOH:
+            raise PydanticCustomError(_RULE_ERROR, "no auth section: user/password authentication is offered "
+                                      "for transport: zenoh", {"loc": ("target", "zenoh", "auth"),
+                                                               "got": self.target.transport.value})
+        if self.target.shared and self.target.transport not in (Transport.LOCAL, Transport.ZENOH):
+            raise PydanticCustomError(_RULE_ERROR, "shared: false, or transport local or zenoh (a shared "
+                                      "target serves all vehicles over those)",
+                                      {"loc": ("target", "shared"), "got": self.target.transport.value})
+        if self.target.transport == Transport.LOCAL and not self.target.command:
+            raise PydanticCustomError(_RULE_ERROR, "the program to start: the local transport runs the "
+                                      "target as a child process", {"loc": ("target", "command"), "got": []})
+        return self
+
+    @property
+    def camera_period_steps(self) -> int:
+        """Physics steps per camera frame (the camera period is a whole multiple)."""
+        return round(1.0 / (self.camera.fps * self.physics_step_s))
+
+
+# --- camera period / physics step -----------------------------------------------
+
+
+def _period_fits(fps: float, step_s: float, *, rel_tol: float = _PERIOD_REL_TOL) -> bool:
+    steps = 1.0 / (fps * step_s)
+    return round(steps) >= 1 and math.isclose(steps, round(steps), rel_tol=rel_tol)
+
+
+def _shortest(value: float, ok: Callable[[float], bool]) -> str:
+    """Fewest decimals of ``value`` that still pass ``ok`` (so a suggestion works)."""
+    for decimals in range(18):
+        text = f"{value:.{decimals}f}"
+        if float(text) > 0 and ok(float(text)):
+            return text
+    return repr(value)
+
+
+def _period_message(fps: float, step_s: float) -> str:
+    steps = 1.0 / (fps * step_s)
+    period_s = 1.0 / fps
+    # Suggestions are rounded, but 10x inside the tolerance so none is borderline.
+    tight = _PERIOD_REL_TOL / 10
+
+    def fps_text(k: int) -> str:
+        return _shortest(
+            1.0 / (k * step_s),
+            lambda v: v <= FPS_MAX
+            and round(1.0 / (v * step_s)) == k
+            and _period_fits(v, step_s, rel_tol=tight),
+        )
+
+    def step_text(m: int) -> str:
+        return _shortest(
+            period_s / m,
+            lambda v: v <= PHYSICS_STEP_MAX_S
+            and round(1.0 / (fps * v)) == m
+            and _period_fits(fps, v, rel_tol=tight),
+        )
+
+    # fps = 1/(k*step) nearest the asked one, within the fps bound.
+    k_min = max(1, math.ceil(1.0 / (FPS_MAX * step_s) - 1e-9))
+    ks = range(max(k_min, math.floor(steps) - 6), max(k_min, math.floor(steps)) + 8)
+    near_ks = sorted(ks, key=lambda k: abs(1.0 / (k * step_s) - fps))[:6]
+    # physics step = period/m nearest the asked one, within the step bound.
+    ms = [m for m in range(max(1, math.floor(steps) - 2), math.floor(steps) + 4)
+          if period_s / m <= PHYSICS_STEP_MAX_S]
+    near_ms = sorted(ms, key=lambda m: abs(period_s / m - step_s))[:3]
+    message = (
+        f"a camera period (1/fps = {period_s * 1e3:.6g} ms) that is a whole multiple "
+        f"of physics_step_s ({step_s * 1e3:.6g} ms), but it is {steps:.6g} steps; "
+        f"with physics_step_s {step_s:g} use camera.fps one of "
+        + ", ".join(fps_text(k) for k in sorted(near_ks))
+    )
+    if near_ms:
+        message += f"; or with camera.fps {fps:g} use physics_step_s one of " + ", ".join(
+            step_text(m) for m in sorted(near_ms)
+        )
+    return message
+
+
+# --- loading ----------------------------------------------------------------------
+
+
+def load_config(path: str | os.PathLike[str], *, overrides: Sequence[str] = ()) -> RunConfig:
+    """Read a YAML run config, apply ``dotted.path=value`` overrides, validate.
+
+    Override values are parsed as YAML (``10``, ``true``, ``[a, b]``); a missing key
+    on the path is created (``scenario.params.gap_m=40``). An empty file is the
+    empty config.
+
+    Raises:
+        ConfigError: one line: file missing or unreadable, YAML syntax (with line and
+            column), top level not a mapping, malformed override, or a value that
+            fails validation (with its YAML path, the value and what was expected).
+    """
+    source = os.fspath(path)
+    data = _read_yaml(Path(source))
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(
+            f"{source}: config error at <root>: got {_short_repr(data)}; "
+            "expected a mapping of keys to values"
+        )
+    return parse_config(data, source=source, overrides=overrides)
+
+
+def parse_config(
+    data: Mapping[str, Any], *, source: str = "<config>", overrides: Sequence[str] = ()
+) -> RunConfig:
+    """Validate an already-parsed mapping (after applying ``overrides``).
+
+    ``source`` starts every error message. Raises ``ConfigError`` as ``load_config``.
+    """
+    merged = copy.deepcopy(dict(data))
+    applied: list[tuple[tuple[str, ...], str]] = []
+    for override in overrides:
+        keys, value = _parse_override(override, source)
+        _apply_override(merged, keys, value, override, source)
+        applied.append((keys, override))
+    try:
+        return RunConfig.model_validate(merged)
+    except ValidationError as err:
+        raise ConfigError(_format_validation_error(err, source, applied)) from err
+
+
+def _read_yaml(path: Path) -> Any:
+    if not path.exists():
+        raise ConfigError(f"config file not found: {path}")
+    if path.is_dir():
+        raise ConfigError(f"config path is a directory, not a file: {path}")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
+        raise ConfigError(f"cannot read config file {path}: {reason}") from err
+    try:
+        return yaml.safe_load(text)
+    except yaml.MarkedYAMLError as err:
+        raise ConfigError(_one_line(f"{path}: {_describe_yaml_error(err)}")) from err
+    except yaml.YAMLError as err:
+        raise ConfigError(_one_line(f"{path}: YAML error: {err}")) from err
+
+
+def _describe_yaml_error(err: yaml.MarkedYAMLError) -> str:
+    mark = err.problem_mark or err.context_mark
+    where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "unknown place"
+    problem = err.problem or "invalid YAML"
+    context = f" ({err.context})" if err.context else ""
+    return f"YAML syntax error at {where}: {problem}{context}"
+
+
+def _parse_override(override: str, source: str) -> tuple[tuple[str, ...], Any]:
+    dotted, sep, text = override.partition("=")
+    keys = tuple(part.strip() for part in dotted.split("."))
+    if not sep or not all(keys):
+        raise ConfigError(
+            f"{source}: malformed override {_short_repr(override)}: expected dotted.path=value, "
+            "e.g. camera.fps=10"
+        )
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        problem = err.problem if isinstance(err, yaml.MarkedYAMLError) else str(err)
+        raise ConfigError(
+            _one_line(f"{source}: override {_short_repr(override)}: value is not valid YAML: {problem}")
+        ) from err
+    return keys, value
+
+
+def _apply_override(
+    data: dict[str, Any], keys: tuple[str, ...], value: Any, override: str, source: str
+) -> None:
+    node, model = data, _model_at(())
+    for depth, key in enumerate(keys[:-1]):
+        field = model.model_fields.get(key) if model else None
+        model = _model_at(keys[: depth + 1])
+        if key not in node and field and not model and get_origin(field.annotation) is not dict:
+            # Absent scalar field: the path runs through its default, not a new mapping.
+            child = field.get_default(call_default_factory=True)
+        else:
+            child = node.setdefault(key, {})
+        if not isinstance(child, dict):
+            raise ConfigError(
+                f"{source}: override {_short_repr(override)}: cannot set {'.'.join(keys)} "
+                f"because {'.'.join(keys[: depth + 1])} is {_short_repr(child)}, "
+                "not a mapping"
+            )
+        node = child
+    node[keys[-1]] = value
+
+
+# --- error messages ---------------------------------------------------------------
+
+_MESSAGE_REWRITES = (
+    (re.compile(r"^Value error, "), ""),
+    (re.compile(r"^Input should be a valid dictionary or instance of \w+"), "a mapping"),
+    (re.compile(r"^Input should be "), ""),
+    (re.compile(r"^(String|List|Dictionary) should have "), lambda m: f"a {m[1].lower()} with "),
+    (re.compile(r"^String should match "), "a string matching "),
+)
+
+
+def _format_validation_error(
+    err: ValidationError, source: str, applied: Sequence[tuple[tuple[str, ...], str]]
+) -> str:
+    errors = err.errors(include_url=False)
+    first = errors[0]
+    loc = tuple(first["loc"])
+    if first["type"] == "extra_forbidden":
+        key, parent = loc[-1], loc[:-1]
+        message = f"{source}: unknown key {_short_repr(key)} at {_loc_text(parent)}"
+        model = _model_at(parent)
+        if model is not None:
+            valid = list(model.model_fields)
+            close = difflib.get_close_matches(str(key), valid, n=1)
+            if close:
+                message += f" (did you mean {close[0]!r}?)"
+            message += f" (valid keys: {', '.join(valid)})"
+    else:
+        got = first["input"]
+        if first["type"] == _PERIOD_ERROR:
+            loc, got = ("camera", "fps"), first["ctx"]["fps"]
+        elif first["type"] == _RULE_ERROR:
+            loc, got = tuple(first["ctx"]["loc"]), first["ctx"]["got"]
+        message = (
+            f"{source}: config error at {_loc_text(loc)}: got {_short_repr(got)}; "
+            f"expected {_expected(first['msg'])}"
+        )
+    for keys, override in applied:
+        if loc and (loc[: len(keys)] == keys or keys[: len(loc)] == loc):
+            message += f" (set by override {_short_repr(override)})"
+            break
+    if len(errors) > 1:
+        others = ", ".join(_loc_text(tuple(e["loc"])) for e in errors[1:6])
+        more = ", ..." if len(errors) > 6 else ""
+        message += f" (+{len(errors) - 1} more: {others}{more})"
+    return _one_line(message)
+
+
+def _expected(msg: str) -> str:
+    for pattern, replacement in _MESSAGE_REWRITES:
+        new = pattern.sub(replacement, msg, count=1)
+        if new != msg:
+            return new
+    return msg[:1].lower() + msg[1:]
+
+
+def _model_at(loc: tuple[Any, ...]) -> type[BaseModel] | None:
+    model: type[BaseModel] = RunConfig
+    for part in loc:
+        field = model.model_fields.get(part) if isinstance(part, str) else None
+        annotation = field.annotation if field else None
+        if not (isinstance(annotation, type) and issubclass(annotation, BaseModel)):
+            return None
+        model = annotation
+    return model
+
+
+def _loc_text(loc: tuple[Any, ...]) -> str:
+    text = ""
+    if loc and loc[-1] == "[key]":  # pydantic's marker for a bad mapping key: the key is named already
+        loc = loc[:-1]
+    for part in loc:
+        text += f"[{part}]" if isinstance(part, int) else (f".{part}" if text else str(part))
+    return text or "<root>"
+
+
+class _Enough(Exception):
+    """Raised inside ``_short_repr`` once the text is long enough."""
+
+
+def _short_repr(value: Any, *, limit: int = _GOT_MAX_CHARS) -> str:
+    """``repr(value)`` cut to ``limit`` characters, in work bounded by ``limit``.
+
+    A YAML alias bomb (each level a list of aliases of the level below) is a few
+    hundred bytes whose full ``repr`` would take minutes and gigabytes, so
+    containers are walked only until ``limit`` characters are out.
+    """
+    parts: list[str] = []
+    room = [limit + 1]
+
+    def emit(text: str) -> None:
+        parts.append(text[: room[0]])
+        room[0] -= len(text)
+        if room[0] <= 0:
+            raise _Enough
+
+    def walk(v: Any) -> None:
+        if isinstance(v, dict):
+            emit("{")
+            for i, (k, x) in enumerate(v.items()):
+                emit(", " if i else "")
+                walk(k)
+                emit(": ")
+                walk(x)
+            emit("}")
+        elif isinstance(v, (list, tuple)):
+            emit("[" if isinstance(v, list) else "(")
+            for i, x in enumerate(v):
+                emit(", " if i else "")
+                walk(x)
+            emit("]" if isinstance(v, list) else ")")
+        elif isinstance(v, str):
+            emit(repr(v[: limit + 2]) if len(v) > limit + 2 else repr(v))
+        elif isinstance(v, int) and not isinstance(v, bool) and v.bit_length() > 4 * limit:
+            emit(f"<integer of {v.bit_length()} bits>")  # repr of a huge int is slow, or refused
+        else:
+            emit(repr(v))
+
+    try:
+        walk(value)
+    except _Enough:
+        pass
+    text = "".join(parts)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
+
+
+# --- canonical form ---------------------------------------------------------------
+
+
+def dump_config(cfg: RunConfig) -> dict[str, Any]:
+    """The config as a JSON-able dict (enums as their string values)."""
+    return cfg.model_dump(mode="json")
+
+
+def config_hash(cfg: RunConfig) -> str:
+    """sha256 hex digest of the canonical JSON (sorted keys): stable across runs."""
+    canonical = json.dumps(dump_config(cfg), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(canonical.encode("utf-8")).hexdigest()

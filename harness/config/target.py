@@ -1,0 +1,194 @@
+"""Transport options of the ``target:`` section.
+
+Endpoints, commands and arguments may contain ``{vehicle_id}`` (the vehicle's index)
+and ``{port}`` (``zenoh.base_port + vehicle_id``), so one config drives one target
+per vehicle::
+
+    target:
+      transport: zenoh
+      command: ["{python}", "-m", "hil.targets.cv_baseline", "--transport", "zenoh",
+                "--listen", "tcp/127.0.0.1:{port}", "--vehicle", "{vehicle_id}"]
+      zenoh: {connect: ["tcp/127.0.0.1:{port}"]}
+
+For ``zenoh``, ``can`` and ``mixed`` the ``command`` is optional: empty means the
+target runs elsewhere (a board on the bench); given, the harness also starts it
+locally (a loopback test or a simulated device) and ends it after the run.
+
+A ``mixed`` target (a device that answers on CAN and takes its frames over Zenoh)
+uses both sections: frames go over ``zenoh`` and everything else, clock sync
+included, over ``can`` (whose ``camera_over`` it ignores: it is always ``none``)::
+
+    target:
+      transport: mixed
+      command: []
+      zenoh: {connect: ["tcp/192.168.1.20:7447"]}
+      can: {interface: socketcan, channel: can0}
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from enum import Enum
+from typing import Annotated, Literal
+
+from pydantic import AfterValidator, BaseModel, Field
+
+from hil.adapters.can_interfaces import LOCAL_INTERFACES
+from hil.adapters.zenoh_options import endpoint_problem, tls_key_problem
+from hil.common.errors import ConfigError
+from hil.harness.config.types import MODEL_CONFIG, Float, Int
+
+
+def _endpoint(value: str) -> str:
+    problem = endpoint_problem(value)
+    if problem is not None:
+        raise ValueError(problem)
+    return value
+
+
+def _tls_key(value: str) -> str:
+    problem = tls_key_problem(value)
+    if problem is not None:
+        raise ValueError(problem)
+    return value
+
+
+# Checked here, so that an endpoint Zenoh can never open (``zzz``, a missing port) or
+# an unknown TLS key is refused before the simulator or any target starts.
+ZenohEndpoint = Annotated[str, AfterValidator(_endpoint)]
+TlsKey = Annotated[str, AfterValidator(_tls_key)]
+
+
+class ZenohMode(str, Enum):
+    PEER = "peer"
+    CLIENT = "client"
+
+
+class Congestion(str, Enum):
+    BLOCK = "block"
+    DROP = "drop"
+
+
+class ZenohAuthConfig(BaseModel):
+    """User/password authentication of the harness's Zenoh session (Zenoh's usrpwd):
+    a target started with ``--auth-dictionary FILE`` admits only peers whose
+    ``user:password`` is a line of FILE. The password is read from the environment
+    variable ``password_env`` when the run starts, so it is never written to a config
+    or a run folder."""
+
+    model_config = MODEL_CONFIG
+
+    user: str = Field(min_length=1, max_length=128, pattern=r"^[^:\s]+$")
+    password_env: str = Field("HIL_ZENOH_PASSWORD", pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+    def usrpwd(self) -> dict[str, str]:
+        """``{"user", "password"}`` for the Zenoh session.
+
+        Raises:
+            ConfigError: the environment variable is not set (or empty).
+        """
+        password = os.environ.get(self.password_env, "")
+        if not password:
+            raise ConfigError(f"target.zenoh.auth: set the password in the environment variable "
+                              f"{self.password_env} (a password is never stored in a config)")
+        return {"user": self.user, "password": password}
+
+
+class ZenohTargetConfig(BaseModel):
+    """Zenoh session of the harness. Multicast scouting stays off unless turned on;
+    ``tls`` keys pass through to ``transport/link/tls`` (see adapters/zenoh_transport)."""
+
+    model_config = MODEL_CONFIG
+
+    connect: list[ZenohEndpoint] = Field(default_factory=lambda: ["tcp/127.0.0.1:{port}"])
+    listen: list[ZenohEndpoint] = Field(default_factory=list)
+    mode: ZenohMode = ZenohMode.PEER
+    key_prefix: str = Field("hil", min_length=1)
+    base_port: Int = Field(7447, ge=1, le=65535)
+    multicast_scouting: bool = False
+    congestion_control: Congestion = Congestion.BLOCK
+    lease_ms: Int = Field(1000, ge=100, le=60_000)
+    tls: dict[TlsKey, str | bool] | None = None
+    auth: ZenohAuthConfig | None = None  # zenoh transport only (see ZenohAuthConfig)
+    # A target the harness starts serves keys under <key_prefix>/run-<session> (the run's
+    # nonce, given to it in HIL_ZENOH_KEY_PREFIX, which the SDK follows), so no other
+    # target on the endpoint (a leftover, a foreign one) can answer for it. Off for a
+    # started third-party target that keeps the fixed keys of PROTOCOL.md 10.2.
+    per_run_keys: bool = True
+
+
+class CanTargetConfig(BaseModel):
+    """CAN bus of the harness (python-can). ``interface``: socketcan, pcan, kvaser,
+    vector, slcan, or virtual (in-process, for tests). Bitrates in bit/s.
+    ``camera_over`` applies to ``transport: can``; a mixed target always uses ``none``."""
+
+    model_config = MODEL_CONFIG
+
+    interface: Literal[LOCAL_INTERFACES] = "socketcan"  # type: ignore[valid-type]  # buses on this machine
+    channel: str = "vcan0"
+    bitrate: Int = Field(500_000, ge=10_000, le=1_000_000)
+    data_bitrate: Int = Field(2_000_000, ge=100_000, le=12_000_000)
+    camera_over: str = Field("isotp", pattern="^(isotp|none)$")
+
+
+class TcpMode(str, Enum):
+    CONNECT = "connect"  # the target listens; the harness dials it
+    LISTEN = "listen"  # the harness listens; the target dials in
+
+
+class TcpTargetConfig(BaseModel):
+    """TCP connection of the harness (adapters/tcp.py, PROTOCOL.md section 10.5).
+    ``address`` is host:port, ``{port}`` being ``base_port + vehicle_id``; loopback
+    unless given otherwise. ``kernel_stamps``: stamp receipt with the kernel's receive
+    time (SO_TIMESTAMPNS) rather than when the reader thread woke."""
+
+    model_config = MODEL_CONFIG
+
+    mode: TcpMode = TcpMode.CONNECT
+    address: str = Field("127.0.0.1:{port}", pattern=r"^(tcp/)?(\[[0-9A-Fa-f:.]+\]|[^:\s\[\]]+):(\{port\}|[0-9]{1,5})$")
+    base_port: Int = Field(7600, ge=1, le=65535)
+    kernel_stamps: bool = True
+
+
+class LinkFaults(BaseModel):
+    """One direction's faults (adapters/impair.py, netem's model): ``delay_ms ±
+    jitter_ms`` (uniform), probabilities ``loss``, ``reorder`` (skip the delay),
+    ``duplicate``, a bandwidth cap ``rate_kbps`` (0: none), at most ``queue_limit``
+    messages in flight (more are dropped, counted)."""
+
+    model_config = MODEL_CONFIG
+
+    delay_ms: Float = Field(0.0, ge=0, le=60_000)
+    jitter_ms: Float = Field(0.0, ge=0, le=60_000)
+    loss: Float = Field(0.0, ge=0, le=1)
+    reorder: Float = Field(0.0, ge=0, le=1)
+    duplicate: Float = Field(0.0, ge=0, le=1)
+    rate_kbps: Float = Field(0.0, ge=0, le=100_000_000)
+    queue_limit: Int = Field(1000, ge=1, le=1_000_000)
+
+
+class ImpairConfig(BaseModel):
+    """Link faults in real time, on any transport (``target.impair``), e.g.
+    ``--set target.impair.uplink.delay_ms=20 --set target.impair.uplink.jitter_ms=2``.
+    Every impaired message is recorded on ``/<vehicle>/impairment``. ``seed``: default
+    the run's seed. ``sync``: impair clock-sync probes too (an asymmetric delay then
+    biases the clock offset by half the asymmetry, as on a real link)."""
+
+    model_config = MODEL_CONFIG
+
+    uplink: LinkFaults = Field(default_factory=LinkFaults)
+    downlink: LinkFaults = Field(default_factory=LinkFaults)
+    seed: Int | None = Field(None, ge=0, le=2**63 - 1)
+    sync: bool = False
+
+    @property
+    def active(self) -> bool:
+        return any(v != 0 for d in (self.uplink, self.downlink)
+                   for k, v in d.model_dump().items() if k != "queue_limit")
+
+
+def substitute(text: str, *, vehicle_id: int, base_port: int) -> str:
+    """Fill ``{python}``, ``{vehicle_id}`` and ``{port}`` in one command word or endpoint."""
+    return (text.replace("{python}", sys.executable).replace("{vehicle_id}", str(vehicle_id))
+            .replace("{port}", str(base_port + vehicle_id)))

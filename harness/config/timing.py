@@ -1,0 +1,81 @@
+"""The ``timing:`` section of a run config: clock sync and anomaly thresholds.
+
+::
+
+    timing:
+      sync: {interval_s: 1.0, burst: 4}        # a burst of 4 exchanges every second
+      thresholds: {deadline_ms: {end_to_end: 100}, frame_rate_floor_hz: 10}
+      vehicles:                                 # per-vehicle overrides of thresholds
+        ego0: {deadline_ms: {end_to_end: 50}}
+
+Unset thresholds keep ``hil.timing.anomaly.Thresholds``' documented defaults.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from pydantic import BaseModel, Field
+
+from hil.harness.config.types import MODEL_CONFIG, Float, Int
+from hil.timing.anomaly import Thresholds
+from hil.timing.sync import SyncConfig
+
+
+class SyncSettings(BaseModel):
+    """Clock-sync exchanges: ``burst`` 4-timestamp exchanges every ``interval_s``;
+    samples with a round trip over ``max_delay_ms`` are rejected; an offset jump over
+    ``step_threshold_ms`` is a clock step; no good sample for ``lost_after_s`` is sync
+    lost; skew beyond ``skew_limit_ppm`` is flagged."""
+
+    model_config = MODEL_CONFIG
+
+    interval_s: Float = Field(1.0, gt=0, le=60)
+    burst: Int = Field(4, ge=1, le=64)
+    window_s: Float = Field(30.0, gt=0, le=3600)
+    max_delay_ms: Float = Field(50.0, gt=0, le=10_000)
+    step_threshold_ms: Float = Field(1.0, gt=0, le=10_000)
+    lost_after_s: Float = Field(3.0, gt=0, le=3600)
+    skew_limit_ppm: Float = Field(1000.0, gt=0, le=100_000)
+
+    def to_sync_config(self) -> SyncConfig:
+        return SyncConfig(window_s=self.window_s, max_delay_ns=int(self.max_delay_ms * 1e6),
+                          step_threshold_ns=int(self.step_threshold_ms * 1e6),
+                          lost_after_s=self.lost_after_s, skew_limit_ppm=self.skew_limit_ppm)
+
+
+class ThresholdsConfig(BaseModel):
+    """Anomaly thresholds; each unset field keeps its default (see
+    ``hil.timing.anomaly.Thresholds``). ``deadline_ms`` maps a stage name (end_to_end,
+    to_apply, inference, uplink, ...) to its deadline."""
+
+    model_config = MODEL_CONFIG
+
+    deadline_ms: dict[str, Float] | None = None
+    jitter_ms: Float | None = Field(None, gt=0)
+    jitter_window: Int | None = Field(None, ge=5, le=10_000)
+    frame_rate_floor_hz: Float | None = Field(None, ge=0, le=1000)
+    frame_rate_window_s: Float | None = Field(None, gt=0, le=600)
+    spike_k: Float | None = Field(None, gt=0, le=1000)
+    spike_floor_ms: Float | None = Field(None, ge=0, le=60_000)
+    spike_window: Int | None = Field(None, ge=10, le=100_000)
+
+    def apply(self, base: Thresholds) -> Thresholds:
+        changes = {k: v for k, v in self.model_dump().items() if v is not None}
+        if "deadline_ms" in changes:
+            changes["deadline_ms"] = {**base.deadline_ms, **changes["deadline_ms"]}
+        return dataclasses.replace(base, **changes)
+
+
+class TimingConfig(BaseModel):
+    model_config = MODEL_CONFIG
+
+    sync: SyncSettings = Field(default_factory=SyncSettings)
+    thresholds: ThresholdsConfig = Field(default_factory=ThresholdsConfig)
+    vehicles: dict[str, ThresholdsConfig] = Field(default_factory=dict)
+
+    def thresholds_for(self, vehicle: str) -> Thresholds:
+        """The run's thresholds with ``vehicle``'s overrides applied."""
+        t = self.thresholds.apply(Thresholds())
+        override = self.vehicles.get(vehicle)
+        return override.apply(t) if override is not None else t

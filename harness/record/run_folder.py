@@ -1,0 +1,366 @@
+"""Reading a run folder back: its ``summary.json`` and ``run.mcap``.
+
+What ``hil report``, ``hil compare`` and the pytest plugin share. A run folder (see
+``hil.harness.run.driver``) holds ``run.mcap`` and, when the run ended normally or was stopped
+cleanly, ``summary.json``. A run killed outright leaves a truncated ``run.mcap`` and
+no summary; :func:`read_run` still reads every complete chunk of it
+(:func:`hil.harness.record.recorder.iter_salvaged_messages`) and says it was truncated.
+
+Times are integer nanoseconds on the harness clock (``time.monotonic_ns``) unless
+named otherwise.
+
+Raises: :class:`hil.common.errors.ConfigError`, one line naming the path, for a path
+that does not exist, a folder that is not a run, and a file that is not what its
+name says (a text file named ``summary.json``, a truncated summary, a file named
+``run.mcap`` that is not MCAP).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import struct
+from collections import defaultdict
+from collections.abc import Iterable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from hil.common.errors import ConfigError
+
+SUMMARY_NAME = "summary.json"
+MCAP_NAME = "run.mcap"
+CORNER_DB_NAME = "corner_cases.sqlite"
+_MCAP_MAGIC = b"\x89MCAP0\r\n"
+_VEHICLE_TOPIC = re.compile(r"^/(?P<vehicle>[^/]+)/(?P<what>pipeline|camera|clock_sync|clock)$")
+
+
+def run_dir_of(path: str | os.PathLike[str]) -> Path:
+    """The run folder that ``path`` names: the folder itself, or the folder of a
+    ``run.mcap`` / ``summary.json`` path.
+
+    Raises:
+        ConfigError: ``path`` does not exist, or holds neither ``run.mcap`` nor
+            ``summary.json`` (not a run folder).
+    """
+    p = Path(path)
+    if not p.exists():
+        raise ConfigError(f"{p}: no such file or folder")
+    if p.is_file():
+        if p.name in (MCAP_NAME, SUMMARY_NAME) or p.suffix == ".mcap":
+            return p.parent
+        raise ConfigError(f"{p}: not a run folder, run.mcap or summary.json")
+    if not (p / MCAP_NAME).is_file() and not (p / SUMMARY_NAME).is_file():
+        raise ConfigError(f"{p}: not a run folder (it has neither {MCAP_NAME} nor {SUMMARY_NAME})")
+    return p
+
+
+def summary_path_of(path: str | os.PathLike[str]) -> Path:
+    """The ``summary.json`` that ``path`` names (a run folder or the file itself).
+
+    Raises:
+        ConfigError: missing path, a folder without ``summary.json``.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise ConfigError(f"{p}: no such file or folder")
+    if p.is_dir():
+        s = p / SUMMARY_NAME
+        if not s.is_file():
+            why = (" (the run did not finish: only run.mcap; see hil report)"
+                   if (p / MCAP_NAME).is_file() else " (not a run folder)")
+            raise ConfigError(f"{p}: no {SUMMARY_NAME}{why}")
+        return s
+    return p
+
+
+def load_summary(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Read and check a ``summary.json`` (or the one in a run folder).
+
+    Raises:
+        ConfigError: missing, unreadable, not JSON (truncated, binary, text), or
+            JSON that is not a run summary (no ``vehicles`` mapping).
+    """
+    p = summary_path_of(path)
+    try:
+        text = p.read_bytes().decode("utf-8")
+    except OSError as err:
+        raise ConfigError(f"{p}: cannot read: {err.strerror or err}") from err
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{p}: not a run summary: not UTF-8 text (byte offset {err.start})") from err
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as err:
+        cut = err.pos >= len(text.rstrip()) - 1 or err.msg.startswith("Unterminated string")
+        what = "truncated JSON" if cut and text.lstrip().startswith("{") else "invalid JSON"
+        raise ConfigError(f"{p}: not a run summary: {what} at line {err.lineno} column {err.colno} "
+                          f"({err.msg})") from err
+    if not isinstance(data, dict) or not isinstance(data.get("vehicles"), dict):
+        raise ConfigError(f"{p}: not a run summary: JSON without a 'vehicles' mapping")
+    return data
+
+
+@dataclass(frozen=True)
+class Event:
+    """One ``/events`` message. ``t_ns``: its publish time (when it happened, harness
+    clock); ``vehicles``: those it concerns (empty: the whole run)."""
+
+    t_ns: int
+    kind: str
+    vehicles: tuple[str, ...]
+    severity: Any
+    data: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class ClockPoint:
+    """One clock-mapping sample of a vehicle's target clock: ``offset_ns`` (target −
+    harness), ``uncertainty_ns`` (half the round trip, or the estimator's own),
+    ``skew_ppm`` when the source gives one. ``t_ns``: harness time of the sample."""
+
+    t_ns: int
+    offset_ns: float
+    uncertainty_ns: float
+    skew_ppm: float | None
+
+
+@dataclass
+class RunData:
+    """What a run folder holds, read back. ``pipeline``: per vehicle, the
+    ``/V/pipeline`` records as written (dicts, file order); ``camera_times``: per
+    vehicle, the publish times (``t0``) of its camera frames; ``clock`` per vehicle
+    from ``/V/clock`` when present, else from ``/V/clock_sync``."""
+
+    run_dir: Path
+    summary: dict[str, Any] | None
+    summary_problem: str | None
+    meta: dict[str, Any]
+    mcap_present: bool
+    truncated: bool
+    mcap_bytes: int
+    messages: int
+    pipeline: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+    events: list[Event] = field(default_factory=list)
+    clock: dict[str, list[ClockPoint]] = field(default_factory=dict)
+    clock_source: dict[str, str] = field(default_factory=dict)
+    camera_times: dict[str, list[int]] = field(default_factory=dict)
+    first_ns: int | None = None
+    last_ns: int | None = None
+
+    @property
+    def vehicles(self) -> list[str]:
+        names = list((self.summary or {}).get("vehicles", {}))
+        names += [v for v in sorted(set(self.pipeline) | set(self.camera_times)) if v not in names]
+        return names
+
+    @property
+    def t_start_ns(self) -> int:
+        """Time zero of plots: the first capture ``t0``, else the first message."""
+        t0s = [r["t0_ns"] for recs in self.pipeline.values() for r in recs[:64] if "t0_ns" in r]
+        if t0s:
+            return min(t0s)
+        return self.first_ns or 0
+
+
+def is_finalized_mcap(path: Path) -> bool:
+    """True when ``path`` ends with the MCAP closing magic (written by ``finish``)."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(0, os.SEEK_END)
+            size = f.tell()
+            if size < 2 * len(_MCAP_MAGIC):
+                return False
+            f.seek(size - len(_MCAP_MAGIC))
+            return f.read() == _MCAP_MAGIC
+    except OSError:
+        return False
+
+
+def _event(t_ns: int, d: dict[str, Any]) -> Event:
+    who: list[str] = []
+    for key in ("vehicle", "a", "b"):
+        v = d.get(key)
+        if isinstance(v, str) and v not in who:
+            who.append(v)
+    vs = d.get("vehicles")
+    if isinstance(vs, list):
+        who += [v for v in vs if isinstance(v, str) and v not in who]
+    return Event(t_ns, str(d.get("kind", "unknown")), tuple(who), d.get("severity"), d)
+
+
+def _metadata(path: Path) -> dict[str, Any]:
+    """The ``run`` metadata record of a finalized file, values JSON-decoded."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as f:
+            for rec in make_reader(f).iter_metadata():
+                if rec.name == "run":
+                    out: dict[str, Any] = {}
+                    for k, v in rec.metadata.items():
+                        try:
+                            out[k] = json.loads(v)
+                        except ValueError:
+                            out[k] = v
+                    return out
+    except (McapError, OSError, ValueError, KeyError, struct.error):
+        return {}  # metadata is a nicety: a damaged summary section only loses it
+    return {}
+
+
+def read_run(path: str | os.PathLike[str]) -> RunData:
+    """Read a run folder (or its ``run.mcap``/``summary.json``) for a report.
+
+    A missing ``summary.json`` is not an error when ``run.mcap`` is there (a killed
+    run); it shows in ``summary_problem``. A truncated ``run.mcap`` is read up to its
+    last complete chunk and sets ``truncated``.
+
+    Raises:
+        ConfigError: not a run folder, a ``summary.json`` that is not a summary, or
+            a ``run.mcap`` that is not MCAP.
+    """
+    from hil.harness.record.recorder import iter_salvaged_messages
+
+    run_dir = run_dir_of(path)
+    mcap_path = run_dir / MCAP_NAME
+    summary: dict[str, Any] | None = None
+    problem: str | None = None
+    if (run_dir / SUMMARY_NAME).is_file():
+        summary = load_summary(run_dir / SUMMARY_NAME)
+    else:
+        problem = f"no {SUMMARY_NAME} (the run did not finish normally)"
+    data = RunData(run_dir=run_dir, summary=summary, summary_problem=problem, meta={},
+                   mcap_present=mcap_path.is_file(), truncated=False, mcap_bytes=0, messages=0)
+    if not data.mcap_present:
+        return data
+    data.mcap_bytes = mcap_path.stat().st_size
+    pipeline: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    sync: dict[str, list[ClockPoint]] = defaultdict(list)
+    clock: dict[str, list[ClockPoint]] = defaultdict(list)
+    cams: dict[str, list[int]] = defaultdict(list)
+    first = last = None
+    n = 0
+    offset: int | None = None  # log_time - monotonic (the recorder's time anchor; 0 in old runs)
+    for _schema, channel, msg in iter_salvaged_messages(mcap_path):
+        n += 1
+        t = msg.log_time
+        if offset is None and channel.topic == "/ground_truth":
+            offset = msg.log_time - msg.publish_time  # written with log == publish time
+        first = t if first is None or t < first else first
+        last = t if last is None or t > last else last
+        topic = channel.topic
+        if topic == "/events":
+            d = _json(msg.data)
+            if isinstance(d, dict):
+                data.events.append(_event(msg.publish_time, d))
+            continue
+        m = _VEHICLE_TOPIC.match(topic)
+        if m is None:
+            continue
+        vehicle, what = m["vehicle"], m["what"]
+        if what == "camera":
+            cams[vehicle].append(msg.publish_time)
+            continue
+        d = _json(msg.data)
+        if not isinstance(d, dict):
+            continue
+        if what == "pipeline":
+            pipeline[vehicle].append(d)
+        elif what == "clock_sync" and _num(d, "offset_ns") and _num(d, "delay_ns"):
+            sync[vehicle].append(ClockPoint(msg.log_time, float(d["offset_ns"]), d["delay_ns"] / 2, None))
+        elif what == "clock" and _num(d, "offset_ns"):
+            unc = d.get("uncertainty_ns")
+            skew = d.get("skew_ppm")
+            clock[vehicle].append(ClockPoint(msg.log_time, float(d["offset_ns"]),
+                                             float(unc) if isinstance(unc, (int, float)) else 0.0,
+                                             float(skew) if isinstance(skew, (int, float)) else None))
+    off = offset or 0
+    if off:
+        first = None if first is None else first - off
+        last = None if last is None else last - off
+        for points in (*sync.values(), *clock.values()):
+            points[:] = [replace(p, t_ns=p.t_ns - off) for p in points]
+    data.messages, data.first_ns, data.last_ns = n, first, last
+    data.truncated = not is_finalized_mcap(mcap_path)
+    if n == 0 and data.truncated and data.mcap_bytes < 64 and summary is None:
+        # A few bytes of magic and nothing else: nothing to report on.
+        raise ConfigError(f"{mcap_path}: truncated MCAP with no complete message ({data.mcap_bytes} bytes)")
+    data.pipeline = dict(pipeline)
+    data.camera_times = {v: sorted(ts) for v, ts in cams.items()}
+    for v in set(sync) | set(clock):
+        if clock.get(v):
+            data.clock[v], data.clock_source[v] = clock[v], f"/{v}/clock"
+        else:
+            data.clock[v], data.clock_source[v] = sync[v], f"/{v}/clock_sync"
+    if not data.truncated:
+        data.meta = _metadata(mcap_path)
+    return data
+
+
+def camera_images(mcap_path: Path, wanted: Iterable[tuple[str, int]]) -> dict[tuple[str, int], tuple[str, str]]:
+    """The camera messages ``(vehicle, publish_time_ns)`` of ``wanted`` as
+    ``(format, base64 data)``; missing ones are left out. Reads truncated files too.
+
+    Raises:
+        ConfigError: the file cannot be opened or is not MCAP.
+    """
+    from hil.harness.record.recorder import iter_salvaged_messages
+
+    want = set(wanted)
+    topics = {f"/{v}/camera" for v, _ in want}
+    out: dict[tuple[str, int], tuple[str, str]] = {}
+    if not want:
+        return out
+    for _schema, channel, msg in iter_salvaged_messages(mcap_path):
+        if channel.topic not in topics:
+            continue
+        key = (channel.topic[1:-len("/camera")], msg.publish_time)
+        if key in want:
+            d = _json(msg.data)
+            img = _as_compressed(d) if isinstance(d, dict) else None
+            if img is not None:
+                out[key] = img
+                if len(out) == len(want):
+                    break
+    return out
+
+
+def _as_compressed(d: dict[str, Any]) -> tuple[str, str] | None:
+    """A Foxglove image message as ``(format, base64)``; a ``RawImage`` (rgb8/bgr8)
+    is JPEG-encoded first. ``None`` when it cannot be read."""
+    blob = d.get("data")
+    if not isinstance(blob, str):
+        return None
+    if "format" in d:
+        return str(d["format"]), blob
+    import base64
+
+    import cv2
+    import numpy as np
+
+    try:
+        w, h, enc = int(d["width"]), int(d["height"]), str(d["encoding"])
+        px = np.frombuffer(base64.b64decode(blob), np.uint8).reshape(h, w, 3)
+        ok, buf = cv2.imencode(".jpg", cv2.cvtColor(px, cv2.COLOR_RGB2BGR) if enc == "rgb8" else px,
+                               (cv2.IMWRITE_JPEG_QUALITY, 80))
+    except (KeyError, TypeError, ValueError, cv2.error):
+        return None
+    return ("jpeg", base64.b64encode(buf.tobytes()).decode()) if ok else None
+
+
+def _json(data: bytes) -> Any:
+    try:
+        return json.loads(data)
+    except ValueError:
+        return None
+
+
+def _num(d: dict[str, Any], key: str) -> bool:
+    v = d.get(key)
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+__all__ = ["ClockPoint", "Event", "RunData", "camera_images", "is_finalized_mcap", "load_summary",
+           "read_run", "run_dir_of", "summary_path_of"]

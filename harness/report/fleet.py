@@ -1,0 +1,130 @@
+"""The report's navigation and fleet overview: every vehicle on one chart, p50/p99
+end-to-end latency and frames per second per vehicle, before the per-vehicle
+sections; and the run's limits (deadlines, estimate timeout) read from
+``RUN/config.json`` for the charts' reference lines.
+"""
+
+from __future__ import annotations
+
+import json
+from html import escape
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil.harness.record.run_folder import RunData
+from hil.harness.report import plots as rp
+
+SECTIONS = (("run", "Run"), ("fleet", "Fleet"), ("latency", "Latency per stage"), ("timeline", "Latency over time"),
+            ("fps", "Frames per second"), ("clock", "Target clock"), ("events", "Events"), ("cases", "Corner cases"))
+NAV_CSS = ("nav.top{position:sticky;top:0;background:#fff;border-bottom:1px solid #ddd;padding:6px 0;z-index:2;"
+           "font-size:13px}nav.top a{margin-right:12px;color:#245;text-decoration:none}"
+           "nav.top a:hover{text-decoration:underline}")
+
+
+def vehicle_colours(vehicles: list[str]) -> dict[str, str]:
+    """One distinct palette colour per vehicle, in order (no hash collisions)."""
+    return {v: rp.PALETTE[i % len(rp.PALETTE)] for i, v in enumerate(vehicles)}
+
+
+def nav(vehicles: list[str]) -> str:
+    """A sticky bar of links to every section and to each vehicle's latency."""
+    links = "".join(f'<a href="#{k}">{escape(t)}</a>' for k, t in SECTIONS)
+    per = "".join(f'<a href="#latency-{escape(v)}">{escape(v)}</a>' for v in vehicles) if len(vehicles) > 1 else ""
+    return f'<nav class="top">{links}{" · vehicles: " + per if per else ""}</nav>'
+
+
+def limits(run_dir: Path, vehicle: str) -> dict[str, float]:
+    """The run's limits for ``vehicle`` in ms: ``deadline.<stage>`` per stage
+    deadline and ``timeout`` (the estimate timeout: older estimates are dropped).
+    Empty when ``config.json`` is missing or unreadable (an old or foreign run)."""
+    try:
+        cfg = json.loads((run_dir / "config.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    out: dict[str, float] = {}
+    try:
+        from hil.harness.config.timing import TimingConfig
+
+        th = TimingConfig.model_validate(cfg.get("timing") or {}).thresholds_for(vehicle)
+        out.update({f"deadline.{k}": float(v) for k, v in th.deadline_ms.items()})
+        out["fps_floor"] = float(th.frame_rate_floor_hz)
+    except Exception:  # a config of another version: no deadline lines, the rest stands
+        pass
+    timeout = (cfg.get("target") or {}).get("estimate_timeout_s")
+    if isinstance(timeout, (int, float)):
+        out["timeout"] = float(timeout) * 1e3
+    return out
+
+
+def e2e_rules(run_dir: Path, vehicle: str) -> list[rp.Rule]:
+    """Reference lines for an end-to-end chart: its deadline and the estimate timeout."""
+    lim = limits(run_dir, vehicle)
+    rules = []
+    if "deadline.end_to_end" in lim:
+        rules.append(rp.Rule(f"deadline {lim['deadline.end_to_end']:g} ms", lim["deadline.end_to_end"], "#d62728"))
+    if "timeout" in lim:
+        rules.append(rp.Rule(f"estimate timeout {lim['timeout']:g} ms (dropped beyond)", lim["timeout"], "#7f0000",
+                             stretch=False))
+    return rules
+
+
+def _e2e(d: RunData, vehicle: str) -> tuple[np.ndarray, np.ndarray]:
+    t0 = d.t_start_ns
+    recs = [r for r in d.pipeline.get(vehicle, []) if r.get("status") == "ok"
+            and isinstance((r.get("stages_ns") or {}).get("end_to_end"), int) and isinstance(r.get("t0_ns"), int)]
+    return (np.array([(r["t0_ns"] - t0) / 1e9 for r in recs]),
+            np.array([r["stages_ns"]["end_to_end"] / 1e6 for r in recs]))
+
+
+def fleet_section(d: RunData, *, left: int = 0) -> str:
+    """Every vehicle's end-to-end latency on one chart, a box per vehicle, and a
+    table of p50/p99 (ms), frames per second and drop rate (%) per vehicle."""
+    out = ['<h2 id="fleet">Fleet overview</h2>']
+    if not d.vehicles:
+        return "".join(out) + "<p>no vehicles recorded</p>"
+    colours = vehicle_colours(d.vehicles)
+    series, boxes, rows = [], [], []
+    vs = (d.summary or {}).get("vehicles") or {}
+    for v in d.vehicles:
+        x, y = _e2e(d, v)
+        series.append(rp.Series(f"{v} end-to-end (ms)", x, y, colours[v], "points"))
+        if y.size:
+            boxes.append((v, y))
+        s = vs.get(v) or {}
+        p50 = float(np.percentile(y, 50)) if y.size else None
+        p99 = float(np.percentile(y, 99)) if y.size else None
+        drop = s.get("drop_rate")
+        rows.append([f'<span style="color:{colours[v]}">■</span> <a href="#latency-{escape(v)}">{escape(v)}</a>',
+                     str(y.size), _num(p50, 1), _num(p99, 1), _num(s.get("frames_per_s"), 1),
+                     _num(s.get("estimates_per_s"), 1), "–" if not isinstance(drop, (int, float)) else f"{drop:.1%}"])
+    rules = e2e_rules(d.run_dir, d.vehicles[0])
+    out.append('<p class="muted">End-to-end latency (t0′−t0, ms) of every applied frame of every vehicle; '
+               "dashed lines: the end-to-end deadline and the estimate timeout of the run's config.</p>")
+    end = max((float(s.xs.max()) for s in series if len(s.xs)), default=1.0)  # type: ignore[union-attr]
+    out.append(rp.line_chart(series=series, rules=rules, x_label="time since first frame (s)",
+                             y_label="end-to-end (ms)", title="all vehicles", left=left, x_range=(0.0, end)))
+    if boxes:
+        out.append(rp.box_chart(boxes, x_label="end-to-end ms", title="end-to-end latency per vehicle",
+                                colours=colours))
+    head = ["vehicle", "applied frames", "p50 (ms)", "p99 (ms)", "frames sent/s", "estimates applied/s",
+            "drop rate (%)"]
+    h = "".join(f"<th>{escape(c)}</th>" for c in head)
+    body = "".join("<tr>" + "".join(f'<td{" class=n" if i else ""}>{c}</td>' for i, c in enumerate(r)) + "</tr>"
+                   for r in rows)
+    out.append(f"<table><tr>{h}</tr>{body}</table>")
+    return "".join(out)
+
+
+_LEFT = 130  # left margin of every time chart, so charts of all vehicles line up
+
+
+def chart_left(d: RunData, strips_of: Any) -> int:
+    """The left margin for every time chart of the report: wide enough for every
+    vehicle's event-strip labels."""
+    return max([_LEFT] + [rp.strip_margin(strips_of(d, v)) for v in d.vehicles])
+
+
+def _num(v: Any, digits: int) -> str:
+    return "–" if not isinstance(v, (int, float)) or isinstance(v, bool) else f"{v:.{digits}f}"

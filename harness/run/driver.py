@@ -1,0 +1,405 @@
+"""The run driver: validate, start targets, run the loop, write the run folder.
+
+A run folder holds ``run.mcap`` (everything, Foxglove-readable), ``summary.json``
+and ``target-<vehicle>.log`` (the targets' own output). Whatever happens after the
+recorder opens (a target dying, Ctrl-C, SIGTERM) the MCAP is finalized and the
+summary written with what was recorded.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import queue
+import secrets
+import signal
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+from hil.common.errors import ConfigError, HilError, RecordingError, TargetError
+from hil.harness import __version__
+from hil.harness.config.model import RunConfig, Transport, config_hash, dump_config
+from hil.timing.clock import MonotonicClock
+
+SYNC_WARMUP_SAMPLES = 8
+
+
+@dataclass(frozen=True)
+class RunResult:
+    out_dir: Path
+    mcap_path: Path
+    summary_path: Path
+    summary: dict[str, Any]
+
+
+def default_out_dir(cfg: RunConfig, *, root: Path = Path("runs")) -> Path:
+    return root / f"{cfg.name}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def prepare_out_dir(out: Path) -> Path:
+    """Create the run folder and claim it for this process (an exclusive lock file,
+    held until the process exits or ``hil.harness.record.out_dir.release_out_dir``); refuse to
+    overwrite an earlier run or to share the folder with a concurrent one. The disk
+    is probed with real bytes (an empty file fits on a full disk).
+
+    Raises:
+        ConfigError: one line: the folder holds a run already, another run holds
+            it, or it cannot be created or written (read-only, full).
+    """
+    from hil.harness.record.out_dir import claim_out_dir
+
+    return claim_out_dir(out)
+
+
+def versions() -> dict[str, str]:
+    out = {"hil-harness": __version__, "python": platform.python_version()}
+    for pkg in ("mujoco", "numpy", "opencv-python-headless", "mcap", "eclipse-zenoh", "python-can"):
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            out[pkg] = "not installed"
+    return out
+
+
+def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
+            on_progress: Callable[..., None] | None = None, notify: Callable[[str], None] = lambda _m: None,
+            install_signal_handlers: bool = True) -> RunResult:
+    """Run ``cfg`` and write its folder. The MuJoCo GL backend must already be chosen.
+
+    SIGTERM before the loop starts ends the start-up as Ctrl-C does (KeyboardInterrupt:
+    targets and workers are ended, nothing is left running); during the loop it ends
+    the run cleanly.
+
+    Raises:
+        ConfigError: bad scenario name/parameters or overlapping vehicles (before
+            anything starts).
+        TargetError: a target could not start (before the loop; nothing recorded).
+        SimulationError: the world cannot be built or rendered.
+    """
+    restore = _sigterm_interrupts() if install_signal_handlers else None
+    try:
+        return _execute(cfg, out_dir=out_dir, gl_backend=gl_backend, on_progress=on_progress, notify=notify,
+                        install_signal_handlers=install_signal_handlers)
+    finally:
+        if restore is not None:
+            restore()
+
+
+def build_world(cfg: RunConfig) -> tuple[Any, Any]:
+    """(``WorldSpec``, ``RefStateRules``) of a config: the scenario built with its
+    seed and camera. Import mujoco-free; the GL backend need not be chosen.
+
+    Raises:
+        ConfigError: unknown scenario or bad parameters.
+    """
+    from hil import scenarios
+    from hil.scenarios.ground_truth import RefStateRules
+    from hil.scenarios.world import CameraSpec
+
+    sdef = scenarios.get(cfg.scenario.name)
+    params = sdef.resolve(cfg.scenario.params)
+    cam = cfg.camera
+    world = sdef.build(params=params, seed=cfg.seed, physics_step_s=cfg.physics_step_s,
+                       camera=CameraSpec(width=cam.width, height=cam.height, fovy_deg=cam.fovy_deg,
+                                         mount_forward_m=cam.mount_forward_m,
+                                         mount_height_m=cam.mount_height_m, mount_lateral_m=cam.mount_lateral_m,
+                                         pitch_rad=math.radians(cam.pitch_deg), yaw_rad=math.radians(cam.yaw_deg)),
+                       shadows=cam.shadows, reflections=cam.reflections)
+    t = cfg.truth
+    rules = RefStateRules(comfort_decel_mps2=t.comfort_decel_mps2, stop_margin_m=t.stop_margin_m,
+                          slow_headway_s=t.slow_headway_s, slow_ttc_s=t.slow_ttc_s)
+    return world, rules
+
+
+def _target_batches(out_dir: Path) -> dict[str, Any] | None:
+    """A shared target's batches (its ``target-shared-batches.csv``): how many of each
+    size, and the mean size; None without a shared target."""
+    import csv
+
+    from hil.harness.run.shared_target import BATCH_LOG_NAME
+
+    path = out_dir / BATCH_LOG_NAME
+    if not path.is_file():
+        return None
+    sizes: dict[int, int] = {}
+    try:
+        with open(path, newline="") as f:
+            seen = set()
+            for row in csv.DictReader(f):
+                if row.get("batch") in seen:
+                    continue
+                seen.add(row.get("batch"))
+                n = int(row.get("batch_size") or 0)
+                sizes[n] = sizes.get(n, 0) + 1
+    except (OSError, ValueError) as err:
+        return {"error": f"{path.name}: {err}"}
+    total = sum(sizes.values())
+    return {"batches": total, "by_size": {str(k): v for k, v in sorted(sizes.items())},
+            "mean_size": round(sum(k * v for k, v in sizes.items()) / total, 3) if total else 0.0}
+
+
+def _exit_note(proc: Any) -> str:
+    """'; the target process exited with code N: <its log's last lines>' for a target
+    the harness started that is gone, else ''."""
+    code = proc.exited() if proc is not None and hasattr(proc, "exited") else None
+    if code is None:
+        return ""
+    tail = proc.log_tail()
+    return f"; the target process it started exited with code {code}" + (f": {tail}" if tail else "")
+
+
+def _check_identity(cfg: RunConfig, vehicles: list[Any], procs: list[Any]) -> None:
+    """The run measures the target it started or was told to reach, no other.
+
+    Raises:
+        TargetError: a target the harness started is gone although something answered
+            (another process on its endpoint), or a HELLO names another target than
+            ``target.expect_name``.
+    """
+    for p in procs:
+        if hasattr(p, "exited") and p.exited() is not None:
+            raise TargetError("another target answered on the endpoint, but the target this run started is gone"
+                              f"{_exit_note(p)} — refusing to measure a target it did not start (is a leftover "
+                              "target or another run using the port?)")
+    want = cfg.target.expect_name
+    for v in vehicles:
+        got = v.link.hello.target_name if v.link.hello is not None else ""
+        if want is not None and not got.startswith(want):
+            raise TargetError(f"{v.name}: the target that answered says it is {got!r}, not {want!r} "
+                              "(target.expect_name) — refusing to measure it")
+
+
+RESERVE_BYTES = 2 << 20  # kept free on the run's disk until the summary and report are written
+
+
+def _reserve_disk(out_dir: Path) -> Path:
+    """Hold ``RESERVE_BYTES`` of real bytes in the run folder, released before the
+    summary and report are written, so a disk that fills during the run cannot cost
+    them. Best effort: a disk already too full for it just has no reserve."""
+    path = out_dir / ".hil-reserve"
+    try:
+        with open(path, "wb") as f:
+            f.write(b"\0" * RESERVE_BYTES)
+            f.flush()
+            os.fsync(f.fileno())
+    except OSError:
+        path.unlink(missing_ok=True)
+    return path
+
+
+class _RecordingGuard:
+    """Lets a recording failure raised when the recorder closes (disk full) through
+    as a note once the summary exists: what was recorded is kept, the summary says
+    why the run ended."""
+
+    def __init__(self) -> None:
+        self.summary_ready = False
+        self.error: str | None = None
+
+    def __enter__(self) -> _RecordingGuard:
+        return self
+
+    def __exit__(self, et: type[BaseException] | None, ev: BaseException | None, _tb: object) -> bool:
+        if et is not None and issubclass(et, RecordingError) and self.summary_ready:
+            self.error = str(ev)
+            return True
+        return False
+
+
+def _sigterm_interrupts() -> Callable[[], None] | None:
+    """Until restored, SIGTERM raises KeyboardInterrupt (main thread only)."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def on_term(_signum: int, _frame: object) -> None:
+        raise KeyboardInterrupt
+
+    prev = signal.signal(signal.SIGTERM, on_term)
+    return lambda: signal.signal(signal.SIGTERM, prev)
+
+
+def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Callable[..., None] | None,
+             notify: Callable[[str], None], install_signal_handlers: bool) -> RunResult:
+    # Imported here: these pull in mujoco, whose GL backend the caller chose first.
+    from hil.adapters.link import Received
+    from hil.harness.analysis.detector_observer import DetectorObserver
+    from hil.harness.analysis.summary import build_summary
+    from hil.harness.analysis.timing_observer import TimingObserver
+    from hil.harness.cases.recorder import CaseRecorder
+    from hil.harness.config.model import LatencyKind
+    from hil.harness.engine.pool import Engine, auto_workers
+    from hil.harness.record.channels import register_all, sync_sample_json
+    from hil.harness.record.recorder import Recorder
+    from hil.harness.report.run_report import write_report
+    from hil.harness.run.latency import LatencyProfile
+    from hil.harness.run.loop import SimLoop, encode_image, engine_specs
+    from hil.harness.run.target_launch import can_preflight, make_link
+    from hil.harness.run.vehicle_state import VehicleRun
+    from hil import scenarios
+    from hil.scenarios.sim import Simulation
+
+    world, rules = build_world(cfg)
+    params = scenarios.get(cfg.scenario.name).resolve(cfg.scenario.params)
+    lat_cfg = cfg.lockstep.latency
+    latency = (None if lat_cfg.kind == LatencyKind.NONE and lat_cfg.drop_prob == 0
+               else LatencyProfile(lat_cfg, seed=cfg.seed, vehicles=[v.name for v in world.egos]))
+    clock = MonotonicClock()
+    rx: queue.Queue[Any] = queue.Queue(maxsize=4096)  # links' messages and the engine's, one queue
+    mcap_path = out_dir / "run.mcap"
+    (out_dir / "config.json").write_text(json.dumps(dump_config(cfg), indent=2, sort_keys=True) + "\n")
+    summary_path = out_dir / "summary.json"
+    meta = {
+        "name": cfg.name, "scenario": cfg.scenario.name, "scenario_params": params, "seed": cfg.seed,
+        "config_hash": config_hash(cfg), "gl_backend": gl_backend, "versions": versions(),
+        "scenario_realized": world.realized,
+        "latency_profile": None if latency is None else latency.describe(),
+        "session": secrets.token_hex(6),  # this run's nonce: a started Zenoh target's keys carry it
+        "impairment": cfg.target.impair.model_dump(mode="json") if cfg.target.impair.active else None,
+    }
+    # ``sim`` mirrors the physics process's world here (truth, summary); it renders
+    # only for the CAN preflight.
+    with Simulation(world, rules=rules) as sim:
+        if cfg.target.transport == Transport.CAN:
+            # The bus must carry the frames: check with a real frame of this run
+            # (+25 % for scenes busier than the first one) before anything starts.
+            size = len(encode_image(sim.render(sim.egos[0]), cfg.camera)[0])
+            sim.close()
+            notify(can_preflight(cfg, frame_bytes=int(size * 1.25)))
+        vehicles: list[VehicleRun] = []
+        procs: list[Any] = []  # TargetProcess, or a shared target's handle (anything with close())
+        engine: Engine | None = None
+        reserve: Path | None = None
+        try:
+            # Physics and render processes start first: their start-up (MuJoCo, EGL,
+            # shaders) overlaps the targets'.
+            phys_spec, render_spec = engine_specs(cfg, world, rules)
+            engine = Engine(physics=phys_spec, render=render_spec, events=rx,
+                            workers=cfg.engine.render_workers or auto_workers(len(sim.egos)))
+            for i, name in enumerate(sim.egos):
+                link, proc = make_link(cfg, vehicle_id=i, vehicle=name, clock=clock, out_dir=out_dir, rx=rx,
+                                       session=meta["session"])
+                if proc is not None:
+                    procs.append(proc)
+                vehicles.append(VehicleRun(name, i, link))
+                try:
+                    link.open(hello_timeout_s=cfg.target.startup_timeout_s)
+                except TargetError as err:
+                    raise TargetError(f"{name}: {err}{_exit_note(proc)}") from err
+            warmup = {v.name: [s for _ in range(SYNC_WARMUP_SAMPLES)
+                               if (s := v.link.sync_exchange(timeout_s=0.5)) is not None]
+                      for v in vehicles}
+            _check_identity(cfg, vehicles, procs)
+            guard = _RecordingGuard()
+            reserve = _reserve_disk(out_dir)
+            with guard, Recorder(mcap_path, queue_size=cfg.recording.queue_size, compression="zstd", metadata={
+                "run": {k: json.dumps(val) if not isinstance(val, str) else val for k, val in meta.items()},
+                "config": {"yaml_json": json.dumps(dump_config(cfg), sort_keys=True)},
+            }) as main_rec:
+                cc = cfg.corner_cases
+                rec = CaseRecorder(main_rec, out_dir, run_meta=meta, history_s=cc.history_s, after_s=cc.after_s,
+                                   trigger_kinds=set(cc.on_anomalies)) if cc.enabled else main_rec
+                register_all(rec, [v.name for v in vehicles])
+                from hil.adapters.impair import record_on
+
+                for v in vehicles:  # link faults in real time: each impaired message on /<vehicle>/impairment
+                    record_on(v.link.impairment, rec, f"/{v.name}/impairment")
+                timing = TimingObserver(cfg.timing, [v.name for v in vehicles], recorder=rec)
+                detector = (DetectorObserver(cfg.detector.to_config(), [v.name for v in vehicles], camera=cfg.camera,
+                                             recorder=rec, timing=timing) if cfg.detector.enabled else None)
+                for name, samples in warmup.items():
+                    for s in samples:
+                        rec.write_json(f"/{name}/clock_sync", sync_sample_json(s, warmup=True),
+                                       log_time_ns=s.t4_ns, publish_time_ns=s.t1_ns)
+                        timing.on_sync(name, s)
+                loop = SimLoop(cfg, sim, vehicles, rx, rec, clock, engine=engine, physics=phys_spec,
+                               latency=latency)
+                loop.observers.append(timing)
+                if detector is not None:
+                    loop.observers.append(detector)
+                if on_progress is not None:
+                    loop.on_tick = lambda: on_progress(now_ns=clock.now_ns(), sim_time_s=sim.sim_time_ns / 1e9,
+                                                       duration_s=cfg.duration_s, vehicles=vehicles,
+                                                       anomalies=timing.anomaly_count)
+                restore = _install_stop_handlers(loop) if install_signal_handlers else None
+                try:
+                    stats = loop.run()
+                finally:
+                    if restore is not None:
+                        restore()
+                for v in vehicles:
+                    v.link.close()
+                loop.collect_sync()  # answers that arrived while closing
+                timing.finish()
+                if detector is not None:
+                    detector.finish()
+                if isinstance(rec, CaseRecorder):
+                    rec.close()  # writes the cases still open with what was recorded
+                main_rec.flush()
+                rec_stats = main_rec.stats
+                summary = build_summary(loop=loop, stats=stats, timing=timing, detector=detector, recorder_stats={
+                    "written": rec_stats.written, "dropped": rec_stats.dropped, "enqueued": rec_stats.enqueued},
+                    meta=meta)
+                if isinstance(rec, CaseRecorder):
+                    summary["corner_cases"] = {"written": rec.cases_written, "errors": list(rec.errors),
+                                               "triggers_dropped": rec.triggers_dropped}
+                main_rec.add_metadata("summary", {"json": json.dumps(summary, sort_keys=True)})
+                guard.summary_ready = True
+            reserve.unlink(missing_ok=True)  # room for the summary and the report
+            final = main_rec.stats
+            if guard.error is not None:
+                summary["recorder_error"] = guard.error
+                if summary.get("ended_by") == "duration":
+                    summary["ended_by"] = f"the recording failed: {guard.error}"
+            summary["recorder"] = {"written": final.written, "dropped": final.dropped,
+                                   "enqueued": final.enqueued, "bytes_written": final.bytes_written}
+            if isinstance(rec, CaseRecorder) and rec.cases_written:
+                # Windows are cut from the finalized run.mcap, after the run (nothing
+                # of a case's history is held during it).
+                from hil.harness.cases.windows import write_case_windows
+
+                try:
+                    summary["corner_cases"]["errors"] += write_case_windows(out_dir, limit=cc.windows)
+                except HilError as err:
+                    summary["corner_cases"]["errors"].append(str(err))
+        finally:
+            for v in vehicles:
+                v.link.close()
+            for p in procs:
+                p.close()
+            if engine is not None:
+                engine.close()
+            if reserve is not None:
+                reserve.unlink(missing_ok=True)
+    batches = _target_batches(out_dir)
+    if batches is not None:
+        summary["target_batches"] = batches
+    summary_path.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
+    write_report(out_dir)
+    return RunResult(out_dir, mcap_path, summary_path, summary)
+
+
+def _install_stop_handlers(loop: Any) -> Callable[[], None]:
+    """SIGTERM (and SIGINT) end the loop cleanly; returns a function restoring the
+    previous handlers."""
+
+    def on_signal(signum: int, _frame: object) -> None:
+        loop.request_stop(f"stopped by {signal.Signals(signum).name}")
+
+    prev = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+
+    def restore() -> None:
+        for s, h in prev.items():
+            signal.signal(s, h)
+
+    return restore
+
+
+__all__ = ["RunResult", "build_world", "default_out_dir", "execute", "prepare_out_dir"]

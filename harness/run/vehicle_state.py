@@ -1,0 +1,62 @@
+"""Per-vehicle bookkeeping of a run: frames in flight, applied estimates, the
+pipeline records and the live statistics shown while the run goes on."""
+
+from __future__ import annotations
+
+from array import array
+from collections import Counter
+from dataclasses import dataclass, field
+
+from hil.adapters.link import Link
+from hil.timing.anomaly import is_sane
+from hil.timing.records import STAGES, FrameStatus, PipelineRecord
+from hil.timing.stats import RateMeter, RollingWindow
+
+
+@dataclass
+class InFlight:
+    """A frame sent and not yet answered (harness clock, ns)."""
+
+    frame_id: int
+    sim_time_ns: int
+    t0_ns: int
+    t_tx_ns: int
+    t_state_ns: int | None = None  # the camera instant: when the physics reached sim_time_ns
+
+
+@dataclass
+class VehicleRun:
+    name: str
+    vehicle_id: int
+    link: Link
+    next_frame_id: int = 0
+    in_flight: dict[int, InFlight] = field(default_factory=dict)
+    last_applied_frame_id: int = -1
+    # Exact statistics in bounded memory: one int64 per stage per applied, sane frame
+    # (about 80 bytes a frame), not the records themselves (the MCAP has those).
+    stage_values: dict[str, array[int]] = field(default_factory=lambda: {s: array("q") for s in STAGES})
+    frames_settled: int = 0
+    order_violations: int = 0
+    late_estimates: int = 0
+    unknown_estimates: int = 0
+    protocol_faults: int = 0  # messages from the target that could not be decoded
+    e2e_window: RollingWindow = field(default_factory=RollingWindow)
+    fps_meter: RateMeter = field(default_factory=RateMeter)
+
+    counts: Counter[FrameStatus] = field(default_factory=Counter)
+
+    def add(self, rec: PipelineRecord) -> None:
+        """Count a settled frame and keep its stage durations (applied frames whose
+        stamps are sane; absurd ones are flagged as causality anomalies instead)."""
+        self.frames_settled += 1
+        self.counts[rec.status] += 1
+        if rec.status != FrameStatus.OK:
+            return
+        if rec.order_violations():
+            self.order_violations += 1
+        if is_sane(rec)[0]:
+            for name, v in rec.stages_ns().items():
+                self.stage_values[name].append(v)
+
+    def count(self, status: FrameStatus) -> int:
+        return self.counts[status]

@@ -1,0 +1,1 @@
+"""``hil study``: a sweep of runs over a parameter (e.g. vehicles), and its report."""

@@ -1,0 +1,37 @@
+"""Type-check the packages as they install: ``hil.timing``, ``hil.adapters``, ...
+
+    .venv/bin/python tools/typecheck.py [mypy options]
+
+mypy cannot follow setuptools' editable-install import hook, and our folders are
+``timing/``, ``adapters/``... while their modules are ``hil.timing``, ``hil.adapters``
+(setup.py). So this builds a view of the repository under the ``hil`` name
+(``.venv/typecheck/hil/<folder>`` -> ``<folder>/``, symbolic links) and runs mypy
+there with pyproject.toml's ``[tool.mypy]``. Which packages are checked, and how
+strictly: ``CHECKED`` below and pyproject.toml.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+VIEW = ROOT / ".venv" / "typecheck"
+FOLDERS = ("common", "timing", "adapters", "scenarios", "targets", "harness", "training")
+CHECKED = ("common", "timing", "adapters")
+
+
+def main() -> int:
+    (VIEW / "hil").mkdir(parents=True, exist_ok=True)
+    for folder in FOLDERS:
+        link = VIEW / "hil" / folder
+        if not link.is_symlink():
+            link.symlink_to(ROOT / folder, target_is_directory=True)
+    cmd = [sys.executable, "-m", "mypy", "--config-file", str(ROOT / "pyproject.toml"), "--explicit-package-bases",
+           *sys.argv[1:], *(f"hil/{f}" for f in CHECKED)]
+    return subprocess.run(cmd, cwd=VIEW).returncode
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
