@@ -14,6 +14,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
+from hil.common.classes import ObjectClass  # the wire's class codes (one list: hil.common.classes)
+
 
 class MsgType(IntEnum):
     HELLO = 1
@@ -31,13 +33,6 @@ class DrivingState(IntEnum):
     SAFE = 0
     SLOW = 1
     STOP = 2
-
-
-class ObjectClass(IntEnum):
-    UNKNOWN = 0
-    VEHICLE = 1
-    PEDESTRIAN = 2
-    OBSTACLE = 3
 
 
 class ImageEncoding(IntEnum):

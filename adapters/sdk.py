@@ -270,7 +270,7 @@ def add_transport_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--keep-serving", dest="keep_serving", action="store_true", default=None,
                    help="zenoh: serve harness after harness until Ctrl-C/SIGTERM (the default of `hil target`)")
     g.add_argument("--once", dest="keep_serving", action="store_false",
-                   help="zenoh: serve one harness, then exit (the default of `python -m targets.NAME`)")
+                   help="zenoh: serve one harness, then exit (the default of `python -m hil.targets.NAME`)")
 
 
 def _zenoh_security(args: argparse.Namespace) -> dict[str, object]:

@@ -333,7 +333,7 @@ class Simulation:
                 truncated = truncated or t
             vis = int(counts[e])
             spec = self.world.vehicles[e]
-            boxes.append(VisibleBox(spec.name, e, spec.cls.value, box, vis,
+            boxes.append(VisibleBox(spec.name, e, spec.cls.label, box, vis,
                                     round(min(1.0, vis / area) if area > 0 else 1.0, 4), truncated,
                                     round(float(s_m[k]), 4), round(float(lat_m[k]), 4)))
         return CameraTruth(vehicle, self.sim_time_ns, tuple(boxes), ego)
@@ -370,7 +370,7 @@ class Simulation:
         self._sync_kinematics()
         t = self.sim_time_ns
         xs, ys, hs, vxs, vys = (a.tolist() for a in self._states())
-        ents = tuple(EntityState(v.name, v.cls.value, xs[i], ys[i], vxs[i], vys[i], hs[i], v.size_m, i, t)
+        ents = tuple(EntityState(v.name, v.cls.label, xs[i], ys[i], vxs[i], vys[i], hs[i], v.size_m, i, t)
                      for i, v in enumerate(self.world.vehicles))
         egos = tuple(self._ego_truth(name) for name in (self.egos if egos is None else egos))
         collisions, self._new_collisions = tuple(self._new_collisions), []

@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from enum import Enum
 
+from hil.common.classes import ObjectClass
 from hil.scenarios.motion import Script
 from hil.scenarios.path import Path
 from hil.scenarios.road import (
@@ -50,12 +50,6 @@ PEDESTRIAN_SIZE_M = (0.45, 0.55, 1.75)
 CLEARANCE_M = 0.1  # vehicle underside above the road
 
 
-class EntityClass(str, Enum):
-    VEHICLE = "vehicle"
-    PEDESTRIAN = "pedestrian"
-    OBSTACLE = "obstacle"
-
-
 @dataclass(frozen=True)
 class VehicleSpec:
     """One entity of the world (a vehicle, a pedestrian or an obstacle).
@@ -75,7 +69,7 @@ class VehicleSpec:
     speed_mps: float = 0.0
     rgba: tuple[float, float, float, float] | None = None
     size_m: tuple[float, float, float] = VEHICLE_SIZE_M
-    cls: EntityClass = EntityClass.VEHICLE
+    cls: ObjectClass = ObjectClass.VEHICLE
     script: Script | None = None
     route: Path | None = None
 
@@ -107,7 +101,7 @@ EntitySpec = VehicleSpec
 
 def pedestrian(name: str, script: Script, *, rgba: tuple[float, float, float, float] = JACKET_RGBA) -> VehicleSpec:
     """A scripted pedestrian: grey trousers, a jacket of ``rgba``, a head."""
-    return VehicleSpec(name, rgba=rgba, size_m=PEDESTRIAN_SIZE_M, cls=EntityClass.PEDESTRIAN, script=script)
+    return VehicleSpec(name, rgba=rgba, size_m=PEDESTRIAN_SIZE_M, cls=ObjectClass.PEDESTRIAN, script=script)
 
 
 @dataclass(frozen=True)
@@ -260,7 +254,7 @@ def _entity_xml(v: VehicleSpec, cam: CameraSpec) -> list[str]:
         mocap = ' mocap="true"' if v.script is not None else ""
         body = [f'    <body name="{v.name}" pos="{v.x_m:.4f} {v.y_m:.4f} 0" euler="0 0 {v.yaw_rad:.6f}"{mocap}>']
     g = f'group="{ENTITY_GROUP}"'
-    if v.cls == EntityClass.PEDESTRIAN:
+    if v.cls == ObjectClass.PEDESTRIAN:
         legs, torso = 0.9 / 1.75 * height, 0.6 / 1.75 * height
         head = height - legs - torso
         for part, z0, dz, rgba, scale in (("legs", 0.0, legs, TROUSERS_RGBA, 0.8), ("torso", legs, torso, v.paint, 1.0),
@@ -271,7 +265,7 @@ def _entity_xml(v: VehicleSpec, cam: CameraSpec) -> list[str]:
                 f'mass="20" {g}/>'
             )
     else:
-        bottom = CLEARANCE_M if v.cls == EntityClass.VEHICLE else 0.0
+        bottom = CLEARANCE_M if v.cls == ObjectClass.VEHICLE else 0.0
         body.append(
             f'      <geom name="{v.name}/body" type="box" pos="0 0 {bottom + height / 2:.3f}" '
             f'size="{length / 2:.3f} {width / 2:.3f} {height / 2:.3f}" rgba="{_rgba(v.paint)}" mass="1500" {g}/>'

@@ -8,8 +8,10 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
+import jsonschema
 import pytest
 
+from hil.harness.analysis.events import EVENT_SCHEMA
 from hil.scenarios.gl import select_backend
 
 GL_BACKEND = select_backend()
@@ -23,7 +25,11 @@ def read_mcap(path: Path) -> dict[str, list[tuple[Any, Any]]]:
     with open(path, "rb") as f:
         for schema, channel, message in make_reader(f).iter_messages(log_time_order=False):
             assert schema is not None and schema.encoding == "jsonschema", channel.topic
-            out[channel.topic].append((message, json.loads(message.data)))
+            d = json.loads(message.data)
+            if channel.topic == "/events":  # every event, in every test that reads one, against its one schema
+                assert json.loads(schema.data)["required"] == EVENT_SCHEMA["required"], "not the event schema"
+                jsonschema.validate(d, json.loads(schema.data))
+            out[channel.topic].append((message, d))
     return out
 
 

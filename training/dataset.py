@@ -55,12 +55,12 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
+from hil.common.classes import ObjectClass
 from hil.scenarios import get as get_scenario
 from hil.scenarios.path import Path as RoadPath
 from hil.scenarios.road import RoadSpec
 from hil.scenarios.vehicle import VehicleLimits
-from hil.scenarios.world import (PAINTS, PEDESTRIAN_SIZE_M, CameraSpec, EntityClass, VehicleSpec,
-                                 WorldSpec)
+from hil.scenarios.world import PAINTS, PEDESTRIAN_SIZE_M, CameraSpec, VehicleSpec, WorldSpec
 
 if TYPE_CHECKING:
     from hil.scenarios.sim import Simulation
@@ -232,19 +232,19 @@ def _composed_world(rng: np.random.Generator, camera: CameraSpec) -> tuple[World
                 lat = (float(rng.normal(0, 0.3)) if where < 0.55 else _LANE_W + float(rng.normal(0, 0.3))
                        if where < 0.85 else -_LANE_W / 2 - 0.3 - size[1] / 2 - float(rng.uniform(0, 1)))
                 dyaw = float(rng.normal(0, 0.05)) if rng.random() < 0.9 else float(rng.uniform(-1.6, 1.6))
-                cls, rgba = EntityClass.VEHICLE, _paint(rng)
+                cls, rgba = ObjectClass.VEHICLE, _paint(rng)
             elif kind == "ped":
                 size = PEDESTRIAN_SIZE_M
                 lat = (float(rng.uniform(-1.5, 1.5)) if where < 0.5
                        else -_LANE_W / 2 - float(rng.uniform(0.3, 2.0)))
                 dyaw = float(rng.uniform(-math.pi, math.pi))
-                cls = EntityClass.PEDESTRIAN
+                cls = ObjectClass.PEDESTRIAN
                 rgba = (1.0, 0.55, 0.0, 1.0) if rng.random() < 0.5 else _paint(rng)
             else:
                 size = (float(rng.uniform(0.3, 1.0)), float(rng.uniform(0.4, 1.0)), float(rng.uniform(0.4, 1.0)))
                 lat = float(rng.uniform(-1.5, 1.5)) if where < 0.7 else -_LANE_W / 2 - float(rng.uniform(0.3, 1.5))
                 dyaw = float(rng.uniform(-0.8, 0.8))
-                cls = EntityClass.OBSTACLE
+                cls = ObjectClass.OBSTACLE
                 grey = float(rng.uniform(0.6, 0.95))  # lighter than the road (0.32)
                 rgba = _paint(rng) if rng.random() < 0.6 else (grey, grey * 0.9, grey * 0.8, 1.0)
             bx, by, bh = (float(v) for v in lane0.pose_at(s))

@@ -57,6 +57,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from hil.adapters.messages import DrivingState, Estimate
+from hil.common.classes import ObjectClass
 from hil.harness.analysis.late_reaction import Decision, EgoView, LateReactionJudge
 from hil.timing.anomaly import Severity
 
@@ -153,9 +154,6 @@ class Mismatch:
                 "linked_anomalies": list(self.linked_anomalies), "evidence": dict(self.evidence)}
 
 
-_CLASS = {0: "unknown", 1: "vehicle", 2: "pedestrian", 3: "obstacle"}
-
-
 def nearest_point_in_camera_frame(*, ego_x: float, ego_y: float, ego_yaw: float, mount_forward_m: float,
                                   mount_lateral_m: float, camera_yaw: float, x: float, y: float, yaw: float,
                                   length: float, width: float) -> tuple[float, float]:
@@ -244,7 +242,7 @@ class CornerCaseDetector:
                  "latency_sim_ns": at_apply.sim_time_ns - at_t0.sim_time_ns if at_apply is not None else None,
                  "latency_ns": latency_ns}
         found: dict[_Key, _Found] = {}
-        objs = [(_CLASS.get(int(o.cls), "unknown"), float(o.position_m[0]), float(o.position_m[1]))
+        objs = [(ObjectClass.of(int(o.cls)).label, float(o.position_m[0]), float(o.position_m[1]))
                 for o in est.objects]
         self._objects(objs, at_t0, at_apply, found, frame)
         self._state(est.state, at_t0, at_apply, found, frame)

@@ -24,9 +24,10 @@ from typing import Any
 from hil.adapters.messages import DrivingState, Estimate
 from hil.harness.analysis.detector import (CornerCaseDetector, DetectorConfig, FrameTruth, Mismatch, TruthObject,
                                            link_anomalies, nearest_point_in_camera_frame)
-from hil.harness.config.model import CameraConfig
+from hil.harness.analysis.events import Event, EventBus
 from hil.harness.analysis.late_reaction import EgoView
 from hil.harness.analysis.timing_observer import TimingObserver
+from hil.harness.config.model import CameraConfig
 from hil.scenarios.ground_truth import CameraTruth, EntityState, GroundTruth
 from hil.timing.records import FrameStatus, PipelineRecord
 from hil.timing.sync import SyncSample
@@ -48,10 +49,12 @@ class _VehicleJudge:
 
 class DetectorObserver:
     def __init__(self, cfg: DetectorConfig, vehicles: list[str], *, camera: CameraConfig, recorder: Any,
-                 timing: TimingObserver | None, link_delay_s: float = 1.5) -> None:
+                 timing: TimingObserver | None, events: EventBus | None = None, link_delay_s: float = 1.5) -> None:
+        """``events``: the run's bus the mismatches go on (default: one that records
+        them on ``recorder``'s ``/events``)."""
         self.cfg = cfg
         self.cam = camera
-        self.rec = recorder
+        self.events = events if events is not None else EventBus.recording_to(recorder)
         self.timing = timing
         self.delay_ns = int(link_delay_s * 1e9)
         self.v = {name: _VehicleJudge(CornerCaseDetector(name, cfg)) for name in vehicles}
@@ -198,11 +201,10 @@ class DetectorObserver:
             if not ready(due):
                 keep.append((due, m))
                 continue
-            if self.timing is not None and m.vehicle in self.timing.v:
-                m = link_anomalies(m, self.timing.v[m.vehicle].anomalies)
+            if self.timing is not None:
+                m = link_anomalies(m, self.timing.anomalies_of(m.vehicle))
             self.mismatches.append(m)
-            self.rec.write_json("/events", m.to_json(), log_time_ns=m.harness_time_ns,
-                                publish_time_ns=m.harness_time_ns)
+            self.events.publish(Event.from_mismatch(m))
         self._pending = keep
 
     def summary(self, vehicle: str) -> dict[str, Any]:

@@ -25,12 +25,13 @@ from __future__ import annotations
 from array import array
 from bisect import bisect_right
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
 from hil.adapters.messages import Estimate
 from hil.harness.config.timing import TimingConfig
+from hil.harness.analysis.events import Event, EventBus
 from hil.harness.record.recorder import Recorder
 from hil.scenarios.ground_truth import GroundTruth
 from hil.timing.anomaly import Anomaly, AnomalyDetector
@@ -102,13 +103,15 @@ class TimingObserver:
     """A ``RunObserver``; ``summary()`` gives the per-vehicle timing figures."""
 
     def __init__(self, cfg: TimingConfig, vehicles: list[str], *, recorder: Recorder,
-                 handoff_margin_ns: int = HANDOFF_MARGIN_NS) -> None:
-        """``handoff_margin_ns``: the longest the loop takes to hand a received
-        estimate over; frame-rate windows closer to now than that are judged only
-        once a record has shown them complete."""
+                 events: EventBus | None = None, handoff_margin_ns: int = HANDOFF_MARGIN_NS) -> None:
+        """``events``: the run's bus the anomalies go on (default: one that records
+        them on ``recorder``'s ``/events``). ``handoff_margin_ns``: the longest the
+        loop takes to hand a received estimate over; frame-rate windows closer to now
+        than that are judged only once a record has shown them complete."""
         self.cfg = cfg
         self.handoff_margin_ns = handoff_margin_ns
         self.rec = recorder
+        self.events = events if events is not None else EventBus.recording_to(recorder)
         self.lost_after_ns = int(cfg.sync.lost_after_s * 1e9)
         sync_cfg = cfg.sync.to_sync_config()
         self.v: dict[str, _VehicleTiming] = {
@@ -232,11 +235,7 @@ class TimingObserver:
     def _emit(self, vehicle: str, vt: _VehicleTiming, anomalies: list[Anomaly]) -> None:
         for a in anomalies:
             vt.anomalies.append(a)
-            d = a.to_json()
-            d["kind"] = a.kind.value.lower()
-            d["vehicle"] = vehicle
-            t = a.harness_time_ns
-            self.rec.write_json("/events", d, log_time_ns=t, publish_time_ns=t)
+            self.events.publish(Event.from_anomaly(a, vehicle))
 
     # -- results --------------------------------------------------------------
 
@@ -247,6 +246,12 @@ class TimingObserver:
 
     def anomaly_count(self, vehicle: str) -> int:
         return len(self.v[vehicle].anomalies)
+
+    def anomalies_of(self, vehicle: str) -> Sequence[Anomaly]:
+        """The vehicle's anomalies so far, in the order they were found (none for a
+        vehicle this observer does not time)."""
+        vt = self.v.get(vehicle)
+        return vt.anomalies if vt is not None else ()
 
     def live_p(self, vehicle: str, q: float) -> float | None:
         p = self.v[vehicle].hist.percentiles_ms("end_to_end")

@@ -1,9 +1,10 @@
 """Corner cases: each one a reference into the run's own recording, indexed.
 
 ``CaseRecorder`` stands in front of the run's ``Recorder`` (same methods): every
-message goes to ``run.mcap`` unchanged. During the run it only notes the triggers: a
-message on ``/events`` whose kind is a trigger (every ``mismatch.*``, plus the
-timing-anomaly kinds named in config) — a few fields each, at most ``max_triggers``
+message goes to ``run.mcap`` unchanged, and the latest sim time of ``/ground_truth``
+is noted. It subscribes to the run's event bus (:meth:`on_event`) and notes the
+triggers: events whose kind is a trigger (every ``mismatch.*``, plus the
+anomaly kinds named in config) — one event each, at most ``max_triggers``
 of them (the rest counted in ``triggers_dropped`` and reported in ``errors``).
 Nothing else is kept: no history, no images; memory is bounded whatever the run
 length, and nothing is written to disk beside ``run.mcap`` until :meth:`close`.
@@ -40,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from hil.common.errors import ConfigError
+from hil.harness.analysis.events import Event
 from hil.harness.record.recorder import Recorder, RecorderStats
 
 DB_NAME = "corner_cases.sqlite"
@@ -157,9 +159,7 @@ class CaseRecorder:
 
     def write_json(self, topic: str, obj: Mapping[str, Any], *, log_time_ns: int, publish_time_ns: int) -> bool:
         ok = self.rec.write_json(topic, obj, log_time_ns=log_time_ns, publish_time_ns=publish_time_ns)
-        if topic == "/events":
-            self._maybe_trigger(obj, log_time_ns)
-        elif topic == "/ground_truth":
+        if topic == "/ground_truth":
             t = obj.get("sim_time_ns")
             if isinstance(t, int):
                 self._sim_ns = max(self._sim_ns, t)
@@ -187,19 +187,17 @@ class CaseRecorder:
 
     # -- cases -------------------------------------------------------------------
 
-    def _maybe_trigger(self, ev: Mapping[str, Any], t_ns: int) -> None:
-        kind = str(ev.get("kind", ""))
-        if not (kind.startswith("mismatch.") or kind in self.triggers):
+    def on_event(self, ev: Event, log_time_ns: int) -> None:
+        """A subscriber of the run's event bus: every mismatch, and the event kinds
+        named in ``corner_cases.on_anomalies``, are noted as triggers."""
+        if not (ev.kind.is_mismatch or ev.kind.value in self.triggers):
             return
         if len(self._noted) >= self.max_triggers:
             self.triggers_dropped += 1
             return
-        sim = ev.get("sim_time_ns")
-        cause = ev.get("cause")
-        sev = ev.get("severity")
-        self._noted.append(Trigger(str(ev.get("vehicle", "")), kind, cause if isinstance(cause, str) else None,
-                                   sim if isinstance(sim, int) else self._sim_ns, t_ns,
-                                   sev if isinstance(sev, str) else None, dict(ev)))
+        sim = ev.sim_time_ns if ev.sim_time_ns is not None else self._sim_ns
+        self._noted.append(Trigger(ev.vehicle or "", ev.kind.value, ev.cause, sim, log_time_ns, ev.severity.value,
+                                   ev.to_json()))
 
     def close(self) -> None:
         """Group the triggers into cases and write their rows (idempotent). A case

@@ -61,10 +61,7 @@ class Other:
 
 
 def _frames_of(ev: Mapping[str, Any]) -> set[int]:
-    ids = set(ev.get("frame_ids") or [])
-    if ev.get("frame_id") is not None:
-        ids.add(int(ev["frame_id"]))
-    return ids
+    return set(ev.get("frame_ids") or [])
 
 
 PROTOCOL_KIND = "protocol_error"

@@ -18,6 +18,7 @@ import sys
 from collections.abc import Iterable
 from typing import Any
 
+from hil.harness.analysis.events import EVENT_SCHEMA
 from hil.harness.record import foxglove_out
 from hil.harness.record.recorder import Recorder, TimeAnchor
 from hil.timing.sync import SyncSample
@@ -80,8 +81,8 @@ CAMERA_TRUTH = _obj("hil.CameraTruth", {
     "ego": _EGO_TRUTH,
 }, ["vehicle", "frame_id", "sim_time_ns", "boxes", "ego"])
 
-EVENT = _obj("hil.Event", {"kind": {"type": "string"}, "vehicle": {"type": "string"}},
-             ["kind"])
+# Every event (hil.harness.analysis.events): the promised fields, then its kind's extras.
+EVENT = _obj("hil.Event", EVENT_SCHEMA["properties"], EVENT_SCHEMA["required"])
 
 
 CLOCK_STATE = _obj("hil.ClockState", {

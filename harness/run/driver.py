@@ -231,6 +231,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     # Imported here: these pull in mujoco, whose GL backend the caller chose first.
     from hil.adapters.link import Received
     from hil.harness.analysis.detector_observer import DetectorObserver
+    from hil.harness.analysis.events import EventBus
     from hil.harness.analysis.summary import build_summary
     from hil.harness.analysis.timing_observer import TimingObserver
     from hil.harness.cases.recorder import CaseRecorder
@@ -307,20 +308,25 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 rec = CaseRecorder(main_rec, out_dir, run_meta=meta, history_s=cc.history_s, after_s=cc.after_s,
                                    trigger_kinds=set(cc.on_anomalies)) if cc.enabled else main_rec
                 register_all(rec, [v.name for v in vehicles])
+                # The run's one event bus: recorded on /events first, then the corner cases.
+                bus = EventBus.recording_to(rec)
+                if isinstance(rec, CaseRecorder):
+                    bus.subscribe(rec.on_event)
                 from hil.adapters.impair import record_on
 
                 for v in vehicles:  # link faults in real time: each impaired message on /<vehicle>/impairment
                     record_on(v.link.impairment, rec, f"/{v.name}/impairment")
-                timing = TimingObserver(cfg.timing, [v.name for v in vehicles], recorder=rec)
+                timing = TimingObserver(cfg.timing, [v.name for v in vehicles], recorder=rec, events=bus)
                 detector = (DetectorObserver(cfg.detector.to_config(), [v.name for v in vehicles], camera=cfg.camera,
-                                             recorder=rec, timing=timing) if cfg.detector.enabled else None)
+                                             recorder=rec, timing=timing, events=bus)
+                            if cfg.detector.enabled else None)
                 for name, samples in warmup.items():
                     for s in samples:
                         rec.write_json(f"/{name}/clock_sync", sync_sample_json(s, warmup=True),
                                        log_time_ns=s.t4_ns, publish_time_ns=s.t1_ns)
                         timing.on_sync(name, s)
                 loop = SimLoop(cfg, sim, vehicles, rx, rec, clock, engine=engine, physics=phys_spec,
-                               latency=latency)
+                               latency=latency, events=bus)
                 loop.observers.append(timing)
                 if detector is not None:
                     loop.observers.append(detector)

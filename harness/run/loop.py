@@ -49,6 +49,7 @@ from hil.adapters.messages import CameraInfo, Command, ErrorMsg, Estimate, Heart
 from hil.adapters.process import prioritise_this_thread
 from hil.adapters.protocol import ErrorCode
 from hil.common.errors import TransportError
+from hil.harness.analysis.events import Event, EventBus, EventKind
 from hil.harness.analysis.observers import RunObserver
 from hil.harness.config.model import CameraConfig, Encoding, Mode, RunConfig
 from hil.harness.engine.analysis import AnalysisThread
@@ -121,15 +122,17 @@ class SimLoop:
     """Runs one configured simulation (in ``engine``) against its vehicles' links.
 
     ``sim`` is a mirror of the physics process's world in this process: ground truth
-    and the summary's final state are taken from it. ``events`` is the one queue the
-    links and the engine's pumps deliver into.
+    and the summary's final state are taken from it. ``received`` is the one queue the
+    links and the engine's pumps deliver into; ``events`` the run's event bus.
     """
 
     def __init__(self, cfg: RunConfig, sim: Simulation, vehicles: list[VehicleRun],
-                 events: queue.Queue[Any], recorder: Recorder, clock: Clock, *, engine: Engine,
+                 received: queue.Queue[Any], recorder: Recorder, clock: Clock, *, engine: Engine,
                  physics: PhysicsSpec, on_tick: Callable[[], None] | None = None,
-                 latency: LatencyProfile | None = None) -> None:
-        self.cfg, self.sim, self.vehicles, self.rx, self.rec, self.clock = cfg, sim, vehicles, events, recorder, clock
+                 latency: LatencyProfile | None = None, events: EventBus | None = None) -> None:
+        self.cfg, self.sim, self.vehicles, self.rx, self.rec, self.clock = cfg, sim, vehicles, received, recorder, clock
+        # The run's event bus (default: one that records on the recorder's /events).
+        self.events = events if events is not None else EventBus.recording_to(recorder)
         self.engine, self.physics = engine, physics
         self.by_id = {v.vehicle_id: v for v in vehicles}
         self.by_name = {v.name: v for v in vehicles}
@@ -529,10 +532,10 @@ class SimLoop:
             ob.on_sync(name, s)
         self.rec.write_json(f"/{name}/clock_sync", sync_sample_json(s), log_time_ns=s.t4_ns, publish_time_ns=s.t1_ns)
 
-    def _event(self, ev: dict[str, Any], log_time_ns: int, publish_time_ns: int) -> None:
-        """An event from the loop thread, recorded by the analysis thread (one writer)."""
-        self.analysis.post(functools.partial(self.rec.write_json, "/events", ev, log_time_ns=log_time_ns,
-                                             publish_time_ns=publish_time_ns))
+    def _event(self, ev: Event, log_time_ns: int | None = None) -> None:
+        """An event from the loop thread, published by the analysis thread (the bus's
+        one thread)."""
+        self.analysis.post(self.events.publish, ev, log_time_ns)
 
     def _record_truth(self, gt: GroundTruth) -> None:
         t = self.clock.now_ns()
@@ -542,9 +545,10 @@ class SimLoop:
             if e.gap_m is not None:
                 self.min_gap_m[e.vehicle] = min(self.min_gap_m.get(e.vehicle, float("inf")), e.gap_m)
         for c in gt.collisions:
-            ev = {"kind": "collision", **c.to_json()}
-            self.collisions.append(ev)
-            self.rec.write_json("/events", ev, log_time_ns=t, publish_time_ns=t)
+            ev = Event.of(EventKind.COLLISION, t, sim_time_ns=c.sim_time_ns, extra=c.to_json(),
+                          detail=f"{c.a} and {c.b} collided at {c.closing_speed_mps:.1f} m/s")
+            self.collisions.append(ev.to_json())
+            self.events.publish(ev)
         initial = not self._changes.seen
         self.rec.write_json("/ground_truth", {
             "sim_time_ns": gt.sim_time_ns,
@@ -567,12 +571,11 @@ class SimLoop:
         elif isinstance(m, ProtocolFault):
             self._on_protocol_fault(v, m, r.t_rx_ns)
         elif isinstance(m, ErrorMsg):
-            ev = {"kind": "target_error", "vehicle": v.name, "code": m.code, "message": m.message}
-            self._event(ev, r.t_rx_ns, r.t_rx_ns)
+            self._event(Event.of(EventKind.TARGET_ERROR, r.t_rx_ns, vehicle=v.name, sim_time_ns=self._sim_ns,
+                                 detail=m.message, extra={"code": m.code, "message": m.message}))
         elif isinstance(m, Command):  # the target's reply to a command: the swap, on record
-            ev = {"kind": "target_command_reply", "vehicle": v.name, "seq": m.seq, "text": m.text,
-                  "t_target_ns": m.t_sender_ns}
-            self._event(ev, r.t_rx_ns, r.t_rx_ns)
+            self._event(Event.of(EventKind.TARGET_COMMAND_REPLY, r.t_rx_ns, vehicle=v.name, sim_time_ns=self._sim_ns,
+                                 extra={"seq": m.seq, "text": m.text, "t_target_ns": m.t_sender_ns}))
         elif isinstance(m, Heartbeat):
             pass
 
@@ -581,9 +584,8 @@ class SimLoop:
         vehicle, the rest counted) and an ERROR MALFORMED back (PROTOCOL.md section 8)."""
         v.protocol_faults += 1
         if v.protocol_faults <= MAX_PROTOCOL_EVENTS:
-            ev = {"kind": "protocol_error", "severity": "warning", "vehicle": v.name, "offset": f.offset,
-                  "detail": f.detail, "t_rx_ns": t_rx, "sim_time_ns": self._sim_ns}
-            self._event(ev, t_rx, t_rx)
+            self._event(Event.of(EventKind.PROTOCOL_ERROR, t_rx, vehicle=v.name, sim_time_ns=self._sim_ns,
+                                 detail=f.detail, extra={"offset": f.offset, "t_rx_ns": t_rx}))
         try:
             v.link.send_error(ErrorCode.MALFORMED, f.detail)
         except TransportError:
@@ -601,12 +603,12 @@ class SimLoop:
                 t = self.clock.now_ns()
                 try:
                     sent = v.link.send_command(c.command)
-                    ev = {"kind": "target_command", "vehicle": v.name, "seq": sent.seq, "text": c.command,
-                          "sim_time_ns": self._sim_ns}
+                    ev = Event.of(EventKind.TARGET_COMMAND, t, vehicle=v.name, sim_time_ns=self._sim_ns,
+                                  extra={"seq": sent.seq, "text": c.command})
                 except TransportError as err:
-                    ev = {"kind": "target_command_failed", "vehicle": v.name, "text": c.command,
-                          "detail": str(err), "sim_time_ns": self._sim_ns}
-                self._event(ev, t, t)
+                    ev = Event.of(EventKind.TARGET_COMMAND_FAILED, t, vehicle=v.name, sim_time_ns=self._sim_ns,
+                                  detail=str(err), extra={"text": c.command})
+                self._event(ev)
 
     def _on_estimate(self, v: VehicleRun, m: Estimate, t0p: int) -> None:
         fl = v.in_flight.pop(m.frame_id, None)
@@ -617,9 +619,8 @@ class SimLoop:
                 v.late_estimates += 1
             else:
                 v.unknown_estimates += 1
-            ev = {"kind": "late_estimate" if late else "unknown_estimate",
-                  "vehicle": v.name, "frame_id": m.frame_id, "t0p_ns": t0p}
-            self._event(ev, t0p, t0p)
+            self._event(Event.of(EventKind.LATE_ESTIMATE if late else EventKind.UNKNOWN_ESTIMATE, t0p,
+                                 vehicle=v.name, frame_ids=(m.frame_id,), extra={"t0p_ns": t0p}))
             return
         if self.held is not None:  # lockstep latency profile: applied when sim time comes
             self._hold(v, fl, m, t0p)
@@ -670,8 +671,8 @@ class SimLoop:
         d = self.latency.delay(v.vehicle_id, fl.frame_id)
         if d.latency_ns is None:  # the replayed run lost (or discarded) this frame: so does the replay
             self._add_record(v, _record(v, fl, d.status, m, t0p), m)
-            ev = {"kind": "replayed_" + d.status.value, "vehicle": v.name, "frame_id": fl.frame_id}
-            self._event(ev, t0p, fl.t0_ns)
+            self._event(Event.of(EventKind("replayed_" + d.status.value), fl.t0_ns, vehicle=v.name,
+                                 frame_ids=(fl.frame_id,), sim_time_ns=fl.sim_time_ns), t0p)
             return
         self.held.hold(self.held.due_time(fl.sim_time_ns, d.latency_ns), v.vehicle_id, fl.frame_id, (v, fl, m, t0p))
 

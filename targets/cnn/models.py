@@ -38,11 +38,12 @@ except ImportError as err:  # pragma: no cover - depends on the install
     raise ImportError("the CNN target needs torch: pip install -e '.[ai]' -c constraints.txt "
                       "(torch==2.13.0, the CPU build)") from err
 
+from hil.common.classes import DETECTABLE
 from hil.targets.cnn.preprocess import DET_H, DET_W, STEER_H, STEER_W
 
 WEIGHTS_DIR = Path(__file__).resolve().parent.parent / "weights"
 DETECTOR_FILE, STEERING_FILE = "detector.pt", "steering.pt"
-CLASSES = ("vehicle", "pedestrian", "obstacle")  # heatmap channel order
+CLASSES = tuple(c.label for c in DETECTABLE)  # heatmap channel order
 STRIDE = 4  # detector pixels per output cell
 NMS_IOU = 0.5  # a large object can peak in more than one cell: keep the best box
 DET_WIDTHS = (16, 24, 32, 48, 64)

@@ -40,15 +40,16 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.adapters.messages import Control, DetectedObject, Frame, Inference, ObjectClass
+from hil.adapters.messages import Control, DetectedObject, Frame, Inference
 from hil.adapters.sdk import decode_image
+from hil.common.classes import DETECTABLE
 from hil.targets.cnn import commands
 from hil.targets.cnn.decision import Policy, decide, in_path, nearest_in_path
 from hil.targets.cnn.geometry import estimate_position
 from hil.targets.cnn.preprocess import DET_H, DET_W, detector_input, steering_input
 from hil.targets.cv_baseline import MAX_STEER_RAD, CvBaseline
 
-_CLASS = {0: ObjectClass.VEHICLE, 1: ObjectClass.PEDESTRIAN, 2: ObjectClass.OBSTACLE}
+_CLASS = dict(enumerate(DETECTABLE))  # heatmap channel -> class
 STAGES = ("decode", "steering", "detector", "decision", "total")
 
 

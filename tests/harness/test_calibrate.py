@@ -71,7 +71,7 @@ def _run(events, **summary) -> RunData:
 def test_fault_flagged_twice_or_never_fails():
     truth = _truth(drop_frames=[3], spike_frames=[5])
     truth.frames[3]["send_mono_ns"] = None
-    twice = [{"kind": "dropped_frame", "frame_id": 3}, {"kind": "dropped_frame", "frame_ids": [3]},
+    twice = [{"kind": "dropped_frame", "frame_ids": [3]}, {"kind": "dropped_frame", "frame_ids": [3]},
              {"kind": "latency_spike", "frame_ids": [5]}]
     rows, others = fault_checks(truth, _run(twice))
     assert [(r.fault, r.ok) for r in rows] == [("spike", True), ("drop", False)]
@@ -213,13 +213,15 @@ def test_clean_run_raises_no_anomaly_at_default_thresholds(tmp_path):
     # 60 s, no fault injected, default thresholds and sync. The reference target's
     # truth says whether it delivered a clean run: where this shared machine preempted
     # the target itself (a frame skipped, a reply late beyond its inference), the
-    # anomalies the truth puts on the target are real and allowed; none may be a
-    # false alarm or lie in the harness's own delays.
+    # anomalies the truth puts on the target are real and allowed, and so are those it
+    # puts on the link (the machine scheduling a socket's reader late: real, measured
+    # by the target's own stamps, and not ours to prevent); none may be a false alarm
+    # or lie in the harness's own delays.
     cal = _calibrate(tmp_path, "duration_s=60", 'target.args=["--infer-ms", "20"]', "timing={}")
     out = tmp_path / "cal"
     summary = json.loads((out / "summary.json").read_text())["vehicles"]["ego0"]
     assert all(c.ok for c in cal.checks), [c for c in cal.checks if not c.ok]
-    not_target = [str(o) for o in cal.others if o.cause is not Cause.TARGET]
-    assert not not_target, not_target
+    ours_or_false = [str(o) for o in cal.others if o.cause in (Cause.HARNESS, Cause.FALSE)]
+    assert not ours_or_false, ours_or_false
     if not cal.others:
         assert summary["anomalies"] == {} and _timing_events(out) == []

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from hil.harness.analysis.events import Event, EventKind
 from hil.harness.cases.recorder import CaseRecorder
 from hil.harness.cli.main import EXIT_EARLY, EXIT_OK, run_exit_code
 from hil.harness.record.recorder import Recorder
@@ -16,10 +17,8 @@ def test_an_unexpected_error_writing_a_case_is_reported(tmp_path: Path):
     meta = {"name": "r", "scenario": "stopped_car", "seed": 2**70, "config_hash": "x"}
     with Recorder(tmp_path / "run.mcap") as rec:
         cases = CaseRecorder(rec, tmp_path, run_meta=meta, history_s=0.5, after_s=0.1, trigger_kinds=set())
-        cases.register_json_channel("/events", "event", {"type": "object"})
-        cases.write_json("/events", {"kind": "mismatch.state_mismatch", "vehicle": "ego0", "sim_time_ns": 1},
-                         log_time_ns=1_000_000_000, publish_time_ns=1)
-        cases.write_json("/events", {"kind": "note"}, log_time_ns=2_000_000_000, publish_time_ns=2)
+        cases.on_event(Event(EventKind.STATE_MISMATCH, 1, "ego0", sim_time_ns=1), 1_000_000_000)
+        cases.on_event(Event(EventKind.TARGET_COMMAND, 2, "ego0"), 2_000_000_000)  # not a trigger
         cases.close()
     assert cases.cases_written == 0
     assert len(cases.errors) == 1 and "OverflowError" in cases.errors[0], cases.errors

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from hil.harness.analysis.events import Event, EventBus
 from hil.harness.cases.recorder import CaseRecorder, Trigger, group_cases, read_cases
 from hil.harness.cases.windows import write_case_windows
 from hil.harness.record.channels import register_all
@@ -39,6 +40,8 @@ def fake_run(run_dir: Path, *, seconds: float, events: dict[int, list[dict]], wa
         cases = CaseRecorder(rec, run_dir, run_meta=META, history_s=1.0, after_s=2.0, trigger_kinds={"sync_lost"},
                              max_triggers=max_triggers)
         register_all(cases, ["ego0", "ego1"])
+        bus = EventBus.recording_to(cases)  # as a run wires it: recorded, then the cases
+        bus.subscribe(cases.on_event)
         for tick in range(int(seconds * 20)):
             sim, t = tick * 50 * MS, 1_000 * MS + tick * wall_per_tick_ns
             ents = [{"id": 0, "name": "ego0", "x_m": tick * 0.5}, {"id": 1, "name": "ego1", "x_m": 100 + tick * 0.5}]
@@ -50,7 +53,7 @@ def fake_run(run_dir: Path, *, seconds: float, events: dict[int, list[dict]], wa
                 cases.write_image(f"/{v}/camera", JPEG + tick.to_bytes(4, "big"), fmt="jpeg",
                                   frame_id=f"{v}/camera", log_time_ns=t + 1, publish_time_ns=t + 1)
             for ev in events.get(tick, ()):
-                cases.write_json("/events", ev, log_time_ns=t + 2, publish_time_ns=t + 2)
+                bus.publish(Event.from_json({**ev, "harness_time_ns": t + 2}))
         cases.close()
     return cases
 

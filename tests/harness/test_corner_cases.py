@@ -48,7 +48,7 @@ def test_blind_ai_mismatches_are_found(blind):
     assert kinds.get("collision_while_safe/perception", 0) == 1
     assert v["outcome"]["collisions"] >= 1  # contacts (a bounce counts twice); one corner case
     events = [d for _, d in read_mcap(blind.mcap_path)["/events"] if d["kind"].startswith("mismatch.")]
-    crit = [e for e in events if e["mismatch"] == "state_mismatch"]
+    crit = [e for e in events if e["kind"].removeprefix("mismatch.") == "state_mismatch"]
     # SAFE against SLOW first (warning), then against STOP: reported again, critical.
     assert [e["severity"] for e in crit] == ["warning", "critical"]
 

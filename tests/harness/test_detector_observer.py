@@ -69,7 +69,7 @@ def test_camera_truth_after_the_estimate_is_judged_in_frame_order(sim):
                 obs.on_camera_truth("ego0", fid, c)
             late.clear()
     obs.finish()
-    states = [e for e in rec.events if e["mismatch"] == MismatchKind.STATE_MISMATCH.value]
+    states = [e for e in rec.events if e["kind"].removeprefix("mismatch.") == MismatchKind.STATE_MISMATCH.value]
     assert [(e["cause"], e["frame_ids"]) for e in states] == [("perception", [0, 1, 2])]
     ev = states[0]["evidence"]
     assert ev["truth_t0"] == {"state": "STOP"} and ev["sim_time_apply_ns"] - ev["sim_time_t0_ns"] == 10 * MS

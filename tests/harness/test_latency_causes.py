@@ -62,7 +62,7 @@ def runs(tmp_path_factory):
 
 
 def counts(events: list[dict]) -> Counter[str]:
-    return Counter(f"{e['mismatch']}/{e['cause']}" for e in events)
+    return Counter(f"{e['kind'].removeprefix('mismatch.')}/{e['cause']}" for e in events)
 
 
 def by_cause(events: list[dict], cause: str) -> int:
@@ -73,9 +73,9 @@ def test_every_event_is_right_by_its_own_evidence(runs):
     for (s, ms), run in runs.items():
         for e in run.events:
             ev = e["evidence"]
-            m = SimpleNamespace(kind=MismatchKind(e["mismatch"]), evidence=ev)
+            m = SimpleNamespace(kind=MismatchKind(e["kind"].removeprefix("mismatch.")), evidence=ev)
             assert cause_from_evidence(m).value == e["cause"], (s, ms, e)
-            if e["mismatch"] in ("state_mismatch", "position_error", "missed_object", "ghost_object"):
+            if e["kind"].removeprefix("mismatch.") in ("state_mismatch", "position_error", "missed_object", "ghost_object"):
                 # The frame's two instants, the latency between them: the profile's.
                 assert ev["sim_time_apply_ns"] - ev["sim_time_t0_ns"] == ev["latency_sim_ns"] == ms * 1_000_000, e
                 assert ev["frame_id"] in e["frame_ids"] and len(e["frame_ids"]) == 3, e  # min_frames, escalations too
@@ -94,7 +94,7 @@ def test_perception_errors_are_not_hidden_by_latency_episodes(runs):
     # vanished behind an open latency episode. Both causes are reported side by side.
     for ms in LATENCIES_MS:
         ped = runs[("pedestrian_occluded", ms)].events
-        crit = Counter(e["cause"] for e in ped if e["mismatch"] == "state_mismatch" and e["severity"] == "critical")
+        crit = Counter(e["cause"] for e in ped if e["kind"].removeprefix("mismatch.") == "state_mismatch" and e["severity"] == "critical")
         assert crit["perception"] >= 1, (ms, counts(ped))
         assert crit["latency"] == (0 if ms == 0 else 1), (ms, counts(ped))
         assert counts(ped)["missed_object/perception"] >= 1
@@ -104,7 +104,7 @@ def test_perception_errors_are_not_hidden_by_latency_episodes(runs):
 def test_a_late_brake_is_a_late_reaction(runs):
     for s in SCENARIOS:
         assert counts(runs[(s, 0)].events)["late_reaction/latency"] == 0, s
-    late = [e for e in runs[("stopped_car", 1000)].events if e["mismatch"] == "late_reaction"]
+    late = [e for e in runs[("stopped_car", 1000)].events if e["kind"].removeprefix("mismatch.") == "late_reaction"]
     assert len(late) == 1, counts(runs[("stopped_car", 1000)].events)
     ev = late[0]["evidence"]
     assert ev["belief"]["state"] == "STOP" and ev["latency_sim_ns"] == 1_000_000_000

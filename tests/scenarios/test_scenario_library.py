@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 from conftest import build  # tests/scenarios/conftest.py
 
+from hil.common.classes import ObjectClass
 from hil.common.errors import ConfigError
 from hil import scenarios
-from hil.scenarios.world import CameraSpec, EntityClass, VehicleSpec, WorldSpec, build_mjcf
+from hil.scenarios.world import CameraSpec, VehicleSpec, WorldSpec, build_mjcf
 
 SIX = {"stopped_car", "pedestrian_occluded", "lead_brake", "cut_in", "curved_road", "multi_vehicle"}
 
@@ -114,7 +115,7 @@ def test_pedestrian_is_a_scripted_pedestrian_with_a_jacket_the_baseline_can_see(
     import colorsys
 
     w = build("pedestrian_occluded")
-    ped = next(v for v in w.vehicles if v.cls == EntityClass.PEDESTRIAN)
+    ped = next(v for v in w.vehicles if v.cls == ObjectClass.PEDESTRIAN)
     assert ped.script is not None
     h, s, v = colorsys.rgb_to_hsv(*ped.paint[:3])
     assert s >= 0.5 and v >= 0.25 and not (75 <= h * 360 <= 165 or 185 <= h * 360 <= 235)
