@@ -21,6 +21,7 @@ import threading
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NoReturn
 
 from hil.adapters import protocol, transports
 from hil.adapters.impair import LinkImpairment
@@ -85,7 +86,7 @@ class Link(ABC):
         self.hello: Hello | None = None
         self._rx: queue.Queue[Received] = rx_queue if rx_queue is not None else queue.Queue(maxsize=rx_queue_size)
         self._sync_rx: queue.Queue[Received] = queue.Queue(maxsize=64)
-        self._decoder = StreamDecoder()
+        self._decoder: StreamDecoder[NoReturn] = StreamDecoder()
         self._lock = threading.Lock()
         self._closed = False
         self._peer_gone = threading.Event()

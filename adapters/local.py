@@ -32,8 +32,9 @@ from hil.adapters import protocol
 from hil.adapters.link import Link, Received
 from hil.adapters.messages import Hello, MsgType
 from hil.adapters.process import die_with_parent, end_process, prioritise_this_thread
-from hil.adapters.shm import (DEFAULT_INLINE_BELOW, DEFAULT_SLOT_BYTES, DEFAULT_SLOTS, ENV_SHM, SHM_FRAMES,
-                              LocalStreamDecoder, Notice, ShmReader, ShmRing)
+from hil.adapters.shm import (DEFAULT_INLINE_BELOW, DEFAULT_SLOT_BYTES, DEFAULT_SLOTS, ENV_SHM, NOTICES,
+                              SHM_FRAMES, Notice, ShmReader, ShmRing)
+from hil.adapters.stream import StreamDecoder
 from hil.common.errors import ProtocolError, TargetError, TransportError
 from hil.timing.clock import Clock
 
@@ -289,7 +290,7 @@ def serve_endpoint(ep: Endpoint) -> None:
 def serve_socket(ep: Endpoint, sock: socket.socket, ring: ShmReader | None) -> None:
     """Serve one harness's stream on ``sock`` (frames inline or through ``ring``) until
     it ends; closes both. The shared target serves each vehicle's socket with this."""
-    decoder = LocalStreamDecoder()
+    decoder = StreamDecoder(NOTICES)
     send: Callable[[bytes], None] = sock.sendall
     if ring is not None:
         send = _advertising(send, SHM_FRAMES)

@@ -14,7 +14,6 @@ of the bad field. Encoding applies the same rules, so whatever ``encode`` return
 
 from __future__ import annotations
 
-import importlib
 import math
 import operator
 import struct
@@ -580,10 +579,3 @@ __all__ = [
     "decode", "decode_header", "encode", "encode_frame",
 ]
 
-
-def __getattr__(name: str) -> object:
-    # StreamDecoder moved to hil.adapters.stream (which imports this module); keep the old
-    # name working without an import back.
-    if name == "StreamDecoder":
-        return importlib.import_module("hil.adapters.stream").StreamDecoder
-    raise AttributeError(f"module 'hil.adapters.protocol' has no attribute {name!r}")

@@ -28,6 +28,7 @@ import sys
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NoReturn
 
 import numpy as np
 
@@ -101,7 +102,7 @@ class Endpoint:
         self._pending: tuple[Frame, int] | None = None
         self._stopped = threading.Event()
         self._vehicle_id = 0
-        self._decoder = StreamDecoder()
+        self._decoder: StreamDecoder[NoReturn] = StreamDecoder()
         self._worker: threading.Thread | None = None
 
     # -- lifecycle -------------------------------------------------------------

@@ -41,8 +41,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from hil.adapters.messages import Message
-from hil.adapters.protocol import (HEADER_SIZE, MAGIC, STREAM_BUFFER_LIMIT, Header, decode, decode_header,
-                                   magic_error)
+from hil.adapters.protocol import HEADER_SIZE, decode
+from hil.adapters.stream import SideRecord
 from hil.common.errors import ProtocolError, TransportError
 
 ENV_SHM = "HIL_LOCAL_SHM"
@@ -327,114 +327,11 @@ class ShmReader:
             mm.close()
 
 
-class LocalStreamDecoder:
-    """The harness -> target stream of the local transport: protocol messages and,
-    once the ring is negotiated, notices, back to back. ``feed`` returns
-    ``Message``, ``Notice`` and ``ProtocolError`` items in order.
-
-    Follows PROTOCOL.md section 8 as ``hil.adapters.stream.StreamDecoder`` does, with
-    ``NOTICE_MAGIC`` as a second magic: a bad header or notice is reported once, then
-    the decoder skips to the next magic of either kind. Never holds more than
-    ``STREAM_BUFFER_LIMIT`` bytes.
-    """
-
-    def __init__(self) -> None:
-        self._buf = bytearray()
-        self._pos = 0
-        self._header: Header | None = None
-        self._skipping = False
-
-    def feed(self, data: bytes | bytearray | memoryview) -> list[Message | Notice | ProtocolError]:
-        if not self.buffered and len(data) == NOTICE_SIZE and data[:4] == NOTICE_MAGIC:
-            try:  # the common case: one notice per recv
-                notice = decode_notice(data)
-            except ProtocolError:
-                pass  # reported by the general path below
-            else:
-                self._skipping = False
-                return [notice]
-        out: list[Message | Notice | ProtocolError] = []
-        start = 0
-        with memoryview(data) as incoming:
-            end = incoming.nbytes
-            while start < end:
-                if self._pos and len(self._buf) + end - start > STREAM_BUFFER_LIMIT:
-                    self._compact()
-                room = STREAM_BUFFER_LIMIT - len(self._buf)  # >= 1: _drain leaves less than the limit
-                self._buf += incoming[start:start + room]
-                start += room
-                self._drain(out)
-        if self._pos * 2 >= len(self._buf):
-            self._compact()
-        return out
-
-    @property
-    def buffered(self) -> int:
-        return len(self._buf) - self._pos
-
-    def _compact(self) -> None:
-        del self._buf[:self._pos]
-        self._pos = 0
-
-    @staticmethod
-    def _notice(out: list[Message | Notice | ProtocolError], raw: bytes | bytearray | memoryview) -> bool:
-        try:
-            out.append(decode_notice(raw))
-        except ProtocolError as err:
-            out.append(err)
-            return False
-        return True
-
-    def _resync(self) -> None:
-        buf, pos = self._buf, self._pos + 1
-        found = [i for i in (buf.find(MAGIC, pos), buf.find(NOTICE_MAGIC, pos)) if i >= 0]
-        # Without a magic ahead, keep the last 3 bytes: they may begin the next one.
-        self._pos = min(found) if found else max(pos, len(buf) - 3)
-        self._skipping = True
-
-    def _drain(self, out: list[Message | Notice | ProtocolError]) -> None:
-        buf = self._buf
-        while True:
-            pos = self._pos
-            avail = len(buf) - pos
-            if self._header is None:
-                if avail < 4:
-                    return
-                magic = bytes(buf[pos:pos + 4])
-                if magic == NOTICE_MAGIC:
-                    if avail < NOTICE_SIZE:
-                        return
-                    if self._notice(out, buf[pos:pos + NOTICE_SIZE]):
-                        self._pos, self._skipping = pos + NOTICE_SIZE, False
-                    else:
-                        self._resync()
-                    continue
-                if magic != MAGIC:
-                    if not self._skipping:
-                        out.append(magic_error(magic))
-                    self._resync()
-                    continue
-                if avail < HEADER_SIZE:
-                    return
-                try:
-                    self._header = decode_header(bytes(buf[pos:pos + HEADER_SIZE]))
-                except ProtocolError as err:
-                    out.append(err)
-                    self._resync()
-                    continue
-                self._skipping = False
-            total = HEADER_SIZE + self._header.payload_len
-            if avail < total:
-                return
-            self._header = None
-            self._pos = pos + total
-            try:
-                with memoryview(buf) as whole, whole[pos:pos + total] as one:
-                    out.append(decode(one))
-            except ProtocolError as err:
-                out.append(err)
+# The local transport's harness -> target stream: messages, and once the ring is
+# negotiated, notices between them (one stream decoder: StreamDecoder(NOTICES)).
+NOTICES = SideRecord(NOTICE_MAGIC, NOTICE_SIZE, decode_notice)
 
 
-__all__ = ["DEFAULT_INLINE_BELOW", "DEFAULT_SLOTS", "DEFAULT_SLOT_BYTES", "ENV_SHM", "LocalStreamDecoder",
+__all__ = ["DEFAULT_INLINE_BELOW", "DEFAULT_SLOTS", "DEFAULT_SLOT_BYTES", "ENV_SHM", "NOTICES",
            "NOTICE_MAGIC", "NOTICE_SIZE", "Notice", "ReaderStats", "RingStats", "SHM_FRAMES", "ShmReader",
            "ShmRing", "decode_notice", "encode_notice", "slot_stride"]

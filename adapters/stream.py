@@ -2,10 +2,16 @@
 
 Stream transports feed whatever bytes arrived; the decoder returns the messages they
 completed and resynchronises on the next magic after a bad header (PROTOCOL.md,
-"What a receiver does with a bad message").
+"What a receiver does with a bad message"). A stream may also carry one kind of
+fixed-size side record between messages, with its own magic (the local transport's
+shared-memory notices, PROTOCOL.md section 10): :class:`SideRecord` names it.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Generic, TypeVar
 
 from hil.adapters.messages import Message
 from hil.adapters.protocol import (HEADER_SIZE, MAGIC, STREAM_BUFFER_LIMIT, Header, as_view, decode,
@@ -13,13 +19,28 @@ from hil.adapters.protocol import (HEADER_SIZE, MAGIC, STREAM_BUFFER_LIMIT, Head
 from hil.common.errors import ProtocolError
 
 
-class StreamDecoder:
+R = TypeVar("R")
+
+
+@dataclass(frozen=True)
+class SideRecord(Generic[R]):
+    """A fixed-size record that may sit between messages: ``magic`` (4 bytes), its
+    ``size`` and ``decode`` (raises ``ProtocolError`` for a bad one)."""
+
+    magic: bytes
+    size: int
+    decode: Callable[[bytes | bytearray | memoryview], R]
+
+
+class StreamDecoder(Generic[R]):
     """Splits a byte stream (Unix/TCP socket, ISO-TP) into messages.
 
     ``feed`` takes whatever bytes arrived and returns the messages completed by them,
     in order, with a ``ProtocolError`` in place of each message that could not be
     decoded. A bad header loses sync: the error is reported once and the decoder skips
-    to the next ``MAGIC`` after the bad start. A good header with a bad payload is
+    to the next ``MAGIC`` (or side record's magic) after the bad start. With ``side``,
+    its records come back decoded, in stream order among the messages (``R`` is their
+    type; a decoder without side records is a ``StreamDecoder[NoReturn]``). A good header with a bad payload is
     reported and skipped by its (trusted) length. The buffer never holds more than
     ``STREAM_BUFFER_LIMIT`` (``HEADER_SIZE + MAX_PAYLOAD``) bytes.
 
@@ -28,7 +49,8 @@ class StreamDecoder:
         errors: ``ProtocolError`` s reported so far.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, side: SideRecord[R] | None = None) -> None:
+        self._side = side
         self._buf = bytearray()
         self._pos = 0  # start of the unconsumed bytes in _buf
         self._header: Header | None = None  # validated header of the message at _pos
@@ -41,10 +63,19 @@ class StreamDecoder:
         """Bytes held that are not yet part of a returned message or error."""
         return len(self._buf) - self._pos
 
-    def feed(self, data: bytes | bytearray | memoryview) -> list[Message | ProtocolError]:
-        """Add received bytes; return the messages (and errors) they complete. Never
-        raises for any content of ``data``."""
-        out: list[Message | ProtocolError] = []
+    def feed(self, data: bytes | bytearray | memoryview) -> list[Message | ProtocolError | R]:
+        """Add received bytes; return the messages (and errors, and side records) they
+        complete. Never raises for any content of ``data``."""
+        side = self._side
+        if side is not None and not self.buffered and len(data) == side.size and data[:4] == side.magic:
+            try:  # the common case of a side channel: one record per recv
+                record = side.decode(data)
+            except ProtocolError:
+                pass  # reported by the general path below
+            else:
+                self._skipping = False
+                return [record]
+        out: list[Message | ProtocolError | R] = []
         with as_view(data) as incoming:
             start, end = 0, incoming.nbytes
             while start < end:
@@ -62,15 +93,40 @@ class StreamDecoder:
         del self._buf[:self._pos]
         self._pos = 0
 
-    def _fail(self, out: list[Message | ProtocolError], err: ProtocolError) -> None:
+    def _fail(self, out: list[Message | ProtocolError | R], err: ProtocolError) -> None:
         out.append(err)
         self.errors += 1
         self._skipping = True
-        found = self._buf.find(MAGIC, self._pos + 1)
-        # Without a magic ahead, keep the last 3 bytes: they may begin the next one.
-        self._pos = found if found >= 0 else max(self._pos + 1, len(self._buf) - 3)
+        self._pos = self._next_magic(self._pos + 1)
 
-    def _drain(self, out: list[Message | ProtocolError]) -> None:
+    def _next_magic(self, start: int) -> int:
+        """Where the next magic (of a message or a side record) begins at or after
+        ``start``; without one ahead, keep the last 3 bytes: they may begin the next."""
+        found = self._buf.find(MAGIC, start)
+        if self._side is not None:
+            other = self._buf.find(self._side.magic, start)
+            if other >= 0 and (found < 0 or other < found):
+                found = other
+        return found if found >= 0 else max(start, len(self._buf) - 3)
+
+    def _side_record(self, out: list[Message | ProtocolError | R], pos: int, avail: int) -> bool | None:
+        """The side record at ``pos``: True when it was consumed (decoded or reported),
+        None when more bytes are needed, False when ``pos`` holds none."""
+        side = self._side
+        if side is None or self._buf[pos:pos + 4] != side.magic:
+            return False
+        if avail < side.size:
+            return None
+        try:
+            with memoryview(self._buf) as whole, whole[pos:pos + side.size] as raw:
+                out.append(side.decode(raw))
+        except ProtocolError as err:
+            self._fail(out, err)
+            return True
+        self._pos, self._skipping = pos + side.size, False
+        return True
+
+    def _drain(self, out: list[Message | ProtocolError | R]) -> None:
         # Leaves fewer than STREAM_BUFFER_LIMIT unconsumed bytes: a whole message is
         # consumed as soon as it is present, and its length is at most that limit.
         buf = self._buf
@@ -81,9 +137,13 @@ class StreamDecoder:
                 if avail < len(MAGIC):
                     return
                 if buf[pos:pos + len(MAGIC)] != MAGIC:
+                    side = self._side_record(out, pos, avail)
+                    if side is None:
+                        return
+                    if side:
+                        continue
                     if self._skipping:
-                        found = buf.find(MAGIC, pos + 1)
-                        self._pos = found if found >= 0 else len(buf) - 3
+                        self._pos = self._next_magic(pos + 1)
                     else:
                         self._fail(out, magic_error(bytes(buf[pos:pos + len(MAGIC)])))
                     continue
@@ -112,4 +172,4 @@ class StreamDecoder:
                 self.messages += 1
 
 
-__all__ = ["StreamDecoder"]
+__all__ = ["SideRecord", "StreamDecoder"]

@@ -487,14 +487,14 @@ def protocol_cpu_us(raw_img: bytes, n: int = 2000) -> float:
     """Median µs of the protocol work of one local round trip through the ring, in one
     thread with no I/O: build and encode the FRAME, write its slot, decode the notice,
     read and decode the slot, encode the ESTIMATE and stream-decode it."""
-    from hil.adapters.shm import LocalStreamDecoder, ShmReader, ShmRing
+    from hil.adapters.shm import NOTICES, ShmReader, ShmRing
     from hil.adapters.stream import StreamDecoder
 
     est = Estimate(0, 1, DrivingState.SAFE, Control(0.0, 0.1, 0.0), (), 1, 2, 3, 4)
     times = []
     with ShmRing() as ring:
         reader = ShmReader(os.dup(ring.fd))
-        notices, answers = LocalStreamDecoder(), StreamDecoder()
+        notices, answers = StreamDecoder(NOTICES), StreamDecoder()
         for i in range(n):
             t = time.perf_counter_ns()
             frame = Frame(0, i, 0, 0, 0, 320, 240, ImageEncoding.RGB8, CAM, 0.0, raw_img)

@@ -21,7 +21,7 @@ from hil.adapters import protocol, shm
 from hil.adapters.link import Link, open_link
 from hil.adapters.local import LocalLink
 from hil.adapters.messages import CameraInfo, Estimate, Frame, Hello, ImageEncoding, SyncRequest
-from hil.adapters.shm import (NOTICE_SIZE, SHM_FRAMES, LocalStreamDecoder, Notice, ShmReader, ShmRing,
+from hil.adapters.shm import (NOTICE_SIZE, NOTICES, SHM_FRAMES, Notice, ShmReader, ShmRing,
                               decode_notice, encode_notice)
 from hil.adapters.stream import StreamDecoder
 from tests.adapters import test_conformance as conformance
@@ -221,7 +221,7 @@ def test_ring_options_are_checked():
 
 
 def _stream_items(chunks: list[bytes]) -> list[object]:
-    d = LocalStreamDecoder()
+    d = StreamDecoder(NOTICES)
     out: list[object] = []
     for c in chunks:
         out += d.feed(c)
