@@ -10,7 +10,10 @@ from setuptools import find_packages, setup
 
 FOLDERS = ("harness", "scenarios", "targets", "training")
 
+# Folders of data only, shipped as packages (their files: package-data in pyproject.toml).
+DATA = ("targets.weights",)
+
 setup(
-    packages=[f"hil.{p}" for p in find_packages(include=[*FOLDERS, *(f"{f}.*" for f in FOLDERS)])],
+    packages=[f"hil.{p}" for p in (*find_packages(include=[*FOLDERS, *(f"{f}.*" for f in FOLDERS)]), *DATA)],
     package_dir={f"hil.{f}": f for f in FOLDERS},
 )

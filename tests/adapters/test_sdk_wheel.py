@@ -117,3 +117,17 @@ def test_fresh_venv_serves_a_real_run(fresh_python, tmp_path):
     assert v["target"]["name"] == "wheel-device"
     assert v["frames_sent"] == 20 and v["estimates_applied"] >= 18, v
     assert v["clock"]["synced"]
+
+
+@pytest.mark.slow
+def test_the_harness_wheel_depends_on_the_sdk_and_carries_no_copy(tmp_path):
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-build-isolation",
+                    "-w", str(tmp_path), str(ROOT)], check=True, capture_output=True, timeout=300)
+    wheel = next(tmp_path.glob("hil_harness-*.whl"))
+    with zipfile.ZipFile(wheel) as z:
+        names = z.namelist()
+        meta = z.read(next(n for n in names if n.endswith("/METADATA"))).decode()
+    tops = {"/".join(n.split("/")[:2]) for n in names if n.startswith("hil/")}
+    assert tops == {"hil/harness", "hil/scenarios", "hil/targets", "hil/training"}, tops
+    assert "hil/targets/weights/detector.pt" in names
+    assert "Requires-Dist: hil-target-sdk==0.1.0" in meta.splitlines()
