@@ -211,8 +211,12 @@ def test_sigterm_lets_running_episodes_finish_and_resume_completes(spec_file, tm
     assert proc.returncode == 1, (rest, err)
     assert "stopped" in rest and "--resume" in rest and "Traceback" not in err
     done = episodes(out)
-    # e00001 was running on the one worker when SIGTERM came: it finished and was kept; e00002 was dropped.
-    assert sorted(done) == [0, 1] and all(v[2] == "ok" for v in done.values()), done
+    # What ran when SIGTERM came finished and was kept, what was queued was dropped. Which
+    # episode was running depends on the machine's pace (e00001 usually; e00002 when
+    # e00001 ended before the signal landed): one worker runs them in order, so the
+    # kept ones are e00000..e0000k, all whole, and not all four.
+    assert sorted(done) == list(range(len(done))) and 1 <= len(done) < 4, done
+    assert all(v[2] == "ok" for v in done.values()), done
     for i in done:
         assert (out / "episodes" / f"e{i:05d}" / "run.mcap").is_file()
     p = hil("search", str(spec_file), "--engine", "dask", "--workers", "2", "--out", str(out), "--no-progress",
