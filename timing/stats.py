@@ -1,10 +1,21 @@
 """Latency statistics: exact percentiles from recorded values and a bounded rolling
-window for live display. Inputs are integer nanoseconds; outputs milliseconds."""
+window for live display. Inputs are integer nanoseconds; outputs milliseconds.
+
+Exact figures over a run of any length need every value, but not in memory:
+:class:`SpillColumn` keeps a fixed block of int64 values and appends full blocks to
+one unlinked temporary file per process (:class:`SpillFile`), read back when the
+figures are computed. A column that grows in memory instead (``array``, ``list``)
+reallocates as it grows, and the freed blocks stayed resident: a 10-minute run grew
+its process by ~0.5 MB/min (bench/bench_soak.py, issue 14).
+"""
 
 from __future__ import annotations
 
+import os
+import tempfile
+import threading
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 
 import numpy as np
 
@@ -16,7 +27,12 @@ def summarize_ns(values_ns: Iterable[int]) -> dict[str, float | int]:
 
     An empty input gives ``{"count": 0}``.
     """
-    a = np.fromiter(values_ns, dtype=np.int64)
+    if isinstance(values_ns, SpillColumn):
+        a = values_ns.to_numpy()
+    elif isinstance(values_ns, np.ndarray):
+        a = values_ns.astype(np.int64, copy=False)
+    else:
+        a = np.fromiter(values_ns, dtype=np.int64)
     if a.size == 0:
         return {"count": 0}
     ms = a.astype(np.float64) / 1e6
@@ -27,6 +43,117 @@ def summarize_ns(values_ns: Iterable[int]) -> dict[str, float | int]:
     out.update(max_ms=round(float(ms.max()), 4), min_ms=round(float(ms.min()), 4),
                mean_ms=round(float(ms.mean()), 4), std_ms=round(float(ms.std()), 4))
     return out
+
+
+class SpillFile:
+    """One unlinked temporary file that many :class:`SpillColumn` append blocks to
+    (a file per column would cost a descriptor each: 64 vehicles hold ~700 columns).
+
+    Args:
+        directory: where the file lives (default: ``tempfile``'s, ``$TMPDIR``).
+    """
+
+    def __init__(self, directory: str | None = None) -> None:
+        self._directory = directory
+        self._file: int | None = None  # an os-level descriptor, opened at the first block
+        self._size = 0
+        self._lock = threading.Lock()
+
+    def write(self, block: np.ndarray) -> int:
+        """Append ``block``'s bytes; returns the offset they start at.
+
+        Raises:
+            OSError: the file cannot be created or written (a full disk).
+        """
+        data = block.tobytes()
+        with self._lock:
+            if self._file is None:
+                fd, path = tempfile.mkstemp(prefix="hil-spill-", dir=self._directory)
+                os.unlink(path)  # gone with the process, whatever way it ends
+                self._file = fd
+            offset = self._size
+            done = 0
+            while done < len(data):
+                done += os.pwrite(self._file, data[done:], offset + done)
+            self._size += len(data)
+            return offset
+
+    def read(self, offset: int, count: int) -> np.ndarray:
+        """``count`` int64 values written at ``offset``."""
+        with self._lock:
+            assert self._file is not None
+            data = os.pread(self._file, count * 8, offset)
+        return np.frombuffer(data, dtype=np.int64)
+
+    def close(self) -> None:
+        with self._lock:
+            if self._file is not None:
+                os.close(self._file)
+                self._file = None
+
+
+_DEFAULT_SPILL: SpillFile | None = None
+_DEFAULT_LOCK = threading.Lock()
+
+
+def default_spill() -> SpillFile:
+    """The process's shared spill file (created on first use)."""
+    global _DEFAULT_SPILL
+    with _DEFAULT_LOCK:
+        if _DEFAULT_SPILL is None:
+            _DEFAULT_SPILL = SpillFile()
+        return _DEFAULT_SPILL
+
+
+class SpillColumn:
+    """An int64 column of any length in bounded memory (module docstring): ``block``
+    values in memory, the rest in a :class:`SpillFile`. Append from one thread.
+
+    A block that cannot be spilled (``OSError``: a full disk) stays in memory instead,
+    counted in ``spill_failures``: the figures stay exact and in order, memory grows.
+    """
+
+    def __init__(self, block: int = 1024, spill: SpillFile | None = None) -> None:
+        if block < 1:
+            raise ValueError(f"block={block}: expected >= 1")
+        self._buf = np.empty(block, dtype=np.int64)
+        self._n = 0
+        self._spill = spill
+        self._blocks: list[int | np.ndarray] = []  # full blocks: an offset in the spill file, or kept here
+        self.spill_failures = 0
+
+    def append(self, value: int) -> None:
+        self._buf[self._n] = value
+        self._n += 1
+        if self._n == len(self._buf):
+            self._flush()
+
+    def _flush(self) -> None:
+        if self._spill is None:
+            self._spill = default_spill()
+        try:
+            self._blocks.append(self._spill.write(self._buf))
+        except OSError:
+            self.spill_failures += 1
+            self._blocks.append(self._buf.copy())
+        self._n = 0
+
+    def __len__(self) -> int:
+        return len(self._blocks) * len(self._buf) + self._n
+
+    def __bool__(self) -> bool:
+        return len(self) > 0
+
+    def to_numpy(self) -> np.ndarray:
+        """Every value, in the order appended (a new array)."""
+        block = len(self._buf)
+        parts = [b if isinstance(b, np.ndarray) else self._spill.read(b, block)  # type: ignore[union-attr]
+                 for b in self._blocks]
+        parts.append(self._buf[:self._n])
+        return np.concatenate(parts)
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self.to_numpy().tolist())
 
 
 class RollingWindow:

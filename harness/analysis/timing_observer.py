@@ -22,12 +22,13 @@ to ``/events`` (``kind`` is the anomaly kind's lower-case name).
 
 from __future__ import annotations
 
-from array import array
 from bisect import bisect_right
 from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
+
+import numpy as np
 
 from hil.adapters.messages import Estimate
 from hil.harness.config.timing import TimingConfig
@@ -38,12 +39,13 @@ from hil.timing.anomaly import Anomaly, AnomalyDetector
 from hil.timing.histogram import StageHistograms
 from hil.timing.pipeline import Split, causality_violations, split_stages
 from hil.timing.records import PipelineRecord
-from hil.timing.stats import summarize_ns
+from hil.timing.stats import SpillColumn, summarize_ns
 from hil.timing.sync import ClockSync, SyncEvent, SyncEventKind, SyncSample, SyncState
 
 TICK_NS = 100_000_000
 HANDOFF_MARGIN_NS = 500_000_000  # an estimate is handed over well within this after t0'
 TICK_MEMORY = 600                # ticks remembered to date frame-rate anomalies (60 s)
+RECENT_ANOMALIES = 4096          # anomalies kept to link to mismatches (their counts: all)
 
 
 class SplitRow(NamedTuple):
@@ -55,11 +57,12 @@ class SplitRow(NamedTuple):
 
 
 class SplitColumns:
-    """A run's split rows in three int64 columns (24 bytes a frame, not a tuple
-    object each): append ``SplitRow``s, iterate them back in order."""
+    """A run's split rows in three int64 columns spilled to disk in blocks
+    (``hil.timing.stats.SpillColumn``: bounded memory however long the run): append
+    ``SplitRow``s, read them back in order as arrays or rows."""
 
     def __init__(self) -> None:
-        self._frame, self._value, self._unc = array("q"), array("q"), array("q")
+        self._frame, self._value, self._unc = SpillColumn(), SpillColumn(), SpillColumn()
 
     def append(self, row: SplitRow) -> None:
         self._frame.append(row.frame_id)
@@ -69,8 +72,13 @@ class SplitColumns:
     def __len__(self) -> int:
         return len(self._frame)
 
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(frame ids, values, bounds), int64, in order of appending."""
+        return self._frame.to_numpy(), self._value.to_numpy(), self._unc.to_numpy()
+
     def __iter__(self) -> Iterator[SplitRow]:
-        return (SplitRow(f, v, u) for f, v, u in zip(self._frame, self._value, self._unc))
+        frames, values, uncs = self.arrays()
+        return (SplitRow(f, v, u) for f, v, u in zip(frames.tolist(), values.tolist(), uncs.tolist()))
 
 
 @dataclass(frozen=True)
@@ -94,7 +102,8 @@ class _VehicleTiming:
     splits: dict[str, SplitColumns] = field(default_factory=lambda: {"uplink": SplitColumns(),
                                                                       "downlink": SplitColumns()})
     excluded: dict[str, int] = field(default_factory=dict)
-    anomalies: list[Anomaly] = field(default_factory=list)
+    anomalies: deque[Anomaly] = field(default_factory=lambda: deque(maxlen=RECENT_ANOMALIES))  # to link mismatches
+    anomaly_counts: dict[str, int] = field(default_factory=dict)  # every anomaly, by kind
     sync_events: dict[str, int] = field(default_factory=dict)
     sim_time_ns: int = 0
 
@@ -235,6 +244,8 @@ class TimingObserver:
     def _emit(self, vehicle: str, vt: _VehicleTiming, anomalies: list[Anomaly]) -> None:
         for a in anomalies:
             vt.anomalies.append(a)
+            kind = a.kind.value.lower()
+            vt.anomaly_counts[kind] = vt.anomaly_counts.get(kind, 0) + 1
             self.events.publish(Event.from_anomaly(a, vehicle))
 
     # -- results --------------------------------------------------------------
@@ -245,11 +256,11 @@ class TimingObserver:
             self._flush(name, vt, now_ns=0, force=True)
 
     def anomaly_count(self, vehicle: str) -> int:
-        return len(self.v[vehicle].anomalies)
+        return sum(self.v[vehicle].anomaly_counts.values())
 
     def anomalies_of(self, vehicle: str) -> Sequence[Anomaly]:
-        """The vehicle's anomalies so far, in the order they were found (none for a
-        vehicle this observer does not time)."""
+        """The vehicle's latest ``RECENT_ANOMALIES`` anomalies, in the order they were
+        found (none for a vehicle this observer does not time)."""
         vt = self.v.get(vehicle)
         return vt.anomalies if vt is not None else ()
 
@@ -265,9 +276,7 @@ class TimingObserver:
         vt = self.v[vehicle]
         st = vt.sync.state()
         splits: dict[str, Any] = {name: _split_summary(rows) for name, rows in vt.splits.items()}
-        counts: dict[str, int] = {}
-        for a in vt.anomalies:
-            counts[a.kind.value.lower()] = counts.get(a.kind.value.lower(), 0) + 1
+        counts = dict(vt.anomaly_counts)
         return {
             "clock": {
                 "synced": st.synced, "offset_ns": st.offset_ns if st.samples_used else None,
@@ -291,15 +300,16 @@ SPLIT_EXCLUSIONS = ("clock_step", "unconfirmed_sync", "causality")
 def _split_summary(rows: SplitColumns) -> dict[str, Any]:
     """Exact statistics of signed split values (ms), with the bound of the smallest
     and largest, and how many came out negative (each within its bound)."""
-    s: dict[str, Any] = summarize_ns(r.value_ns for r in rows)
-    if rows:
-        unc = sorted(r.uncertainty_ns for r in rows)
-        lo, hi = min(rows, key=lambda r: r.value_ns), max(rows, key=lambda r: r.value_ns)
-        s["uncertainty_p50_ms"] = round(unc[len(unc) // 2] / 1e6, 4)
-        s["uncertainty_max_ms"] = round(unc[-1] / 1e6, 4)
-        s["min_uncertainty_ms"] = round(lo.uncertainty_ns / 1e6, 4)
-        s["max_uncertainty_ms"] = round(hi.uncertainty_ns / 1e6, 4)
-        s["negative"] = sum(1 for r in rows if r.value_ns < 0)
+    _frames, values, uncs = rows.arrays()
+    s: dict[str, Any] = summarize_ns(values)
+    if len(values):
+        unc = np.sort(uncs)
+        lo, hi = int(np.argmin(values)), int(np.argmax(values))  # the first of equals, as min()/max()
+        s["uncertainty_p50_ms"] = round(int(unc[len(unc) // 2]) / 1e6, 4)
+        s["uncertainty_max_ms"] = round(int(unc[-1]) / 1e6, 4)
+        s["min_uncertainty_ms"] = round(int(uncs[lo]) / 1e6, 4)
+        s["max_uncertainty_ms"] = round(int(uncs[hi]) / 1e6, 4)
+        s["negative"] = int(np.count_nonzero(values < 0))
     return s
 
 

@@ -3,14 +3,13 @@ pipeline records and the live statistics shown while the run goes on."""
 
 from __future__ import annotations
 
-from array import array
 from collections import Counter
 from dataclasses import dataclass, field
 
 from hil.adapters.link import Link
 from hil.timing.anomaly import is_sane
 from hil.timing.records import STAGES, FrameStatus, PipelineRecord
-from hil.timing.stats import RateMeter, RollingWindow
+from hil.timing.stats import RateMeter, RollingWindow, SpillColumn
 
 
 @dataclass
@@ -33,8 +32,9 @@ class VehicleRun:
     in_flight: dict[int, InFlight] = field(default_factory=dict)
     last_applied_frame_id: int = -1
     # Exact statistics in bounded memory: one int64 per stage per applied, sane frame
-    # (about 80 bytes a frame), not the records themselves (the MCAP has those).
-    stage_values: dict[str, array[int]] = field(default_factory=lambda: {s: array("q") for s in STAGES})
+    # (about 80 bytes a frame), not the records themselves (the MCAP has those),
+    # spilled to disk in blocks (``SpillColumn``): memory stays flat however long the run.
+    stage_values: dict[str, SpillColumn] = field(default_factory=lambda: {s: SpillColumn() for s in STAGES})
     frames_settled: int = 0
     order_violations: int = 0
     late_estimates: int = 0
