@@ -102,9 +102,12 @@ def load_summary(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 
 @dataclass(frozen=True)
-class Event:
-    """One ``/events`` message. ``t_ns``: its publish time (when it happened, harness
-    clock); ``vehicles``: those it concerns (empty: the whole run)."""
+class RecordedEvent:
+    """One ``/events`` message as read back from a run folder, any run's (also an older
+    harness's, whose kinds may not be ours): ``kind`` as text, the message as ``data``.
+    ``hil.harness.analysis.events.Event.from_json(data)`` gives the typed event where
+    the kind is ours. ``t_ns``: its publish time (when it happened, harness clock);
+    ``vehicles``: those it concerns (empty: the whole run)."""
 
     t_ns: int
     kind: str
@@ -141,7 +144,7 @@ class RunData:
     mcap_bytes: int
     messages: int
     pipeline: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
-    events: list[Event] = field(default_factory=list)
+    events: list[RecordedEvent] = field(default_factory=list)
     clock: dict[str, list[ClockPoint]] = field(default_factory=dict)
     clock_source: dict[str, str] = field(default_factory=dict)
     camera_times: dict[str, list[int]] = field(default_factory=dict)
@@ -177,7 +180,7 @@ def is_finalized_mcap(path: Path) -> bool:
         return False
 
 
-def _event(t_ns: int, d: dict[str, Any]) -> Event:
+def _event(t_ns: int, d: dict[str, Any]) -> RecordedEvent:
     who: list[str] = []
     for key in ("vehicle", "a", "b"):
         v = d.get(key)
@@ -186,7 +189,7 @@ def _event(t_ns: int, d: dict[str, Any]) -> Event:
     vs = d.get("vehicles")
     if isinstance(vs, list):
         who += [v for v in vs if isinstance(v, str) and v not in who]
-    return Event(t_ns, str(d.get("kind", "unknown")), tuple(who), d.get("severity"), d)
+    return RecordedEvent(t_ns, str(d.get("kind", "unknown")), tuple(who), d.get("severity"), d)
 
 
 def _metadata(path: Path) -> dict[str, Any]:
@@ -362,5 +365,5 @@ def _num(d: dict[str, Any], key: str) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
-__all__ = ["ClockPoint", "Event", "RunData", "camera_images", "is_finalized_mcap", "load_summary",
+__all__ = ["ClockPoint", "RecordedEvent", "RunData", "camera_images", "is_finalized_mcap", "load_summary",
            "read_run", "run_dir_of", "summary_path_of"]

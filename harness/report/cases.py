@@ -86,7 +86,7 @@ def read_case_rows(run_dir: Path) -> list[dict[str, Any]]:
 
 
 def case_for_event(cases: list[dict[str, Any]], event: Any) -> Any:
-    """The id of the case ``event`` (a ``run_folder.Event``) belongs to: same kind
+    """The id of the case ``event`` (a ``run_folder.RecordedEvent``) belongs to: same kind
     and vehicle, its sim time within the case's first..last trigger (or at the
     case's sim time); ``None`` if none."""
     sim = event.data.get("sim_time_ns")

@@ -39,7 +39,7 @@ import numpy as np
 
 from hil.common.errors import ConfigError
 from hil.harness import __version__
-from hil.harness.record.run_folder import ClockPoint, Event, RunData, read_run
+from hil.harness.record.run_folder import ClockPoint, RecordedEvent, RunData, read_run
 from hil.harness.report import plots as rp
 from hil.harness.report import fleet
 from hil.harness.report.cases import case_for_event, cases_section, read_case_rows
@@ -221,7 +221,7 @@ def _latency_section(d: RunData) -> str:
 # --- over time ------------------------------------------------------------------------
 
 
-def _event_title(e: Event, t_s: float) -> str:
+def _event_title(e: RecordedEvent, t_s: float) -> str:
     sim = e.data.get("sim_time_ns")
     parts = [f"{e.kind} at {t_s:.3f} s"]
     if isinstance(sim, int):
@@ -407,7 +407,7 @@ def _events_section(d: RunData) -> str:
     if not d.events:
         return "".join(out) + "<p>no events recorded</p>"
     t0 = d.t_start_ns
-    groups: dict[tuple[str, str, str], list[Event]] = {}
+    groups: dict[tuple[str, str, str], list[RecordedEvent]] = {}
     for e in d.events:
         key = (e.kind, "" if e.severity is None else str(e.severity), ", ".join(e.vehicles) or "(run)")
         groups.setdefault(key, []).append(e)

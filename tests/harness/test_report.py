@@ -21,7 +21,7 @@ import pytest
 from hil.harness.cli.main import main as hil_main
 from hil.harness.config.model import parse_config
 from hil.harness.record.recorder import Recorder
-from hil.harness.record.run_folder import Event, read_run
+from hil.harness.record.run_folder import RecordedEvent, read_run
 from hil.harness.report.run_report import build_report, write_report
 from hil.harness.run.driver import execute, prepare_out_dir
 from tests.conftest import GL_BACKEND
@@ -117,8 +117,8 @@ def test_write_report_api_and_generic_event_kinds(run_dir: Path, tmp_path: Path)
     assert write_report(run_dir) == run_dir / "report.html"
     d = read_run(run_dir)
     t = d.t_start_ns + 1_000_000_000
-    d.events.append(Event(t, "deadline_miss", ("ego0",), "error", {"kind": "deadline_miss", "value_ms": 61}))
-    d.events.append(Event(t, "clock_step", (), None, {"kind": "clock_step"}))
+    d.events.append(RecordedEvent(t, "deadline_miss", ("ego0",), "error", {"kind": "deadline_miss", "value_ms": 61}))
+    d.events.append(RecordedEvent(t, "clock_step", (), None, {"kind": "clock_step"}))
     html = build_report(d)
     assert "deadline_miss" in html and "clock_step" in html
     assert "#d62728" in html  # severity "error" colours its tick
