@@ -50,6 +50,8 @@ accepted (``hil.adapters.can_interfaces``): network interfaces would send frames
 from __future__ import annotations
 
 import queue
+import threading
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 try:
@@ -62,8 +64,9 @@ from hil.adapters.can_capacity import CapacityReport, bus_capacity
 from hil.adapters.can_dbc import MAX_VEHICLE_ID, VEHICLE_MASK, Role
 from hil.adapters.can_interfaces import LOCAL_INTERFACES
 from hil.adapters.can_peer import HEARTBEAT_TIMEOUT_S, CanPeer, CanStats
-from hil.adapters.link import Link, Received
-from hil.adapters.messages import Bye, Hello, Message
+from hil.adapters.link import Link, LinkStats, Received
+from hil.adapters.messages import Hello, Message
+from hil.adapters.sdk import serving
 from hil.common.errors import ConfigError, ProtocolError, TransportError
 from hil.timing.clock import Clock
 
@@ -128,8 +131,87 @@ def open_bus(*, interface: str, channel: str, bitrate: int, data_bitrate: int, v
         raise TransportError(f"cannot open CAN interface {interface!r} channel {channel!r}: {err}{hint}") from err
 
 
+class CanHalf:
+    """The harness's side of one vehicle on a CAN bus, not itself a ``Link``: the bus
+    options (checked when built), the bus and its ``CanPeer``. ``CanLink`` is this half
+    and nothing else; ``hil.adapters.mixed.MixedLink`` composes it with a Zenoh frame
+    path. Repeated HELLOs (a target's heartbeat until it hears us) are dropped here.
+
+    Args:
+        as ``CanLink``.
+
+    Raises:
+        ConfigError: an option is invalid (names it).
+    """
+
+    def __init__(self, *, vehicle_id: int, clock: Clock, interface: str, channel: str, bitrate: int,
+                 data_bitrate: int, fd: bool, camera_over: str, heartbeat_timeout_s: float) -> None:
+        _check_options(interface=interface, vehicle_id=vehicle_id, bitrate=bitrate, data_bitrate=data_bitrate, fd=fd)
+        if camera_over not in ("isotp", "none"):
+            raise ConfigError(f"camera_over={camera_over!r}; expected 'isotp' (frames on this bus) or 'none' "
+                              f"(a mixed target takes frames over another transport)")
+        self.vehicle_id, self.clock = vehicle_id, clock
+        self.interface, self.channel = interface, channel
+        self.bitrate, self.data_bitrate, self.camera_over = bitrate, data_bitrate, camera_over
+        self.heartbeat_timeout_s = heartbeat_timeout_s
+        self._peer: CanPeer | None = None
+        self._hello_seen = False
+
+    @property
+    def stats(self) -> CanStats | None:
+        """CAN-level counters (None before ``open``)."""
+        return self._peer.stats if self._peer is not None else None
+
+    def open(self, link_stats: LinkStats, *, dispatch: Callable[[Message | ProtocolError, int], None],
+             deliver_bytes: Callable[[bytes, int], None], on_gone: Callable[[str], None]) -> None:
+        """Open the bus and start the peer: decoded messages go to ``dispatch``, ISO-TP
+        bytes to ``deliver_bytes``, silence or a failed bus to ``on_gone``; byte and
+        error counts into ``link_stats``.
+
+        Raises:
+            TransportError: the bus cannot be opened.
+        """
+        def deliver(item: Message | ProtocolError, t_rx_ns: int, nbytes: int) -> None:
+            if isinstance(item, Hello):
+                if self._hello_seen:
+                    return
+                self._hello_seen = True
+            link_stats.bytes_received += nbytes
+            dispatch(item, t_rx_ns)
+
+        def count_error(text: str) -> None:
+            link_stats.protocol_errors += 1
+            link_stats.last_error = text
+
+        bus = open_bus(interface=self.interface, channel=self.channel, bitrate=self.bitrate,
+                       data_bitrate=self.data_bitrate, vehicle_id=self.vehicle_id)
+        try:
+            self._peer = CanPeer(role=Role.HARNESS, bus=bus, owns_bus=True, vehicle_id=self.vehicle_id,
+                                 clock=self.clock, deliver=deliver, deliver_bytes=deliver_bytes,
+                                 on_error=count_error, on_silent=on_gone, on_fatal=on_gone,
+                                 heartbeat_timeout_s=self.heartbeat_timeout_s, camera_over=self.camera_over)
+        except BaseException:
+            bus.shutdown()
+            raise
+        self._peer.start()
+
+    def send_bytes(self, data: bytes) -> None:
+        if self._peer is None:
+            raise TransportError("CAN link is not open")
+        self._peer.send_bytes(data)
+
+    def wait_sent(self, timeout_s: float) -> bool:
+        return self._peer.wait_sent(timeout_s) if self._peer is not None else True
+
+    def close(self) -> None:
+        peer, self._peer = self._peer, None
+        if peer is not None:
+            peer.close()
+
+
 class CanLink(Link):
-    """Harness side of the CAN transport for one vehicle (see the module docstring).
+    """Harness side of the CAN transport for one vehicle (see the module docstring):
+    a ``Link`` over one ``CanHalf``.
 
     Args:
         vehicle_id: 0..65535, carried in every CAN id.
@@ -152,70 +234,43 @@ class CanLink(Link):
                  bitrate: int = 500_000, data_bitrate: int = 2_000_000, fd: bool = True,
                  camera_over: str = "isotp", heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_S,
                  rx_queue_size: int = 1024, rx_queue: queue.Queue[Received] | None = None) -> None:
-        _check_options(interface=interface, vehicle_id=vehicle_id, bitrate=bitrate, data_bitrate=data_bitrate, fd=fd)
-        if camera_over not in ("isotp", "none"):
-            raise ConfigError(f"camera_over={camera_over!r}; expected 'isotp' (frames on this bus) or 'none' "
-                              f"(a mixed target takes frames over another transport)")
+        self.can = CanHalf(vehicle_id=vehicle_id, clock=clock, interface=interface, channel=channel,
+                           bitrate=bitrate, data_bitrate=data_bitrate, fd=fd, camera_over=camera_over,
+                           heartbeat_timeout_s=heartbeat_timeout_s)
         super().__init__(vehicle_id=vehicle_id, clock=clock, rx_queue_size=rx_queue_size, rx_queue=rx_queue)
-        self.interface, self.channel = interface, channel
-        self.bitrate, self.data_bitrate, self.camera_over = bitrate, data_bitrate, camera_over
-        self._heartbeat_timeout_s = heartbeat_timeout_s
-        self._peer: CanPeer | None = None
-        self._hello_seen = False
 
     @property
     def can_stats(self) -> CanStats | None:
         """CAN-level counters (None before ``open``)."""
-        return self._peer.stats if self._peer is not None else None
+        return self.can.stats
 
     @property
     def frames_superseded(self) -> int:
         """Camera frames replaced by a newer one before they were sent."""
-        return self._peer.stats.frames_superseded if self._peer is not None else 0
+        stats = self.can.stats
+        return stats.frames_superseded if stats is not None else 0
 
     def capacity(self, *, frame_bytes: int, fps: float, **options: object) -> CapacityReport:
         """``bus_capacity`` at this link's bitrates (options as there)."""
-        return bus_capacity(bitrate=self.bitrate, data_bitrate=self.data_bitrate, fd=True, frame_bytes=frame_bytes,
-                            fps=fps, camera_over=self.camera_over, **options)  # type: ignore[arg-type]
+        return bus_capacity(bitrate=self.can.bitrate, data_bitrate=self.can.data_bitrate, fd=True,
+                            frame_bytes=frame_bytes, fps=fps, camera_over=self.can.camera_over,
+                            **options)  # type: ignore[arg-type]
 
     def wait_sent(self, timeout_s: float) -> bool:
         """Wait until every ISO-TP message handed over has left; False on timeout."""
-        return self._peer.wait_sent(timeout_s) if self._peer is not None else True
+        return self.can.wait_sent(timeout_s)
 
     def _open(self) -> None:
-        bus = open_bus(interface=self.interface, channel=self.channel, bitrate=self.bitrate,
-                       data_bitrate=self.data_bitrate, vehicle_id=self.vehicle_id)
-        try:
-            self._peer = CanPeer(role=Role.HARNESS, bus=bus, owns_bus=True, vehicle_id=self.vehicle_id,
-                                 clock=self.clock, deliver=self._deliver, deliver_bytes=self._on_message_bytes,
-                                 on_error=self._count_error, on_silent=self._mark_gone, on_fatal=self._mark_gone,
-                                 heartbeat_timeout_s=self._heartbeat_timeout_s, camera_over=self.camera_over)
-        except BaseException:
-            bus.shutdown()
-            raise
-        self._peer.start()
-
-    def _deliver(self, item: Message | ProtocolError, t_rx_ns: int, nbytes: int) -> None:
-        if isinstance(item, Hello):
-            if self._hello_seen:
-                return  # a repeated HELLO (it doubles as the target's heartbeat until it hears us)
-            self._hello_seen = True
-        self.stats.bytes_received += nbytes
-        self._dispatch(item, t_rx_ns)
-
-    def _count_error(self, text: str) -> None:
-        self.stats.protocol_errors += 1
-        self.stats.last_error = text
+        self.can.open(self.stats, dispatch=self._dispatch, deliver_bytes=self._on_message_bytes,
+                      on_gone=self._mark_gone)
 
     def _send_bytes(self, data: bytes) -> None:
-        if self._peer is None:
-            raise TransportError("CAN link is not open")
-        self._peer.send_bytes(data)
+        self.can.send_bytes(data)
 
     def _close_transport(self) -> None:
-        peer, self._peer = getattr(self, "_peer", None), None
-        if peer is not None:
-            peer.close()
+        half = getattr(self, "can", None)
+        if half is not None:
+            half.close()
 
 
 def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str = "vcan0", bitrate: int = 500_000,
@@ -245,26 +300,27 @@ def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str =
     def count_error(text: str) -> None:
         ep.stats.protocol_errors += 1
 
+    bus_failed = threading.Event()  # no BYE can go out any more
+
+    def on_fatal(why: str) -> None:
+        bus_failed.set()
+        ep.stop()
+
     peer = CanPeer(role=Role.TARGET, bus=bus, owns_bus=owns, vehicle_id=vehicle_id, clock=ep.clock,
                    deliver=lambda item, t_rx, n: ep.on_message(item, t_rx), deliver_bytes=ep.on_message_bytes,
-                   on_error=count_error, on_silent=lambda why: None, on_fatal=lambda why: ep.stop(),
+                   on_error=count_error, on_silent=lambda why: None, on_fatal=on_fatal,
                    heartbeat_timeout_s=heartbeat_timeout_s)
     try:
-        ep.start(peer.send_bytes)  # HELLO first, so the reader can repeat it
-        peer.start()
-        while not ep.wait_stopped(0.25):
-            pass
-    finally:
-        if not peer.peer_said_bye and not peer.failed:
-            try:
-                peer.send_bytes(protocol.encode(Bye(vehicle_id, "target stopping")))
-            except TransportError:
+        with serving(ep, vehicle_id=vehicle_id, harness_gone=bus_failed):
+            ep.start(peer.send_bytes)  # HELLO first, so the reader can repeat it
+            peer.start()
+            while not ep.wait_stopped(0.25):
                 pass
-        ep.join()
+    finally:
         peer.close()
     if peer.failed:
         raise TransportError(f"the target left the CAN bus: {peer.failure}")
 
 
-__all__ = ["CanLink", "CanStats", "CapacityReport", "bus_capacity", "check_interface", "open_bus",
+__all__ = ["CanHalf", "CanLink", "CanStats", "CapacityReport", "bus_capacity", "check_interface", "open_bus",
            "serve_endpoint"]

@@ -32,19 +32,19 @@ target would only answer sync (the harness still says BYE on CAN when it closes)
 from __future__ import annotations
 
 import queue
-import signal
 import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from hil.adapters import protocol
-from hil.adapters.can_peer import HEARTBEAT_TIMEOUT_S
-from hil.adapters.can_transport import CanLink, check_interface
+from hil.adapters.can_peer import HEARTBEAT_TIMEOUT_S, CanStats
+from hil.adapters.can_transport import CanHalf, check_interface
 from hil.adapters.can_transport import serve_endpoint as serve_can
-from hil.adapters.link import Received
+from hil.adapters.link import Link, Received
 from hil.adapters.messages import Bye, Hello, MsgType
-from hil.adapters.zenoh_transport import CONGESTION, DEFAULT_LEASE_MS, Keys, make_config
+from hil.adapters.zenoh_transport import (CLOSE_TIMEOUT_S, DEFAULT_LEASE_MS, Keys, ZenohHalf, ZenohStats,
+                                          close_session, make_config, open_session)
 from hil.common.errors import ConfigError, TargetError, TransportError
 from hil.timing.clock import Clock
 
@@ -61,29 +61,22 @@ if TYPE_CHECKING:
 
 @dataclass
 class MixedStats:
-    """Counters of the Zenoh half (the CAN half's are in ``can_stats``)."""
+    """Counters of the mixed link itself (its halves': ``can_stats``, ``zenoh_stats``)."""
 
     frames_zenoh: int = 0
-    put_failures: int = 0
 
 
-def _open_session(cfg: zenoh.Config, where: str) -> zenoh.Session:
-    try:
-        return zenoh.open(cfg)
-    except zenoh.ZError as err:
-        raise TransportError(f"cannot open a zenoh session ({where}): {err}") from err
-
-
-class MixedLink(CanLink):
-    """Harness side of a mixed target: ``CanLink`` with ``camera_over="none"`` for
-    everything but frames, and a Zenoh publisher for frames (module docstring).
+class MixedLink(Link):
+    """Harness side of a mixed target: a ``Link`` composed of a CAN half
+    (``CanHalf``, ``camera_over="none"``) for everything but frames and a Zenoh half
+    (``ZenohHalf``) that publishes frames (module docstring).
 
     Args:
         vehicle_id: 0..65535 (the CAN id carries it).
         clock: the harness clock.
         interface, channel, bitrate, data_bitrate, fd, heartbeat_timeout_s: the CAN
             half, as ``CanLink`` (a local bus only).
-        connect, listen, mode, key_prefix, multicast_scouting, tls,
+        connect, listen, mode, key_prefix, multicast_scouting, tls, usrpwd,
             congestion_control, lease_ms, shared_memory: the Zenoh half, as
             ``ZenohLink`` (multicast scouting off unless asked for).
 
@@ -98,28 +91,31 @@ class MixedLink(CanLink):
                  heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_S,
                  connect: Sequence[str] = ("tcp/127.0.0.1:7447",), listen: Sequence[str] = (), mode: str = "peer",
                  key_prefix: str = "hil", multicast_scouting: bool = False, tls: Mapping[str, object] | None = None,
-                 congestion_control: str = "block", lease_ms: int = DEFAULT_LEASE_MS,
-                 shared_memory: bool | None = None, rx_queue_size: int = 1024,
+                 usrpwd: Mapping[str, str] | None = None, congestion_control: str = "block",
+                 lease_ms: int = DEFAULT_LEASE_MS, shared_memory: bool | None = None, rx_queue_size: int = 1024,
                  rx_queue: queue.Queue[Received] | None = None) -> None:
-        self._session: zenoh.Session | None = None
-        self._publisher: zenoh.Publisher | None = None
-        self._entities: list[object] = []
-        super().__init__(vehicle_id=vehicle_id, clock=clock, interface=interface, channel=channel, bitrate=bitrate,
-                         data_bitrate=data_bitrate, fd=fd, camera_over="none",
-                         heartbeat_timeout_s=heartbeat_timeout_s, rx_queue_size=rx_queue_size, rx_queue=rx_queue)
-        if congestion_control not in CONGESTION:
-            raise ConfigError(f"zenoh congestion_control={congestion_control!r}: expected 'block' or 'drop'")
-        if not connect and not listen:
-            raise ConfigError("the mixed link's zenoh half needs at least one connect or listen endpoint")
-        self.keys = Keys.of(key_prefix, vehicle_id)
-        self.congestion_control = congestion_control
-        self.connect, self.listen = list(connect), list(listen)
-        self.zenoh_config = make_config(mode=mode, connect=connect, listen=listen, tls=tls,
-                                        multicast_scouting=multicast_scouting, lease_ms=lease_ms,
-                                        shared_memory=shared_memory)
+        self.can = CanHalf(vehicle_id=vehicle_id, clock=clock, interface=interface, channel=channel,
+                           bitrate=bitrate, data_bitrate=data_bitrate, fd=fd, camera_over="none",
+                           heartbeat_timeout_s=heartbeat_timeout_s)
+        self.zenoh = ZenohHalf(vehicle_id=vehicle_id, connect=connect, listen=listen, mode=mode,
+                               key_prefix=key_prefix, multicast_scouting=multicast_scouting, tls=tls,
+                               usrpwd=usrpwd, congestion_control=congestion_control, lease_ms=lease_ms,
+                               shared_memory=shared_memory, what="the mixed link's zenoh half")
+        super().__init__(vehicle_id=vehicle_id, clock=clock, rx_queue_size=rx_queue_size, rx_queue=rx_queue)
+        self.keys = self.zenoh.keys
         self.mixed_stats = MixedStats()
         self._frame_route = threading.Event()  # the target's zenoh token is up
         self._bye_on_can = False
+
+    @property
+    def can_stats(self) -> CanStats | None:
+        """The CAN half's counters (None before ``open``)."""
+        return self.can.stats
+
+    @property
+    def zenoh_stats(self) -> ZenohStats:
+        """The Zenoh half's counters."""
+        return self.zenoh.stats
 
     def open(self, *, hello_timeout_s: float) -> Hello:
         """Wait for HELLO on CAN, then for the target's Zenoh token (module docstring).
@@ -131,26 +127,20 @@ class MixedLink(CanLink):
         hello = super().open(hello_timeout_s=hello_timeout_s)
         left_s = hello_timeout_s - (self.clock.now_ns() - start_ns) / 1e9
         if not self._frame_route.wait(max(left_s, 0.0)) or not self.alive:
+            no_session = self.zenoh.no_session_reason(hello_timeout_s)
             raise TargetError(self.peer_gone_reason or
                               f"the target said hello on CAN, but its zenoh token {self.keys.alive!r} did not "
-                              f"appear within {hello_timeout_s:g} s: frames would go nowhere. Check that the "
-                              f"device's zenoh side runs (--listen/--connect) with the same --key-prefix and "
-                              f"--vehicle, and this link's connect={self.connect} listen={self.listen}")
+                              f"appear within {hello_timeout_s:g} s: frames would go nowhere"
+                              + (f" ({no_session})" if no_session else "") +
+                              f". Check that the device's zenoh side runs (--listen/--connect) with the same "
+                              f"--key-prefix and --vehicle, and this link's connect={self.zenoh.connect} "
+                              f"listen={self.zenoh.listen}")
         return hello
 
     def _open(self) -> None:
-        self._session = s = _open_session(self.zenoh_config, f"connect={self.connect} listen={self.listen}")
-        try:
-            self._publisher = s.declare_publisher(self.keys.h2t,
-                                                  congestion_control=CONGESTION[self.congestion_control])
-            # Zenoh undeclares an entity when its Python object is dropped: keep them all.
-            self._entities = [
-                s.liveliness().declare_token(self.keys.harness),
-                s.liveliness().declare_subscriber(self.keys.alive, self._on_liveliness, history=True),
-            ]
-        except zenoh.ZError as err:
-            raise TransportError(f"zenoh declarations on {self.keys.h2t!r} failed: {err}") from err
-        super()._open()  # the CAN half
+        self.zenoh.open(on_target_token=self._on_liveliness)
+        self.can.open(self.stats, dispatch=self._dispatch, deliver_bytes=self._on_message_bytes,
+                      on_gone=self._mark_gone)
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.PUT:
@@ -164,33 +154,26 @@ class MixedLink(CanLink):
 
     def _send_bytes(self, data: bytes) -> None:
         if len(data) >= protocol.HEADER_SIZE and data[5] == MsgType.FRAME and data[:4] == protocol.MAGIC:
-            pub = self._publisher
-            if pub is None:
-                raise TransportError("mixed link is not open")
-            try:
-                pub.put(data)
-            except zenoh.ZError as err:
-                self.mixed_stats.put_failures += 1
-                self.stats.last_error = f"zenoh put failed: {err}"
-                raise TransportError(f"zenoh put on {self.keys.h2t!r} failed: {err}") from err
+            self.zenoh.put(data, self.stats)
             self.mixed_stats.frames_zenoh += 1
             return
-        super()._send_bytes(data)
+        self.can.send_bytes(data)
 
     def _close_transport(self) -> None:
         if getattr(self, "_bye_on_can", False):
             self._bye_on_can = False
             try:
-                super()._send_bytes(protocol.encode(Bye(self.vehicle_id, "harness closing: zenoh frame path lost")))
+                self.can.send_bytes(protocol.encode(Bye(self.vehicle_id, "harness closing: zenoh frame path lost")))
             except (TransportError, OSError):
                 pass
         try:
-            super()._close_transport()
+            can_half = getattr(self, "can", None)
+            if can_half is not None:
+                can_half.close()
         finally:
-            session, self._session = getattr(self, "_session", None), None
-            self._publisher, self._entities = None, []
-            if session is not None and not session.is_closed():
-                session.close()  # undeclares everything and flushes; without it exit can hang
+            zenoh_half = getattr(self, "zenoh", None)
+            if zenoh_half is not None:
+                zenoh_half.close(self.stats)
 
 
 def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str = "vcan0", bitrate: int = 500_000,
@@ -198,9 +181,11 @@ def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str =
                    heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_S, listen: Sequence[str] = (),
                    connect: Sequence[str] = (), mode: str = "peer", key_prefix: str = "hil",
                    multicast_scouting: bool = False, tls: Mapping[str, object] | None = None,
-                   lease_ms: int = DEFAULT_LEASE_MS, shared_memory: bool | None = None) -> None:
+                   lease_ms: int = DEFAULT_LEASE_MS, shared_memory: bool | None = None,
+                   usrpwd: Mapping[str, str] | None = None) -> None:
     """Target side: frames from Zenoh (``listen``/``connect``), everything else on the
-    CAN bus, until the harness says BYE, ``ep.stop()``, or SIGTERM (then BYE on CAN).
+    CAN bus, until the harness says BYE, ``ep.stop()``, or SIGTERM (then BYE on CAN,
+    ``hil.adapters.sdk.serving``).
 
     Args:
         bus: an open python-can bus to use (tests pass a ``virtual`` one); the caller
@@ -217,8 +202,8 @@ def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str =
     check_interface(interface)
     keys = Keys.of(key_prefix, vehicle_id)
     cfg = make_config(mode=mode, connect=connect, listen=listen, tls=tls, multicast_scouting=multicast_scouting,
-                      lease_ms=lease_ms, shared_memory=shared_memory)
-    session = _open_session(cfg, f"listen={list(listen)} connect={list(connect)}")
+                      lease_ms=lease_ms, shared_memory=shared_memory, usrpwd=usrpwd)
+    session = open_session(cfg, f"listen={list(listen)} connect={list(connect)}")
 
     def on_frame(sample: zenoh.Sample) -> None:
         t_rx = ep.clock.now_ns()
@@ -227,7 +212,6 @@ def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str =
         except TransportError:
             pass  # not started yet, or closing: an ERROR reply cannot go out
 
-    old_term = None
     entities: list[object] = []
     try:
         try:
@@ -237,15 +221,11 @@ def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str =
             entities.append(session.liveliness().declare_token(keys.alive))
         except zenoh.ZError as err:
             raise TransportError(f"zenoh declarations on {keys.h2t!r} failed: {err}") from err
-        if threading.current_thread() is threading.main_thread():
-            old_term = signal.signal(signal.SIGTERM, lambda *_: ep.stop())
         serve_can(ep, interface=interface, channel=channel, bitrate=bitrate, data_bitrate=data_bitrate,
                   vehicle_id=vehicle_id, bus=bus, heartbeat_timeout_s=heartbeat_timeout_s)
     finally:
-        if old_term is not None:
-            signal.signal(signal.SIGTERM, old_term)
         entities.clear()
-        session.close()
+        close_session(session, timeout_s=CLOSE_TIMEOUT_S)  # bounded: the harness may be frozen
 
 
 __all__ = ["MixedLink", "MixedStats", "serve_endpoint"]

@@ -24,9 +24,11 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import NoReturn
 
@@ -101,6 +103,7 @@ class Endpoint:
         self._cv = threading.Condition()
         self._pending: tuple[Frame, int] | None = None
         self._stopped = threading.Event()
+        self.harness_said_bye = False  # the session ended by the harness's BYE
         self._vehicle_id = 0
         self._decoder: StreamDecoder[NoReturn] = StreamDecoder()
         self._worker: threading.Thread | None = None
@@ -119,6 +122,11 @@ class Endpoint:
         """This endpoint's HELLO (capabilities: ``CAP_COMMANDS`` with ``on_command``)."""
         caps = protocol.CAP_COMMANDS if self.on_command is not None else 0
         return Hello(self.target_name, protocol.VERSION, self.clock_id, self.clock_resolution_ns, caps)
+
+    @property
+    def vehicle_id(self) -> int:
+        """The vehicle of the frames served (0 before the first)."""
+        return self._vehicle_id
 
     @property
     def stopped(self) -> bool:
@@ -185,6 +193,7 @@ class Endpoint:
         elif isinstance(item, Command):
             self._on_command(item)
         elif isinstance(item, Bye):
+            self.harness_said_bye = True
             self.stop()
 
     def _on_command(self, cmd: Command) -> None:
@@ -234,6 +243,57 @@ class Endpoint:
             except (OSError, TransportError):
                 return
             self.stats.estimates_sent += 1
+
+
+@contextmanager
+def stop_on_sigterm(on_term: Callable[[], None]) -> Iterator[None]:
+    """While the block runs on the main thread, SIGTERM calls ``on_term`` instead of
+    ending the process; the old handler comes back after. Elsewhere: nothing (signals
+    are the main thread's)."""
+    old = None
+    if threading.current_thread() is threading.main_thread():
+        old = signal.signal(signal.SIGTERM, lambda *_: on_term())
+    try:
+        yield
+    finally:
+        if old is not None:
+            signal.signal(signal.SIGTERM, old)
+
+
+@contextmanager
+def serving(ep: Endpoint, *, vehicle_id: int | None = None, harness_gone: threading.Event | None = None,
+            linger_s: float = 0.0, on_term: Callable[[], None] | None = None) -> Iterator[None]:
+    """What every transport's target side does around its own serve loop, once.
+
+    While the block runs, SIGTERM stops ``ep`` and calls ``on_term`` (to wake a loop
+    blocked in a read, or to stop serving further runs): ``stop_on_sigterm``. On
+    leaving, however the block ends: unless the harness said BYE or is gone
+    (``harness_gone`` set), the target says BYE, then waits up to ``linger_s`` for
+    ``harness_gone`` (a transport whose liveliness news can overtake the BYE, Zenoh's,
+    lingers so the harness reads a BYE, not a crash); the inference worker is joined.
+    A BYE that cannot be sent any more is let go. ``vehicle_id``: the BYE's (default:
+    the vehicle of the frames served).
+    """
+    def term() -> None:
+        ep.stop()
+        if on_term is not None:
+            on_term()
+
+    try:
+        with stop_on_sigterm(term):
+            yield
+    finally:
+        try:
+            if not (ep.harness_said_bye or (harness_gone is not None and harness_gone.is_set())):
+                try:
+                    ep.send(Bye(ep.vehicle_id if vehicle_id is None else vehicle_id, "target stopping"))
+                except (TransportError, OSError):
+                    pass
+                else:
+                    if harness_gone is not None and linger_s > 0:
+                        harness_gone.wait(linger_s)
+        finally:
+            ep.join()
 
 
 TRANSPORTS = transports.NAMES  # the transport names, from the table in hil.adapters.transports
@@ -307,7 +367,8 @@ def transport_options(args: argparse.Namespace) -> dict[str, object]:
     if args.transport == "mixed":  # the zenoh options for frames, the can options for the rest
         return {"listen": list(args.listen), "connect": list(args.connect), "mode": args.mode,
                 "key_prefix": args.key_prefix, "interface": args.interface, "channel": args.channel,
-                "bitrate": args.bitrate, "data_bitrate": args.data_bitrate, "vehicle_id": args.vehicle}
+                "bitrate": args.bitrate, "data_bitrate": args.data_bitrate, "vehicle_id": args.vehicle,
+                **_zenoh_security(args)}
     if args.transport == "tcp":  # the last --listen / --connect given
         return {"listen": args.listen[-1] if args.listen else None,
                 "connect": args.connect[-1] if args.connect else None}

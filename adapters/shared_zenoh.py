@@ -11,14 +11,15 @@ after run) until SIGTERM/Ctrl-C.
 
 from __future__ import annotations
 
-import signal
 import sys
 import threading
 from collections.abc import Callable, Mapping, Sequence
 
 from hil.adapters.batching import BatchedEndpoint, BatchScheduler
+from hil.adapters.sdk import stop_on_sigterm
 from hil.adapters.zenoh_target import _serve_one, _security, startup_line
-from hil.adapters.zenoh_transport import CLOSE_TIMEOUT_S, DEFAULT_LEASE_MS, Keys, _open_session, close_session, make_config
+from hil.adapters.zenoh_transport import (CLOSE_TIMEOUT_S, DEFAULT_LEASE_MS, Keys, close_session, make_config,
+                                          open_session)
 from hil.common.errors import ConfigError
 
 
@@ -40,7 +41,7 @@ def serve_shared(scheduler: BatchScheduler, make_endpoint: Callable[[], BatchedE
         raise ConfigError("a zenoh target needs --listen ENDPOINT (e.g. tcp/0.0.0.0:7447) or --connect ENDPOINT")
     cfg = make_config(mode=mode, connect=connect, listen=listen, tls=tls, multicast_scouting=multicast_scouting,
                       lease_ms=lease_ms, usrpwd=usrpwd)
-    session = _open_session(cfg, f"listen={list(listen)} connect={list(connect)}")
+    session = open_session(cfg, f"listen={list(listen)} connect={list(connect)}")
     quit_ = threading.Event()
     current: dict[int, BatchedEndpoint] = {}
     lock = threading.Lock()
@@ -61,32 +62,28 @@ def serve_shared(scheduler: BatchScheduler, make_endpoint: Callable[[], BatchedE
             if not keep_serving:
                 return
 
-    old_term = None
-    if threading.current_thread() is threading.main_thread():
-        old_term = signal.signal(signal.SIGTERM, on_term)
     scheduler.start()
     try:
-        first = make_endpoint()
-        line = startup_line(first, listen=listen, connect=connect, keys=Keys.of(key_prefix, vehicles[0]),
-                            keep_serving=keep_serving, security=_security(listen, connect, tls, usrpwd))
-        print(f"{line}; shared by vehicles {', '.join(map(str, vehicles))} "
-              f"(window {scheduler.window_ns / 1e6:g} ms, batches of at most {scheduler.max_batch})",
-              file=sys.stderr, flush=True)
-        threads = [threading.Thread(target=serve_vehicle, args=(v,), name=f"vehicle-{v}", daemon=True)
-                   for v in vehicles]
-        for t in threads:
-            t.start()
-        try:
+        with stop_on_sigterm(on_term):
+            first = make_endpoint()
+            line = startup_line(first, listen=listen, connect=connect, keys=Keys.of(key_prefix, vehicles[0]),
+                                keep_serving=keep_serving, security=_security(listen, connect, tls, usrpwd))
+            print(f"{line}; shared by vehicles {', '.join(map(str, vehicles))} "
+                  f"(window {scheduler.window_ns / 1e6:g} ms, batches of at most {scheduler.max_batch})",
+                  file=sys.stderr, flush=True)
+            threads = [threading.Thread(target=serve_vehicle, args=(v,), name=f"vehicle-{v}", daemon=True)
+                       for v in vehicles]
             for t in threads:
-                while t.is_alive():
-                    t.join(timeout=0.5)  # a timed join lets Ctrl-C through
-        except KeyboardInterrupt:
-            on_term()
-            for t in threads:
-                t.join(timeout=5.0)
+                t.start()
+            try:
+                for t in threads:
+                    while t.is_alive():
+                        t.join(timeout=0.5)  # a timed join lets Ctrl-C through
+            except KeyboardInterrupt:
+                on_term()
+                for t in threads:
+                    t.join(timeout=5.0)
     finally:
-        if old_term is not None:
-            signal.signal(signal.SIGTERM, old_term)
         scheduler.stop()
         close_session(session, timeout_s=CLOSE_TIMEOUT_S)
 

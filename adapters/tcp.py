@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING
 from hil.adapters import protocol
 from hil.adapters.link import Link, Received
 from hil.adapters.messages import Heartbeat, Hello
+from hil.adapters.sdk import serving
 from hil.common.errors import TargetError, TransportError
 from hil.timing.clock import Clock
 
@@ -360,7 +361,8 @@ class TcpLink(Link):
 
 def serve_endpoint(ep: Endpoint, *, listen: str | None = None, connect: str | None = None,
                    connect_timeout_s: float = 30.0) -> None:
-    """Target side: serve ``ep`` on one TCP connection until BYE or end of stream.
+    """Target side: serve ``ep`` on one TCP connection until BYE or end of stream
+    (SIGTERM: BYE, then leave; ``hil.adapters.sdk.serving``).
 
     Listens on ``listen`` (default ``127.0.0.1:7600``) for one harness, or dials the
     harness at ``connect`` (retrying for ``connect_timeout_s``).
@@ -378,19 +380,30 @@ def serve_endpoint(ep: Endpoint, *, listen: str | None = None, connect: str | No
     _tune(sock)
     buf = bytearray(_RECV_BYTES)
     view = memoryview(buf)
+    gone = threading.Event()  # end of stream or a broken connection: the harness has left
+
+    def wake() -> None:  # SIGTERM: end the blocked read (the write side stays open for BYE)
+        try:
+            sock.shutdown(socket.SHUT_RD)
+        except OSError:
+            pass
+
     try:
-        ep.start(sock.sendall)
-        while not ep.stopped:
-            try:
-                n = sock.recv_into(view)
-            except OSError:
-                break
-            t_rx = ep.clock.now_ns()
-            if not n:
-                break
-            ep.on_bytes(view[:n], t_rx)
+        with serving(ep, harness_gone=gone, on_term=wake):
+            ep.start(sock.sendall)
+            while not ep.stopped:
+                try:
+                    n = sock.recv_into(view)
+                except OSError:
+                    gone.set()
+                    break
+                t_rx = ep.clock.now_ns()
+                if not n:
+                    if not ep.stopped:
+                        gone.set()
+                    break
+                ep.on_bytes(view[:n], t_rx)
     finally:
-        ep.join()
         sock.close()
 
 

@@ -15,7 +15,6 @@ SIGTERM or Ctrl-C ends it (saying BYE to a harness that is connected).
 
 from __future__ import annotations
 
-import signal
 import sys
 import threading
 from collections.abc import Callable, Sequence
@@ -24,17 +23,10 @@ from typing import TYPE_CHECKING
 import zenoh
 
 from hil.adapters import protocol
-from hil.adapters.messages import Bye, MsgType
-from hil.adapters.zenoh_transport import (
-                                          BYE_LINGER_S,
-                                          CLOSE_TIMEOUT_S,
-                                          DEFAULT_LEASE_MS,
-                                          Keys,
-                                          _is,
-                                          _open_session,
-                                          close_session,
-                                          make_config,
-                                          )
+from hil.adapters.messages import MsgType
+from hil.adapters.sdk import serving, stop_on_sigterm
+from hil.adapters.zenoh_transport import (BYE_LINGER_S, CLOSE_TIMEOUT_S, DEFAULT_LEASE_MS, Keys, _is, close_session,
+                                          make_config, open_session)
 from hil.common.errors import ConfigError, TransportError
 
 if TYPE_CHECKING:
@@ -98,30 +90,26 @@ def serve_endpoint(ep: Endpoint, *, listen: Sequence[str] = (), connect: Sequenc
     keys = Keys.of(key_prefix, vehicle_id)
     cfg = make_config(mode=mode, connect=connect, listen=listen, tls=tls, multicast_scouting=multicast_scouting,
                       lease_ms=lease_ms, shared_memory=shared_memory, usrpwd=usrpwd)
-    session = _open_session(cfg, f"listen={list(listen)} connect={list(connect)}")
+    session = open_session(cfg, f"listen={list(listen)} connect={list(connect)}")
     quit_ = threading.Event()  # SIGTERM or Ctrl-C: no further runs
-    current: list[Endpoint] = [ep]
+    current = ep
 
-    def on_term(*_: object) -> None:
+    def on_term() -> None:  # between two harnesses (within one, serving's handler has it)
         quit_.set()
-        current[0].stop()
+        current.stop()
 
-    old_term = None
-    if threading.current_thread() is threading.main_thread():
-        old_term = signal.signal(signal.SIGTERM, on_term)
     try:
-        line = startup_line(ep, listen=listen, connect=connect, keys=keys, keep_serving=keep_serving,
-                            security=_security(listen, connect, tls, usrpwd))
-        (announce or (lambda text: print(text, file=sys.stderr, flush=True)))(line)
-        while True:
-            _serve_one(session, current[0], keys=keys, vehicle_id=vehicle_id, quit_=quit_)
-            if quit_.is_set() or not keep_serving:
-                return
-            _add_stats(ep, current[0])
-            current[0] = _fresh(ep)
+        with stop_on_sigterm(on_term):
+            line = startup_line(ep, listen=listen, connect=connect, keys=keys, keep_serving=keep_serving,
+                                security=_security(listen, connect, tls, usrpwd))
+            (announce or (lambda text: print(text, file=sys.stderr, flush=True)))(line)
+            while True:
+                _serve_one(session, current, keys=keys, vehicle_id=vehicle_id, quit_=quit_)
+                if quit_.is_set() or not keep_serving:
+                    return
+                _add_stats(ep, current)
+                current = _fresh(ep)
     finally:
-        if old_term is not None:
-            signal.signal(signal.SIGTERM, old_term)
         close_session(session, timeout_s=CLOSE_TIMEOUT_S)  # bounded: the harness may be frozen
 
 
@@ -174,24 +162,20 @@ def _serve_one(session: zenoh.Session, ep: Endpoint, *, keys: Keys, vehicle_id: 
         # when its Python object is dropped: keep them all.
         entities += [pub, session.declare_subscriber(keys.h2t, on_sample),
                      session.liveliness().declare_subscriber(keys.harness, on_harness)]
-        ep.start(send)  # a HEARTBEAT that comes before this is answered by the next one
-        entities.append(session.liveliness().declare_token(keys.alive))
-        try:
-            # No timeout: a waking main thread would take the GIL from a spinning AI.
-            # A POSIX lock wait still lets SIGTERM and Ctrl-C through.
-            ep.wait_stopped()
-        except KeyboardInterrupt:
-            quit_.set()
-            ep.stop()
-        if not harness_gone.is_set():
+        # SIGTERM stops this session and any further; leaving says BYE unless the
+        # harness left first, and lingers: our token's DELETE can overtake the BYE
+        # (declarations travel at a higher priority).
+        with serving(ep, vehicle_id=vehicle_id, harness_gone=harness_gone, linger_s=BYE_LINGER_S,
+                     on_term=quit_.set):
+            ep.start(send)  # a HEARTBEAT that comes before this is answered by the next one
+            entities.append(session.liveliness().declare_token(keys.alive))
             try:
-                ep.send(Bye(vehicle_id, "target stopping"))
-            except TransportError:
-                pass
-            else:
-                # Our token's DELETE can overtake the BYE (declarations travel at a
-                # higher priority); stay until the harness leaves, or BYE_LINGER_S.
-                harness_gone.wait(BYE_LINGER_S)
+                # No timeout: a waking main thread would take the GIL from a spinning AI.
+                # A POSIX lock wait still lets SIGTERM and Ctrl-C through.
+                ep.wait_stopped()
+            except KeyboardInterrupt:
+                quit_.set()
+                ep.stop()
     except zenoh.ZError as err:
         raise TransportError(f"zenoh declarations on {keys.h2t!r} failed: {err}") from err
     finally:

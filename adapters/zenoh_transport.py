@@ -56,13 +56,13 @@ from __future__ import annotations
 import json
 import queue
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import TYPE_CHECKING
 
 from hil.adapters import protocol, transports
-from hil.adapters.link import Link, Received
+from hil.adapters.link import Link, LinkStats, Received
 from hil.adapters.messages import Heartbeat, MsgType
 from hil.adapters.zenoh_options import TLS_KEYS, endpoint_problem
 from hil.common.errors import ConfigError, TransportError
@@ -241,7 +241,7 @@ def _tcp_answers(endpoint: str, *, timeout_s: float = 0.5) -> bool:
         return False
 
 
-def _open_session(cfg: zenoh.Config, where: str) -> zenoh.Session:
+def open_session(cfg: zenoh.Config, where: str) -> zenoh.Session:
     try:
         return zenoh.open(cfg)
     except zenoh.ZError as err:
@@ -250,6 +250,112 @@ def _open_session(cfg: zenoh.Config, where: str) -> zenoh.Session:
 
 def _is(data: bytes, mtype: MsgType) -> bool:
     return len(data) >= protocol.HEADER_SIZE and data[:4] == protocol.MAGIC and data[5] == mtype
+
+
+class ZenohHalf:
+    """The harness's Zenoh side of one vehicle, not itself a ``Link``: the session, the
+    publisher on ``h2t``, the harness's liveliness token and a subscriber to the
+    target's, and a bounded close. ``ZenohLink`` adds the ``t2h`` subscriber and the
+    HELLO handshake; ``hil.adapters.mixed.MixedLink`` uses it as its frame path.
+
+    Args:
+        options as ``ZenohLink``; ``what`` names the link in messages.
+
+    Raises:
+        ConfigError: a bad option (checked here, before anything opens).
+    """
+
+    def __init__(self, *, vehicle_id: int, connect: Sequence[str], listen: Sequence[str], mode: str,
+                 key_prefix: str, multicast_scouting: bool, tls: Mapping[str, object] | None,
+                 usrpwd: Mapping[str, str] | None, congestion_control: str, lease_ms: int,
+                 shared_memory: bool | None, what: str = "zenoh link") -> None:
+        if congestion_control not in CONGESTION:
+            raise ConfigError(f"zenoh congestion_control={congestion_control!r}: expected 'block' or 'drop'")
+        if not connect and not listen:
+            raise ConfigError(f"{what} needs at least one connect or listen endpoint")
+        self.what = what
+        self.keys = Keys.of(key_prefix, vehicle_id)
+        self.congestion_control = congestion_control
+        self.connect, self.listen = list(connect), list(listen)
+        self.usrpwd = bool(usrpwd)
+        self.config = make_config(mode=mode, connect=connect, listen=listen, tls=tls, usrpwd=usrpwd,
+                                  multicast_scouting=multicast_scouting, lease_ms=lease_ms,
+                                  shared_memory=shared_memory)
+        self.stats = ZenohStats()
+        self._session: zenoh.Session | None = None
+        self._publisher: zenoh.Publisher | None = None
+        self._entities: list[object] = []
+
+    def open(self, *, on_target_token: Callable[[zenoh.Sample], None],
+             on_t2h: Callable[[zenoh.Sample], None] | None = None) -> None:
+        """Open the session and declare: the publisher on ``h2t``, a subscriber on
+        ``t2h`` (with ``on_t2h``), the harness's token, and a subscriber to the target's
+        token (``on_target_token`` gets its PUT and DELETE, history included).
+
+        Raises:
+            TransportError: the session or a declaration failed.
+        """
+        self._session = s = open_session(self.config, f"connect={self.connect} listen={self.listen}")
+        try:
+            self._publisher = s.declare_publisher(self.keys.h2t, congestion_control=CONGESTION[self.congestion_control])
+            # Zenoh undeclares an entity when its Python object is dropped: keep them all.
+            if on_t2h is not None:
+                self._entities.append(s.declare_subscriber(self.keys.t2h, on_t2h))
+            self._entities += [
+                s.liveliness().declare_token(self.keys.harness),
+                s.liveliness().declare_subscriber(self.keys.alive, on_target_token, history=True),
+            ]
+        except zenoh.ZError as err:
+            raise TransportError(f"zenoh declarations on {self.keys.h2t!r} failed: {err}") from err
+
+    def put(self, data: bytes, link_stats: LinkStats) -> None:
+        """Publish one message on ``h2t``.
+
+        Raises:
+            TransportError: not open, or the put failed (counted in ``stats.put_failures``).
+        """
+        pub = self._publisher
+        if pub is None:
+            raise TransportError(f"{self.what} is not open")
+        try:
+            pub.put(data)
+        except zenoh.ZError as err:
+            self.stats.put_failures += 1
+            link_stats.last_error = f"zenoh put failed: {err}"
+            raise TransportError(f"zenoh put on {self.keys.h2t!r} failed: {err}") from err
+
+    def no_session_reason(self, timeout_s: float) -> str | None:
+        """Why nothing came up, when no Zenoh peer or router is connected (None when one is)."""
+        s = self._session
+        if s is None or s.is_closed():
+            return None
+        info = s.info
+        if info.peers_zid() or info.routers_zid():
+            return None
+        answering = [ep for ep in self.connect if _tcp_answers(ep)]
+        if answering:
+            tls = any(ep.startswith("tls/") for ep in answering)
+            why = ("the TLS handshake was refused: check that root_ca_certificate signed the target's "
+                   "certificate, the name in the endpoint matches it, and (mTLS) ours"
+                   if tls else "user/password authentication was refused: check the user, the password "
+                   "and the target's --auth-dictionary" if self.usrpwd
+                   else "another program holds the port, or the target asks for TLS or a password")
+            return f"{', '.join(answering)} answers, but no zenoh session came up within {timeout_s:g} s: {why}"
+        return (f"no zenoh peer reached within {timeout_s:g} s (connect={self.connect}, "
+                f"listen={self.listen}): is the target running, e.g. with "
+                f"--transport zenoh --listen tcp/0.0.0.0:7447, and reachable?")
+
+    def close(self, link_stats: LinkStats) -> None:
+        """Undeclare everything and close the session, bounded by ``CLOSE_TIMEOUT_S``
+        (a frozen peer made an unbounded close block ~10 s and then raise "close
+        operation timed out", which cost a run its summary). Idempotent; never raises."""
+        session, self._session = self._session, None
+        self._publisher, self._entities = None, []
+        if session is not None and not session.is_closed():
+            reason = close_session(session, timeout_s=CLOSE_TIMEOUT_S)
+            if reason is not None:
+                self.stats.close_failures += 1
+                link_stats.last_error = reason
 
 
 class ZenohLink(Link):
@@ -273,39 +379,20 @@ class ZenohLink(Link):
                  rx_queue: queue.Queue[Received] | None = None) -> None:
         """Raises ConfigError: a bad option (checked here, before anything opens)."""
         super().__init__(vehicle_id=vehicle_id, clock=clock, rx_queue_size=rx_queue_size, rx_queue=rx_queue)
-        self._session: zenoh.Session | None = None
-        self._publisher: zenoh.Publisher | None = None
-        self._entities: list[object] = []
         self._hb_thread: threading.Thread | None = None
         self._poke = threading.Event()  # wakes the HEARTBEAT loop (HELLO seen, token seen, closing)
         self._hello_seen = threading.Event()
         self._hello_lock = threading.Lock()
         self._target_seen = False
-        self.zenoh_stats = ZenohStats()
-        if congestion_control not in CONGESTION:
-            raise ConfigError(f"zenoh congestion_control={congestion_control!r}: expected 'block' or 'drop'")
-        if not connect and not listen:
-            raise ConfigError("zenoh link needs at least one connect or listen endpoint")
-        self.keys = Keys.of(key_prefix, vehicle_id)
-        self.congestion_control = congestion_control
-        self.connect, self.listen = list(connect), list(listen)
-        self.usrpwd = bool(usrpwd)
-        self.config = make_config(mode=mode, connect=connect, listen=listen, tls=tls, usrpwd=usrpwd,
-                                   multicast_scouting=multicast_scouting, lease_ms=lease_ms,
-                                   shared_memory=shared_memory)
+        self.zenoh = ZenohHalf(vehicle_id=vehicle_id, connect=connect, listen=listen, mode=mode,
+                               key_prefix=key_prefix, multicast_scouting=multicast_scouting, tls=tls,
+                               usrpwd=usrpwd, congestion_control=congestion_control, lease_ms=lease_ms,
+                               shared_memory=shared_memory)
+        self.zenoh_stats = self.zenoh.stats
+        self.keys, self.config = self.zenoh.keys, self.zenoh.config
 
     def _open(self) -> None:
-        self._session = s = _open_session(self.config, f"connect={self.connect} listen={self.listen}")
-        try:
-            self._publisher = s.declare_publisher(self.keys.h2t, congestion_control=CONGESTION[self.congestion_control])
-            # Zenoh undeclares an entity when its Python object is dropped: keep them all.
-            self._entities = [
-                s.declare_subscriber(self.keys.t2h, self._on_sample),
-                s.liveliness().declare_token(self.keys.harness),
-                s.liveliness().declare_subscriber(self.keys.alive, self._on_liveliness, history=True),
-            ]
-        except zenoh.ZError as err:
-            raise TransportError(f"zenoh declarations on {self.keys.h2t!r} failed: {err}") from err
+        self.zenoh.open(on_target_token=self._on_liveliness, on_t2h=self._on_sample)
         self._hb_thread = threading.Thread(target=self._ask_hello, name=f"zenoh-hello-{self.vehicle_id}",
                                            daemon=True)
         self._hb_thread.start()
@@ -313,7 +400,7 @@ class ZenohLink(Link):
     def _ask_hello(self) -> None:
         while not (self._hello_seen.is_set() or self._closed or not self.alive):
             try:
-                self._publish(protocol.encode(Heartbeat(self.vehicle_id, self.clock.now_ns())))
+                self.zenoh.put(protocol.encode(Heartbeat(self.vehicle_id, self.clock.now_ns())), self.stats)
             except TransportError:
                 return
             self.zenoh_stats.heartbeats_sent += 1
@@ -340,39 +427,15 @@ class ZenohLink(Link):
             self._mark_gone(f"zenoh liveliness lost: token {self.keys.alive!r} went away "
                             f"(target process exited, closed its session or its lease expired)")
 
-    def _publish(self, data: bytes) -> None:
-        pub = self._publisher
-        if pub is None:
-            raise TransportError("zenoh link is not open")
-        try:
-            pub.put(data)
-        except zenoh.ZError as err:
-            self.zenoh_stats.put_failures += 1
-            self.stats.last_error = f"zenoh put failed: {err}"
-            raise TransportError(f"zenoh put on {self.keys.h2t!r} failed: {err}") from err
-
     def _send_bytes(self, data: bytes) -> None:
-        self._publish(data)
+        self.zenoh.put(data, self.stats)
 
     def _no_hello_reason(self, timeout_s: float) -> str:
-        s = self._session
-        if self.peer_gone_reason or s is None or s.is_closed():
+        if self.peer_gone_reason:
             return super()._no_hello_reason(timeout_s)
-        info = s.info
-        if not (info.peers_zid() or info.routers_zid()):
-            answering = [ep for ep in self.connect if _tcp_answers(ep)]
-            if answering:
-                tls = any(ep.startswith("tls/") for ep in answering)
-                why = ("the TLS handshake was refused: check that root_ca_certificate signed the target's "
-                       "certificate, the name in the endpoint matches it, and (mTLS) ours"
-                       if tls else "user/password authentication was refused: check the user, the password "
-                       "and the target's --auth-dictionary" if self.usrpwd
-                       else "another program holds the port, or the target asks for TLS or a password")
-                return (f"{', '.join(answering)} answers, but no zenoh session came up within {timeout_s:g} s: "
-                        f"{why}")
-            return (f"no zenoh peer reached within {timeout_s:g} s (connect={self.connect}, "
-                    f"listen={self.listen}): is the target running, e.g. with "
-                    f"--transport zenoh --listen tcp/0.0.0.0:7447, and reachable?")
+        reason = self.zenoh.no_session_reason(timeout_s)
+        if reason is not None:
+            return reason
         if not self._target_seen:
             return (f"zenoh is connected but no target serves {self.keys.alive!r} within {timeout_s:g} s: "
                     f"check the target's --vehicle and --key-prefix")
@@ -385,16 +448,9 @@ class ZenohLink(Link):
         thread = getattr(self, "_hb_thread", None)
         if thread is not None and thread is not threading.current_thread():
             thread.join(timeout=2.0)
-        session, self._session = getattr(self, "_session", None), None
-        self._publisher, self._entities = None, []
-        if session is not None and not session.is_closed():
-            # Undeclares everything and flushes; without it exit can hang. Bounded:
-            # a frozen peer made it block ~10 s and then raise "close operation timed
-            # out", which cost a run its summary.
-            reason = close_session(session, timeout_s=CLOSE_TIMEOUT_S)
-            if reason is not None:
-                self.zenoh_stats.close_failures += 1
-                self.stats.last_error = reason
+        half = getattr(self, "zenoh", None)
+        if half is not None:
+            half.close(self.stats)
 
 
 def serve_endpoint(ep: Endpoint, **options: object) -> None:

@@ -290,9 +290,9 @@ class RunConfig(BaseModel):
         if lat.min_ms > lat.max_ms:
             raise PydanticCustomError(_RULE_ERROR, f"at most max_ms ({lat.max_ms:g})",
                                       {"loc": ("lockstep", "latency", "min_ms"), "got": lat.min_ms})
-        if self.target.zenoh.auth is not None and self.target.transport != Transport.ZENOH:
+        if self.target.zenoh.auth is not None and self.target.transport not in (Transport.ZENOH, Transport.MIXED):
             raise PydanticCustomError(_RULE_ERROR, "no auth section: user/password authentication is offered "
-                                      "for transport: zenoh", {"loc": ("target", "zenoh", "auth"),
+                                      "for transport: zenoh or mixed", {"loc": ("target", "zenoh", "auth"),
                                                                "got": self.target.transport.value})
         if self.target.shared and self.target.transport not in (Transport.LOCAL, Transport.ZENOH):
             raise PydanticCustomError(_RULE_ERROR, "shared: false, or transport local or zenoh (a shared "

@@ -110,7 +110,7 @@ class ZenohTargetConfig(BaseModel):
     congestion_control: Congestion = Congestion.BLOCK
     lease_ms: Int = Field(1000, ge=100, le=60_000)
     tls: dict[TlsKey, str | bool] | None = None
-    auth: ZenohAuthConfig | None = None  # zenoh transport only (see ZenohAuthConfig)
+    auth: ZenohAuthConfig | None = None  # zenoh and mixed transports (see ZenohAuthConfig)
     # A target the harness starts serves keys under <key_prefix>/run-<session> (the run's
     # nonce, given to it in HIL_ZENOH_KEY_PREFIX, which the SDK follows), so no other
     # target on the endpoint (a leftover, a foreign one) can answer for it. Off for a

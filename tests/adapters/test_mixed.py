@@ -8,6 +8,7 @@ channel. The conformance suite runs against this pair too."""
 from __future__ import annotations
 
 import contextlib
+import json
 import queue
 import threading
 import time
@@ -323,10 +324,24 @@ def test_run_config_with_mixed_builds_a_mixed_link(tmp_path):
                            rx=queue.Queue())
     try:
         assert proc is None and isinstance(link, MixedLink) and link.transport_name == "mixed"
-        assert link.channel == "bus2" and link.interface == "virtual" and link.camera_over == "none"
-        assert link.connect == ["tcp/127.0.0.1:17002"] and link.keys.h2t == "hil/run-m/v2/h2t"
+        assert link.can.channel == "bus2" and link.can.interface == "virtual" and link.can.camera_over == "none"
+        assert link.zenoh.connect == ["tcp/127.0.0.1:17002"] and link.keys.h2t == "hil/run-m/v2/h2t"
     finally:
         link.close()
+
+
+def test_mixed_link_takes_the_zenoh_half_s_authentication(monkeypatch):
+    """The Zenoh half is the Zenoh link's own (ZenohHalf): user/password reaches the
+    session config, as the config's target.zenoh.auth promises for mixed too."""
+    from hil.harness.config.model import parse_config
+    from hil.harness.run.link_options import zenoh_options
+
+    monkeypatch.setenv("HIL_ZENOH_PASSWORD", "s3cret")
+    cfg = parse_config({"target": {"transport": "mixed", "command": [], "zenoh": {"auth": {"user": "hil"}}}})
+    options = zenoh_options(cfg, 0)
+    assert options["usrpwd"] == {"user": "hil", "password": "s3cret"}
+    link = MixedLink(vehicle_id=0, clock=MonotonicClock(), interface="virtual", channel="x", **options)
+    assert json.loads(link.zenoh.config.get_json("transport/auth/usrpwd/user")) == "hil"
 
 
 def test_whole_run_against_a_mixed_device(tmp_path):

@@ -197,7 +197,7 @@ def test_congestion_control_choice_reaches_the_wire(choice, expected):
         sub = spy.declare_subscriber(Keys.of("hil", 0).h2t, lambda s: got.append(s.congestion_control))
         with link_to(port, spy_port, congestion_control=choice) as link:
             link.open(hello_timeout_s=10)
-            assert link._publisher.congestion_control == getattr(zenoh.CongestionControl, expected)
+            assert link.zenoh._publisher.congestion_control == getattr(zenoh.CongestionControl, expected)
             deadline = time.monotonic() + 5  # until the spy's subscription has reached the link
             for i in range(1000):
                 send_frame(link, i)

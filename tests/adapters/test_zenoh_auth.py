@@ -67,7 +67,7 @@ def test_auth_config_takes_the_password_from_the_environment(monkeypatch):
     assert cfg.target.zenoh.auth.usrpwd() == {"user": "hil", "password": "s3cret"}
     assert "s3cret" not in str(cfg.model_dump())
     with pytest.raises(ConfigError, match="target.zenoh.auth"):
-        parse_config({"target": {"transport": "mixed", "command": [], "zenoh": {"auth": {"user": "hil"}}}})
+        parse_config({"target": {"transport": "can", "command": [], "zenoh": {"auth": {"user": "hil"}}}})
 
 
 def test_target_cli_tls_options_are_checked(tmp_path: Path):
