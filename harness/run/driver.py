@@ -25,6 +25,7 @@ from typing import Any
 from hil.common.errors import ConfigError, HilError, RecordingError, TargetError
 from hil.harness import __version__
 from hil.harness.config.model import RunConfig, Transport, config_hash, dump_config
+from hil.harness.engine.heap import fix_mmap_threshold
 from hil.timing.clock import MonotonicClock
 
 SYNC_WARMUP_SAMPLES = 8
@@ -83,6 +84,7 @@ def execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str,
         SimulationError: the world cannot be built or rendered.
     """
     restore = _sigterm_interrupts() if install_signal_handlers else None
+    fix_mmap_threshold()  # a long run's heap stays flat (hil.harness.engine.heap)
     try:
         return _execute(cfg, out_dir=out_dir, gl_backend=gl_backend, on_progress=on_progress, notify=notify,
                         install_signal_handlers=install_signal_handlers)
