@@ -67,8 +67,11 @@ def main() -> int:
         p = subprocess.Popen([str(ROOT / ".venv/bin/hil"), "run", a.config, "--no-progress", "--out", str(out),
                               "--set", f"duration_s={a.minutes * 60:g}"], cwd=ROOT,
                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        # The floor, sampled beside it: an idle process that imports what the run process does.
+        idle = subprocess.Popen([sys.executable, "-c", "import time, hil.harness.run.driver; "
+                                 f"time.sleep({a.minutes * 60 + 120:g})"], cwd=ROOT)
         t0 = time.monotonic()
-        ts, run_mb, eng_mb = [], [], []
+        ts, run_mb, eng_mb, idle_mb = [], [], [], []
         while p.poll() is None:
             r = rss_mb(p.pid)
             kids = [k for k in children(p.pid) if b"hil.harness.engine" in Path(f"/proc/{k}/cmdline").read_bytes()
@@ -78,7 +81,10 @@ def main() -> int:
                 ts.append(time.monotonic() - t0)
                 run_mb.append(r)
                 eng_mb.append(e)
+                idle_mb.append(rss_mb(idle.pid) or float("nan"))
             time.sleep(5)
+        idle.kill()
+        idle.wait()
         err = p.stderr.read() if p.stderr else ""
         if p.returncode not in (0, 1):
             print(err[-2000:], file=sys.stderr)
@@ -96,6 +102,9 @@ def main() -> int:
     print(f"| run process | {run_mb[i1]:.1f} | {run_mb[ie]:.1f} | {s_run:+.3f} | "
           f"{'met' if s_run <= 0.2 else 'NOT met'} (<= 0.2) |")
     print(f"| physics + render | {eng_mb[i1]:.1f} | {eng_mb[ie]:.1f} | {s_eng:+.3f} | - |")
+    s_idle = slope(ts, idle_mb, to_s=end_s)
+    print(f"| floor: an idle process importing the harness | {idle_mb[i1]:.1f} | {idle_mb[ie]:.1f} | "
+          f"{s_idle:+.3f} | - |")
     return 0
 
 
