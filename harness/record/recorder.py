@@ -29,8 +29,11 @@ thread for every message of one topic; the messages it returns are written too
 stays off the producers.
 
 Crash safety: messages are written in chunks. A chunk is written when it holds
-``chunk_size`` bytes (default 1 MiB), when it spans ``chunk_duration_ns`` of log time
-(default 1 s), on :meth:`Recorder.flush` and at close. Chunks go to the file with
+``chunk_size`` bytes (default 1 MiB), when the newest log time written has moved on by
+``chunk_duration_ns`` since the chunk began (default 1 s), on :meth:`Recorder.flush`
+and at close. Only the newest log time counts: messages whose log time lags (estimates
+stamped at capture while the analysis runs behind) once ended a chunk every few
+messages, 50 chunks a second, when the lag passed the duration. Chunks go to the file with
 unbuffered writes, so after a crash (``kill -9``) every complete chunk is on disk
 and only the chunk in progress is lost.
 
@@ -239,8 +242,9 @@ class Recorder:
         metadata: MCAP metadata records ``{name: {key: value}}`` written at close.
         chunk_size: bytes of uncompressed messages per chunk.
         compression: ``"lz4"`` (default), ``"zstd"`` or ``"none"``.
-        chunk_duration_ns: also end a chunk once it spans this much log time
-            (ns); ``None``: by size only. Bounds what a crash loses at low data rates.
+        chunk_duration_ns: also end a chunk once the newest log time written has
+            moved on by this much (ns) since it began; ``None``: by size only. Bounds
+            what a crash loses at low data rates.
 
     Raises:
         ConfigError: the path's folder does not exist or is not writable, the path
@@ -282,7 +286,8 @@ class Recorder:
         self._io_error_raised = False
         self._channel_ids: dict[str, int] = {}
         self._schema_ids: dict[tuple[str, bytes], int] = {}
-        self._chunk_start_ns: int | None = None
+        self._chunk_start_ns: int | None = None  # the newest log time when the chunk began
+        self._log_high_ns: int | None = None  # the newest log time written
         self._offset_ns = 0
         self._derivations: dict[str, list[Derivation]] = {}
         self._taps: dict[str, Tap] = {}
@@ -736,11 +741,12 @@ class Recorder:
                     tap.offer(topic, name, schema, data, log_ns)
                 except Exception as err:  # a viewer must never stop the recording
                     self._note_error(err, topic=topic)
+        high = self._log_high_ns = log_ns if self._log_high_ns is None else max(self._log_high_ns, log_ns)
         if self._sink.position != before:  # the writer just wrote a full chunk
             self._chunk_start_ns = None
         elif self._chunk_start_ns is None:
-            self._chunk_start_ns = log_ns
-        elif self._chunk_duration_ns is not None and abs(log_ns - self._chunk_start_ns) >= self._chunk_duration_ns:
+            self._chunk_start_ns = high
+        elif self._chunk_duration_ns is not None and high - self._chunk_start_ns >= self._chunk_duration_ns:
             self._writer.flush()
             self._chunk_start_ns = None
 

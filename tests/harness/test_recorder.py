@@ -276,6 +276,21 @@ def test_chunks_end_by_log_time_span(tmp_path: Path) -> None:
     assert 9 <= summary.statistics.chunk_count <= 11
 
 
+def test_lagging_log_times_do_not_cut_chunks(tmp_path: Path) -> None:
+    """A topic whose log times lag the others by more than the chunk duration (the
+    analysis behind real time) once ended a chunk every other message."""
+    path = tmp_path / "lag.mcap"
+    with Recorder(path, chunk_duration_ns=1_000_000_000) as rec:
+        rec.register_json_channel("/now", "S", STATE_SCHEMA)
+        rec.register_json_channel("/late", "S", STATE_SCHEMA)
+        for i in range(300):  # 3 s of log time, 10 ms apart; /late 5 s behind
+            t = 10_000_000_000 + i * 10_000_000
+            rec.write_json("/now", {"i": i}, log_time_ns=t, publish_time_ns=t)
+            rec.write_json("/late", {"i": i}, log_time_ns=t - 5_000_000_000, publish_time_ns=t)
+    summary = _read_all(path)[2]
+    assert 2 <= summary.statistics.chunk_count <= 4, summary.statistics.chunk_count  # one a second, not 300
+
+
 def _write_numbered(rec: Recorder, start: int, stop: int) -> None:
     for i in range(start, stop):
         rec.write_json("/s", {"i": i, "pad": "x" * 100}, log_time_ns=i, publish_time_ns=i)
