@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -31,6 +32,12 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def _ctrl_c_as_usual() -> None:
+    # A suite started in the background by a non-interactive shell ignores SIGINT, and
+    # children inherit that: the target would never see the Ctrl-C a test sends it.
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @contextlib.contextmanager
 def echo_target(log_path: Path, port: int, args: Sequence[str] = ()) -> Iterator[subprocess.Popen[bytes]]:
     """``python -m hil.targets.echo --transport zenoh --listen tcp/127.0.0.1:PORT *args``,
@@ -39,7 +46,8 @@ def echo_target(log_path: Path, port: int, args: Sequence[str] = ()) -> Iterator
     with open(log_path, "ab") as log:
         proc = subprocess.Popen([sys.executable, "-m", "hil.targets.echo", "--transport", "zenoh",
                                  "--listen", f"tcp/127.0.0.1:{port}", *args],
-                                cwd=ROOT, env=env, stdin=subprocess.DEVNULL, stdout=log, stderr=log)
+                                cwd=ROOT, env=env, stdin=subprocess.DEVNULL, stdout=log, stderr=log,
+                                preexec_fn=_ctrl_c_as_usual)
         try:
             yield proc
         finally:
