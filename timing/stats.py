@@ -96,8 +96,17 @@ _DEFAULT_SPILL: SpillFile | None = None
 _DEFAULT_LOCK = threading.Lock()
 
 
+def _forget_default_spill() -> None:
+    global _DEFAULT_SPILL
+    _DEFAULT_SPILL = None  # a forked child must not append at the parent's offsets
+
+
+os.register_at_fork(after_in_child=_forget_default_spill)
+
+
 def default_spill() -> SpillFile:
-    """The process's shared spill file (created on first use)."""
+    """The process's shared spill file (created on first use; a forked child gets its
+    own for the columns it makes)."""
     global _DEFAULT_SPILL
     with _DEFAULT_LOCK:
         if _DEFAULT_SPILL is None:

@@ -70,3 +70,19 @@ def test_a_block_that_cannot_be_spilled_stays_in_memory_and_is_counted(tmp_path)
 def test_block_must_be_positive() -> None:
     with pytest.raises(ValueError, match="block"):
         SpillColumn(block=0)
+
+
+def test_a_forked_child_gets_its_own_default_spill_file() -> None:
+    from hil.timing import stats
+
+    parent = stats.default_spill()
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: a fresh file, not the parent's offsets
+        os.write(w, b"1" if stats.default_spill() is not parent else b"0")
+        os._exit(0)
+    os.close(w)
+    os.waitpid(pid, 0)
+    assert os.read(r, 1) == b"1"
+    os.close(r)
+    assert stats.default_spill() is parent
