@@ -32,7 +32,7 @@ from hil.adapters import protocol
 from hil.adapters.link import Link, Received
 from hil.adapters.messages import Hello, MsgType
 from hil.adapters.process import die_with_parent, end_process, prioritise_this_thread
-from hil.adapters.sdk import serving
+from hil.adapters.sdk import serve_stream
 from hil.adapters.shm import (DEFAULT_INLINE_BELOW, DEFAULT_SLOT_BYTES, DEFAULT_SLOTS, ENV_SHM, NOTICES,
                               SHM_FRAMES, Notice, ShmReader, ShmRing)
 from hil.adapters.stream import StreamDecoder
@@ -290,44 +290,27 @@ def serve_endpoint(ep: Endpoint) -> None:
 
 def serve_socket(ep: Endpoint, sock: socket.socket, ring: ShmReader | None) -> None:
     """Serve one harness's stream on ``sock`` (frames inline or through ``ring``) until
-    it ends (SIGTERM: BYE, then leave; ``hil.adapters.sdk.serving``); closes both. The
+    it ends (SIGTERM: BYE, then leave; ``hil.adapters.sdk.serve_stream``); closes both. The
     shared target serves each vehicle's socket with this."""
     decoder = StreamDecoder(NOTICES)
     send: Callable[[bytes], None] = sock.sendall
     if ring is not None:
         send = _advertising(send, SHM_FRAMES)
-    gone = threading.Event()  # end of stream or a broken socket: the harness has left
 
-    def wake() -> None:  # SIGTERM: end the blocked read (the write side stays open for BYE)
-        try:
-            sock.shutdown(socket.SHUT_RD)
-        except OSError:
-            pass
+    def deliver(data: bytes | memoryview, t_rx: int) -> None:
+        for item in decoder.feed(data):
+            if isinstance(item, Notice):
+                if ring is None:
+                    item = ProtocolError("shared-memory notice, but no frame ring was negotiated", offset=0)
+                else:
+                    got = ring.read(item)
+                    if got is None:
+                        continue  # overwritten before it was read: the harness counted it
+                    item = got
+            ep.on_message(item, t_rx)
 
     try:
-        with serving(ep, harness_gone=gone, on_term=wake):
-            ep.start(send)
-            while not ep.stopped:
-                try:
-                    data = sock.recv(_RECV_BYTES)
-                except OSError:
-                    gone.set()
-                    break
-                t_rx = ep.clock.now_ns()
-                if not data:
-                    if not ep.stopped:
-                        gone.set()
-                    break
-                for item in decoder.feed(data):
-                    if isinstance(item, Notice):
-                        if ring is None:
-                            item = ProtocolError("shared-memory notice, but no frame ring was negotiated", offset=0)
-                        else:
-                            got = ring.read(item)
-                            if got is None:
-                                continue  # overwritten before it was read: the harness counted it
-                            item = got
-                    ep.on_message(item, t_rx)
+        serve_stream(ep, sock, send=send, read=lambda: sock.recv(_RECV_BYTES), deliver=deliver)
     finally:
         sock.close()
         if ring is not None:

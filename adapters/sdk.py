@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import os
 import signal
+import socket
 import sys
 import threading
 from collections.abc import Callable, Iterator
@@ -294,6 +295,37 @@ def serving(ep: Endpoint, *, vehicle_id: int | None = None, harness_gone: thread
                         harness_gone.wait(linger_s)
         finally:
             ep.join()
+
+
+def serve_stream(ep: Endpoint, sock: socket.socket, *, send: Callable[[bytes], None],
+                 read: Callable[[], bytes | memoryview], deliver: Callable[[bytes | memoryview, int], None]) -> None:
+    """A stream transport's target loop (tcp, local) inside ``serving``: ``read()`` the
+    next bytes from ``sock``, stamp them, ``deliver(data, t_rx)``, until BYE, end of
+    stream or a broken socket (the harness has left: no BYE back), or SIGTERM, which
+    shuts the socket's reading side to end the blocked read and leaves its writing
+    side open for our BYE. The caller closes ``sock``."""
+    gone = threading.Event()
+
+    def wake() -> None:
+        try:
+            sock.shutdown(socket.SHUT_RD)
+        except OSError:
+            pass
+
+    with serving(ep, harness_gone=gone, on_term=wake):
+        ep.start(send)
+        while not ep.stopped:
+            try:
+                data = read()
+            except OSError:
+                gone.set()
+                break
+            t_rx = ep.clock.now_ns()
+            if not data:
+                if not ep.stopped:  # not our own SIGTERM's shutdown
+                    gone.set()
+                break
+            deliver(data, t_rx)
 
 
 TRANSPORTS = transports.NAMES  # the transport names, from the table in hil.adapters.transports

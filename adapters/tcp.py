@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING
 from hil.adapters import protocol
 from hil.adapters.link import Link, Received
 from hil.adapters.messages import Heartbeat, Hello
-from hil.adapters.sdk import serving
+from hil.adapters.sdk import serve_stream
 from hil.common.errors import TargetError, TransportError
 from hil.timing.clock import Clock
 
@@ -362,7 +362,7 @@ class TcpLink(Link):
 def serve_endpoint(ep: Endpoint, *, listen: str | None = None, connect: str | None = None,
                    connect_timeout_s: float = 30.0) -> None:
     """Target side: serve ``ep`` on one TCP connection until BYE or end of stream
-    (SIGTERM: BYE, then leave; ``hil.adapters.sdk.serving``).
+    (SIGTERM: BYE, then leave; ``hil.adapters.sdk.serve_stream``).
 
     Listens on ``listen`` (default ``127.0.0.1:7600``) for one harness, or dials the
     harness at ``connect`` (retrying for ``connect_timeout_s``).
@@ -380,29 +380,8 @@ def serve_endpoint(ep: Endpoint, *, listen: str | None = None, connect: str | No
     _tune(sock)
     buf = bytearray(_RECV_BYTES)
     view = memoryview(buf)
-    gone = threading.Event()  # end of stream or a broken connection: the harness has left
-
-    def wake() -> None:  # SIGTERM: end the blocked read (the write side stays open for BYE)
-        try:
-            sock.shutdown(socket.SHUT_RD)
-        except OSError:
-            pass
-
     try:
-        with serving(ep, harness_gone=gone, on_term=wake):
-            ep.start(sock.sendall)
-            while not ep.stopped:
-                try:
-                    n = sock.recv_into(view)
-                except OSError:
-                    gone.set()
-                    break
-                t_rx = ep.clock.now_ns()
-                if not n:
-                    if not ep.stopped:
-                        gone.set()
-                    break
-                ep.on_bytes(view[:n], t_rx)
+        serve_stream(ep, sock, send=sock.sendall, read=lambda: view[:sock.recv_into(view)], deliver=ep.on_bytes)
     finally:
         sock.close()
 

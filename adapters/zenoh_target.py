@@ -178,8 +178,7 @@ def _serve_one(session: zenoh.Session, ep: Endpoint, *, keys: Keys, vehicle_id: 
                 ep.stop()
     except zenoh.ZError as err:
         raise TransportError(f"zenoh declarations on {keys.h2t!r} failed: {err}") from err
-    finally:
-        ep.join()
+    finally:  # serving joined the endpoint's worker
         for entity in reversed(entities):
             undeclare = getattr(entity, "undeclare", None)
             if undeclare is not None:
