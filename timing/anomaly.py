@@ -28,7 +28,7 @@ from __future__ import annotations
 from bisect import bisect_right, insort
 from collections import deque
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import Enum
 from types import MappingProxyType
 from typing import NamedTuple
@@ -91,6 +91,7 @@ class Anomaly:
     severity: Severity
     stage: str | None = None
     detail: str = ""
+    cause: str | None = None  # a latency anomaly's side: "harness", "link" or "target" (CAUSE_SIDES)
 
     def to_json(self) -> dict[str, object]:
         d: dict[str, object] = dict(self.__dict__)
@@ -104,6 +105,20 @@ class _Where(NamedTuple):
     frame_ids: tuple[int, ...]
     sim_time_ns: int | None
     harness_time_ns: int
+
+
+# Which side of the bench each stage's time is spent on. A latency anomaly on a
+# composite stage (end_to_end = capture_to_send + transport + target_total; to_apply
+# adds apply_delay) is blamed on the side whose part rose most over its own recent
+# median, so an instrument's hiccup is never read as the AI's lateness.
+CAUSE_SIDES: Mapping[str, str] = MappingProxyType({
+    "render": "harness", "capture_to_send": "harness", "apply_delay": "harness",
+    "transport": "link", "uplink": "link", "downlink": "link",
+    "target_queue": "target", "inference": "target", "target_total": "target"})
+_PARTS: Mapping[str, tuple[str, ...]] = MappingProxyType({
+    "end_to_end": ("capture_to_send", "transport", "target_total"),
+    "to_apply": ("capture_to_send", "transport", "target_total", "apply_delay")})
+_PART_WINDOW = 100  # recent values of each part kept for its median
 
 
 def _default_deadlines() -> dict[str, float]:
@@ -238,6 +253,8 @@ class AnomalyDetector:
         self._next_judge_ns: int | None = None
         self._recent: dict[int, _Seen] = {}
         self._max_frame: int | None = None
+        self._parts: dict[str, deque[int]] = {p: deque(maxlen=_PART_WINDOW)
+                                              for p in (*_PARTS["to_apply"], *_PARTS)}
 
     def _make(self, kind: AnomalyKind, where: _Where, *, measured: float, threshold: float,
               unit: str, stage: str | None = None, detail: str = "") -> Anomaly:
@@ -280,10 +297,43 @@ class AnomalyDetector:
         values = dict(splits) if splits is not None else {}
         for name, v in rec.stages_ns().items():
             values.setdefault(name, Split(v, 0))
+        n = len(out)
         missed = self._deadlines(values, mk, out)
         self._spikes(values, mk, out, skip=missed, late=late)
         self._jitter(values.get("end_to_end"), mk, out)
+        out[n:] = [self._blame(a, values) for a in out[n:]]
+        for part, q in self._parts.items():
+            if part in values:
+                q.append(values[part].value_ns)
         return out
+
+    def _blame(self, a: Anomaly, values: Mapping[str, Split]) -> Anomaly:
+        """A latency anomaly with its side (``CAUSE_SIDES``) and, for a composite
+        stage, the part that rose most over its recent median named in the detail.
+        Without the target's stamps only the harness's own parts are known: the
+        harness is blamed when they account for at least half of the stage's rise,
+        else the side is left unknown (link and target cannot be told apart)."""
+        stage = a.stage or ""
+        if stage in CAUSE_SIDES:
+            return replace(a, cause=CAUSE_SIDES[stage])
+        if a.kind is AnomalyKind.JITTER or stage not in _PARTS or stage not in values:
+            return a
+        parts = [p for p in _PARTS[stage] if p in values]
+        rises = {p: values[p].value_ns - self._median(p) for p in [*parts, stage]}
+        if len(parts) == len(_PARTS[stage]):
+            part = max(parts, key=lambda p: rises[p])
+        else:
+            part = max((p for p in parts if CAUSE_SIDES[p] == "harness"), key=lambda p: rises[p], default="")
+            if not part or rises[part] < 0.5 * rises[stage]:
+                return a
+        side = CAUSE_SIDES[part]
+        why = (f"{'caused by the harness' if side == 'harness' else 'on the ' + side + ' side'}: {part} "
+               f"{values[part].value_ns / 1e6:.3f} ms, {rises[part] / 1e6:+.3f} ms over its recent median")
+        return replace(a, cause=side, detail=f"{a.detail}; {why}" if a.detail else why)
+
+    def _median(self, part: str) -> int:
+        q = self._parts[part]
+        return int(np.median(np.fromiter(q, np.int64, len(q)))) if q else 0
 
     def on_sync_events(self, events: Iterable[SyncEvent], *,
                        sim_time_ns: int | None = None) -> list[Anomaly]:

@@ -77,6 +77,23 @@ class EventKind(str, Enum):
     def is_mismatch(self) -> bool:
         return self.value.startswith(MISMATCH_PREFIX)
 
+    @property
+    def family(self) -> str:
+        """What the kind belongs to (README "What a run writes"): ``anomaly`` (timing,
+        counted in ``vehicles.<name>.anomalies``), ``mismatch``, ``estimate``,
+        ``world``, ``command``, ``protocol``, ``target`` or ``replay``."""
+        return _FAMILY.get(self, "anomaly")
+
+
+_FAMILY: Mapping[EventKind, str] = {
+    **{k: "mismatch" for k in EventKind if k.value.startswith(MISMATCH_PREFIX)},
+    EventKind.LATE_ESTIMATE: "estimate", EventKind.UNKNOWN_ESTIMATE: "estimate",
+    EventKind.COLLISION: "world",
+    EventKind.TARGET_COMMAND: "command", EventKind.TARGET_COMMAND_REPLY: "command",
+    EventKind.TARGET_COMMAND_FAILED: "command",
+    EventKind.PROTOCOL_ERROR: "protocol", EventKind.TARGET_ERROR: "target",
+    **{k: "replay" for k in EventKind if k.value.startswith("replayed_")},
+}
 
 # Severity of the kinds that do not carry their own (anomalies and mismatches do).
 DEFAULT_SEVERITY: Mapping[EventKind, Severity] = {
@@ -122,7 +139,7 @@ class Event:
     @classmethod
     def from_anomaly(cls, a: Anomaly, vehicle: str) -> Event:
         return cls(EventKind(a.kind.value), a.harness_time_ns, vehicle, tuple(a.frame_ids), a.sim_time_ns,
-                   a.measured, a.threshold, a.unit, a.severity, None, (), a.detail,
+                   a.measured, a.threshold, a.unit, a.severity, a.cause, (), a.detail,
                    {"stage": a.stage} if a.stage is not None else {})
 
     @classmethod
@@ -196,12 +213,20 @@ class EventBus:
     def __init__(self) -> None:
         self._subscribers: list[Subscriber] = []
         self.published = 0
+        self.unrecorded = 0  # events the recording subscriber could not write (queue full)
+        self._counts: dict[tuple[str | None, str], int] = {}
 
     def subscribe(self, fn: Subscriber) -> None:
         self._subscribers.append(fn)
 
+    def counts(self, vehicle: str | None) -> dict[str, int]:
+        """Events published for ``vehicle`` (``None``: the whole run's), by kind."""
+        return {k: n for (v, k), n in sorted(self._counts.items()) if v == vehicle}
+
     def publish(self, ev: Event, log_time_ns: int | None = None) -> None:
         self.published += 1
+        key = (ev.vehicle, ev.kind.value)
+        self._counts[key] = self._counts.get(key, 0) + 1
         t = ev.harness_time_ns if log_time_ns is None else log_time_ns
         for fn in self._subscribers:
             fn(ev, t)
@@ -211,12 +236,14 @@ class EventBus:
         """A bus whose first subscriber writes every event on ``/events`` of ``rec``
         (publish time: when it happened; log time: when it was known)."""
         bus = cls()
-        bus.subscribe(lambda ev, t: _write(rec, ev, t))
+
+        def write(ev: Event, log_time_ns: int) -> None:
+            if not rec.write_json("/events", ev.to_json(), log_time_ns=log_time_ns,
+                                  publish_time_ns=ev.harness_time_ns):
+                bus.unrecorded += 1
+
+        bus.subscribe(write)
         return bus
-
-
-def _write(rec: _JsonWriter, ev: Event, log_time_ns: int) -> None:
-    rec.write_json("/events", ev.to_json(), log_time_ns=log_time_ns, publish_time_ns=ev.harness_time_ns)
 
 
 __all__ = ["DEFAULT_SEVERITY", "EVENT_SCHEMA", "Event", "EventBus", "EventKind", "MISMATCH_PREFIX", "Subscriber"]

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from bisect import bisect_right
 from collections import deque
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
@@ -104,6 +104,7 @@ class _VehicleTiming:
     excluded: dict[str, int] = field(default_factory=dict)
     anomalies: deque[Anomaly] = field(default_factory=lambda: deque(maxlen=RECENT_ANOMALIES))  # to link mismatches
     anomaly_counts: dict[str, int] = field(default_factory=dict)  # every anomaly, by kind
+    anomaly_causes: dict[str, dict[str, int]] = field(default_factory=dict)  # side -> kind -> count
     sync_events: dict[str, int] = field(default_factory=dict)
     sim_time_ns: int = 0
 
@@ -246,6 +247,9 @@ class TimingObserver:
             vt.anomalies.append(a)
             kind = a.kind.value.lower()
             vt.anomaly_counts[kind] = vt.anomaly_counts.get(kind, 0) + 1
+            if a.cause is not None:
+                by = vt.anomaly_causes.setdefault(a.cause, {})
+                by[kind] = by.get(kind, 0) + 1
             self.events.publish(Event.from_anomaly(a, vehicle))
 
     # -- results --------------------------------------------------------------
@@ -272,6 +276,18 @@ class TimingObserver:
         """Every reported cross-clock split of ``vehicle``, in analysis order."""
         return {name: list(rows) for name, rows in self.v[vehicle].splits.items()}
 
+    def deadlines(self, vehicle: str) -> Mapping[str, float]:
+        """The vehicle's stage budgets (ms), as its anomaly detector judges them."""
+        return self.v[vehicle].detector.thresholds.deadline_ms
+
+    def split_lower_bounds(self, vehicle: str) -> dict[str, np.ndarray]:
+        """Each cross-clock split's values less their bound (ns, int64), in order."""
+        out = {}
+        for name, rows in self.v[vehicle].splits.items():
+            _frames, values, uncs = rows.arrays()
+            out[name] = values - uncs
+        return out
+
     def summary(self, vehicle: str) -> dict[str, Any]:
         vt = self.v[vehicle]
         st = vt.sync.state()
@@ -290,6 +306,7 @@ class TimingObserver:
             "splits_excluded": {k: vt.excluded.get(k, 0) for k in SPLIT_EXCLUSIONS},
             "streaming_ms": vt.hist.summary_ms(),
             "anomalies": counts,
+            "anomaly_causes": {side: dict(by) for side, by in sorted(vt.anomaly_causes.items())},
             "records_excluded": vt.detector.excluded,
         }
 

@@ -11,6 +11,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from hil.common.errors import ConfigError, HilError
 from hil.harness import __version__
@@ -34,6 +35,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", type=Path, default=None,
                    help="run folder (default runs/<name>-<timestamp>/)")
     r.add_argument("--no-progress", action="store_true", help="no live display")
+    r.add_argument("--fail-on", dest="fail_on", default="", metavar="CHECK,...",
+                   help="exit 3 when one of these verdicts fails: realtime, deadline, drop, collision, mismatch, "
+                        "anomaly (adds to the config's verdict.fail_on)")
     r.add_argument("--live", action="store_true",
                    help="serve the run live to Foxglove on ws://127.0.0.1:PORT (port printed; recording.live)")
     sc = sub.add_parser("scenarios", help="list the scenarios with their parameters, ranges and defaults")
@@ -153,31 +157,47 @@ def _target_help() -> str:
 
 def run_exit_code(summary: dict[str, object]) -> int:
     """``hil run``'s exit code for a finished run: 1 when it ended early or a corner
-    case could not be written (``summary["corner_cases"]["errors"]``), else 0."""
+    case could not be written (``summary["corner_cases"]["errors"]``), 3 when a verdict
+    named by ``--fail-on`` / ``verdict.fail_on`` failed, else 0."""
     cases = summary.get("corner_cases")
     if summary.get("ended_by") != "duration":
         return EXIT_EARLY
     if isinstance(cases, dict) and cases.get("errors"):
         return EXIT_EARLY
+    verdict = summary.get("verdict")
+    if isinstance(verdict, dict) and verdict.get("fails_run"):
+        from hil.harness.analysis.verdict import EXIT_VERDICT
+
+        return EXIT_VERDICT
     return EXIT_OK
 
 
-def realtime_warning(realtime: dict[str, object], *, sim_steps: int) -> str | None:
-    """What was not kept when a real-time run fell behind, and what to do; None when
-    it kept real time (or ran in lockstep)."""
+def realtime_warning(realtime: dict[str, Any], *, sim_steps: int) -> str | None:
+    """What was not kept when a real-time run fell behind (the physics, the cameras or
+    both, as ``realtime.lagging`` says), and what to do; None when it kept real time
+    (or ran in lockstep)."""
     if realtime.get("kept_realtime", True):
         return None
-    achieved, requested = float(realtime["achieved_factor"]), float(realtime["requested_factor"])  # type: ignore[arg-type]
-    late, tol = int(realtime["late_steps"]), float(realtime.get("late_tolerance_ms", 10.0))  # type: ignore[call-overload, arg-type]
-    worst = float(realtime.get("max_lateness_ms", 0.0))  # type: ignore[arg-type]
-    if achieved < 0.95 * requested:
-        what = (f"the simulation ran at {achieved:.2f}x wall-clock speed where {requested:g}x was asked "
-                f"({late} of {sim_steps} physics steps more than {tol:g} ms late, worst {worst:.0f} ms)")
-    else:
-        what = (f"{late} of {sim_steps} physics steps ran more than {tol:g} ms late (worst {worst:.0f} ms), "
-                f"though the run as a whole kept pace ({achieved:.2f}x)")
-    return (f"real time was not kept: {what}; latencies were measured on a late simulation. Close other "
-            f"programs, lower camera.fps, the image size or the number of vehicles, or use mode: lockstep")
+    lagging = realtime.get("lagging") or ["physics"]
+    parts = []
+    if "physics" in lagging:
+        achieved, requested = float(realtime["achieved_factor"]), float(realtime["requested_factor"])
+        late, tol = int(realtime["late_steps"]), float(realtime.get("late_tolerance_ms", 10.0))
+        worst = float(realtime.get("max_lateness_ms", 0.0))
+        if achieved < 0.95 * requested:
+            parts.append(f"the physics ran at {achieved:.2f}x wall-clock speed where {requested:g}x was asked "
+                         f"({late} of {sim_steps} steps more than {tol:g} ms late, worst {worst:.1f} ms)")
+        else:
+            parts.append(f"{late} of {sim_steps} physics steps ran more than {tol:g} ms late "
+                         f"(worst {worst:.1f} ms), though the physics as a whole kept pace ({achieved:.2f}x)")
+    if "camera" in lagging:
+        cam = realtime.get("camera") or {}
+        parts.append(f"the camera pipeline lagged: {cam.get('late_frames')} of {cam.get('frames')} frames left "
+                     f"more than {cam.get('tolerance_ms'):g} ms after their camera instant "
+                     f"(worst {cam.get('worst_lag_ms'):.1f} ms)")
+    return (f"real time was not kept: {'; '.join(parts)}; latencies were measured on a late simulation. "
+            f"Close other programs, lower camera.fps, the image size or the number of vehicles, or use "
+            f"mode: lockstep")
 
 
 def _cmd_scenarios(args: argparse.Namespace) -> int:
@@ -200,6 +220,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     overrides = [*args.overrides, "recording.live=true"] if args.live else args.overrides
     cfg = load_config(args.config, overrides=overrides)
+    if args.fail_on:
+        from hil.harness.analysis.verdict import parse_fail_on
+
+        try:
+            names = parse_fail_on(args.fail_on)
+        except ValueError as err:
+            raise ConfigError(f"--fail-on: {err}") from err
+        fail_on = list(dict.fromkeys([*cfg.verdict.fail_on, *(n.value for n in names)]))
+        cfg = cfg.model_copy(update={"verdict": cfg.verdict.model_copy(update={"fail_on": fail_on})})
     from hil import scenarios  # validate scenario and parameters before starting anything
 
     try:
@@ -221,6 +250,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         mark_failed(out, err)
         raise
     s = result.summary
+    print_verdict(console, s)
     console.print(final_table(s))
     warning = realtime_warning(s["realtime"], sim_steps=round(s["sim_time_s"] / cfg.physics_step_s))
     if warning is not None:
@@ -235,6 +265,30 @@ def _cmd_run(args: argparse.Namespace) -> int:
         console.print(f"[red]{len(errors)} corner case(s) could not be written[/red] "
                       f"(summary.json corner_cases.errors): {errors[0]}", highlight=False)
     return run_exit_code(s)
+
+
+def print_verdict(console: Any, summary: dict[str, Any]) -> None:
+    """The verdict first: a banner for a collision, then one line per check (met or
+    missed, with its figures); the checks that fail the run (``--fail-on``) say so."""
+    from rich.markup import escape
+
+    from hil.harness.analysis.verdict import verdict_of
+
+    v = verdict_of(summary)
+    by = {c["name"]: c for c in v["checks"]}
+    col = by.get("collision")
+    if col is not None and not col["ok"]:
+        console.print(f"[bold white on red] COLLISION [/bold white on red] [bold red]{escape(col['headline'])}"
+                      "[/bold red]")
+    fails = set(v.get("fails_run") or [])
+    head = "all checks passed" if v["passed"] else f"{len(v['failed'])} check(s) failed: {', '.join(v['failed'])}"
+    console.print(f"[bold]verdict:[/bold] {escape(head)}")
+    for c in v["checks"]:
+        mark = "[green]ok  [/green]" if c["ok"] else ("[bold red]FAIL[/bold red]" if c["name"] in fails
+                                                       else "[yellow]warn[/yellow]")
+        console.print(f"  {mark} {c['name']:<9} {escape(c['headline'])}", highlight=False)
+    if fails:
+        console.print(f"[bold red]the run fails on: {', '.join(sorted(fails))} (--fail-on): exit 3[/bold red]")
 
 
 def mark_failed(out: Path, err: BaseException) -> None:

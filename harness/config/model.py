@@ -23,7 +23,7 @@ import re
 from collections.abc import Callable, Mapping, Sequence
 from enum import Enum
 from pathlib import Path
-from typing import Any, get_origin
+from typing import Any, Literal, get_origin
 
 import yaml
 from pydantic import (
@@ -214,15 +214,53 @@ class CapturePhase(str, Enum):
     ALIGNED = "aligned"  # every camera at the same instant (lockstep always is)
 
 
+class EngineFaults(BaseModel):
+    """Faults injected into the camera pipeline, to test what a run reports when its
+    own cameras lag (as ``target.impair`` does for links): every ``render_delay_every``-th
+    frame of each camera (1: every frame) is held ``render_delay_ms`` by its render
+    worker after rendering, before ``t0`` is stamped, as a slow renderer would."""
+
+    model_config = _MODEL_CONFIG
+
+    render_delay_ms: Float = Field(0.0, ge=0, le=10_000)
+    render_delay_every: Int = Field(1, ge=1, le=1_000_000)
+
+
 class EngineConfig(BaseModel):
-    """The run's processes: physics pacing and the render pool (harness/engine)."""
+    """The run's processes: physics pacing and the render pool (harness/engine).
+
+    Real time is judged on two paths: a physics step starting more than
+    ``late_tolerance_ms`` after its due instant is late (the default, 5 ms, is met by the
+    physics process alone on a VM without real-time priority, where steps ran 1-3 ms
+    late); a camera frame handed to its link more than ``frame_late_tolerance_ms`` after
+    its camera instant (``t_tx - t_state``) is late (default: one camera period, i.e.
+    the frame is out before its camera's next instant)."""
 
     model_config = _MODEL_CONFIG
 
     render_workers: Int = Field(0, ge=0, le=256)  # 0: one per spare core, at most one per vehicle
     capture_phase: CapturePhase = CapturePhase.SPREAD
-    late_tolerance_ms: Float = Field(1.0, gt=0, le=1000)  # a physics step later than this is late
+    late_tolerance_ms: Float = Field(5.0, gt=0, le=1000)  # a physics step later than this is late
+    frame_late_tolerance_ms: Float | None = Field(None, gt=0, le=60_000)  # None: one camera period
     realtime_priority: Int = Field(10, ge=0, le=99)  # SCHED_FIFO for the physics process (0: don't ask)
+    faults: EngineFaults = Field(default_factory=EngineFaults)
+
+
+# The verdicts a run can fail on (hil.harness.analysis.verdict.CheckName, same values).
+VerdictName = Literal["realtime", "deadline", "drop", "collision", "mismatch", "anomaly"]
+
+
+class VerdictConfig(BaseModel):
+    """What fails a run (``hil run --fail-on`` adds to ``fail_on``): each named check
+    that fails makes ``hil run`` exit 3. A deadline check fails when more than
+    ``deadline_miss_fraction`` of a vehicle's frames are over a stage budget, a drop
+    check when more than ``drop_fraction`` of its frames got no estimate in time."""
+
+    model_config = _MODEL_CONFIG
+
+    fail_on: list[VerdictName] = Field(default_factory=list)
+    deadline_miss_fraction: Float = Field(0.0, ge=0, le=1)
+    drop_fraction: Float = Field(0.0, ge=0, le=1)
 
 
 class LockstepConfig(BaseModel):
@@ -259,6 +297,7 @@ class RunConfig(BaseModel):
     detector: DetectorSettings = Field(default_factory=DetectorSettings)
     corner_cases: CornerCaseSettings = Field(default_factory=CornerCaseSettings)
     engine: EngineConfig = Field(default_factory=EngineConfig)
+    verdict: VerdictConfig = Field(default_factory=VerdictConfig)
     progress: bool = True
 
     @model_validator(mode="after")
@@ -307,6 +346,13 @@ class RunConfig(BaseModel):
     def camera_period_steps(self) -> int:
         """Physics steps per camera frame (the camera period is a whole multiple)."""
         return round(1.0 / (self.camera.fps * self.physics_step_s))
+
+    @property
+    def frame_late_tolerance_ns(self) -> int:
+        """A frame handed to its link later than this after its camera instant is late
+        (``engine.frame_late_tolerance_ms``; default one camera period)."""
+        ms = self.engine.frame_late_tolerance_ms
+        return int(ms * 1e6) if ms is not None else round(1e9 / self.camera.fps)
 
 
 # --- camera period / physics step -----------------------------------------------

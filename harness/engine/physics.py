@@ -132,6 +132,7 @@ class _Keeper:
         self.hist = LatenessHistogram(tolerance_ns=spec.late_tolerance_ns)
         self.halted = False
         self.exiting = False
+        self.span_ns = 0
         self.fd = conn.fileno()
 
     # -- messages ---------------------------------------------------------------
@@ -176,15 +177,20 @@ class _Keeper:
         msg = self.conn.recv()
         if msg[0] == "exit":
             return
+        start = time.monotonic_ns()
         if self.spec.realtime:
-            self._realtime(int(msg[1]))
+            start = int(msg[1])
+            self._realtime(start)
         else:
             self._lockstep()
+        self.span_ns = time.monotonic_ns() - start
         self.conn.send(("finished", self.sim.steps))
         while not self.exiting:  # the run drains its frames: controls still apply
             self._handle(self.conn.recv())
         steps, qpos, qvel = self.sim.state()
-        self.conn.send(("done", self.hist.to_json(), steps, qpos, qvel, self.sim.take_collisions()))
+        # span_ns: the physics's own wall time from start to its last step (its pace).
+        self.conn.send(("done", {**self.hist.to_json(), "span_ns": self.span_ns}, steps, qpos, qvel,
+                        self.sim.take_collisions()))
 
     def _realtime(self, start_ns: int) -> None:
         sim, spec, clock = self.sim, self.spec, time.monotonic_ns

@@ -52,6 +52,8 @@ class RenderSpec:
     jpeg_quality: int
     visible_boxes: bool
     min_visible_px: int
+    delay_ns: int = 0              # injected fault: hold a frame this long before t0 ...
+    delay_every: int = 1           # ... every this many frames of a camera (engine.faults)
 
 
 class FrameSlots:
@@ -86,6 +88,15 @@ class FrameSlots:
                 shm.unlink()
             except FileNotFoundError:
                 pass
+
+
+def _hold(ns: int) -> None:
+    """The injected render delay: sleep, then spin the last 0.2 ms (sleep overshoots)."""
+    end = time.monotonic_ns() + ns
+    if ns > 200_000:
+        time.sleep((ns - 200_000) / 1e9)
+    while time.monotonic_ns() < end:
+        pass
 
 
 def render_main(conn: Connection, jobs: Connection, spec: RenderSpec, parent_pid: int) -> None:
@@ -127,6 +138,8 @@ def render_main(conn: Connection, jobs: Connection, spec: RenderSpec, parent_pid
             sim.load_state(steps, qpos, qvel)
             for name in names:
                 rgb = sim.render(name)
+                if spec.delay_ns and counter[name] % spec.delay_every == 0:
+                    _hold(spec.delay_ns)
                 t0 = time.monotonic_ns()
                 data, enc = encode_image(rgb, jpeg=spec.jpeg, quality=spec.jpeg_quality)
                 slot = counter[name] % SLOTS

@@ -39,6 +39,7 @@ import numpy as np
 
 from hil.common.errors import ConfigError
 from hil.harness import __version__
+from hil.harness.analysis.verdict import verdict_of
 from hil.harness.record.run_folder import ClockPoint, RecordedEvent, RunData, read_run
 from hil.harness.report import plots as rp
 from hil.harness.report import fleet
@@ -55,7 +56,7 @@ h3{font-size:15px;margin:18px 0 6px}table{border-collapse:collapse;margin:6px 0 
 th,td{border:1px solid #ddd;padding:3px 8px;text-align:left;vertical-align:top}th{background:#f4f4f4}
 td.n{text-align:right;font-variant-numeric:tabular-nums}.note{padding:8px 12px;margin:8px 0;border-radius:4px}
 .warn{background:#fff4e0;border:1px solid #f0b860}.bad{background:#fde8e8;border:1px solid #e88}
-.ok{color:#2a7a2a;font-weight:bold}.nok{color:#c62828;font-weight:bold}.muted{color:#777}
+.ok{color:#2a7a2a;font-weight:bold}.banner{font-size:16px}.nok{color:#c62828;font-weight:bold}.muted{color:#777}
 .grid{display:flex;flex-wrap:wrap;gap:6px}code{font-size:12px}details{margin:6px 0}
 .case{display:flex;align-items:flex-start;gap:12px;border:1px solid #ddd;padding:8px;margin:8px 0;border-radius:4px}
 .case img{flex:none;width:320px;height:auto;border:1px solid #ccc}
@@ -96,10 +97,6 @@ def _notes(d: RunData) -> list[str]:
     ended = s.get("ended_by")
     if ended is not None and ended != "duration":
         notes.append(("bad", f"The run ended early: {ended}."))
-    rt = s.get("realtime") or {}
-    if rt.get("kept_realtime") is False:
-        notes.append(("warn", (f"Real time was not kept: achieved factor {rt.get('achieved_factor')} of "
-                               f"{rt.get('requested_factor')}, {rt.get('late_steps')} late physics steps.")))
     dropped = (s.get("recorder") or {}).get("dropped")
     if dropped:
         notes.append(("warn", f"The recorder dropped {dropped} messages (queue full): run.mcap misses them."))
@@ -123,12 +120,18 @@ def _run_section(d: RunData) -> str:
     if s:
         rt = s.get("realtime") or {}
         kept = rt.get("kept_realtime")
-        badge = '<span class="ok">kept</span>' if kept else '<span class="nok">NOT kept</span>'
+        lagging = rt.get("lagging")
+        badge = ('<span class="ok">kept</span>' if kept else '<span class="nok">NOT kept</span>'
+                 + (f" ({escape(', '.join(lagging))} lagged)" if lagging else ""))
+        cam = rt.get("camera") or {}
         rows += [("simulated / wall time", f"{_ms(s.get('sim_time_s'), 2)} s / {_ms(s.get('wall_time_s'), 2)} s"),
                  ("mode", escape(str(rt.get("mode")))),
-                 ("real-time health", (f"{badge}: factor {rt.get('achieved_factor')} of "
+                 ("real-time health", (f"{badge}: physics factor {rt.get('achieved_factor')} of "
                                        f"{rt.get('requested_factor')}, late steps {rt.get('late_steps')}, "
-                                       f"max lateness {rt.get('max_lateness_ms')} ms"))]
+                                       f"max lateness {rt.get('max_lateness_ms')} ms"
+                                       + (f"; camera frames late {cam.get('late_frames')} of {cam.get('frames')} "
+                                          f"(over {cam.get('tolerance_ms')} ms after their instant, worst "
+                                          f"{cam.get('worst_lag_ms')} ms)" if cam else "")))]
         lat = rt.get("lateness_ms") or {}
         if lat:
             rows.append(("physics-step lateness", escape(
@@ -437,6 +440,31 @@ def _events_section(d: RunData) -> str:
     return "".join(out)
 
 
+def _verdict_section(d: RunData) -> str:
+    """The first screen: a collision banner, then every check, met or missed, with its
+    figures (``summary.json``'s ``verdict``, or one rebuilt from its figures)."""
+    if not d.summary:
+        return ""
+    v = verdict_of(d.summary)
+    out = ['<h2 id="verdict">Verdict</h2>']
+    by = {c["name"]: c for c in v["checks"]}
+    col = by.get("collision")
+    if col is not None and not col["ok"]:
+        out.append(f'<div class="note bad banner"><b>COLLISION</b> — {escape(col["headline"])}</div>')
+    fails = set(v.get("fails_run") or [])
+    head = ("all checks passed" if v["passed"]
+            else f"{len(v['failed'])} check{'s' if len(v['failed']) != 1 else ''} failed: {', '.join(v['failed'])}")
+    out.append(f'<p class="{"ok" if v["passed"] else "nok"}">{escape(head)}</p>')
+    rows = []
+    for c in v["checks"]:
+        mark = ('<span class="ok">met</span>' if c["ok"] else
+                '<span class="nok">FAILED (fails the run)</span>' if c["name"] in fails else
+                '<span class="nok">missed</span>')
+        rows.append([escape(c["name"]), mark, escape(c["headline"])])
+    out.append(_table(["check", "verdict", "what the figures say"], rows, numeric_from=99))
+    return "".join(out)
+
+
 # --- the page ---------------------------------------------------------------------------
 
 
@@ -451,7 +479,8 @@ def build_report(d: RunData) -> str:
             f"<title>hil report: {escape(str(name))}</title><style>{_CSS}</style></head><body>"
             f"{fleet.nav(d.vehicles)}<h1>hil report: {escape(str(name))}</h1>"
             f'<p class="muted">{escape(str(d.run_dir))} · generated {time.strftime("%Y-%m-%d %H:%M:%S")} '
-            f"by hil {__version__}</p>" + "".join(_notes(d)) + "".join(parts) + "</body></html>\n")
+            f"by hil {__version__}</p>" + _verdict_section(d) + "".join(_notes(d)) + "".join(parts)
+            + "</body></html>\n")
 
 
 def write_report(run_dir: Path, *, out: Path | None = None) -> Path:

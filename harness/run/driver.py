@@ -235,6 +235,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     from hil.harness.analysis.detector_observer import DetectorObserver
     from hil.harness.analysis.events import EventBus
     from hil.harness.analysis.summary import build_summary
+    from hil.harness.analysis.verdict import parse_fail_on, verdict_json
     from hil.harness.analysis.timing_observer import TimingObserver
     from hil.harness.cases.recorder import CaseRecorder
     from hil.harness.config.model import LatencyKind
@@ -358,6 +359,10 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 if isinstance(rec, CaseRecorder):
                     summary["corner_cases"] = {"written": rec.cases_written, "errors": list(rec.errors),
                                                "triggers_dropped": rec.triggers_dropped}
+                vc = cfg.verdict
+                summary["verdict"] = verdict_json(summary, fail_on=parse_fail_on(vc.fail_on),
+                                                  deadline_miss_fraction=vc.deadline_miss_fraction,
+                                                  drop_fraction=vc.drop_fraction)
                 main_rec.add_metadata("summary", {"json": json.dumps(summary, sort_keys=True)})
                 guard.summary_ready = True
             reserve.unlink(missing_ok=True)  # room for the summary and the report

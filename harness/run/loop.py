@@ -98,7 +98,8 @@ def engine_specs(cfg: RunConfig, world: Any, rules: Any) -> tuple[PhysicsSpec, R
                           realtime_priority=eng.realtime_priority if realtime else 0)
     render = RenderSpec(world=world, vehicles=egos, shm={}, slot_bytes=cam.width * cam.height * 3 + 65536,
                         jpeg=cam.encoding == Encoding.JPEG, jpeg_quality=cam.jpeg_quality,
-                        visible_boxes=cfg.truth.visible_boxes, min_visible_px=cfg.truth.min_visible_px)
+                        visible_boxes=cfg.truth.visible_boxes, min_visible_px=cfg.truth.min_visible_px,
+                        delay_ns=int(eng.faults.render_delay_ms * 1e6), delay_every=eng.faults.render_delay_every)
     return physics, render
 
 
@@ -109,6 +110,7 @@ class LoopStats:
     sim_steps: int = 0
     late_steps: int = 0
     max_lateness_ns: int = 0
+    physics_span_ns: int = 0   # the physics process's own wall time, start to last step
     ended_by: str = "duration"
     lateness: dict[str, Any] = field(default_factory=dict)   # the physics process's histogram
     scheduling: str = ""
@@ -141,6 +143,7 @@ class SimLoop:
         self.stop_reason: str | None = None
         self.on_tick = on_tick
         self.timeout_ns = int(cfg.target.estimate_timeout_s * 1e9)
+        self.frame_tolerance_ns = cfg.frame_late_tolerance_ns
         self.period = cfg.camera_period_steps
         self.table = capture_table(self.period, physics.phases)
         intr = sim.intrinsics()
@@ -308,6 +311,7 @@ class SimLoop:
         st.lateness = hist
         st.late_steps = int(hist["late_steps"])
         st.max_lateness_ns = int(hist["max_ns"])
+        st.physics_span_ns = int(hist.get("span_ns", 0))
         self._sim_steps = int(steps)
         self.analysis.post(self._final_state_task, steps, qpos, qvel, collisions)
 
@@ -441,6 +445,7 @@ class SimLoop:
             self.request_stop(f"target of {v.name} is gone: {err}")
             return
         v.in_flight[frame_id] = InFlight(frame_id, sim_time_ns, t0, t_tx, t_state)
+        v.frame_out(t_tx - t_state, tolerance_ns=self.frame_tolerance_ns)
         v.fps_meter.add(t0)
         if self.cfg.recording.images:
             topic = f"/{v.name}/camera"

@@ -40,6 +40,10 @@ class VehicleRun:
     late_estimates: int = 0
     unknown_estimates: int = 0
     protocol_faults: int = 0  # messages from the target that could not be decoded
+    # The camera pipeline's real time: frames handed to the link more than the frame
+    # late tolerance after their camera instant (t_tx - t_state), and the worst lag.
+    late_frames: int = 0
+    worst_frame_lag_ns: int = 0
     e2e_window: RollingWindow = field(default_factory=RollingWindow)
     fps_meter: RateMeter = field(default_factory=RateMeter)
 
@@ -57,6 +61,13 @@ class VehicleRun:
         if is_sane(rec)[0]:
             for name, v in rec.stages_ns().items():
                 self.stage_values[name].append(v)
+
+    def frame_out(self, lag_ns: int, *, tolerance_ns: int) -> None:
+        """A frame left for its target ``lag_ns`` after its camera instant."""
+        if lag_ns > tolerance_ns:
+            self.late_frames += 1
+        if lag_ns > self.worst_frame_lag_ns:
+            self.worst_frame_lag_ns = lag_ns
 
     def count(self, status: FrameStatus) -> int:
         return self.counts[status]

@@ -167,7 +167,13 @@ def test_realtime_warning_says_what_was_not_kept():
           "late_tolerance_ms": 10.0, "max_lateness_ms": 62.0, "kept_realtime": False}
     text = realtime_warning(rt, sim_steps=7500)
     assert text is not None and "factor 1.00 of 1" not in text
-    assert "1900 of 7500 physics steps ran more than 10 ms late (worst 62 ms)" in text and "lockstep" in text
+    assert "1900 of 7500 physics steps ran more than 10 ms late (worst 62.0 ms)" in text and "lockstep" in text
+    assert "camera pipeline" not in text
     slow = realtime_warning(dict(rt, achieved_factor=0.5), sim_steps=7500)
     assert slow is not None and "0.50x wall-clock speed where 1x was asked" in slow
     assert realtime_warning(dict(rt, kept_realtime=True), sim_steps=7500) is None
+    cams = realtime_warning(dict(rt, lagging=["camera"], camera={"late_frames": 7, "frames": 40, "tolerance_ms": 50.0,
+                                                                 "worst_lag_ms": 81.25}), sim_steps=7500)
+    assert cams is not None and "physics" not in cams
+    assert "the camera pipeline lagged: 7 of 40 frames left more than 50 ms after their camera instant" in cams
+    assert "(worst 81.2 ms)" in cams or "(worst 81.3 ms)" in cams

@@ -366,3 +366,60 @@ def test_thresholds_are_configurable_and_validated():
         Thresholds(deadline_ms={"end_to_end": -1})
     with pytest.raises(ConfigError, match="jitter_window"):
         Thresholds(jitter_window=0)
+
+
+# -- who caused a latency anomaly (issue 28 item 2) ------------------------------------
+
+
+def _rec(i: int, *, send_ns: int = 50 * US, infer_ns: int = 5 * MS, down_ns: int = 60 * US,
+         target_stamps: bool = True) -> PipelineRecord:
+    """A frame on one clock (the target's = the harness's): capture->send ``send_ns``,
+    inference ``infer_ns``, downlink ``down_ns``; 20 fps."""
+    t0 = START_NS + i * PERIOD_NS
+    t_tx = t0 + send_ns
+    rx = t_tx + 60 * US
+    end = rx + 100 * US + infer_ns
+    reply = end + 20 * US
+    t0p = reply + down_ns
+    if not target_stamps:
+        return PipelineRecord("ego", i, i * PERIOD_NS, t0, t_tx, FrameStatus.OK, t0p_ns=t0p, t_apply_ns=t0p + 100 * US)
+    return PipelineRecord("ego", i, i * PERIOD_NS, t0, t_tx, FrameStatus.OK, rx, rx + 100 * US, end, reply, t0p,
+                          t0p + 100 * US, i * PERIOD_NS + PERIOD_NS)
+
+
+@pytest.mark.parametrize("target_stamps", [True, False])
+def test_a_spike_in_the_harness_own_stages_is_labelled_as_the_harness(target_stamps: bool) -> None:
+    det = AnomalyDetector("ego")
+    rng = np.random.default_rng(3)
+    for i in range(80):
+        assert det.on_record(_rec(i, infer_ns=int(rng.uniform(4, 6) * MS), target_stamps=target_stamps)) == []
+    found = det.on_record(_rec(80, send_ns=30 * MS, target_stamps=target_stamps))  # capture->send stalled
+    assert [a.kind for a in found] == [AnomalyKind.LATENCY_SPIKE]
+    assert found[0].cause == "harness" and "caused by the harness: capture_to_send 30.000 ms" in found[0].detail
+    ev = found[0].to_json()
+    assert ev["cause"] == "harness"
+
+
+def test_a_spike_in_inference_is_the_target_and_on_the_wire_the_link() -> None:
+    det = AnomalyDetector("ego")
+    for i in range(80):
+        det.on_record(_rec(i))
+    infer = det.on_record(_rec(80, infer_ns=40 * MS))
+    assert [(a.kind, a.cause) for a in infer] == [(AnomalyKind.LATENCY_SPIKE, "target")]
+    assert "on the target side: target_total" in infer[0].detail
+    for i in range(81, 90):
+        det.on_record(_rec(i))
+    wire = det.on_record(_rec(90, down_ns=30 * MS))
+    assert [(a.kind, a.cause) for a in wire] == [(AnomalyKind.LATENCY_SPIKE, "link")]
+    # A stage with a side of its own is that side's.
+    det2 = AnomalyDetector("ego", Thresholds(deadline_ms={"end_to_end": 100.0, "inference": 10.0}))
+    miss = det2.on_record(_rec(0, infer_ns=20 * MS))
+    assert [(a.kind, a.stage, a.cause) for a in miss] == [(AnomalyKind.DEADLINE_MISS, "inference", "target")]
+
+
+def test_without_target_stamps_a_rise_elsewhere_names_no_side() -> None:
+    det = AnomalyDetector("ego")
+    for i in range(80):
+        det.on_record(_rec(i, target_stamps=False))
+    found = det.on_record(_rec(80, infer_ns=40 * MS, target_stamps=False))
+    assert [a.kind for a in found] == [AnomalyKind.LATENCY_SPIKE] and found[0].cause is None
