@@ -41,6 +41,7 @@ def floor(seconds: float) -> dict[str, object]:
 
     gl.select_backend()
     from hil.harness.config.model import load_config
+    from hil.harness.engine.messages import Done, Exit, Finished, PhysicsReady, Start
     from hil.harness.engine.physics import PhysicsSpec, physics_main
     from hil.harness.run.driver import build_world
     from hil import scenarios
@@ -57,13 +58,15 @@ def floor(seconds: float) -> dict[str, object]:
     a, b = ctx.Pipe()
     p = ctx.Process(target=physics_main, args=(b, [], spec, os.getpid()), daemon=True)
     p.start()
-    sched = a.recv()[1]
-    a.send(("start", time.monotonic_ns() + 200_000_000))
-    assert a.recv()[0] == "finished"
-    a.send(("exit",))
+    ready = a.recv()
+    assert isinstance(ready, PhysicsReady), ready
+    a.send(Start(time.monotonic_ns() + 200_000_000))
+    assert isinstance(a.recv(), Finished)
+    a.send(Exit())
     done = a.recv()
+    assert isinstance(done, Done), done
     p.join(5)
-    hist = done[1]
+    sched, hist = ready.scheduling, done.lateness
     return {"scheduling": sched, **{k: hist[k] for k in ("steps", "late_steps", "steps_over_10ms", "p50_ns",
                                                           "p99_ns", "max_ns")}}
 

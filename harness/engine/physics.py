@@ -5,14 +5,11 @@ says (lockstep), applies each control the moment it arrives, and at every camera
 instant sends the world state to the run process. Each step's lateness (how long
 after its due instant it started) goes into a fixed-size histogram.
 
-Messages (tuples, over one ``multiprocessing`` pipe between our own processes):
-
-run -> physics                           physics -> run
-``("start", wall_start_ns)``             ``("ready", scheduling)``
-``("ctl", vi, frame_id, s, t, b)``       ``("applied", vi, frame_id, t_apply_ns, steps, qpos, qvel)``
-``("advance", to_step, [ctl...])``       ``("state", vis, t_state_ns, steps, qpos, qvel, collisions)``
-``("halt",)`` stop stepping              ``("finished", steps)`` (then still applies controls)
-``("exit",)``                            ``("done", LatenessHistogram.to_json(), final state)``
+Messages (``hil.harness.engine.messages``, over one ``multiprocessing`` pipe between
+our own processes): ``Start``, ``ApplyControl``, ``Advance``, ``Halt``, ``Exit`` in;
+``PhysicsReady``, ``WorldState`` (each camera instant), ``Applied`` (each control),
+``Finished`` (after the last step; controls still apply) and ``Done`` (the lateness
+histogram and the final state) out; ``RenderJob`` to the render workers.
 """
 
 from __future__ import annotations
@@ -27,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from hil.harness.engine.messages import (Advance, Applied, ApplyControl, Done, Exit, Finished, Halt, PhysicsReady,
+                                         RenderJob, Start, WorldState)
 from hil.harness.engine.procs import ask_realtime, die_with_parent
 
 SPIN_NS = 60_000          # spin the last 60 µs before a due instant (sleep overshoots)
@@ -114,7 +113,7 @@ def physics_main(conn: Connection, jobs: list[Connection], spec: PhysicsSpec, pa
     gc.collect()
     gc.freeze()
     gc.disable()  # the loop makes no reference cycles; a collection would be a stall
-    conn.send(("ready", scheduling))
+    conn.send(PhysicsReady(scheduling))
     try:
         keeper.serve()
     except (EOFError, BrokenPipeError, KeyboardInterrupt):
@@ -140,21 +139,20 @@ class _Keeper:
     def _pending(self) -> bool:
         return bool(select.select([self.fd], [], [], 0)[0])
 
-    def _handle(self, msg: tuple[Any, ...]) -> None:
-        tag = msg[0]
-        if tag == "ctl":
-            self._apply(msg)
-        elif tag == "halt":
-            self.halted = True
-        elif tag == "exit":
-            self.halted = self.exiting = True
+    def _handle(self, msg: object) -> None:
+        match msg:
+            case ApplyControl():
+                self._apply(msg)
+            case Halt():
+                self.halted = True
+            case Exit():
+                self.halted = self.exiting = True
 
-    def _apply(self, msg: tuple[Any, ...]) -> None:
-        _, vi, frame_id, steer, throttle, brake = msg
-        self.sim.set_control(self.egos[vi], steering_rad=steer, throttle=throttle, brake=brake)
+    def _apply(self, c: ApplyControl) -> None:
+        self.sim.set_control(self.egos[c.vi], steering_rad=c.steering_rad, throttle=c.throttle, brake=c.brake)
         t_apply = time.monotonic_ns()
         steps, qpos, qvel = self.sim.state()
-        self.conn.send(("applied", vi, frame_id, t_apply, steps, qpos, qvel))
+        self.conn.send(Applied(c.vi, c.frame_id, t_apply, steps, qpos, qvel))
 
     def _drain(self) -> None:
         while self._pending():
@@ -168,29 +166,29 @@ class _Keeper:
         for vi in vis:
             by_worker.setdefault(self.spec.assign[vi], []).append(self.egos[vi])
         for w, names in by_worker.items():
-            self.jobs[w].send(("job", steps, qpos, qvel, names, t_state_ns))
-        self.conn.send(("state", vis, t_state_ns, steps, qpos, qvel, self.sim.take_collisions()))
+            self.jobs[w].send(RenderJob(steps, qpos, qvel, tuple(names), t_state_ns))
+        self.conn.send(WorldState(vis, t_state_ns, steps, qpos, qvel, tuple(self.sim.take_collisions())))
 
     # -- the loops ----------------------------------------------------------------
 
     def serve(self) -> None:
         msg = self.conn.recv()
-        if msg[0] == "exit":
-            return
+        if not isinstance(msg, Start):
+            return  # Exit before the start
         start = time.monotonic_ns()
         if self.spec.realtime:
-            start = int(msg[1])
+            start = msg.wall_start_ns
             self._realtime(start)
         else:
             self._lockstep()
         self.span_ns = time.monotonic_ns() - start
-        self.conn.send(("finished", self.sim.steps))
+        self.conn.send(Finished(self.sim.steps))
         while not self.exiting:  # the run drains its frames: controls still apply
             self._handle(self.conn.recv())
         steps, qpos, qvel = self.sim.state()
         # span_ns: the physics's own wall time from start to its last step (its pace).
-        self.conn.send(("done", {**self.hist.to_json(), "span_ns": self.span_ns}, steps, qpos, qvel,
-                        self.sim.take_collisions()))
+        self.conn.send(Done({**self.hist.to_json(), "span_ns": self.span_ns}, steps, qpos, qvel,
+                            tuple(self.sim.take_collisions())))
 
     def _realtime(self, start_ns: int) -> None:
         sim, spec, clock = self.sim, self.spec, time.monotonic_ns
@@ -214,13 +212,12 @@ class _Keeper:
         sim, spec = self.sim, self.spec
         while not self.halted:
             msg = self.conn.recv()
-            if msg[0] != "advance":
+            if not isinstance(msg, Advance):
                 self._handle(msg)
                 continue
-            _, to_step, ctls = msg
-            for c in ctls:
+            for c in msg.controls:
                 self._apply(c)
-            to_step = min(int(to_step), spec.total_steps)
+            to_step = min(msg.to_step, spec.total_steps)
             while sim.steps < to_step:
                 sim.step()
             if sim.steps >= spec.total_steps:

@@ -11,14 +11,17 @@ import queue
 import sys
 from collections.abc import Iterator
 from dataclasses import replace
-from typing import Any
+from typing import Any, TypeVar
 
 from hil.common.errors import SimulationError
+from hil.harness.engine.messages import (Advance, ApplyControl, Exit, Halt, PhysicsReady, Start, StopWorker,
+                                         WorkerFailed, WorkerReady)
 from hil.harness.engine.physics import PhysicsSpec, physics_main
 from hil.harness.engine.procs import Pump, widen_pipe
 from hil.harness.engine.render import FrameSlots, RenderSpec, render_main
 
 START_TIMEOUT_S = 60.0
+_M = TypeVar("_M")
 
 
 def auto_workers(n_vehicles: int) -> int:
@@ -47,8 +50,8 @@ def _without_main_module() -> Iterator[None]:
 
 
 class Engine:
-    """Starts the children; their messages arrive in ``events`` (the run's one event
-    queue, which the links feed too) as tuples tagged ``"physics"`` or ``"render"``."""
+    """Starts the children; their messages (``hil.harness.engine.messages``) arrive in
+    ``events``, the run's one event queue, which the links feed too."""
 
     def __init__(self, *, physics: PhysicsSpec, render: RenderSpec, workers: int,
                  events: queue.Queue[Any]) -> None:
@@ -96,44 +99,44 @@ class Engine:
             self._procs.append(p)
             self._physics = pc
             self._conns = [pc, *self._render]
-            self.scheduling = self._expect(pc, "ready", "physics")[1]
+            self.scheduling = self._expect(pc, PhysicsReady, "physics").scheduling
             for w, c in enumerate(self._render):
-                self.worker_pids.append(int(self._expect(c, "ready", f"render worker {w}")[1]))
-            self._pumps = [Pump(pc, events, name="physics", transform=lambda m: ("physics", *m))]
-            self._pumps += [Pump(c, events, name=f"render-{w}", transform=lambda m: ("render", *m))
-                            for w, c in enumerate(self._render)]
+                self.worker_pids.append(self._expect(c, WorkerReady, f"render worker {w}").pid)
+            self._pumps = [Pump(pc, events, name="physics")]
+            self._pumps += [Pump(c, events, name=f"render-{w}") for w, c in enumerate(self._render)]
         except BaseException:
             self.close()
             raise
 
     @staticmethod
-    def _expect(conn: Any, tag: str, who: str) -> tuple[Any, ...]:
+    def _expect(conn: Any, kind: type[_M], who: str) -> _M:
         if not conn.poll(START_TIMEOUT_S):
             raise SimulationError(f"{who} did not start within {START_TIMEOUT_S:.0f} s")
         try:
             msg = conn.recv()
         except EOFError as err:
             raise SimulationError(f"{who} exited while starting") from err
-        if msg[0] != tag:
-            raise SimulationError(str(msg[1]) if msg[0] == "error" else f"{who}: unexpected {msg[0]!r}")
+        if not isinstance(msg, kind):
+            raise SimulationError(msg.text if isinstance(msg, WorkerFailed)
+                                  else f"{who}: unexpected {type(msg).__name__}")
         return msg
 
     # -- to the physics process ------------------------------------------------------
 
     def start(self, wall_start_ns: int) -> None:
-        self._physics.send(("start", wall_start_ns))
+        self._physics.send(Start(wall_start_ns))
 
-    def control(self, vi: int, frame_id: int, steering: float, throttle: float, brake: float) -> None:
-        self._physics.send(("ctl", vi, frame_id, steering, throttle, brake))
+    def control(self, c: ApplyControl) -> None:
+        self._physics.send(c)
 
-    def advance(self, to_step: int, controls: list[tuple[Any, ...]]) -> None:
-        self._physics.send(("advance", to_step, controls))
+    def advance(self, to_step: int, controls: tuple[ApplyControl, ...]) -> None:
+        self._physics.send(Advance(to_step, controls))
 
     def halt(self) -> None:
-        self._physics.send(("halt",))
+        self._physics.send(Halt())
 
     def exit_physics(self) -> None:
-        self._physics.send(("exit",))
+        self._physics.send(Exit())
 
     # -- from the render pool ----------------------------------------------------------
 
@@ -151,12 +154,12 @@ class Engine:
         procs, self._procs = self._procs, []
         for c in getattr(self, "_render", []):
             try:
-                c.send(("stop",))
+                c.send(StopWorker())
             except (OSError, ValueError):
                 pass
         if procs:
             try:
-                self._physics.send(("exit",))
+                self._physics.send(Exit())
             except (OSError, ValueError, AttributeError):
                 pass
         for p in procs:

@@ -8,7 +8,6 @@ import os
 import queue
 import signal
 import threading
-from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -75,27 +74,26 @@ def widen_pipe(conn: Connection, size: int = 1 << 20) -> None:
 
 
 class Pump:
-    """A daemon thread that moves every message of ``conn`` into ``out`` as
-    ``(tag, *fields)`` tuples, and ``("eof", name)`` when the child's end closes."""
+    """A daemon thread that moves every message of ``conn`` into ``out``, and
+    ``ChildGone(name)`` when the child's end closes."""
 
-    def __init__(self, conn: Connection, out: queue.Queue[Any], *, name: str,
-                 transform: Callable[[Any], Any] | None = None) -> None:
+    def __init__(self, conn: Connection, out: queue.Queue[Any], *, name: str) -> None:
         self._conn, self._out, self.name = conn, out, name
-        self._transform = transform
         self._thread = threading.Thread(target=self._run, name=f"pump-{name}", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
         from hil.adapters.process import prioritise_this_thread
+        from hil.harness.engine.messages import ChildGone
 
         prioritise_this_thread()  # world states and frames are on the capture path
         while True:
             try:
                 msg = self._conn.recv()
             except (EOFError, OSError):
-                self._out.put(("eof", self.name))
+                self._out.put(ChildGone(self.name))
                 return
-            self._out.put(msg if self._transform is None else self._transform(msg))
+            self._out.put(msg)
 
     def join(self, timeout_s: float) -> None:
         self._thread.join(timeout_s)

@@ -8,9 +8,9 @@ writes the bytes into that vehicle's shared-memory slot ring (images never cross
 pipe); then, with ``truth.visible_boxes``, it renders segmentation for the camera
 truth — after every frame of the job is out, so truth adds no capture latency.
 
-Worker -> run messages: ``("ready", pid)``, ``("frame", vehicle, steps, t_state_ns,
-speed_mps, t0_ns, t_encoded_ns, slot, nbytes, encoding)``, ``("camtruth", vehicle,
-steps, CameraTruth)``, ``("error", text)``. The run process sends ``("stop",)``.
+Worker -> run messages (``hil.harness.engine.messages``): ``WorkerReady``,
+``FrameReady`` (the frame's stamps and its slot), ``CameraTruthReady``,
+``WorkerFailed``. The run process sends ``StopWorker`` (or just goes away).
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from hil.harness.engine.messages import CameraTruthReady, FrameReady, RenderJob, WorkerFailed, WorkerReady
 from hil.harness.engine.procs import die_with_parent
 
 SLOTS = 8  # frames of one camera in flight between a worker and the links
@@ -124,19 +125,19 @@ def render_main(conn: Connection, jobs: Connection, spec: RenderSpec, parent_pid
                 sim.camera_truth(name, min_visible_px=spec.min_visible_px)
         slots = {v: FrameSlots(slot_bytes=spec.slot_bytes, name=spec.shm[v]) for v in spec.vehicles}
     except Exception as err:  # noqa: BLE001 - reported to the run, which raises SimulationError
-        conn.send(("error", f"render worker could not start: {err}"))
+        conn.send(WorkerFailed(f"render worker could not start: {err}"))
         os._exit(1)
     counter = {v: 0 for v in spec.vehicles}
-    conn.send(("ready", os.getpid()))
+    conn.send(WorkerReady(os.getpid()))
     try:
         while True:
             ready = wait([jobs, conn])
             if conn in ready:
                 break  # "stop" (or the run process is gone)
-            msg = jobs.recv()
-            _, steps, qpos, qvel, names, t_state = msg
-            sim.load_state(steps, qpos, qvel)
-            for name in names:
+            job: RenderJob = jobs.recv()
+            steps = job.steps
+            sim.load_state(steps, job.qpos, job.qvel)
+            for name in job.vehicles:
                 rgb = sim.render(name)
                 if spec.delay_ns and counter[name] % spec.delay_every == 0:
                     _hold(spec.delay_ns)
@@ -145,11 +146,12 @@ def render_main(conn: Connection, jobs: Connection, spec: RenderSpec, parent_pid
                 slot = counter[name] % SLOTS
                 counter[name] += 1
                 n = slots[name].write(slot, data)
-                conn.send(("frame", name, steps, t_state, sim.speed_mps(name), t0, time.monotonic_ns(), slot, n,
-                           enc))
+                conn.send(FrameReady(name, steps, job.t_state_ns, sim.speed_mps(name), t0, time.monotonic_ns(), slot,
+                                     n, enc))
             if spec.visible_boxes:
-                for name in names:
-                    conn.send(("camtruth", name, steps, sim.camera_truth(name, min_visible_px=spec.min_visible_px)))
+                for name in job.vehicles:
+                    conn.send(CameraTruthReady(name, steps,
+                                               sim.camera_truth(name, min_visible_px=spec.min_visible_px)))
     except (EOFError, BrokenPipeError, KeyboardInterrupt):
         pass
     finally:

@@ -45,23 +45,23 @@ from typing import Any
 import numpy as np
 
 from hil.adapters.link import ProtocolFault, Received
-from hil.adapters.messages import CameraInfo, Command, ErrorMsg, Estimate, Heartbeat, ImageEncoding
+from hil.adapters.messages import CameraInfo, Command, ErrorMsg, Estimate, ImageEncoding
 from hil.adapters.process import prioritise_this_thread
 from hil.adapters.protocol import ErrorCode
 from hil.common.errors import TransportError
 from hil.harness.analysis.events import Event, EventBus, EventKind
-from hil.harness.analysis.observers import RunObserver
 from hil.harness.config.model import CameraConfig, Encoding, Mode, RunConfig
 from hil.harness.engine.analysis import AnalysisThread
+from hil.harness.engine.messages import (Applied, ApplyControl, CameraTruthReady, ChildGone, Done, Finished,
+                                         FrameReady, WorkerFailed, WorldState)
 from hil.harness.engine.physics import PhysicsSpec, capture_table, spread_phases
 from hil.harness.engine.pool import Engine
 from hil.harness.engine.render import RenderSpec, encode_image as _encode
-from hil.harness.record import foxglove_out
-from hil.harness.record.channels import sync_sample_json
 from hil.harness.record.recorder import Recorder
 from hil.harness.run.latency import HeldControls, LatencyProfile
+from hil.harness.run.ledger import Answer, FrameLedger
+from hil.harness.run.tasks import LoopTasks, pipeline_record
 from hil.harness.run.vehicle_state import InFlight, VehicleRun
-from hil.scenarios.ground_truth import GroundTruth, StateChanges
 from hil.scenarios.sim import Simulation
 from hil.timing.clock import Clock
 from hil.timing.records import FrameStatus, PipelineRecord
@@ -152,30 +152,30 @@ class SimLoop:
                                       math.radians(cam.pitch_deg))
         self.latency = latency if cfg.mode == Mode.LOCKSTEP and latency is not None else None
         self.held = None if self.latency is None else HeldControls(self.latency, step_ns=sim.step_ns)
-        self._changes = StateChanges()
-        self.observers: list[RunObserver] = []
+        self.ledger = FrameLedger()
+        self.tasks = LoopTasks(sim, recorder, self.events, clock, egos={v.name for v in vehicles})
+        self.observers = self.tasks.observers
+        self.analysis = AnalysisThread()
         self._next_command = 0
-        self._ego_names = {v.name for v in vehicles}
-        self.collisions: list[dict[str, object]] = []
-        self.min_gap_m: dict[str, float] = {}
         self._next_sync_ns = 0
         self._frame_of: dict[tuple[str, int], int] = {}  # (vehicle, steps) -> frame id, for camera truth
         self._camtruth_early: list[tuple[str, int, int, Any]] = []  # camera truth ahead of its world state
         self._sim_ns = 0  # the latest camera instant's sim time (loop thread)
-        self.analysis = AnalysisThread()
-        self._rendering = 0
-        self._applying: dict[tuple[int, int], tuple[VehicleRun, InFlight, Estimate, int]] = {}
-        # Per vehicle: records settled while an earlier-received estimate waits for the
-        # physics to apply it; they follow it, so observers see receipt order.
-        self._behind_apply: dict[int, list[tuple[Any, ...]]] = {}
-        self._lockstep_ctls: list[tuple[Any, ...]] = []
         self._sim_steps = 0
         self._state_seen = -1
         self._finished = False
-        self._done: tuple[Any, ...] | None = None
+        self._done: Done | None = None
         self._physics_eof = False
         self._halted = False
         self._next_tick_ns = 0
+
+    @property
+    def collisions(self) -> list[dict[str, object]]:
+        return self.tasks.collisions
+
+    @property
+    def min_gap_m(self) -> dict[str, float]:
+        return self.tasks.min_gap_m
 
     def request_stop(self, reason: str) -> None:
         """Ask the loop to end (signal handlers call this): stepping stops, frames in
@@ -246,7 +246,9 @@ class SimLoop:
         """Step to each camera instant (or held control's due step), capture, wait for
         every answer, then tell the physics the controls to apply and the next stop."""
         total = self.physics.total_steps
-        step, ctls = 0, []
+        step = 0
+        ctls: tuple[ApplyControl, ...] = ()
+        ledger = self.ledger
         while self.stop_reason is None:
             self.engine.advance(step, ctls)
             if step >= total:
@@ -258,8 +260,8 @@ class SimLoop:
             self._await_answers()
             if self.held is not None:
                 for h in self.held.pop_due(step * self.sim.step_ns):
-                    self._settle(*h.item)  # type: ignore[misc]
-            ctls, self._lockstep_ctls = self._lockstep_ctls, []
+                    self._settle(h.item)  # type: ignore[arg-type]
+            ctls, ledger.lockstep_controls = tuple(ledger.lockstep_controls), []
             step = self._next_stop(step, total)
         if self.stop_reason is not None:
             self.engine.halt()
@@ -288,13 +290,11 @@ class SimLoop:
     def _flush_unapplied(self) -> None:
         """Controls the physics never confirmed (it died) were never applied: their
         frames are recorded as stale, and the records held behind them follow."""
-        for (_vi, _fid), (v, fl, m, t0p) in sorted(self._applying.items()):
-            self.analysis.post(self._complete_task, v, fl, m, t0p, FrameStatus.STALE)
-        self._applying.clear()
-        held, self._behind_apply = self._behind_apply, {}
-        for items in held.values():
-            for fn, *args in items:
-                self.analysis.post(fn, *args)
+        answers, held = self.ledger.unconfirmed()
+        for a in answers:
+            self.analysis.post(self.tasks.complete, a, FrameStatus.STALE)
+        for fn, args in held:
+            self.analysis.post(fn, *args)
 
     def _await_physics_end(self) -> None:
         try:
@@ -304,16 +304,17 @@ class SimLoop:
         deadline = self.clock.now_ns() + int(PHYSICS_END_TIMEOUT_S * 1e9)
         while self._done is None and not self._physics_eof and self.clock.now_ns() < deadline:
             self._service(until_ns=self.clock.now_ns() + TICK_NS)
-        if self._done is None:
+        done = self._done
+        if done is None:
             return
-        hist, steps, qpos, qvel, collisions = self._done
+        hist = done.lateness
         st = self.stats
         st.lateness = hist
         st.late_steps = int(hist["late_steps"])
         st.max_lateness_ns = int(hist["max_ns"])
         st.physics_span_ns = int(hist.get("span_ns", 0))
-        self._sim_steps = int(steps)
-        self.analysis.post(self._final_state_task, steps, qpos, qvel, collisions)
+        self._sim_steps = done.steps
+        self.analysis.post(self.tasks.final_state, done.steps, done.qpos, done.qvel, done.collisions)
 
     # -- events ----------------------------------------------------------------
 
@@ -334,68 +335,67 @@ class SimLoop:
                     return
                 continue
             self._dispatch(ev)
-            if until_answered and not self._busy():
+            if until_answered and not self.ledger.busy():
                 self.collect_sync()
                 return
-
-    def _busy(self) -> bool:
-        return self._rendering > 0 or any(v.in_flight for v in self.vehicles)
 
     def _tick(self, now: int) -> None:
         self._next_tick_ns = now + TICK_NS
         failure = getattr(self.rec, "failure", None)
         if failure is not None and self.stop_reason is None:
             self.request_stop(f"the recording failed ({failure}): is the disk full? What was written is kept")
-        self.analysis.post(self._tick_task, now, self._sim_ns)
+        self.analysis.post(self.tasks.tick, now, self._sim_ns)
         if self.on_tick is not None:
             self.on_tick()
 
-    def _dispatch(self, ev: Any) -> None:
-        if isinstance(ev, Received):
-            self._handle(ev)
-        elif ev[0] == "physics":
-            self._on_physics(ev[1:])
-        elif ev[0] == "render":
-            self._on_render(ev[1:])
-        elif ev[0] == "eof":
-            if ev[1] == "physics":
-                self._physics_eof = True
-            if self._done is None:
-                self.request_stop(f"the {ev[1]} process ended unexpectedly")
-
-    def _on_physics(self, m: tuple[Any, ...]) -> None:
-        tag = m[0]
-        if tag == "state":
-            self._on_state(*m[1:])
-        elif tag == "applied":
-            self._on_applied(*m[1:])
-        elif tag == "finished":
-            self._finished = True
-            self._sim_steps = int(m[1])
-        elif tag == "done":
-            self._done = m[1:]
+    def _dispatch(self, ev: object) -> None:
+        match ev:
+            case Received():
+                self._handle(ev)
+            case FrameReady():
+                self._on_frame(ev)
+            case WorldState():
+                self._on_state(ev)
+            case Applied():
+                self._on_applied(ev)
+            case CameraTruthReady():
+                frame_id = self._frame_of.pop((ev.vehicle, ev.steps), None)
+                if frame_id is not None:
+                    self._on_camtruth(ev.vehicle, ev.steps, frame_id, ev.truth)
+            case Finished():
+                self._finished = True
+                self._sim_steps = ev.steps
+            case Done():
+                self._done = ev
+            case WorkerFailed():
+                self.request_stop(ev.text)
+            case ChildGone():
+                if ev.name == "physics":
+                    self._physics_eof = True
+                if self._done is None:
+                    self.request_stop(f"the {ev.name} process ended unexpectedly")
 
     # -- frames out ----------------------------------------------------------
 
-    def _on_state(self, vis: tuple[int, ...], t_state: int, steps: int, qpos: np.ndarray, qvel: np.ndarray,
-                  collisions: list[Any]) -> None:
+    def _on_state(self, ws: WorldState) -> None:
         """A camera instant (the render workers have it from the physics already):
         truth, commands due, clock-sync probes."""
+        steps = ws.steps
         self._sim_steps = max(self._sim_steps, steps)
         self._state_seen = steps
         self._sim_ns = steps * self.sim.step_ns
-        names = [self.egos[i] for i in vis]
-        if not names and not collisions:
+        names = tuple(self.egos[i] for i in ws.vis)
+        if not names and not ws.collisions:
             return
         self._send_commands()
-        self.analysis.post(self._truth_task, steps, qpos, qvel, collisions, tuple(names))
+        self.analysis.post(self.tasks.truth, steps, ws.qpos, ws.qvel, ws.collisions, names)
         if self._camtruth_early:
             early, self._camtruth_early = self._camtruth_early, []
             for item in early:
                 self._on_camtruth(*item)
         if not names or self.stop_reason is not None:
             return
-        self._rendering += len(names)
+        self.ledger.rendering += len(names)
         for name in names:
             v = self.by_name[name]
             if not v.link.alive:
@@ -403,59 +403,41 @@ class SimLoop:
                 return
         self._maybe_sync()
 
-    def _on_render(self, m: tuple[Any, ...]) -> None:
-        tag = m[0]
-        if tag == "frame":
-            self._on_frame(*m[1:])
-        elif tag == "camtruth":
-            name, steps, ct = m[1:]
-            frame_id = self._frame_of.pop((name, steps), None)
-            if frame_id is not None:
-                self._on_camtruth(name, steps, frame_id, ct)
-        elif tag == "error":
-            self.request_stop(str(m[1]))
-
     def _on_camtruth(self, name: str, steps: int, frame_id: int, ct: Any) -> None:
         """Camera truth goes to the analysis after its instant's ground truth (the
         render worker's pipe may overtake the physics's)."""
         if steps > self._state_seen:
             self._camtruth_early.append((name, steps, frame_id, ct))
             return
-        self.analysis.post(self._camtruth_task, name, frame_id, ct)
+        self.analysis.post(self.tasks.camera_truth, name, frame_id, ct)
 
-    def _on_frame(self, name: str, steps: int, t_state: int, speed_mps: float, t0: int, _t_encoded: int,
-                  slot: int, nbytes: int, enc: int) -> None:
-        self._rendering -= 1
+    def _on_frame(self, f: FrameReady) -> None:
+        self.ledger.rendering -= 1
         if self.stop_reason is not None:
             return
-        v = self.by_name[name]
-        data = self.engine.frame_bytes(name, slot, nbytes)
+        v = self.by_name[f.vehicle]
+        data = self.engine.frame_bytes(f.vehicle, f.slot, f.nbytes)
         cam = self.cfg.camera
         frame_id = v.next_frame_id
         v.next_frame_id += 1
         if self.cfg.truth.visible_boxes:
-            self._frame_of[(name, steps)] = frame_id
-        sim_time_ns = steps * self.sim.step_ns
-        encoding = ImageEncoding(enc)
+            self._frame_of[(f.vehicle, f.steps)] = frame_id
+        sim_time_ns = f.steps * self.sim.step_ns
+        encoding = ImageEncoding(f.encoding)
         try:
-            t_tx = v.link.send_frame(frame_id=frame_id, sim_time_ns=sim_time_ns, t0_ns=t0, width=cam.width,
+            t_tx = v.link.send_frame(frame_id=frame_id, sim_time_ns=sim_time_ns, t0_ns=f.t0_ns, width=cam.width,
                                      height=cam.height, encoding=encoding, camera=self.camera_info,
-                                     ego_speed_mps=speed_mps, data=data)
+                                     ego_speed_mps=f.speed_mps, data=data)
         except TransportError as err:
             self.request_stop(f"target of {v.name} is gone: {err}")
             return
-        v.in_flight[frame_id] = InFlight(frame_id, sim_time_ns, t0, t_tx, t_state)
-        v.frame_out(t_tx - t_state, tolerance_ns=self.frame_tolerance_ns)
-        v.fps_meter.add(t0)
+        self.ledger.sent(v.vehicle_id, InFlight(frame_id, sim_time_ns, f.t0_ns, t_tx, f.t_state_ns))
+        v.frame_out(t_tx - f.t_state_ns, tolerance_ns=self.frame_tolerance_ns)
+        v.fps_meter.add(f.t0_ns)
         if self.cfg.recording.images:
-            topic = f"/{v.name}/camera"
-            if encoding == ImageEncoding.JPEG:
-                self.analysis.post(functools.partial(self.rec.write_image, topic, data, fmt="jpeg",
-                                                     frame_id=f"{v.name}/camera", log_time_ns=t0, publish_time_ns=t0))
-            else:
-                rgb = np.frombuffer(data, np.uint8).reshape(cam.height, cam.width, 3)
-                self.analysis.post(functools.partial(self.rec.write_raw_image, topic, rgb, encoding="rgb8",
-                                                     frame_id=f"{v.name}/camera", log_time_ns=t0, publish_time_ns=t0))
+            self.analysis.post(functools.partial(self.tasks.image, v.name, data, f.t0_ns,
+                                                 jpeg=encoding == ImageEncoding.JPEG, width=cam.width,
+                                                 height=cam.height))
 
     def _maybe_sync(self) -> None:
         now = self.clock.now_ns()
@@ -470,131 +452,10 @@ class SimLoop:
             except TransportError:
                 pass
 
-    # -- analysis-thread tasks ------------------------------------------------------
-
-    def _truth_task(self, steps: int, qpos: np.ndarray, qvel: np.ndarray, collisions: list[Any],
-                    names: tuple[str, ...]) -> None:
-        sim = self.sim
-        sim.load_state(steps, qpos, qvel)
-        if collisions:
-            sim.add_collisions(collisions)
-        self._record_truth(sim.ground_truth(egos=names))
-
-    def _final_state_task(self, steps: int, qpos: np.ndarray, qvel: np.ndarray, collisions: list[Any]) -> None:
-        """The mirror takes the final state (the summary reads it); collisions since
-        the last camera instant are recorded."""
-        self.sim.load_state(steps, qpos, qvel)
-        if collisions:
-            self.sim.add_collisions(collisions)
-            self._record_truth(self.sim.ground_truth(egos=()))
-
-    def _camtruth_task(self, name: str, frame_id: int, ct: Any) -> None:
-        t = self.clock.now_ns()
-        for ob in self.observers:
-            if hasattr(ob, "on_camera_truth"):
-                ob.on_camera_truth(name, frame_id, ct)
-        self.rec.write_json(f"/{name}/truth", {"frame_id": frame_id, **ct.to_json()}, log_time_ns=t, publish_time_ns=t)
-
-    def _tick_task(self, now: int, sim_ns: int) -> None:
-        for ob in self.observers:
-            ob.on_tick(now_ns=now, sim_time_ns=sim_ns)
-
-    def _apply_task(self, v: VehicleRun, fl: InFlight, m: Estimate, t0p: int, t_apply: int, steps: int,
-                    qpos: np.ndarray, qvel: np.ndarray) -> None:
-        sim = self.sim
-
-        def truth_now() -> GroundTruth:
-            sim.load_state(steps, qpos, qvel)
-            return sim.truth_snapshot(egos=(v.name,))
-
-        for ob in self.observers:
-            if hasattr(ob, "on_apply"):
-                ob.on_apply(v.name, m.frame_id, truth_now)
-        self._complete_task(v, fl, m, t0p, FrameStatus.OK, t_apply, steps * sim.step_ns)
-
-    def _complete_task(self, v: VehicleRun, fl: InFlight, m: Estimate, t0p: int, status: FrameStatus,
-                       t_apply: int | None = None, sim_apply: int | None = None) -> None:
-        self._record_task(v, _record(v, fl, status, m, t0p, t_apply, sim_apply), m)
-        self.rec.write_json(f"/{v.name}/estimate", {
-            "frame_id": m.frame_id, "state": m.state.name,
-            "control": {"steering_rad": m.control.steering_rad, "throttle": m.control.throttle,
-                        "brake": m.control.brake},
-            "objects": [{"cls": o.cls.name, "confidence": o.confidence, "box_px": list(o.box_px),
-                         "position_m": list(o.position_m)} for o in m.objects],
-        }, log_time_ns=t0p, publish_time_ns=m.t_reply_target_ns)
-
-    def _record_task(self, v: VehicleRun, rec: PipelineRecord, estimate: Estimate | None = None) -> None:
-        v.add(rec)
-        for ob in self.observers:
-            ob.on_record(v.name, rec, estimate)
-        if rec.t0p_ns is not None and rec.status == FrameStatus.OK:
-            v.e2e_window.add(rec.t0p_ns - rec.t0_ns)
-        t = rec.t0p_ns or self.clock.now_ns()
-        self.rec.write_json(f"/{v.name}/pipeline", rec.to_json(), log_time_ns=t, publish_time_ns=rec.t0_ns)
-
-    def _sync_task(self, name: str, s: Any) -> None:
-        for ob in self.observers:
-            ob.on_sync(name, s)
-        self.rec.write_json(f"/{name}/clock_sync", sync_sample_json(s), log_time_ns=s.t4_ns, publish_time_ns=s.t1_ns)
-
     def _event(self, ev: Event, log_time_ns: int | None = None) -> None:
         """An event from the loop thread, published by the analysis thread (the bus's
         one thread)."""
         self.analysis.post(self.events.publish, ev, log_time_ns)
-
-    def _record_truth(self, gt: GroundTruth) -> None:
-        t = self.clock.now_ns()
-        for ob in self.observers:
-            ob.on_truth(gt, t_ns=t)
-        for e in gt.egos:
-            if e.gap_m is not None:
-                self.min_gap_m[e.vehicle] = min(self.min_gap_m.get(e.vehicle, float("inf")), e.gap_m)
-        for c in gt.collisions:
-            ev = Event.of(EventKind.COLLISION, t, sim_time_ns=c.sim_time_ns, extra=c.to_json(),
-                          detail=f"{c.a} and {c.b} collided at {c.closing_speed_mps:.1f} m/s")
-            self.collisions.append(ev.to_json())
-            self.events.publish(ev)
-        initial = not self._changes.seen
-        self.rec.write_json("/ground_truth", {
-            "sim_time_ns": gt.sim_time_ns,
-            "initial": initial,  # every entity's state once, then only those that changed
-            "entities": [e.to_json() for e in self._changes.changes(gt)],
-            "egos": [e.to_json() for e in gt.egos],
-            "collisions": [c.to_json() for c in gt.collisions],
-        }, log_time_ns=t, publish_time_ns=t)
-        foxglove_out.write(self.rec, gt, egos=self._ego_names, t_ns=t)
-
-    # -- answers in ----------------------------------------------------------
-
-    def _handle(self, r: Received) -> None:
-        v = self.by_id.get(r.link_vehicle_id)
-        if v is None:
-            return
-        m = r.msg
-        if isinstance(m, Estimate):
-            self._on_estimate(v, m, r.t_rx_ns)
-        elif isinstance(m, ProtocolFault):
-            self._on_protocol_fault(v, m, r.t_rx_ns)
-        elif isinstance(m, ErrorMsg):
-            self._event(Event.of(EventKind.TARGET_ERROR, r.t_rx_ns, vehicle=v.name, sim_time_ns=self._sim_ns,
-                                 detail=m.message, extra={"code": m.code, "message": m.message}))
-        elif isinstance(m, Command):  # the target's reply to a command: the swap, on record
-            self._event(Event.of(EventKind.TARGET_COMMAND_REPLY, r.t_rx_ns, vehicle=v.name, sim_time_ns=self._sim_ns,
-                                 extra={"seq": m.seq, "text": m.text, "t_target_ns": m.t_sender_ns}))
-        elif isinstance(m, Heartbeat):
-            pass
-
-    def _on_protocol_fault(self, v: VehicleRun, f: ProtocolFault, t_rx: int) -> None:
-        """A message the target sent could not be decoded: an event (bounded per
-        vehicle, the rest counted) and an ERROR MALFORMED back (PROTOCOL.md section 8)."""
-        v.protocol_faults += 1
-        if v.protocol_faults <= MAX_PROTOCOL_EVENTS:
-            self._event(Event.of(EventKind.PROTOCOL_ERROR, t_rx, vehicle=v.name, sim_time_ns=self._sim_ns,
-                                 detail=f.detail, extra={"offset": f.offset, "t_rx_ns": t_rx}))
-        try:
-            v.link.send_error(ErrorCode.MALFORMED, f.detail)
-        except TransportError:
-            pass
 
     def _send_commands(self) -> None:
         """Send the configured commands whose sim time has come (each once)."""
@@ -615,8 +476,40 @@ class SimLoop:
                                   detail=str(err), extra={"text": c.command})
                 self._event(ev)
 
+    # -- answers in ----------------------------------------------------------
+
+    def _handle(self, r: Received) -> None:
+        v = self.by_id.get(r.link_vehicle_id)
+        if v is None:
+            return
+        m = r.msg
+        match m:
+            case Estimate():
+                self._on_estimate(v, m, r.t_rx_ns)
+            case ProtocolFault():
+                self._on_protocol_fault(v, m, r.t_rx_ns)
+            case ErrorMsg():
+                self._event(Event.of(EventKind.TARGET_ERROR, r.t_rx_ns, vehicle=v.name, sim_time_ns=self._sim_ns,
+                                     detail=m.message, extra={"code": m.code, "message": m.message}))
+            case Command():  # the target's reply to a command: the swap, on record
+                self._event(Event.of(EventKind.TARGET_COMMAND_REPLY, r.t_rx_ns, vehicle=v.name,
+                                     sim_time_ns=self._sim_ns,
+                                     extra={"seq": m.seq, "text": m.text, "t_target_ns": m.t_sender_ns}))
+
+    def _on_protocol_fault(self, v: VehicleRun, f: ProtocolFault, t_rx: int) -> None:
+        """A message the target sent could not be decoded: an event (bounded per
+        vehicle, the rest counted) and an ERROR MALFORMED back (PROTOCOL.md section 8)."""
+        v.protocol_faults += 1
+        if v.protocol_faults <= MAX_PROTOCOL_EVENTS:
+            self._event(Event.of(EventKind.PROTOCOL_ERROR, t_rx, vehicle=v.name, sim_time_ns=self._sim_ns,
+                                 detail=f.detail, extra={"offset": f.offset, "t_rx_ns": t_rx}))
+        try:
+            v.link.send_error(ErrorCode.MALFORMED, f.detail)
+        except TransportError:
+            pass
+
     def _on_estimate(self, v: VehicleRun, m: Estimate, t0p: int) -> None:
-        fl = v.in_flight.pop(m.frame_id, None)
+        fl = self.ledger.answer(v.vehicle_id, m.frame_id)
         if fl is None:
             # Already counted as dropped (late) or never sent (a confused target).
             late = m.frame_id < v.next_frame_id
@@ -627,96 +520,86 @@ class SimLoop:
             self._event(Event.of(EventKind.LATE_ESTIMATE if late else EventKind.UNKNOWN_ESTIMATE, t0p,
                                  vehicle=v.name, frame_ids=(m.frame_id,), extra={"t0p_ns": t0p}))
             return
+        a = Answer(v, fl, m, t0p)
         if self.held is not None:  # lockstep latency profile: applied when sim time comes
-            self._hold(v, fl, m, t0p)
+            self._hold(a)
             return
-        self._settle(v, fl, m, t0p)
+        self._settle(a)
 
-    def _settle(self, v: VehicleRun, fl: InFlight, m: Estimate, t0p: int) -> None:
+    def _settle(self, a: Answer) -> None:
         """Send an answered frame's control to the physics (its record completes when
         the physics says it applied it), or count it stale."""
-        if m.frame_id <= v.last_applied_frame_id:
-            self._complete(v, fl, m, t0p, FrameStatus.STALE)
+        ledger = self.ledger
+        if not ledger.apply(a):
+            self._post_in_order(a.v, self.tasks.complete, a, FrameStatus.STALE)
             return
-        v.last_applied_frame_id = m.frame_id
-        c = m.control
-        self._applying[(v.vehicle_id, m.frame_id)] = (v, fl, m, t0p)
-        ctl = (v.vehicle_id, m.frame_id, c.steering_rad, c.throttle, c.brake)
+        c = a.m.control
+        ctl = ApplyControl(a.v.vehicle_id, a.m.frame_id, c.steering_rad, c.throttle, c.brake)
         if self.cfg.mode == Mode.LOCKSTEP:
-            self._lockstep_ctls.append(("ctl", *ctl))
-        else:
-            try:
-                self.engine.control(*ctl)
-            except (OSError, ValueError):
-                self._applying.pop((v.vehicle_id, m.frame_id))
-                self._complete(v, fl, m, t0p, FrameStatus.STALE)
-
-    def _on_applied(self, vi: int, frame_id: int, t_apply: int, steps: int, qpos: np.ndarray,
-                    qvel: np.ndarray) -> None:
-        item = self._applying.pop((vi, frame_id), None)
-        if item is None:
+            ledger.lockstep_controls.append(ctl)
             return
-        self.analysis.post(self._apply_task, *item, t_apply, steps, qpos, qvel)
-        if not any(k[0] == vi for k in self._applying):
-            for fn, *args in self._behind_apply.pop(vi, ()):
-                self.analysis.post(fn, *args)
+        try:
+            self.engine.control(ctl)
+        except (OSError, ValueError):
+            ledger.cancel(ctl.vi, ctl.frame_id)
+            self._post_in_order(a.v, self.tasks.complete, a, FrameStatus.STALE)
 
-    def _complete(self, v: VehicleRun, fl: InFlight, m: Estimate, t0p: int, status: FrameStatus) -> None:
-        self._post_in_order(v, self._complete_task, v, fl, m, t0p, status)
+    def _on_applied(self, ap: Applied) -> None:
+        a, released = self.ledger.applied(ap.vi, ap.frame_id)
+        if a is None:
+            return
+        self.analysis.post(self.tasks.applied, a, ap.t_apply_ns, ap.steps, ap.qpos, ap.qvel)
+        for fn, args in released:
+            self.analysis.post(fn, *args)
 
     def _post_in_order(self, v: VehicleRun, fn: Callable[..., None], *args: Any) -> None:
         """Post a record's task behind this vehicle's controls still being applied."""
-        if any(k[0] == v.vehicle_id for k in self._applying):
-            self._behind_apply.setdefault(v.vehicle_id, []).append((fn, *args))
-        else:
+        if not self.ledger.hold(v.vehicle_id, (fn, args)):
             self.analysis.post(fn, *args)
 
-    def _hold(self, v: VehicleRun, fl: InFlight, m: Estimate, t0p: int) -> None:
+    def _hold(self, a: Answer) -> None:
         assert self.held is not None and self.latency is not None
+        v, fl = a.v, a.fl
         d = self.latency.delay(v.vehicle_id, fl.frame_id)
         if d.latency_ns is None:  # the replayed run lost (or discarded) this frame: so does the replay
-            self._add_record(v, _record(v, fl, d.status, m, t0p), m)
+            self._add_record(v, pipeline_record(v, fl, d.status, a.m, a.t0p_ns), a.m)
             self._event(Event.of(EventKind("replayed_" + d.status.value), fl.t0_ns, vehicle=v.name,
-                                 frame_ids=(fl.frame_id,), sim_time_ns=fl.sim_time_ns), t0p)
+                                 frame_ids=(fl.frame_id,), sim_time_ns=fl.sim_time_ns), a.t0p_ns)
             return
-        self.held.hold(self.held.due_time(fl.sim_time_ns, d.latency_ns), v.vehicle_id, fl.frame_id, (v, fl, m, t0p))
+        self.held.hold(self.held.due_time(fl.sim_time_ns, d.latency_ns), v.vehicle_id, fl.frame_id, a)
 
     def _settle_held_at_end(self) -> None:
         """Controls still held when the run ends were never applied: recorded as pending."""
         if self.held is None:
             return
         for h in self.held.pop_all():
-            v, fl, m, t0p = h.item  # type: ignore[misc]
-            self._add_record(v, _record(v, fl, FrameStatus.PENDING, m, t0p), m)
+            a: Answer = h.item  # type: ignore[assignment]
+            self._add_record(a.v, pipeline_record(a.v, a.fl, FrameStatus.PENDING, a.m, a.t0p_ns), a.m)
 
     def _add_record(self, v: VehicleRun, rec: PipelineRecord, estimate: Estimate | None = None) -> None:
-        self._post_in_order(v, self._record_task, v, rec, estimate)
+        self._post_in_order(v, self.tasks.record, v, rec, estimate)
 
     def _expire(self, now: int) -> None:
-        for v in self.vehicles:
-            if not v.in_flight:
-                continue
-            for fid in [f for f, fl in v.in_flight.items() if now - fl.t0_ns > self.timeout_ns]:
-                self._drop(v, v.in_flight.pop(fid))
+        for vi, fl in self.ledger.expired(now, self.timeout_ns):
+            self._drop(self.by_id[vi], fl)
 
     def _expire_all(self) -> None:
-        for v in self.vehicles:
-            for fid in sorted(v.in_flight):
-                self._drop(v, v.in_flight.pop(fid))
+        for vi, fl in self.ledger.take_all():
+            self._drop(self.by_id[vi], fl)
 
     def _drop(self, v: VehicleRun, fl: InFlight) -> None:
         """No estimate within the timeout: the record says DROPPED; the event is the
         timing analysis's ``dropped_frame`` anomaly (one event per dropped frame)."""
-        self._add_record(v, _record(v, fl, FrameStatus.DROPPED))
+        self._add_record(v, pipeline_record(v, fl, FrameStatus.DROPPED))
 
     def _await_answers(self) -> None:
         """Lockstep: wait until nothing renders and no vehicle has a frame in flight."""
-        while self._busy() and self.stop_reason is None:
-            deadline = self.clock.now_ns() + self.timeout_ns
-            if any(v.in_flight for v in self.vehicles):
-                deadline = min(fl.t0_ns for v in self.vehicles for fl in v.in_flight.values()) + self.timeout_ns
+        ledger = self.ledger
+        while ledger.busy() and self.stop_reason is None:
+            oldest = ledger.oldest_t0_ns()
+            deadline = (self.clock.now_ns() if oldest is None else oldest) + self.timeout_ns
             self._service(until_ns=deadline + 1, until_answered=True)
-            if any(not v.link.alive for v in self.vehicles if v.in_flight):
+            if any(not v.link.alive for v in self.vehicles if ledger.in_flight(v.vehicle_id)):
                 gone = next(v for v in self.vehicles if not v.link.alive)
                 self.request_stop(f"target of {gone.name} is gone: {gone.link.peer_gone_reason}")
                 self._expire_all()
@@ -725,31 +608,22 @@ class SimLoop:
 
     def _drain(self) -> None:
         """Let the frames being rendered or in flight finish (answer or time out)."""
+        ledger = self.ledger
         deadline = self.clock.now_ns() + self.timeout_ns + 1_000_000_000
-        while self._busy() and self.clock.now_ns() <= deadline:
-            if not all(v.link.alive for v in self.vehicles if v.in_flight) or not self.engine.alive():
+        while ledger.busy() and self.clock.now_ns() <= deadline:
+            if not all(v.link.alive for v in self.vehicles if ledger.in_flight(v.vehicle_id)) \
+                    or not self.engine.alive():
                 break
             self._service(until_ns=min(deadline + 1, self.clock.now_ns() + 50_000_000), until_answered=True)
         self._expire_all()
-        if self._lockstep_ctls:  # answers that came while draining a lockstep run
-            ctls, self._lockstep_ctls = self._lockstep_ctls, []
+        if ledger.lockstep_controls:  # answers that came while draining a lockstep run
+            ctls, ledger.lockstep_controls = ledger.lockstep_controls, []
             for c in ctls:
-                self.engine.control(*c[1:])
+                self.engine.control(c)
         self.collect_sync()
 
     def collect_sync(self) -> None:
         """Record (and pass to observers) the clock-sync answers received so far."""
         for v in self.vehicles:
             for s in v.link.sync_samples():
-                self.analysis.post(self._sync_task, v.name, s)
-
-
-def _record(v: VehicleRun, fl: InFlight, status: FrameStatus, m: Estimate | None = None, t0p: int | None = None,
-            t_apply: int | None = None, sim_apply: int | None = None) -> PipelineRecord:
-    """The one place a frame's pipeline record is built."""
-    if m is None:
-        return PipelineRecord(v.name, fl.frame_id, fl.sim_time_ns, fl.t0_ns, fl.t_tx_ns, status,
-                              t_state_ns=fl.t_state_ns)
-    return PipelineRecord(v.name, fl.frame_id, fl.sim_time_ns, fl.t0_ns, fl.t_tx_ns, status,
-                          m.t_rx_target_ns, m.t_infer_start_target_ns, m.t_infer_end_target_ns,
-                          m.t_reply_target_ns, t0p, t_apply, sim_apply, fl.t_state_ns)
+                self.analysis.post(self.tasks.sync, v.name, s)

@@ -1,5 +1,6 @@
-"""Per-vehicle bookkeeping of a run: frames in flight, applied estimates, the
-pipeline records and the live statistics shown while the run goes on."""
+"""Per-vehicle bookkeeping of a run: the settled pipeline records' statistics and
+the live ones shown while the run goes on (frames in flight and controls being
+applied are the loop's frame ledger, ``hil.harness.run.ledger``)."""
 
 from __future__ import annotations
 
@@ -29,8 +30,6 @@ class VehicleRun:
     vehicle_id: int
     link: Link
     next_frame_id: int = 0
-    in_flight: dict[int, InFlight] = field(default_factory=dict)
-    last_applied_frame_id: int = -1
     # Exact statistics in bounded memory: one int64 per stage per applied, sane frame
     # (about 80 bytes a frame), not the records themselves (the MCAP has those),
     # spilled to disk in blocks (``SpillColumn``): memory stays flat however long the run.

@@ -1,0 +1,136 @@
+"""The frame ledger: where each frame of a run stands between its render and its
+settled record.
+
+A frame is *rendering* from its camera instant until its ``FrameReady``; *in flight*
+from ``send_frame`` until its estimate arrives (or its timeout: dropped). An answered
+frame whose control went to the physics is *applying* until the physics confirms it
+(``Applied``, with ``t_apply``); records of the same vehicle settled meanwhile (a
+stale estimate, a drop) are *held behind* it, so the analysis sees each vehicle's
+records in receipt order. In lockstep the controls of one camera instant wait in
+``lockstep_controls`` for the next ``Advance``.
+
+Owned by one thread (the loop's); nothing here blocks, sends or records: the loop
+does, with what the ledger answers. Vehicles are their ids (``vi``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+from hil.adapters.messages import Estimate
+from hil.harness.engine.messages import ApplyControl
+from hil.harness.run.vehicle_state import InFlight, VehicleRun
+
+
+class Answer(NamedTuple):
+    """A frame in flight and the estimate that answered it, received at ``t0p_ns``."""
+
+    v: VehicleRun
+    fl: InFlight
+    m: Estimate
+    t0p_ns: int
+
+
+Task = tuple[Callable[..., None], tuple[Any, ...]]  # an analysis task: fn(*args)
+
+
+class FrameLedger:
+    """In-flight frames, controls being applied and the records held behind them."""
+
+    def __init__(self) -> None:
+        self.rendering = 0  # frames whose camera instant came and whose FrameReady did not yet
+        self.lockstep_controls: list[ApplyControl] = []
+        self._in_flight: dict[int, dict[int, InFlight]] = {}
+        self._applying: dict[tuple[int, int], Answer] = {}
+        self._applying_of: dict[int, int] = {}  # vi -> how many of its controls are applying
+        self._behind: dict[int, list[Task]] = {}
+        self._last_applied: dict[int, int] = {}
+
+    # -- in flight -----------------------------------------------------------------
+
+    def sent(self, vi: int, fl: InFlight) -> None:
+        self._in_flight.setdefault(vi, {})[fl.frame_id] = fl
+
+    def answer(self, vi: int, frame_id: int) -> InFlight | None:
+        """The in-flight frame an estimate answers (no longer in flight), or None."""
+        mine = self._in_flight.get(vi)
+        return None if mine is None else mine.pop(frame_id, None)
+
+    def in_flight(self, vi: int | None = None) -> bool:
+        """Any frame in flight (of ``vi``, or of any vehicle)."""
+        if vi is not None:
+            return bool(self._in_flight.get(vi))
+        return any(self._in_flight.values())
+
+    def busy(self) -> bool:
+        """Frames rendering or in flight."""
+        return self.rendering > 0 or self.in_flight()
+
+    def oldest_t0_ns(self) -> int | None:
+        t0s = [fl.t0_ns for mine in self._in_flight.values() for fl in mine.values()]
+        return min(t0s) if t0s else None
+
+    def expired(self, now_ns: int, timeout_ns: int) -> list[tuple[int, InFlight]]:
+        """Frames in flight longer than ``timeout_ns``, taken out (in frame order)."""
+        out = []
+        for vi, mine in self._in_flight.items():
+            if mine:
+                for fid in [f for f, fl in mine.items() if now_ns - fl.t0_ns > timeout_ns]:
+                    out.append((vi, mine.pop(fid)))
+        return out
+
+    def take_all(self) -> list[tuple[int, InFlight]]:
+        """Every frame in flight, taken out (by vehicle, in frame order)."""
+        out = []
+        for vi, mine in self._in_flight.items():
+            out += [(vi, mine.pop(fid)) for fid in sorted(mine)]
+        return out
+
+    # -- applying --------------------------------------------------------------------
+
+    def apply(self, a: Answer) -> bool:
+        """Note ``a``'s control as sent to the physics; False (nothing noted) when an
+        answer to a later frame of the vehicle was applied already (stale)."""
+        vi, fid = a.v.vehicle_id, a.m.frame_id
+        if fid <= self._last_applied.get(vi, -1):
+            return False
+        self._last_applied[vi] = fid
+        self._applying[(vi, fid)] = a
+        self._applying_of[vi] = self._applying_of.get(vi, 0) + 1
+        return True
+
+    def cancel(self, vi: int, frame_id: int) -> Answer:
+        """The control could not be sent after all."""
+        return self._take(vi, frame_id)  # type: ignore[return-value]
+
+    def applied(self, vi: int, frame_id: int) -> tuple[Answer | None, list[Task]]:
+        """The physics applied it: its answer (None if unknown) and, once the vehicle
+        has nothing else applying, the tasks held behind it (in order)."""
+        a = self._take(vi, frame_id)
+        if a is None or self._applying_of.get(vi):
+            return a, []
+        return a, self._behind.pop(vi, [])
+
+    def hold(self, vi: int, task: Task) -> bool:
+        """Keep ``task`` behind the vehicle's controls being applied; False when none
+        is (the caller runs it now)."""
+        if not self._applying_of.get(vi):
+            return False
+        self._behind.setdefault(vi, []).append(task)
+        return True
+
+    def unconfirmed(self) -> tuple[list[Answer], list[Task]]:
+        """Everything still applying (in vehicle and frame order) and every task held
+        behind it, taken out: the physics will never confirm them."""
+        answers = [self._applying[k] for k in sorted(self._applying)]
+        self._applying.clear()
+        self._applying_of.clear()
+        held, self._behind = self._behind, {}
+        return answers, [t for tasks in held.values() for t in tasks]
+
+    def _take(self, vi: int, frame_id: int) -> Answer | None:
+        a = self._applying.pop((vi, frame_id), None)
+        if a is not None:
+            self._applying_of[vi] -= 1
+        return a
