@@ -103,7 +103,8 @@ def realtime_summary(loop: SimLoop, stats: LoopStats, *, sim_s: float, wall_s: f
     no step later than ``engine.late_tolerance_ms``. The cameras: no frame handed to
     its link later than the frame tolerance after its camera instant (``t_tx -
     t_state``; ``engine.frame_late_tolerance_ms``, default one camera period).
-    ``kept_realtime`` needs both; ``lagging`` names which did not. Lockstep runs wait
+    ``kept_realtime`` needs both, and no consumer of the physics's rings behind
+    (``behind``: records each lost); ``lagging`` names what did not keep up. Lockstep runs wait
     by design: they keep real time trivially."""
     cfg = loop.cfg
     realtime = cfg.mode.value == "realtime"
@@ -119,6 +120,8 @@ def realtime_summary(loop: SimLoop, stats: LoopStats, *, sim_s: float, wall_s: f
         lagging.append("physics")
     if realtime and late_frames > 0:
         lagging.append("camera")
+    if stats.behind:
+        lagging.append("consumers")
     return {
         "mode": cfg.mode.value,
         "requested_factor": requested,
@@ -133,6 +136,9 @@ def realtime_summary(loop: SimLoop, stats: LoopStats, *, sim_s: float, wall_s: f
         "camera": {"frames": frames, "late_frames": late_frames, "tolerance_ms": loop.frame_tolerance_ns / 1e6,
                    "worst_lag_ms": round(worst_ns / 1e6, 3),
                    "by_vehicle": {v.name: v.late_frames for v in loop.vehicles if v.late_frames}},
+        # Consumers of the physics's rings that fell behind (records lost, the physics
+        # never waits): "run" (this process), "render-<w>" (a render worker).
+        "behind": dict(stats.behind),
         "lagging": lagging,
         "kept_realtime": not lagging,
         "physics_scheduling": stats.scheduling,

@@ -224,6 +224,9 @@ class EngineFaults(BaseModel):
 
     render_delay_ms: Float = Field(0.0, ge=0, le=10_000)
     render_delay_every: Int = Field(1, ge=1, le=1_000_000)
+    # The run process stops reading the physics's ring this long, once, half a second
+    # into the run, as a stuck consumer would: the physics must not wait for it.
+    stall_run_ms: Float = Field(0.0, ge=0, le=60_000)
 
 
 class EngineConfig(BaseModel):
@@ -243,6 +246,14 @@ class EngineConfig(BaseModel):
     late_tolerance_ms: Float = Field(5.0, gt=0, le=1000)  # a physics step later than this is late
     frame_late_tolerance_ms: Float | None = Field(None, gt=0, le=60_000)  # None: one camera period
     realtime_priority: Int = Field(10, ge=0, le=99)  # SCHED_FIFO for the physics process (0: don't ask)
+    # Without SCHED_FIFO the physics asks for this nice value instead (allowed where
+    # RLIMIT_NICE grants it); 0: don't.
+    fallback_nice: Int = Field(-10, ge=-20, le=0)
+    # "auto": with 4 or more cores the physics has the last core to itself (the
+    # harness's other processes and the targets keep off it); a number: that core;
+    # "none": no pinning.
+    physics_cpu: Literal["auto", "none"] | Int = "auto"
+    ring_kib: Int = Field(4096, ge=1, le=1 << 20)  # each ring the physics writes into (KiB)
     faults: EngineFaults = Field(default_factory=EngineFaults)
 
 

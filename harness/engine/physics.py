@@ -25,8 +25,9 @@ from typing import Any
 import numpy as np
 
 from hil.harness.engine.messages import (Advance, Applied, ApplyControl, Done, Exit, Finished, Halt, PhysicsReady,
-                                         RenderJob, Start, WorldState)
+                                         RenderJob, Start, WorldState, encode)
 from hil.harness.engine.procs import ask_realtime, die_with_parent
+from hil.harness.engine.rings import Ring, RingSpec
 
 SPIN_NS = 60_000          # spin the last 60 µs before a due instant (sleep overshoots)
 BIN_NS = 10_000           # lateness histogram resolution: 10 µs
@@ -47,7 +48,10 @@ class PhysicsSpec:
     phases: tuple[int, ...]         # capture phase (steps) of each ego, in 0..period-1
     late_tolerance_ns: int
     realtime_priority: int
-    assign: tuple[int, ...] = ()    # render worker (index into the job pipes) of each ego
+    assign: tuple[int, ...] = ()    # render worker (index into the job rings) of each ego
+    spin_ns: int = SPIN_NS          # busy-wait this long before each due instant (sleep overshoots)
+    fallback_nice: int = 0          # asked for where SCHED_FIFO is refused (engine.fallback_nice)
+    cpu: int | None = None          # the core the physics keeps to itself (engine.physics_cpu)
 
 
 def capture_table(period_steps: int, phases: tuple[int, ...]) -> dict[int, tuple[int, ...]]:
@@ -101,15 +105,28 @@ class LatenessHistogram:
                 "bins": {int(k): int(self.counts[k]) for k in nz}}
 
 
-def physics_main(conn: Connection, jobs: list[Connection], spec: PhysicsSpec, parent_pid: int) -> None:
-    """Entry point of the physics process. ``jobs``: one pipe to each render worker,
-    which gets the world state of its vehicles' camera instants directly."""
+@dataclass(frozen=True)
+class PhysicsOutputs:
+    """Where the physics process writes: rings it never waits on
+    (``hil.harness.engine.rings``); a consumer that falls behind loses records, each
+    counted in its ring (and in ``Done``'s ``behind``)."""
+
+    run: RingSpec                  # the run process: every world state, the answers, the end
+    jobs: tuple[RingSpec, ...]     # one per render worker: its egos' render jobs
+
+
+def physics_main(conn: Connection, outputs: PhysicsOutputs, spec: PhysicsSpec, parent_pid: int) -> None:
+    """Entry point of the physics process. ``conn`` brings the run's commands (and
+    takes ``PhysicsReady``); everything else goes out through ``outputs``: each
+    render worker gets the world state of its vehicles' camera instants directly."""
     die_with_parent(parent_pid)
-    scheduling = ask_realtime(spec.realtime_priority)
+    scheduling = ask_realtime(spec.realtime_priority, fallback_nice=spec.fallback_nice, cpu=spec.cpu)
     from hil.scenarios.sim import Simulation  # no renderer here: physics only
 
     sim = Simulation(spec.world, rules=spec.rules)
-    keeper = _Keeper(conn, jobs, sim, spec)
+    run = Ring.open(outputs.run, producer=True)
+    jobs = [Ring.open(j, producer=True) for j in outputs.jobs]
+    keeper = _Keeper(conn, run, jobs, sim, spec)
     gc.collect()
     gc.freeze()
     gc.disable()  # the loop makes no reference cycles; a collection would be a stall
@@ -124,8 +141,8 @@ def physics_main(conn: Connection, jobs: list[Connection], spec: PhysicsSpec, pa
 
 
 class _Keeper:
-    def __init__(self, conn: Connection, jobs: list[Connection], sim: Any, spec: PhysicsSpec) -> None:
-        self.conn, self.jobs, self.sim, self.spec = conn, jobs, sim, spec
+    def __init__(self, conn: Connection, run: Ring, jobs: list[Ring], sim: Any, spec: PhysicsSpec) -> None:
+        self.conn, self.run, self.jobs, self.sim, self.spec = conn, run, jobs, sim, spec
         self.egos: tuple[str, ...] = sim.egos
         self.table = capture_table(spec.period_steps, spec.phases)
         self.hist = LatenessHistogram(tolerance_ns=spec.late_tolerance_ns)
@@ -152,7 +169,7 @@ class _Keeper:
         self.sim.set_control(self.egos[c.vi], steering_rad=c.steering_rad, throttle=c.throttle, brake=c.brake)
         t_apply = time.monotonic_ns()
         steps, qpos, qvel = self.sim.state()
-        self.conn.send(Applied(c.vi, c.frame_id, t_apply, steps, qpos, qvel))
+        self.run.write(encode(Applied(c.vi, c.frame_id, t_apply, steps, qpos, qvel)))
 
     def _drain(self) -> None:
         while self._pending():
@@ -162,12 +179,28 @@ class _Keeper:
         """A camera instant: the state to the render workers first (capture latency),
         then to the run process (truth)."""
         steps, qpos, qvel = self.sim.state()
-        by_worker: dict[int, list[str]] = {}
+        by_worker: dict[int, list[int]] = {}
         for vi in vis:
-            by_worker.setdefault(self.spec.assign[vi], []).append(self.egos[vi])
-        for w, names in by_worker.items():
-            self.jobs[w].send(RenderJob(steps, qpos, qvel, tuple(names), t_state_ns))
-        self.conn.send(WorldState(vis, t_state_ns, steps, qpos, qvel, tuple(self.sim.take_collisions())))
+            by_worker.setdefault(self.spec.assign[vi], []).append(vi)
+        unrendered: list[int] = []
+        for w, mine in by_worker.items():
+            if not self.jobs[w].write(encode(RenderJob(steps, qpos, qvel, tuple(mine), t_state_ns))):
+                unrendered += mine  # that worker is behind: these frames will not come
+        self.run.write(encode(WorldState(vis, t_state_ns, steps, qpos, qvel, tuple(self.sim.take_collisions()),
+                                         tuple(unrendered))))
+
+    def _send_last(self, msg: Finished | Done) -> None:
+        """The end of the run: no deadline left, so wait for room (up to 10 s)."""
+        data = encode(msg)
+        for _ in range(10_000):
+            if self.run.write(data, count=False):
+                return
+            time.sleep(0.001)
+        self.run.write(data)  # counted: the run process is gone or stuck
+
+    def behind(self) -> dict[str, int]:
+        """Records each consumer's ring could not take, by consumer name."""
+        return {r.name: r.dropped for r in (self.run, *self.jobs) if r.dropped}
 
     # -- the loops ----------------------------------------------------------------
 
@@ -182,23 +215,23 @@ class _Keeper:
         else:
             self._lockstep()
         self.span_ns = time.monotonic_ns() - start
-        self.conn.send(Finished(self.sim.steps))
+        self._send_last(Finished(self.sim.steps))
         while not self.exiting:  # the run drains its frames: controls still apply
             self._handle(self.conn.recv())
         steps, qpos, qvel = self.sim.state()
         # span_ns: the physics's own wall time from start to its last step (its pace).
-        self.conn.send(Done({**self.hist.to_json(), "span_ns": self.span_ns}, steps, qpos, qvel,
-                            tuple(self.sim.take_collisions())))
+        self._send_last(Done({**self.hist.to_json(), "span_ns": self.span_ns, "behind": self.behind()}, steps,
+                             qpos, qvel, tuple(self.sim.take_collisions())))
 
     def _realtime(self, start_ns: int) -> None:
         sim, spec, clock = self.sim, self.spec, time.monotonic_ns
-        period, table, wps = spec.period_steps, self.table, spec.wall_per_step_ns
+        period, table, wps, spin = spec.period_steps, self.table, spec.wall_per_step_ns, spec.spin_ns
         while sim.steps < spec.total_steps and not self.halted:
             due = start_ns + int(sim.steps * wps)
             now = clock()
             while now < due:
                 wait = due - now
-                if wait > SPIN_NS and select.select([self.fd], [], [], (wait - SPIN_NS) / 1e9)[0]:
+                if wait > spin and select.select([self.fd], [], [], (wait - spin) / 1e9)[0]:
                     self._handle(self.conn.recv())  # a control: applied at once
                 now = clock()
             self.hist.add(now - due)

@@ -16,11 +16,13 @@ from typing import Any, TypeVar
 from hil.common.errors import SimulationError
 from hil.harness.engine.messages import (Advance, ApplyControl, Exit, Halt, PhysicsReady, Start, StopWorker,
                                          WorkerFailed, WorkerReady)
-from hil.harness.engine.physics import PhysicsSpec, physics_main
-from hil.harness.engine.procs import Pump, widen_pipe
+from hil.harness.engine.physics import PhysicsOutputs, PhysicsSpec, physics_main
+from hil.harness.engine.procs import Pump, RingPump, widen_pipe
 from hil.harness.engine.render import FrameSlots, RenderSpec, render_main
+from hil.harness.engine.rings import Ring
 
 START_TIMEOUT_S = 60.0
+RING_BYTES = 4 << 20  # each of the physics's rings: ~2,000 world states of a 16-vehicle scene
 _M = TypeVar("_M")
 
 
@@ -54,12 +56,16 @@ class Engine:
     ``events``, the run's one event queue, which the links feed too."""
 
     def __init__(self, *, physics: PhysicsSpec, render: RenderSpec, workers: int,
-                 events: queue.Queue[Any]) -> None:
+                 events: queue.Queue[Any], ring_bytes: int = RING_BYTES,
+                 stall_run: tuple[int, float] | None = None) -> None:
+        """``stall_run``: (step, seconds): the injected stuck consumer
+        (``engine.faults.stall_run_ms``, see ``RingPump``)."""
         self._procs: list[Any] = []
         self._conns: list[Any] = []
         self.slots: dict[str, FrameSlots] = {}
         self.scheduling = "not started"
         self.worker_pids: list[int] = []
+        self.rings: list[Ring] = []
         self.events = events
         ctx = mp.get_context("spawn")
         names = render.vehicles
@@ -69,40 +75,45 @@ class Engine:
             self.workers = max(1, min(workers, len(names)))
             self.assign = {v: i % self.workers for i, v in enumerate(names)}
             self._render: list[Any] = []
-            job_ends = []
+            # The physics writes into rings it never waits on: one per render worker
+            # (its jobs), one for this process (world states, answers, the end).
+            self.rings = [Ring.create(f"render-{w}", capacity=ring_bytes) for w in range(self.workers)]
+            self._run_ring = Ring.create("run", capacity=ring_bytes)
+            self.rings.append(self._run_ring)
             for w in range(self.workers):
                 mine = tuple(v for v in names if self.assign[v] == w)
                 rs = replace(render, vehicles=mine, shm={v: shm[v] for v in mine})
                 a, b = ctx.Pipe()
-                jr, jw = ctx.Pipe(duplex=False)  # physics -> worker: world states
-                for c in (a, b, jr, jw):
+                for c in (a, b):
                     widen_pipe(c)
-                rp = ctx.Process(target=render_main, args=(b, jr, rs, os.getpid()), name=f"hil-render-{w}",
-                                 daemon=True)
+                rp = ctx.Process(target=render_main, args=(b, self.rings[w].consumer_spec(), rs, os.getpid()),
+                                 name=f"hil-render-{w}", daemon=True)
                 with _without_main_module():
                     rp.start()
                 b.close()
-                jr.close()
-                job_ends.append(jw)
                 self._procs.append(rp)
                 self._render.append(a)
             physics = replace(physics, assign=tuple(self.assign[v] for v in names))
+            outputs = PhysicsOutputs(run=self._run_ring.producer_spec(),
+                                     jobs=tuple(r.producer_spec() for r in self.rings[:self.workers]))
             pc, cc = ctx.Pipe()
-            widen_pipe(pc), widen_pipe(cc)
-            p = ctx.Process(target=physics_main, args=(cc, job_ends, physics, os.getpid()), name="hil-physics",
+            widen_pipe(pc)
+            widen_pipe(cc)
+            p = ctx.Process(target=physics_main, args=(cc, outputs, physics, os.getpid()), name="hil-physics",
                             daemon=True)
             with _without_main_module():
                 p.start()
             cc.close()
-            for jw in job_ends:
-                jw.close()
+            for r in self.rings:  # the children hold their ends now: a child's exit reads as end of file
+                r.release(producer=True, consumer=r is not self._run_ring)
             self._procs.append(p)
             self._physics = pc
             self._conns = [pc, *self._render]
             self.scheduling = self._expect(pc, PhysicsReady, "physics").scheduling
             for w, c in enumerate(self._render):
                 self.worker_pids.append(self._expect(c, WorkerReady, f"render worker {w}").pid)
-            self._pumps = [Pump(pc, events, name="physics")]
+            self._pumps: list[Pump | RingPump] = [RingPump(self._run_ring, events, name="physics",
+                                                                    stall=stall_run)]
             self._pumps += [Pump(c, events, name=f"render-{w}") for w, c in enumerate(self._render)]
         except BaseException:
             self.close()
@@ -146,6 +157,16 @@ class Engine:
     def alive(self) -> bool:
         return all(p.is_alive() for p in self._procs)
 
+    def behind(self) -> dict[str, int]:
+        """Records the physics could not hand to each consumer so far (its ring was
+        full: the consumer fell behind), by consumer name; only those with losses."""
+        out = {}
+        for r in self.rings:
+            n = r.dropped_now()
+            if n:
+                out[r.name] = n
+        return out
+
     # -- lifetime ------------------------------------------------------------------------
 
     def close(self) -> None:
@@ -173,6 +194,11 @@ class Engine:
         for c in self._conns:
             c.close()
         self._conns = []
+        for pump in getattr(self, "_pumps", []):
+            pump.join(1.0)
+        rings, self.rings = self.rings, []
+        for r in rings:
+            r.close()
         slots, self.slots = self.slots, {}
         for s in slots.values():
             s.close()

@@ -1,8 +1,9 @@
 """Render workers: each a process with its own MuJoCo mirror of the world and its own
 EGL context, serving the cameras of the vehicles assigned to it.
 
-A job is a world state sent by the physics process itself at a camera instant (so
-a capture never waits behind the run process) and the vehicles to capture. The
+A job is a world state the physics process itself writes at a camera instant into
+the worker's ring (``hil.harness.engine.rings``: so a capture never waits behind the
+run process, and the physics never waits for a worker) and the egos to capture. The
 worker renders each camera, stamps ``t0`` when the pixels are ready, encodes, and
 writes the bytes into that vehicle's shared-memory slot ring (images never cross a
 pipe); then, with ``truth.visible_boxes``, it renders segmentation for the camera
@@ -24,8 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from hil.harness.engine.messages import CameraTruthReady, FrameReady, RenderJob, WorkerFailed, WorkerReady
+from hil.harness.engine.messages import CameraTruthReady, FrameReady, RenderJob, WorkerFailed, WorkerReady, decode
 from hil.harness.engine.procs import die_with_parent
+from hil.harness.engine.rings import Ring, RingSpec
 
 SLOTS = 8  # frames of one camera in flight between a worker and the links
 
@@ -100,9 +102,9 @@ def _hold(ns: int) -> None:
         pass
 
 
-def render_main(conn: Connection, jobs: Connection, spec: RenderSpec, parent_pid: int) -> None:
-    """Entry point of a render worker: jobs from the physics process on ``jobs``,
-    results (and ``stop``) with the run process on ``conn``."""
+def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, parent_pid: int) -> None:
+    """Entry point of a render worker: jobs from the physics process in the ring
+    ``jobs``, results (and ``StopWorker``) with the run process on ``conn``."""
     from multiprocessing.connection import wait
 
     die_with_parent(parent_pid)
@@ -128,34 +130,45 @@ def render_main(conn: Connection, jobs: Connection, spec: RenderSpec, parent_pid
         conn.send(WorkerFailed(f"render worker could not start: {err}"))
         os._exit(1)
     counter = {v: 0 for v in spec.vehicles}
+    ring = Ring.open(jobs, producer=False)
     conn.send(WorkerReady(os.getpid()))
     try:
         while True:
-            ready = wait([jobs, conn])
+            ready = wait([jobs.bell, conn])
             if conn in ready:
-                break  # "stop" (or the run process is gone)
-            job: RenderJob = jobs.recv()
-            steps = job.steps
-            sim.load_state(steps, job.qpos, job.qvel)
-            for name in job.vehicles:
-                rgb = sim.render(name)
-                if spec.delay_ns and counter[name] % spec.delay_every == 0:
-                    _hold(spec.delay_ns)
-                t0 = time.monotonic_ns()
-                data, enc = encode_image(rgb, jpeg=spec.jpeg, quality=spec.jpeg_quality)
-                slot = counter[name] % SLOTS
-                counter[name] += 1
-                n = slots[name].write(slot, data)
-                conn.send(FrameReady(name, steps, job.t_state_ns, sim.speed_mps(name), t0, time.monotonic_ns(), slot,
-                                     n, enc))
-            if spec.visible_boxes:
-                for name in job.vehicles:
-                    conn.send(CameraTruthReady(name, steps,
-                                               sim.camera_truth(name, min_visible_px=spec.min_visible_px)))
+                break  # StopWorker (or the run process is gone)
+            records = ring.read()
+            if not records and ring.closed_by_producer:
+                break  # the physics is gone
+            for record in records:
+                _render_job(decode(record), conn, sim, slots, counter, spec)  # type: ignore[arg-type]
     except (EOFError, BrokenPipeError, KeyboardInterrupt):
         pass
     finally:
+        ring.close()
         for s in slots.values():
             s.close()
         sim.close()
         os._exit(0)
+
+
+def _render_job(job: RenderJob, conn: Connection, sim: Any, slots: dict[str, FrameSlots], counter: dict[str, int],
+                spec: RenderSpec) -> None:
+    """Render, stamp, encode and hand over the frames of one job; then their camera
+    truth (segmentation), which adds no capture latency there."""
+    steps = job.steps
+    sim.load_state(steps, job.qpos, job.qvel)
+    names = [sim.egos[vi] for vi in job.vis]
+    for name in names:
+        rgb = sim.render(name)
+        if spec.delay_ns and counter[name] % spec.delay_every == 0:
+            _hold(spec.delay_ns)
+        t0 = time.monotonic_ns()
+        data, enc = encode_image(rgb, jpeg=spec.jpeg, quality=spec.jpeg_quality)
+        slot = counter[name] % SLOTS
+        counter[name] += 1
+        n = slots[name].write(slot, data)
+        conn.send(FrameReady(name, steps, job.t_state_ns, sim.speed_mps(name), t0, time.monotonic_ns(), slot, n, enc))
+    if spec.visible_boxes:
+        for name in names:
+            conn.send(CameraTruthReady(name, steps, sim.camera_truth(name, min_visible_px=spec.min_visible_px)))

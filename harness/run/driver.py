@@ -240,6 +240,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     from hil.harness.cases.recorder import CaseRecorder
     from hil.harness.config.model import LatencyKind
     from hil.harness.engine.pool import Engine, auto_workers
+    from hil.harness.engine.procs import keep_off_core, restore_affinity
     from hil.harness.record.channels import register_all, sync_sample_json
     from hil.harness.record.recorder import Recorder
     from hil.harness.report.run_report import write_report
@@ -281,12 +282,18 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
         procs: list[Any] = []  # TargetProcess, or a shared target's handle (anything with close())
         engine: Engine | None = None
         reserve: Path | None = None
+        affinity: set[int] | None = None
         try:
             # Physics and render processes start first: their start-up (MuJoCo, EGL,
             # shaders) overlaps the targets'.
             phys_spec, render_spec = engine_specs(cfg, world, rules)
-            engine = Engine(physics=phys_spec, render=render_spec, events=rx,
-                            workers=cfg.engine.render_workers or auto_workers(len(sim.egos)))
+            # The physics's own core (engine.physics_cpu): this process, and so the
+            # render workers and targets it starts, keep off it until the run ends.
+            affinity = keep_off_core(phys_spec.cpu)
+            stall_s = cfg.engine.faults.stall_run_ms / 1e3
+            engine = Engine(physics=phys_spec, render=render_spec, events=rx, ring_bytes=cfg.engine.ring_kib * 1024,
+                            workers=cfg.engine.render_workers or auto_workers(len(sim.egos)),
+                            stall_run=(round(0.5 / cfg.physics_step_s), stall_s) if stall_s else None)
             for i, name in enumerate(sim.egos):
                 link, proc = make_link(cfg, vehicle_id=i, vehicle=name, clock=clock, out_dir=out_dir, rx=rx,
                                        session=meta["session"])
@@ -389,6 +396,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 p.close()
             if engine is not None:
                 engine.close()
+            restore_affinity(affinity)
             if reserve is not None:
                 reserve.unlink(missing_ok=True)
     batches = _target_batches(out_dir)

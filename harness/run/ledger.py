@@ -39,13 +39,41 @@ class FrameLedger:
     """In-flight frames, controls being applied and the records held behind them."""
 
     def __init__(self) -> None:
-        self.rendering = 0  # frames whose camera instant came and whose FrameReady did not yet
+        # (vi, steps) of frames whose camera instant came and whose FrameReady did not
+        # yet, and of frames ready before their instant's world state (the worker has
+        # the job from the physics directly; its pipe may overtake the physics's ring).
+        self._rendering: set[tuple[int, int]] = set()
+        self._ready_early: set[tuple[int, int]] = set()
         self.lockstep_controls: list[ApplyControl] = []
         self._in_flight: dict[int, dict[int, InFlight]] = {}
         self._applying: dict[tuple[int, int], Answer] = {}
         self._applying_of: dict[int, int] = {}  # vi -> how many of its controls are applying
         self._behind: dict[int, list[Task]] = {}
         self._last_applied: dict[int, int] = {}
+
+    # -- rendering -------------------------------------------------------------------
+
+    def capturing(self, steps: int, vis: list[int]) -> None:
+        """The world state of camera instant ``steps``: egos ``vis`` are rendering.
+        States come in order, so a frame ready early for an instant before this one
+        never meets its state (lost on a full ring): forgotten."""
+        early = self._ready_early
+        for vi in vis:
+            key = (vi, steps)
+            if key in early:
+                early.discard(key)
+            else:
+                self._rendering.add(key)
+        if early:
+            self._ready_early = {k for k in early if k[1] > steps}
+
+    def rendered(self, vi: int, steps: int) -> None:
+        """Ego ``vi``'s frame of instant ``steps`` is ready."""
+        key = (vi, steps)
+        if key in self._rendering:
+            self._rendering.discard(key)
+        else:
+            self._ready_early.add(key)
 
     # -- in flight -----------------------------------------------------------------
 
@@ -65,7 +93,7 @@ class FrameLedger:
 
     def busy(self) -> bool:
         """Frames rendering or in flight."""
-        return self.rendering > 0 or self.in_flight()
+        return bool(self._rendering) or self.in_flight()
 
     def oldest_t0_ns(self) -> int | None:
         t0s = [fl.t0_ns for mine in self._in_flight.values() for fl in mine.values()]
@@ -104,13 +132,18 @@ class FrameLedger:
         """The control could not be sent after all."""
         return self._take(vi, frame_id)  # type: ignore[return-value]
 
-    def applied(self, vi: int, frame_id: int) -> tuple[Answer | None, list[Task]]:
-        """The physics applied it: its answer (None if unknown) and, once the vehicle
-        has nothing else applying, the tasks held behind it (in order)."""
+    def applied(self, vi: int, frame_id: int) -> tuple[Answer | None, list[Answer], list[Task]]:
+        """The physics applied it: its answer (None if unknown); the vehicle's earlier
+        answers still applying, whose confirmations were lost (the physics applies a
+        vehicle's controls in order, and its ring to this process may drop when this
+        process falls behind), in frame order; and, once the vehicle has nothing else
+        applying, the tasks held behind it (in order)."""
         a = self._take(vi, frame_id)
-        if a is None or self._applying_of.get(vi):
-            return a, []
-        return a, self._behind.pop(vi, [])
+        if a is None:
+            return None, [], []
+        lost = [self._take(v, f) for v, f in sorted(k for k in self._applying if k[0] == vi and k[1] < frame_id)]
+        released = [] if self._applying_of.get(vi) else self._behind.pop(vi, [])
+        return a, [x for x in lost if x is not None], released
 
     def hold(self, vi: int, task: Task) -> bool:
         """Keep ``task`` behind the vehicle's controls being applied; False when none

@@ -56,6 +56,7 @@ from hil.harness.engine.messages import (Applied, ApplyControl, CameraTruthReady
                                          FrameReady, WorkerFailed, WorldState)
 from hil.harness.engine.physics import PhysicsSpec, capture_table, spread_phases
 from hil.harness.engine.pool import Engine
+from hil.harness.engine.procs import physics_core
 from hil.harness.engine.render import RenderSpec, encode_image as _encode
 from hil.harness.record.recorder import Recorder
 from hil.harness.run.latency import HeldControls, LatencyProfile
@@ -95,7 +96,9 @@ def engine_specs(cfg: RunConfig, world: Any, rules: Any) -> tuple[PhysicsSpec, R
                           total_steps=round(cfg.duration_s * 1e9 / step_ns),
                           wall_per_step_ns=step_ns / cfg.realtime_factor, period_steps=period, phases=phases,
                           late_tolerance_ns=int(eng.late_tolerance_ms * 1e6),
-                          realtime_priority=eng.realtime_priority if realtime else 0)
+                          realtime_priority=eng.realtime_priority if realtime else 0,
+                          fallback_nice=eng.fallback_nice if realtime else 0,
+                          cpu=physics_core(eng.physics_cpu) if realtime else None)
     render = RenderSpec(world=world, vehicles=egos, shm={}, slot_bytes=cam.width * cam.height * 3 + 65536,
                         jpeg=cam.encoding == Encoding.JPEG, jpeg_quality=cam.jpeg_quality,
                         visible_boxes=cfg.truth.visible_boxes, min_visible_px=cfg.truth.min_visible_px,
@@ -118,6 +121,7 @@ class LoopStats:
     loop_cpu_ns: int = 0       # CPU time of the loop thread (frames, estimates, controls)
     analysis_cpu_ns: int = 0   # CPU time of the analysis thread (truth, observers, recording)
     analysis_dropped: int = 0  # analysis tasks dropped on a full queue
+    behind: dict[str, int] = field(default_factory=dict)  # records the physics's rings lost, by consumer
 
 
 class SimLoop:
@@ -168,6 +172,7 @@ class SimLoop:
         self._physics_eof = False
         self._halted = False
         self._next_tick_ns = 0
+        self._behind_told: dict[str, tuple[int, int]] = {}  # consumer -> (records told, next event ns)
 
     @property
     def collisions(self) -> list[dict[str, object]]:
@@ -313,6 +318,8 @@ class SimLoop:
         st.late_steps = int(hist["late_steps"])
         st.max_lateness_ns = int(hist["max_ns"])
         st.physics_span_ns = int(hist.get("span_ns", 0))
+        st.behind = {str(k): int(n) for k, n in (hist.get("behind") or {}).items()}
+        self._watch_consumers(self.clock.now_ns(), final=st.behind)
         self._sim_steps = done.steps
         self.analysis.post(self.tasks.final_state, done.steps, done.qpos, done.qvel, done.collisions)
 
@@ -345,8 +352,22 @@ class SimLoop:
         if failure is not None and self.stop_reason is None:
             self.request_stop(f"the recording failed ({failure}): is the disk full? What was written is kept")
         self.analysis.post(self.tasks.tick, now, self._sim_ns)
+        self._watch_consumers(now)
         if self.on_tick is not None:
             self.on_tick()
+
+    def _watch_consumers(self, now: int, *, final: dict[str, int] | None = None) -> None:
+        """An event when a consumer of the physics's rings lost records since it was
+        last told (at most one a second per consumer, and one with the final count)."""
+        for name, n in (self.engine.behind() if final is None else final).items():
+            told, next_ns = self._behind_told.get(name, (0, 0))
+            if n <= told or (final is None and now < next_ns):
+                continue
+            self._behind_told[name] = (n, now + 1_000_000_000)
+            self._event(Event.of(EventKind.CONSUMER_BEHIND, now, sim_time_ns=self._sim_ns, measured=float(n),
+                                 unit="records", extra={"consumer": name},
+                                 detail=f"{name} fell behind the physics: {n} records it could not take were lost "
+                                        "(the physics did not wait)"))
 
     def _dispatch(self, ev: object) -> None:
         match ev:
@@ -395,7 +416,7 @@ class SimLoop:
                 self._on_camtruth(*item)
         if not names or self.stop_reason is not None:
             return
-        self.ledger.rendering += len(names)
+        self.ledger.capturing(steps, [vi for vi in ws.vis if vi not in ws.unrendered])
         for name in names:
             v = self.by_name[name]
             if not v.link.alive:
@@ -412,10 +433,10 @@ class SimLoop:
         self.analysis.post(self.tasks.camera_truth, name, frame_id, ct)
 
     def _on_frame(self, f: FrameReady) -> None:
-        self.ledger.rendering -= 1
+        v = self.by_name[f.vehicle]
+        self.ledger.rendered(v.vehicle_id, f.steps)
         if self.stop_reason is not None:
             return
-        v = self.by_name[f.vehicle]
         data = self.engine.frame_bytes(f.vehicle, f.slot, f.nbytes)
         cam = self.cfg.camera
         frame_id = v.next_frame_id
@@ -545,9 +566,11 @@ class SimLoop:
             self._post_in_order(a.v, self.tasks.complete, a, FrameStatus.STALE)
 
     def _on_applied(self, ap: Applied) -> None:
-        a, released = self.ledger.applied(ap.vi, ap.frame_id)
+        a, lost, released = self.ledger.applied(ap.vi, ap.frame_id)
         if a is None:
             return
+        for x in lost:  # applied, but when is not known: no t_apply
+            self.analysis.post(self.tasks.complete, x, FrameStatus.OK)
         self.analysis.post(self.tasks.applied, a, ap.t_apply_ns, ap.steps, ap.qpos, ap.qvel)
         for fn, args in released:
             self.analysis.post(fn, *args)
