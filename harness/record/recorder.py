@@ -71,7 +71,6 @@ from __future__ import annotations
 
 import base64
 import json
-import math
 import os
 import queue
 import struct
@@ -94,6 +93,7 @@ from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 from hil.common.errors import ConfigError, RecordingError
 from hil.harness import __version__
 from hil.harness.record import foxglove_schemas as fx
+from hil.harness.record.encoding import dumps
 
 _MESSAGE_ENCODING = "json"
 _SCHEMA_ENCODING = "jsonschema"
@@ -183,6 +183,7 @@ class _Op(IntEnum):
     RAW = 2
     FLUSH = 3
     STOP = 4
+    ENCODED = 5
 
 
 class _Sink:
@@ -208,28 +209,6 @@ class _Sink:
 
     def flush(self) -> None:
         """Nothing is buffered here."""
-
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"Object of type {type(value).__name__} is not JSON serializable")
-
-
-def _finite(value: Any) -> Any:
-    """``value`` with NaN and infinities replaced by ``None`` (JSON has neither, and
-    Foxglove's parser rejects the ``NaN`` literal). Only called when encoding failed."""
-    if isinstance(value, (np.generic, np.ndarray)):
-        value = _json_default(value)
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite(v) for v in value]
-    return value
 
 
 class Recorder:
@@ -312,7 +291,6 @@ class Recorder:
         self._queue: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=queue_size)
         for name, data in (metadata or {}).items():
             self.add_metadata(name, data)
-        self._encoder = json.JSONEncoder(separators=(",", ":"), allow_nan=False, default=_json_default)
 
         try:
             self._open()
@@ -395,6 +373,24 @@ class Recorder:
                 f"topic {topic!r} is not registered; call register_json_channel({topic!r}, name, schema) first"
             )
         return self._put(_Op.JSON, topic, log_time_ns, publish_time_ns, obj, None, None)
+
+    def write_encoded(self, topic: str, data: bytes, *, log_time_ns: int, publish_time_ns: int,
+                      sequence: int | None = None) -> bool:
+        """Enqueue a message ``topic``'s producer already encoded (``data``, in the
+        topic's encoding): the writer only writes it. ``sequence``: the producer's own
+        per-topic sequence number (a producer in another process keeps its own, and
+        its drops leave gaps there); None: taken here as for every other write.
+        Derivations do not run on it (its producer ran them).
+
+        Returns:
+            ``True`` if enqueued, ``False`` if dropped (queue full, or recorder closed).
+
+        Raises:
+            ConfigError: ``topic`` was never registered.
+        """
+        if topic not in self._topics:
+            raise ConfigError(f"topic {topic!r} is not registered; register it before writing encoded messages")
+        return self._put(_Op.ENCODED, topic, log_time_ns, publish_time_ns, data, None, None, seq=sequence)
 
     def write_image(self, topic: str, data: bytes, *, fmt: str, frame_id: str,
                     log_time_ns: int, publish_time_ns: int) -> bool:
@@ -606,10 +602,12 @@ class Recorder:
                 f"topic {topic!r} carries {known[0]!r}; write {schema_name!r} messages to another topic"
             )
 
-    def _put(self, op: _Op, topic: str, log_ns: int, pub_ns: int, a: Any, b: Any, c: Any) -> bool:
+    def _put(self, op: _Op, topic: str, log_ns: int, pub_ns: int, a: Any, b: Any, c: Any, *,
+             seq: int | None = None) -> bool:
         with self._lock:
             # The sequence number is taken before the attempt: drops leave gaps.
-            seq = self._next_seq[topic] = (self._next_seq.get(topic, 0) + 1) & _SEQUENCE_MASK
+            if seq is None:
+                seq = self._next_seq[topic] = (self._next_seq.get(topic, 0) + 1) & _SEQUENCE_MASK
             if self._closing:
                 self._dropped += 1
                 return False
@@ -690,10 +688,9 @@ class Recorder:
         op, topic, seq, log_ns, pub_ns, a, b, c = item
         log_ns += self._offset_ns
         if op is _Op.JSON:
-            try:
-                data = self._encoder.encode(a).encode()
-            except ValueError:  # NaN or infinity somewhere: write them as null
-                data = self._encoder.encode(_finite(a)).encode()
+            data = dumps(a)  # NaN and infinities as null
+        elif op is _Op.ENCODED:
+            data = a
         elif op is _Op.IMAGE:
             data = _image_json(pub_ns + self._offset_ns, c, b'"format":"%s",' % b.encode(), a)
         else:
@@ -703,7 +700,7 @@ class Recorder:
             data = _image_json(pub_ns + self._offset_ns, c, fields, a)
         self._add(topic, data, log_ns, pub_ns, seq)
         self._written += 1  # only this thread writes it; stats reads an int
-        if op is _Op.JSON and topic in self._derivations:
+        if op is _Op.JSON and topic in self._derivations:  # (an ENCODED message's producer derived its own)
             self._derive(topic, a, log_ns - self._offset_ns, pub_ns)
 
     def _derive(self, topic: str, obj: Mapping[str, Any], log_ns: int, pub_ns: int) -> None:
@@ -719,11 +716,7 @@ class Recorder:
                     continue
                 with self._lock:
                     seq = self._next_seq[d_topic] = (self._next_seq.get(d_topic, 0) + 1) & _SEQUENCE_MASK
-                try:
-                    data = self._encoder.encode(d_obj).encode()
-                except ValueError:
-                    data = self._encoder.encode(_finite(d_obj)).encode()
-                self._add(d_topic, data, d_log + self._offset_ns, d_pub, seq)
+                self._add(d_topic, dumps(d_obj), d_log + self._offset_ns, d_pub, seq)
                 with self._lock:
                     self._derived += 1
 
