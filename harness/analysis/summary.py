@@ -147,9 +147,13 @@ def realtime_summary(loop: SimLoop, stats: LoopStats, *, sim_s: float, wall_s: f
 
 
 def _cost(stats: LoopStats, *, frames: int) -> dict[str, Any]:
-    """The run process's own CPU time per frame (µs): the loop thread (frames,
-    estimates, controls) and the analysis thread (truth, observers, recording)."""
+    """The harness's own CPU time per frame (µs): every process of the run but the
+    physics and the render workers (``run_us_per_frame``: all threads, links,
+    recording and analysis included, until the recording is flushed), and of it the
+    loop thread (frames, estimates, controls) and the analysis thread (truth,
+    observers, recording)."""
     per = max(frames, 1)
-    return {"frames": frames, "loop_thread_us_per_frame": round(stats.loop_cpu_ns / per / 1e3, 1),
+    return {"frames": frames, "run_us_per_frame": round(stats.run_cpu_ns / per / 1e3, 1),
+            "loop_thread_us_per_frame": round(stats.loop_cpu_ns / per / 1e3, 1),
             "analysis_thread_us_per_frame": round(stats.analysis_cpu_ns / per / 1e3, 1),
             "analysis_tasks_dropped": stats.analysis_dropped}

@@ -345,6 +345,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                                                        duration_s=cfg.duration_s, vehicles=vehicles,
                                                        anomalies=timing.anomaly_count)
                 restore = _install_stop_handlers(loop) if install_signal_handlers else None
+                cpu0 = time.process_time_ns()
                 try:
                     stats = loop.run()
                 finally:
@@ -359,6 +360,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 if isinstance(rec, CaseRecorder):
                     rec.close()  # writes the cases still open with what was recorded
                 main_rec.flush()
+                stats.run_cpu_ns = time.process_time_ns() - cpu0
                 rec_stats = main_rec.stats
                 summary = build_summary(loop=loop, stats=stats, timing=timing, detector=detector, recorder_stats={
                     "written": rec_stats.written, "dropped": rec_stats.dropped, "enqueued": rec_stats.enqueued},

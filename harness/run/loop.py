@@ -122,6 +122,10 @@ class LoopStats:
     analysis_cpu_ns: int = 0   # CPU time of the analysis thread (truth, observers, recording)
     analysis_dropped: int = 0  # analysis tasks dropped on a full queue
     behind: dict[str, int] = field(default_factory=dict)  # records the physics's rings lost, by consumer
+    # CPU time of every harness process but the physics and render workers (this one,
+    # all threads, and any shard processes), from the loop's start until its
+    # recording is flushed (set by the driver).
+    run_cpu_ns: int = 0
 
 
 class SimLoop:
