@@ -94,6 +94,7 @@ class Link(ABC):
         self._sync_seq = 0
         self._command_seq = 0
         self._impair: LinkImpairment | None = None
+        self._deliver: Callable[[Received], None] | None = None
 
     def set_impairment(self, stage: LinkImpairment) -> None:
         """Put a link-fault stage (adapters/impair.py) on the send and receive paths;
@@ -281,6 +282,24 @@ class Link(ABC):
         except queue.Empty:
             return None
 
+    def deliver_to(self, fn: Callable[[Received], None] | None) -> None:
+        """Hand every received message but clock-sync answers (estimates, errors,
+        command replies, protocol faults) to ``fn`` on the thread that stamped and
+        decoded it, the moment it is decoded, instead of queueing it for ``recv``: the
+        harness handles an estimate where it arrived, with no hand-off to another
+        thread. What was queued before is handed over first; ``None`` queues again.
+        ``fn`` must not block for long: it holds up this link's reading."""
+        pending: list[Received] = []
+        while True:
+            try:
+                pending.append(self._rx.get_nowait())
+            except queue.Empty:
+                break
+        for r in pending:
+            if fn is not None:
+                fn(r)
+        self._deliver = fn
+
     def _on_bytes(self, data: bytes | bytearray | memoryview, t_rx_ns: int) -> None:
         """Reader-thread entry for stream transports: decode and dispatch."""
         self.stats.bytes_received += len(data)
@@ -316,6 +335,10 @@ class Link(ABC):
         self._enqueue(target, r)
 
     def _enqueue(self, target: queue.Queue[Received], r: Received) -> None:
+        deliver = self._deliver
+        if deliver is not None and target is self._rx:
+            deliver(r)
+            return
         try:
             target.put_nowait(r)
         except queue.Full:

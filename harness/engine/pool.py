@@ -7,9 +7,8 @@ from __future__ import annotations
 import contextlib
 import multiprocessing as mp
 import os
-import queue
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from typing import Any, TypeVar
 
@@ -52,11 +51,10 @@ def _without_main_module() -> Iterator[None]:
 
 
 class Engine:
-    """Starts the children; their messages (``hil.harness.engine.messages``) arrive in
-    ``events``, the run's one event queue, which the links feed too."""
+    """Starts the children; once :meth:`connect` names the run's handlers, their
+    messages (``hil.harness.engine.messages``) go there, on the threads that read them."""
 
-    def __init__(self, *, physics: PhysicsSpec, render: RenderSpec, workers: int,
-                 events: queue.Queue[Any], ring_bytes: int = RING_BYTES,
+    def __init__(self, *, physics: PhysicsSpec, render: RenderSpec, workers: int, ring_bytes: int = RING_BYTES,
                  stall_run: tuple[int, float] | None = None) -> None:
         """``stall_run``: (step, seconds): the injected stuck consumer
         (``engine.faults.stall_run_ms``, see ``RingPump``)."""
@@ -66,7 +64,8 @@ class Engine:
         self.scheduling = "not started"
         self.worker_pids: list[int] = []
         self.rings: list[Ring] = []
-        self.events = events
+        self._pumps: list[Pump | RingPump] = []
+        self._stall = stall_run
         ctx = mp.get_context("spawn")
         names = render.vehicles
         try:
@@ -112,9 +111,7 @@ class Engine:
             self.scheduling = self._expect(pc, PhysicsReady, "physics").scheduling
             for w, c in enumerate(self._render):
                 self.worker_pids.append(self._expect(c, WorkerReady, f"render worker {w}").pid)
-            self._pumps: list[Pump | RingPump] = [RingPump(self._run_ring, events, name="physics",
-                                                                    stall=stall_run)]
-            self._pumps += [Pump(c, events, name=f"render-{w}") for w, c in enumerate(self._render)]
+
         except BaseException:
             self.close()
             raise
@@ -131,6 +128,12 @@ class Engine:
             raise SimulationError(msg.text if isinstance(msg, WorkerFailed)
                                   else f"{who}: unexpected {type(msg).__name__}")
         return msg
+
+    def connect(self, *, on_physics: Callable[[Any], None], on_render: Callable[[Any], None]) -> None:
+        """Hand every message of the physics (its ring) to ``on_physics`` and of the
+        render workers to ``on_render``, each on the thread that reads it."""
+        self._pumps = [RingPump(self._run_ring, on_physics, name="physics", stall=self._stall)]
+        self._pumps += [Pump(c, on_render, name=f"render-{w}") for w, c in enumerate(self._render)]
 
     # -- to the physics process ------------------------------------------------------
 
@@ -194,7 +197,7 @@ class Engine:
         for c in self._conns:
             c.close()
         self._conns = []
-        for pump in getattr(self, "_pumps", []):
+        for pump in self._pumps:
             pump.join(1.0)
         rings, self.rings = self.rings, []
         for r in rings:

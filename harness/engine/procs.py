@@ -1,14 +1,15 @@
 """Process plumbing shared by the engine's children: die with the parent, ask for a
-real-time scheduling class, and pump a child's pipe into the run's event queue."""
+real-time scheduling class, keep a core for the physics, and pump a child's pipe or
+the physics's ring into the run's handlers."""
 
 from __future__ import annotations
 
 import ctypes
 import os
-import queue
 import signal
 import threading
 import time
+from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -132,11 +133,11 @@ def widen_pipe(conn: Connection, size: int = 1 << 20) -> None:
 
 
 class Pump:
-    """A daemon thread that moves every message of ``conn`` into ``out``, and
-    ``ChildGone(name)`` when the child's end closes."""
+    """A daemon thread that hands every message of ``conn`` to ``deliver`` (on this
+    thread: no further hand-off), and ``ChildGone(name)`` when the child's end closes."""
 
-    def __init__(self, conn: Connection, out: queue.Queue[Any], *, name: str) -> None:
-        self._conn, self._out, self.name = conn, out, name
+    def __init__(self, conn: Connection, deliver: Callable[[Any], None], *, name: str) -> None:
+        self._conn, self._deliver, self.name = conn, deliver, name
         self._thread = threading.Thread(target=self._run, name=f"pump-{name}", daemon=True)
         self._thread.start()
 
@@ -144,14 +145,15 @@ class Pump:
         from hil.adapters.process import prioritise_this_thread
         from hil.harness.engine.messages import ChildGone
 
-        prioritise_this_thread()  # world states and frames are on the capture path
+        prioritise_this_thread()  # frames are on the capture path
+        deliver = self._deliver
         while True:
             try:
                 msg = self._conn.recv()
             except (EOFError, OSError):
-                self._out.put(ChildGone(self.name))
+                deliver(ChildGone(self.name))
                 return
-            self._out.put(msg)
+            deliver(msg)
 
     def join(self, timeout_s: float) -> None:
         self._thread.join(timeout_s)
@@ -159,13 +161,14 @@ class Pump:
 
 class RingPump:
     """A daemon thread that decodes every record of a ring the physics writes
-    (``hil.harness.engine.rings``) into ``out``, and ``ChildGone(name)`` when its
-    producer's end closes. ``stall``: (step, seconds): once the world state of that
-    step is read, stop reading that long (``engine.faults.stall_run_ms``)."""
+    (``hil.harness.engine.rings``) and hands it to ``deliver`` (on this thread), and
+    ``ChildGone(name)`` when its producer's end closes. ``stall``: (step, seconds):
+    once the world state of that step is read, stop reading that long
+    (``engine.faults.stall_run_ms``)."""
 
-    def __init__(self, ring: Any, out: queue.Queue[Any], *, name: str,
+    def __init__(self, ring: Any, deliver: Callable[[Any], None], *, name: str,
                  stall: tuple[int, float] | None = None) -> None:
-        self._ring, self._out, self.name = ring, out, name
+        self._ring, self._deliver, self.name = ring, deliver, name
         self._stall = stall
         self._thread = threading.Thread(target=self._run, name=f"ring-{name}", daemon=True)
         self._thread.start()
@@ -177,7 +180,7 @@ class RingPump:
         from hil.harness.engine.messages import ChildGone, decode
 
         prioritise_this_thread()
-        ring, put, stall = self._ring, self._out.put, self._stall
+        ring, put, stall = self._ring, self._deliver, self._stall
         try:
             while True:
                 select.select([ring.fileno()], [], [])

@@ -72,7 +72,6 @@ from __future__ import annotations
 import base64
 import json
 import os
-import queue
 import struct
 import threading
 import time
@@ -92,13 +91,13 @@ from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
 from hil.common.errors import ConfigError, RecordingError
 from hil.harness import __version__
+from hil.harness.engine.handoff import Handoff
 from hil.harness.record import foxglove_schemas as fx
 from hil.harness.record.encoding import dumps
 
 _MESSAGE_ENCODING = "json"
 _SCHEMA_ENCODING = "jsonschema"
 _SEQUENCE_MASK = 0xFFFF_FFFF  # MCAP sequence numbers are uint32
-_CONTROL_PUT_TIMEOUT_S = 0.5
 _IDLE_POLL_S = 0.5
 
 
@@ -288,7 +287,7 @@ class Recorder:
         self._chunk_size = chunk_size
         self._chunk_duration_ns = chunk_duration_ns
 
-        self._queue: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=queue_size)
+        self._queue: Handoff[tuple[Any, ...]] = Handoff(queue_size)
         for name, data in (metadata or {}).items():
             self.add_metadata(name, data)
 
@@ -611,28 +610,23 @@ class Recorder:
             if self._closing:
                 self._dropped += 1
                 return False
-            try:
-                self._queue.put_nowait((op, topic, seq, log_ns, pub_ns, a, b, c))
-            except queue.Full:
+            if not self._queue.put((op, topic, seq, log_ns, pub_ns, a, b, c)):
                 self._dropped += 1
                 return False
             self._enqueued += 1
-            depth = self._queue.qsize()
+            depth = len(self._queue)
             if depth > self._max_depth:
                 self._max_depth = depth
             return True
 
     def _put_control(self, item: tuple[Any, ...]) -> bool:
-        """Blocking put of a command that must not be dropped; gives up only if the
-        writer thread is gone (then nobody would drain the queue)."""
+        """Queue a command that must not be dropped (past the queue's bound); False if
+        the writer thread is gone (then nobody would drain the queue)."""
         thread = self._thread
-        while thread is not None and thread.is_alive():
-            try:
-                self._queue.put(item, timeout=_CONTROL_PUT_TIMEOUT_S)
-                return True
-            except queue.Full:
-                continue
-        return False
+        if thread is None or not thread.is_alive():
+            return False
+        self._queue.put_always(item)
+        return True
 
     # --- writer thread ----------------------------------------------------------------
 
@@ -643,12 +637,11 @@ class Recorder:
         get = self._queue.get
         main = threading.main_thread()
         while True:
-            try:
-                item = get(timeout=_IDLE_POLL_S)
-            except queue.Empty:
+            item = get(_IDLE_POLL_S)
+            if item is None:
                 # Forgotten close(): finish the file at interpreter exit instead of
                 # hanging it (this thread is not a daemon).
-                if not main.is_alive() and self._queue.empty():
+                if not main.is_alive() and not len(self._queue):
                     break
                 continue
             op = item[0]

@@ -12,7 +12,6 @@ import json
 import math
 import os
 import platform
-import queue
 import secrets
 import signal
 import time
@@ -231,7 +230,6 @@ def _sigterm_interrupts() -> Callable[[], None] | None:
 def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Callable[..., None] | None,
              notify: Callable[[str], None], install_signal_handlers: bool) -> RunResult:
     # Imported here: these pull in mujoco, whose GL backend the caller chose first.
-    from hil.adapters.link import Received
     from hil.harness.analysis.detector_observer import DetectorObserver
     from hil.harness.analysis.events import EventBus
     from hil.harness.analysis.summary import build_summary
@@ -245,7 +243,8 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     from hil.harness.record.recorder import Recorder
     from hil.harness.report.run_report import write_report
     from hil.harness.run.latency import LatencyProfile
-    from hil.harness.run.loop import SimLoop, encode_image, engine_specs
+    from hil.harness.run.assemble import local_loop
+    from hil.harness.run.loop import encode_image, engine_specs
     from hil.harness.run.target_launch import can_preflight, make_link
     from hil.harness.run.vehicle_state import VehicleRun
     from hil import scenarios
@@ -257,7 +256,6 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     latency = (None if lat_cfg.kind == LatencyKind.NONE and lat_cfg.drop_prob == 0
                else LatencyProfile(lat_cfg, seed=cfg.seed, vehicles=[v.name for v in world.egos]))
     clock = MonotonicClock()
-    rx: queue.Queue[Any] = queue.Queue(maxsize=4096)  # links' messages and the engine's, one queue
     mcap_path = out_dir / "run.mcap"
     (out_dir / "config.json").write_text(json.dumps(dump_config(cfg), indent=2, sort_keys=True) + "\n")
     summary_path = out_dir / "summary.json"
@@ -291,11 +289,11 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
             # render workers and targets it starts, keep off it until the run ends.
             affinity = keep_off_core(phys_spec.cpu)
             stall_s = cfg.engine.faults.stall_run_ms / 1e3
-            engine = Engine(physics=phys_spec, render=render_spec, events=rx, ring_bytes=cfg.engine.ring_kib * 1024,
+            engine = Engine(physics=phys_spec, render=render_spec, ring_bytes=cfg.engine.ring_kib * 1024,
                             workers=cfg.engine.render_workers or auto_workers(len(sim.egos)),
                             stall_run=(round(0.5 / cfg.physics_step_s), stall_s) if stall_s else None)
             for i, name in enumerate(sim.egos):
-                link, proc = make_link(cfg, vehicle_id=i, vehicle=name, clock=clock, out_dir=out_dir, rx=rx,
+                link, proc = make_link(cfg, vehicle_id=i, vehicle=name, clock=clock, out_dir=out_dir,
                                        session=meta["session"])
                 if proc is not None:
                     procs.append(proc)
@@ -335,11 +333,11 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                         rec.write_json(f"/{name}/clock_sync", sync_sample_json(s, warmup=True),
                                        log_time_ns=s.t4_ns, publish_time_ns=s.t1_ns)
                         timing.on_sync(name, s)
-                loop = SimLoop(cfg, sim, vehicles, rx, rec, clock, engine=engine, physics=phys_spec,
-                               latency=latency, events=bus)
-                loop.observers.append(timing)
+                loop = local_loop(cfg, sim, vehicles, engine=engine, physics=phys_spec, rec=rec, bus=bus,
+                                   clock=clock, latency=latency)
+                loop.shards[0].tasks.observers.append(timing)
                 if detector is not None:
-                    loop.observers.append(detector)
+                    loop.shards[0].tasks.observers.append(detector)
                 if on_progress is not None:
                     loop.on_tick = lambda: on_progress(now_ns=clock.now_ns(), sim_time_s=sim.sim_time_ns / 1e9,
                                                        duration_s=cfg.duration_s, vehicles=vehicles,

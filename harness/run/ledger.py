@@ -9,8 +9,9 @@ stale estimate, a drop) are *held behind* it, so the analysis sees each vehicle'
 records in receipt order. In lockstep the controls of one camera instant wait in
 ``lockstep_controls`` for the next ``Advance``.
 
-Owned by one thread (the loop's); nothing here blocks, sends or records: the loop
-does, with what the ledger answers. Vehicles are their ids (``vi``).
+Changed under its shard's lock; :meth:`busy` and :meth:`in_flight` may be read
+without it (counts, never an iteration). Nothing here blocks, sends or records: the
+shard does, with what the ledger answers. Vehicles are their ids (``vi``).
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ class FrameLedger:
         self._ready_early: set[tuple[int, int]] = set()
         self.lockstep_controls: list[ApplyControl] = []
         self._in_flight: dict[int, dict[int, InFlight]] = {}
+        self._n_in_flight = 0
         self._applying: dict[tuple[int, int], Answer] = {}
         self._applying_of: dict[int, int] = {}  # vi -> how many of its controls are applying
         self._behind: dict[int, list[Task]] = {}
@@ -79,21 +81,25 @@ class FrameLedger:
 
     def sent(self, vi: int, fl: InFlight) -> None:
         self._in_flight.setdefault(vi, {})[fl.frame_id] = fl
+        self._n_in_flight += 1
 
     def answer(self, vi: int, frame_id: int) -> InFlight | None:
         """The in-flight frame an estimate answers (no longer in flight), or None."""
         mine = self._in_flight.get(vi)
-        return None if mine is None else mine.pop(frame_id, None)
+        fl = None if mine is None else mine.pop(frame_id, None)
+        if fl is not None:
+            self._n_in_flight -= 1
+        return fl
 
     def in_flight(self, vi: int | None = None) -> bool:
         """Any frame in flight (of ``vi``, or of any vehicle)."""
         if vi is not None:
             return bool(self._in_flight.get(vi))
-        return any(self._in_flight.values())
+        return self._n_in_flight > 0
 
     def busy(self) -> bool:
         """Frames rendering or in flight."""
-        return bool(self._rendering) or self.in_flight()
+        return bool(self._rendering) or self._n_in_flight > 0
 
     def oldest_t0_ns(self) -> int | None:
         t0s = [fl.t0_ns for mine in self._in_flight.values() for fl in mine.values()]
@@ -106,6 +112,7 @@ class FrameLedger:
             if mine:
                 for fid in [f for f, fl in mine.items() if now_ns - fl.t0_ns > timeout_ns]:
                     out.append((vi, mine.pop(fid)))
+        self._n_in_flight -= len(out)
         return out
 
     def take_all(self) -> list[tuple[int, InFlight]]:
@@ -113,6 +120,7 @@ class FrameLedger:
         out = []
         for vi, mine in self._in_flight.items():
             out += [(vi, mine.pop(fid)) for fid in sorted(mine)]
+        self._n_in_flight = 0
         return out
 
     # -- applying --------------------------------------------------------------------

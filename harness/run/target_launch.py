@@ -69,7 +69,8 @@ class TargetProcess:
 
 
 def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, out_dir: Path,
-              rx: queue.Queue[Received], session: str | None = None) -> tuple[Link, TargetProcess | None]:
+              rx: queue.Queue[Received] | None = None,
+              session: str | None = None) -> tuple[Link, TargetProcess | None]:
     """Build (not open) the link of one vehicle, starting its local target process
     first where a network transport has a ``command``. A ``mixed`` target takes
     frames over ``target.zenoh`` and answers over ``target.can``.

@@ -48,20 +48,42 @@ def estimate_json(m: Estimate) -> dict[str, Any]:
                          "position_m": list(o.position_m)} for o in m.objects]}
 
 
-class LoopTasks:
-    """The analysis thread's tasks of one run. ``sim`` is the run process's mirror of
-    the world (ground truth and the final state are taken from it); ``rec`` the
-    recording; ``events`` the run's bus (published from this thread only)."""
+class TruthCache:
+    """The latest camera instant's ground truth, by step. In lockstep the physics
+    applies a stop's controls in the world of that stop, so the truth at ``t_apply``
+    is the one just taken: taken once, not again for every vehicle. (Analysis thread
+    only.)"""
 
-    def __init__(self, sim: Simulation, rec: Any, events: EventBus, clock: Clock, *, egos: set[str]) -> None:
+    def __init__(self) -> None:
+        self.steps = -1
+        self.gt: GroundTruth | None = None
+
+    def put(self, steps: int, gt: GroundTruth) -> None:
+        self.steps, self.gt = steps, gt
+
+    def get(self, steps: int, vehicle: str) -> GroundTruth | None:
+        gt = self.gt
+        if gt is None or steps != self.steps or not any(e.vehicle == vehicle for e in gt.egos):
+            return None
+        return GroundTruth(gt.sim_time_ns, gt.entities, gt.egos, ())
+
+
+class WorldTasks:
+    """The analysis thread's work on the whole world: the ground truth of every camera
+    instant (``/ground_truth``, the Foxglove scene, collisions as events, the egos'
+    smallest gaps) and the final state. ``sim`` is this process's mirror of the world
+    (the summary's final state is taken from it); ``observers`` get each ground truth
+    (those of a shard in this process; a shard in its own process takes its own)."""
+
+    def __init__(self, sim: Simulation, rec: Any, events: EventBus, clock: Clock, *, egos: set[str],
+                 observers: list[RunObserver], cache: TruthCache | None = None) -> None:
         self.sim, self.rec, self.events, self.clock = sim, rec, events, clock
-        self.observers: list[RunObserver] = []
+        self.observers = observers
+        self.cache = cache if cache is not None else TruthCache()
         self.collisions: list[dict[str, object]] = []
         self.min_gap_m: dict[str, float] = {}
         self._egos = egos
         self._changes = StateChanges()
-
-    # -- the world ----------------------------------------------------------------------
 
     def truth(self, steps: int, qpos: np.ndarray, qvel: np.ndarray, collisions: tuple[Any, ...],
               names: tuple[str, ...]) -> None:
@@ -69,7 +91,9 @@ class LoopTasks:
         sim.load_state(steps, qpos, qvel)
         if collisions:
             sim.add_collisions(list(collisions))
-        self._record_truth(sim.ground_truth(egos=names))
+        gt = sim.ground_truth(egos=names)
+        self.cache.put(steps, gt)
+        self._record_truth(gt)
 
     def final_state(self, steps: int, qpos: np.ndarray, qvel: np.ndarray, collisions: tuple[Any, ...]) -> None:
         """The mirror takes the final state (the summary reads it); collisions since
@@ -101,11 +125,36 @@ class LoopTasks:
         }, log_time_ns=t, publish_time_ns=t)
         foxglove_out.write(self.rec, gt, egos=self._egos, t_ns=t)
 
+
+
+class VehicleTasks:
+    """The analysis thread's work on a shard's vehicles: each frame's settled record,
+    its estimate, camera truth and image, the clock-sync samples, and the observers'
+    hooks (timing analysis, detector). ``sim``: a mirror of the world for the truth at
+    ``t_apply`` (and, in a shard's own process, at its egos' camera instants)."""
+
+    def __init__(self, sim: Simulation, rec: Any, clock: Clock, *, cache: TruthCache | None = None) -> None:
+        self.sim, self.rec, self.clock = sim, rec, clock
+        self.observers: list[RunObserver] = []
+        self.cache = cache if cache is not None else TruthCache()
+
+    def truth(self, steps: int, qpos: np.ndarray, qvel: np.ndarray, collisions: tuple[Any, ...],
+              names: tuple[str, ...]) -> None:
+        """A camera instant of this shard's egos, for its observers (a shard in its own
+        process; in the run process they get the world's ground truth)."""
+        sim = self.sim
+        sim.load_state(steps, qpos, qvel)
+        if collisions:
+            sim.add_collisions(list(collisions))
+        gt = sim.ground_truth(egos=names)
+        self.cache.put(steps, gt)
+        t = self.clock.now_ns()
+        for ob in self.observers:
+            ob.on_truth(gt, t_ns=t)
+
     def tick(self, now: int, sim_ns: int) -> None:
         for ob in self.observers:
             ob.on_tick(now_ns=now, sim_time_ns=sim_ns)
-
-    # -- a vehicle's frames ---------------------------------------------------------------
 
     def camera_truth(self, name: str, frame_id: int, ct: Any) -> None:
         t = self.clock.now_ns()
@@ -119,6 +168,9 @@ class LoopTasks:
         sim, v = self.sim, a.v
 
         def truth_now() -> GroundTruth:
+            gt = self.cache.get(steps, v.name)
+            if gt is not None:
+                return gt
             sim.load_state(steps, qpos, qvel)
             return sim.truth_snapshot(egos=(v.name,))
 
