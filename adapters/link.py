@@ -95,6 +95,7 @@ class Link(ABC):
         self._command_seq = 0
         self._impair: LinkImpairment | None = None
         self._deliver: Callable[[Received], None] | None = None
+        self._started = False
 
     def set_impairment(self, stage: LinkImpairment) -> None:
         """Put a link-fault stage (adapters/impair.py) on the send and receive paths;
@@ -110,14 +111,27 @@ class Link(ABC):
 
     # -- lifecycle -----------------------------------------------------------
 
+    def start(self) -> None:
+        """Start the transport now (a local target: its process is spawned, from the
+        calling thread) without waiting for the HELLO; :meth:`open` then only waits.
+        So a run starts many targets at once and waits for them together.
+
+        Raises:
+            TargetError: the target could not start.
+        """
+        if not self._started:
+            self._started = True
+            self._open()
+
     def open(self, *, hello_timeout_s: float) -> Hello:
-        """Connect (or start) the target and wait for its HELLO.
+        """Connect (or start, unless :meth:`start` did) the target and wait for its
+        HELLO.
 
         Raises:
             TargetError: the target could not start or did not say hello in time.
             TransportError: the transport could not connect.
         """
-        self._open()
+        self.start()
         deadline = self.clock.now_ns() + int(hello_timeout_s * 1e9)
         while True:
             remaining = (deadline - self.clock.now_ns()) / 1e9
@@ -128,6 +142,8 @@ class Link(ABC):
             except queue.Empty:
                 if self._peer_gone.is_set():
                     raise TargetError(self._no_hello_reason(hello_timeout_s)) from None
+                if self._closed:  # closed from another thread (the run is being ended)
+                    raise TargetError("the link was closed while waiting for the target's hello") from None
                 continue
             if r.link_vehicle_id != self.vehicle_id:
                 self._rx.put(r)  # another link's message: give it back

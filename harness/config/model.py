@@ -30,6 +30,8 @@ from pydantic import (
     BaseModel,
     Field,
     ValidationError,
+    ValidationInfo,
+    field_validator,
     model_validator,
 )
 from pydantic_core import PydanticCustomError
@@ -252,9 +254,24 @@ class EngineConfig(BaseModel):
     # "auto": with 4 or more cores the physics has the last core to itself (the
     # harness's other processes and the targets keep off it); a number: that core;
     # "none": no pinning.
-    physics_cpu: Literal["auto", "none"] | Int = "auto"
+    physics_cpu: str | int = "auto"
     ring_kib: Int = Field(4096, ge=1, le=1 << 20)  # each ring the physics writes into (KiB)
+    # Processes the vehicles' work is cut into (links, timing analysis, detector,
+    # recording's encoding): "auto" gives one per 16 vehicles, at most a quarter of the
+    # cores, and 1 (the run process itself) below that; a number asks for that many
+    # (at most one per vehicle). Transports can and mixed and shared targets keep
+    # every vehicle in the run process.
+    shards: str | int = "auto"
     faults: EngineFaults = Field(default_factory=EngineFaults)
+
+    @field_validator("physics_cpu", "shards", mode="before")
+    @classmethod
+    def _auto_or_count(cls, v: object, info: ValidationInfo) -> object:
+        words = ("auto", "none") if info.field_name == "physics_cpu" else ("auto",)
+        low = 0 if info.field_name == "physics_cpu" else 1
+        if v in words or (isinstance(v, int) and not isinstance(v, bool) and low <= v <= 4095):
+            return v
+        raise ValueError(f"{' or '.join(repr(w) for w in words)} or a whole number from {low}")
 
 
 # The verdicts a run can fail on (hil.harness.analysis.verdict.CheckName, same values).

@@ -113,6 +113,13 @@ class PhysicsOutputs:
 
     run: RingSpec                  # the run process: every world state, the answers, the end
     jobs: tuple[RingSpec, ...]     # one per render worker: its egos' render jobs
+    # Shards in processes of their own (hil.harness.engine.shard_proc): each gets the
+    # world states of its egos' camera instants (every state in lockstep, and every
+    # one with a collision) and its egos' answers in its own ring, and sends its
+    # controls on its own pipe. ``shard_of``: the shard of each ego (empty: none).
+    shards: tuple[RingSpec, ...] = ()
+    shard_of: tuple[int, ...] = ()
+    controls: tuple[Connection, ...] = ()
 
 
 def physics_main(conn: Connection, outputs: PhysicsOutputs, spec: PhysicsSpec, parent_pid: int) -> None:
@@ -126,7 +133,9 @@ def physics_main(conn: Connection, outputs: PhysicsOutputs, spec: PhysicsSpec, p
     sim = Simulation(spec.world, rules=spec.rules)
     run = Ring.open(outputs.run, producer=True)
     jobs = [Ring.open(j, producer=True) for j in outputs.jobs]
-    keeper = _Keeper(conn, run, jobs, sim, spec)
+    shards = [Ring.open(r, producer=True) for r in outputs.shards]
+    keeper = _Keeper(conn, run, jobs, sim, spec, shards=shards, shard_of=outputs.shard_of,
+                     controls=list(outputs.controls))
     gc.collect()
     gc.freeze()
     gc.disable()  # the loop makes no reference cycles; a collection would be a stall
@@ -141,20 +150,37 @@ def physics_main(conn: Connection, outputs: PhysicsOutputs, spec: PhysicsSpec, p
 
 
 class _Keeper:
-    def __init__(self, conn: Connection, run: Ring, jobs: list[Ring], sim: Any, spec: PhysicsSpec) -> None:
+    def __init__(self, conn: Connection, run: Ring, jobs: list[Ring], sim: Any, spec: PhysicsSpec, *,
+                 shards: list[Ring], shard_of: tuple[int, ...], controls: list[Connection]) -> None:
         self.conn, self.run, self.jobs, self.sim, self.spec = conn, run, jobs, sim, spec
+        self.shards, self.shard_of = shards, shard_of
         self.egos: tuple[str, ...] = sim.egos
         self.table = capture_table(spec.period_steps, spec.phases)
         self.hist = LatenessHistogram(tolerance_ns=spec.late_tolerance_ns)
         self.halted = False
         self.exiting = False
         self.span_ns = 0
-        self.fd = conn.fileno()
+        # What brings controls: the run's pipe, and each shard's (until its end closes).
+        self.inputs: dict[int, Connection] = {conn.fileno(): conn, **{c.fileno(): c for c in controls}}
 
     # -- messages ---------------------------------------------------------------
 
-    def _pending(self) -> bool:
-        return bool(select.select([self.fd], [], [], 0)[0])
+    def _ready(self, timeout_s: float | None) -> list[Connection]:
+        """The inputs with a message waiting (up to ``timeout_s``; None: until one)."""
+        return [self.inputs[fd] for fd in select.select(list(self.inputs), [], [], timeout_s)[0]]
+
+    def _serve(self, ready: list[Connection]) -> None:
+        """One message from each input in ``ready``. A shard's closed pipe is dropped
+        (its shard is gone); the run's raises EOFError (the run is gone: leave)."""
+        for c in ready:
+            try:
+                msg = c.recv()
+            except EOFError:
+                if c is self.conn:
+                    raise
+                del self.inputs[c.fileno()]
+                continue
+            self._handle(msg)
 
     def _handle(self, msg: object) -> None:
         match msg:
@@ -169,11 +195,12 @@ class _Keeper:
         self.sim.set_control(self.egos[c.vi], steering_rad=c.steering_rad, throttle=c.throttle, brake=c.brake)
         t_apply = time.monotonic_ns()
         steps, qpos, qvel = self.sim.state()
-        self.run.write(encode(Applied(c.vi, c.frame_id, t_apply, steps, qpos, qvel)))
+        k = self.shard_of[c.vi] if self.shard_of else -1
+        (self.run if k < 0 else self.shards[k]).write(encode(Applied(c.vi, c.frame_id, t_apply, steps, qpos, qvel)))
 
     def _drain(self) -> None:
-        while self._pending():
-            self._handle(self.conn.recv())
+        while ready := self._ready(0):
+            self._serve(ready)
 
     def _publish(self, vis: tuple[int, ...], t_state_ns: int) -> None:
         """A camera instant: the state to the render workers first (capture latency),
@@ -186,21 +213,29 @@ class _Keeper:
         for w, mine in by_worker.items():
             if not self.jobs[w].write(encode(RenderJob(steps, qpos, qvel, tuple(mine), t_state_ns))):
                 unrendered += mine  # that worker is behind: these frames will not come
-        self.run.write(encode(WorldState(vis, t_state_ns, steps, qpos, qvel, tuple(self.sim.take_collisions()),
-                                         tuple(unrendered))))
+        collisions = tuple(self.sim.take_collisions())
+        state = encode(WorldState(vis, t_state_ns, steps, qpos, qvel, collisions, tuple(unrendered)))
+        self.run.write(state)
+        if self.shards:
+            wanted = (range(len(self.shards)) if collisions or not self.spec.realtime
+                      else {self.shard_of[vi] for vi in vis})
+            for k in wanted:
+                self.shards[k].write(state)
 
-    def _send_last(self, msg: Finished | Done) -> None:
+    def _send_last(self, msg: Finished | Done, *, to: list[Ring] | None = None) -> None:
         """The end of the run: no deadline left, so wait for room (up to 10 s)."""
         data = encode(msg)
-        for _ in range(10_000):
-            if self.run.write(data, count=False):
-                return
-            time.sleep(0.001)
-        self.run.write(data)  # counted: the run process is gone or stuck
+        for ring in to or [self.run]:
+            for _ in range(10_000):
+                if ring.write(data, count=False):
+                    break
+                time.sleep(0.001)
+            else:
+                ring.write(data)  # counted: its consumer is gone or stuck
 
     def behind(self) -> dict[str, int]:
         """Records each consumer's ring could not take, by consumer name."""
-        return {r.name: r.dropped for r in (self.run, *self.jobs) if r.dropped}
+        return {r.name: r.dropped for r in (self.run, *self.jobs, *self.shards) if r.dropped}
 
     # -- the loops ----------------------------------------------------------------
 
@@ -217,11 +252,13 @@ class _Keeper:
         self.span_ns = time.monotonic_ns() - start
         self._send_last(Finished(self.sim.steps))
         while not self.exiting:  # the run drains its frames: controls still apply
-            self._handle(self.conn.recv())
+            self._serve(self._ready(None))
         steps, qpos, qvel = self.sim.state()
         # span_ns: the physics's own wall time from start to its last step (its pace).
-        self._send_last(Done({**self.hist.to_json(), "span_ns": self.span_ns, "behind": self.behind()}, steps,
-                             qpos, qvel, tuple(self.sim.take_collisions())))
+        done = Done({**self.hist.to_json(), "span_ns": self.span_ns, "behind": self.behind()}, steps, qpos, qvel,
+                    tuple(self.sim.take_collisions()))
+        self._send_last(done, to=self.shards)  # after their last answers: the shards know they have all
+        self._send_last(done)
 
     def _realtime(self, start_ns: int) -> None:
         sim, spec, clock = self.sim, self.spec, time.monotonic_ns
@@ -231,8 +268,8 @@ class _Keeper:
             now = clock()
             while now < due:
                 wait = due - now
-                if wait > spin and select.select([self.fd], [], [], (wait - spin) / 1e9)[0]:
-                    self._handle(self.conn.recv())  # a control: applied at once
+                if wait > spin and (ready := self._ready((wait - spin) / 1e9)):
+                    self._serve(ready)  # a control: applied at once
                 now = clock()
             self.hist.add(now - due)
             self._drain()

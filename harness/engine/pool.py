@@ -9,7 +9,8 @@ import multiprocessing as mp
 import os
 import sys
 from collections.abc import Callable, Iterator
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from multiprocessing.connection import Connection
 from typing import Any, TypeVar
 
 from hil.common.errors import SimulationError
@@ -18,7 +19,7 @@ from hil.harness.engine.messages import (Advance, ApplyControl, Exit, Halt, Phys
 from hil.harness.engine.physics import PhysicsOutputs, PhysicsSpec, physics_main
 from hil.harness.engine.procs import Pump, RingPump, widen_pipe
 from hil.harness.engine.render import FrameSlots, RenderSpec, render_main
-from hil.harness.engine.rings import Ring
+from hil.harness.engine.rings import Ring, RingSpec
 
 START_TIMEOUT_S = 60.0
 RING_BYTES = 4 << 20  # each of the physics's rings: ~2,000 world states of a 16-vehicle scene
@@ -50,14 +51,29 @@ def _without_main_module() -> Iterator[None]:
             main.__dict__.update(saved)
 
 
+@dataclass(frozen=True)
+class ShardIO:
+    """A shard process's ends of the engine: its ring from the physics (states and
+    answers), its pipe to the physics (controls), its pipe from each render worker
+    (frames, camera truth), and the shared-memory frame slots of its vehicles."""
+
+    ring: RingSpec
+    control: Connection
+    frames: tuple[Connection, ...]
+    shm: dict[str, str]
+    slot_bytes: int
+
+
 class Engine:
     """Starts the children; once :meth:`connect` names the run's handlers, their
     messages (``hil.harness.engine.messages``) go there, on the threads that read them."""
 
     def __init__(self, *, physics: PhysicsSpec, render: RenderSpec, workers: int, ring_bytes: int = RING_BYTES,
-                 stall_run: tuple[int, float] | None = None) -> None:
+                 stall_run: tuple[int, float] | None = None, shard_of: tuple[int, ...] = ()) -> None:
         """``stall_run``: (step, seconds): the injected stuck consumer
-        (``engine.faults.stall_run_ms``, see ``RingPump``)."""
+        (``engine.faults.stall_run_ms``, see ``RingPump``). ``shard_of``: the shard
+        process of each ego when the run's vehicles live in shards of their own
+        (empty: in this process); their ends are :meth:`shard_io`."""
         self._procs: list[Any] = []
         self._conns: list[Any] = []
         self.slots: dict[str, FrameSlots] = {}
@@ -66,8 +82,11 @@ class Engine:
         self.rings: list[Ring] = []
         self._pumps: list[Pump | RingPump] = []
         self._stall = stall_run
+        self.shard_of = shard_of
+        self._shard_ends: list[ShardIO] = []
         ctx = mp.get_context("spawn")
         names = render.vehicles
+        n_shards = max(shard_of, default=-1) + 1
         try:
             self.slots = {v: FrameSlots(slot_bytes=render.slot_bytes) for v in names}
             shm = {v: s.shm.name for v, s in self.slots.items()}
@@ -79,22 +98,34 @@ class Engine:
             self.rings = [Ring.create(f"render-{w}", capacity=ring_bytes) for w in range(self.workers)]
             self._run_ring = Ring.create("run", capacity=ring_bytes)
             self.rings.append(self._run_ring)
+            # A shard in its own process: a ring from the physics (its egos' states and
+            # answers), a pipe to it (its controls), a pipe from each render worker.
+            shard_rings = [Ring.create(f"shard-{k}", capacity=ring_bytes) for k in range(n_shards)]
+            self.rings += shard_rings
+            controls = [ctx.Pipe(duplex=False) for _ in range(n_shards)]
+            frames = [[ctx.Pipe(duplex=False) for _ in range(n_shards)] for _ in range(self.workers)]
             for w in range(self.workers):
                 mine = tuple(v for v in names if self.assign[v] == w)
-                rs = replace(render, vehicles=mine, shm={v: shm[v] for v in mine})
+                rs = replace(render, vehicles=mine, shm={v: shm[v] for v in mine},
+                             out_of={v: shard_of[names.index(v)] for v in mine} if n_shards else None)
                 a, b = ctx.Pipe()
-                for c in (a, b):
+                for c in (a, b, *(c for pair in frames[w] for c in pair)):
                     widen_pipe(c)
-                rp = ctx.Process(target=render_main, args=(b, self.rings[w].consumer_spec(), rs, os.getpid()),
+                outs = tuple(wr for _rd, wr in frames[w])
+                rp = ctx.Process(target=render_main, args=(b, self.rings[w].consumer_spec(), rs, os.getpid(), outs),
                                  name=f"hil-render-{w}", daemon=True)
                 with _without_main_module():
                     rp.start()
                 b.close()
+                for _rd, wr in frames[w]:
+                    wr.close()
                 self._procs.append(rp)
                 self._render.append(a)
             physics = replace(physics, assign=tuple(self.assign[v] for v in names))
             outputs = PhysicsOutputs(run=self._run_ring.producer_spec(),
-                                     jobs=tuple(r.producer_spec() for r in self.rings[:self.workers]))
+                                     jobs=tuple(r.producer_spec() for r in self.rings[:self.workers]),
+                                     shards=tuple(r.producer_spec() for r in shard_rings), shard_of=shard_of,
+                                     controls=tuple(rd for rd, _wr in controls))
             pc, cc = ctx.Pipe()
             widen_pipe(pc)
             widen_pipe(cc)
@@ -103,8 +134,15 @@ class Engine:
             with _without_main_module():
                 p.start()
             cc.close()
+            for rd, _wr in controls:
+                rd.close()
             for r in self.rings:  # the children hold their ends now: a child's exit reads as end of file
-                r.release(producer=True, consumer=r is not self._run_ring)
+                r.release(producer=True, consumer=r not in (self._run_ring, *shard_rings))
+            self._shard_ends = [ShardIO(ring=shard_rings[k].consumer_spec(), control=controls[k][1],
+                                        frames=tuple(frames[w][k][0] for w in range(self.workers)),
+                                        shm={v: shm[v] for i, v in enumerate(names) if shard_of[i] == k},
+                                        slot_bytes=render.slot_bytes)
+                                for k in range(n_shards)]
             self._procs.append(p)
             self._physics = pc
             self._conns = [pc, *self._render]
@@ -128,6 +166,23 @@ class Engine:
             raise SimulationError(msg.text if isinstance(msg, WorkerFailed)
                                   else f"{who}: unexpected {type(msg).__name__}")
         return msg
+
+    def shard_io(self, k: int) -> ShardIO:
+        """What shard process ``k`` needs from the engine (pass it to the process at
+        its start, then :meth:`release_shard_io`)."""
+        return self._shard_ends[k]
+
+    def release_shard_io(self) -> None:
+        """This process's copies of the shards' ends, closed once their processes
+        hold them (so a shard's exit reads as end of file where it matters)."""
+        ends, self._shard_ends = self._shard_ends, []
+        for io in ends:
+            io.control.close()
+            for c in io.frames:
+                c.close()
+        for r in self.rings:
+            if r.name.startswith("shard-"):
+                r.release(consumer=True)
 
     def connect(self, *, on_physics: Callable[[Any], None], on_render: Callable[[Any], None]) -> None:
         """Hand every message of the physics (its ring) to ``on_physics`` and of the
@@ -197,6 +252,7 @@ class Engine:
         for c in self._conns:
             c.close()
         self._conns = []
+        self.release_shard_io()
         for pump in self._pumps:
             pump.join(1.0)
         rings, self.rings = self.rings, []

@@ -57,6 +57,7 @@ class RenderSpec:
     min_visible_px: int
     delay_ns: int = 0              # injected fault: hold a frame this long before t0 ...
     delay_every: int = 1           # ... every this many frames of a camera (engine.faults)
+    out_of: dict[str, int] | None = None  # vehicle -> its shard's pipe (index into render_main's ``outs``)
 
 
 class FrameSlots:
@@ -102,9 +103,12 @@ def _hold(ns: int) -> None:
         pass
 
 
-def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, parent_pid: int) -> None:
+def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, parent_pid: int,
+                outs: tuple[Connection, ...] = ()) -> None:
     """Entry point of a render worker: jobs from the physics process in the ring
-    ``jobs``, results (and ``StopWorker``) with the run process on ``conn``."""
+    ``jobs``, results (and ``StopWorker``) with the run process on ``conn``; the
+    frames of a vehicle whose shard runs in a process of its own go to that shard's
+    pipe in ``outs`` (``spec.out_of``)."""
     from multiprocessing.connection import wait
 
     die_with_parent(parent_pid)
@@ -131,6 +135,7 @@ def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, parent_pid: 
         os._exit(1)
     counter = {v: 0 for v in spec.vehicles}
     ring = Ring.open(jobs, producer=False)
+    to = {v: outs[spec.out_of[v]] if spec.out_of else conn for v in spec.vehicles}
     conn.send(WorkerReady(os.getpid()))
     try:
         while True:
@@ -141,7 +146,7 @@ def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, parent_pid: 
             if not records and ring.closed_by_producer:
                 break  # the physics is gone
             for record in records:
-                _render_job(decode(record), conn, sim, slots, counter, spec)  # type: ignore[arg-type]
+                _render_job(decode(record), to, sim, slots, counter, spec)  # type: ignore[arg-type]
     except (EOFError, BrokenPipeError, KeyboardInterrupt):
         pass
     finally:
@@ -152,8 +157,8 @@ def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, parent_pid: 
         os._exit(0)
 
 
-def _render_job(job: RenderJob, conn: Connection, sim: Any, slots: dict[str, FrameSlots], counter: dict[str, int],
-                spec: RenderSpec) -> None:
+def _render_job(job: RenderJob, to: dict[str, Connection], sim: Any, slots: dict[str, FrameSlots],
+                counter: dict[str, int], spec: RenderSpec) -> None:
     """Render, stamp, encode and hand over the frames of one job; then their camera
     truth (segmentation), which adds no capture latency there."""
     steps = job.steps
@@ -168,7 +173,8 @@ def _render_job(job: RenderJob, conn: Connection, sim: Any, slots: dict[str, Fra
         slot = counter[name] % SLOTS
         counter[name] += 1
         n = slots[name].write(slot, data)
-        conn.send(FrameReady(name, steps, job.t_state_ns, sim.speed_mps(name), t0, time.monotonic_ns(), slot, n, enc))
+        to[name].send(FrameReady(name, steps, job.t_state_ns, sim.speed_mps(name), t0, time.monotonic_ns(), slot, n,
+                                 enc))
     if spec.visible_boxes:
         for name in names:
-            conn.send(CameraTruthReady(name, steps, sim.camera_truth(name, min_visible_px=spec.min_visible_px)))
+            to[name].send(CameraTruthReady(name, steps, sim.camera_truth(name, min_visible_px=spec.min_visible_px)))

@@ -27,7 +27,6 @@ from hil.harness.config.model import RunConfig, Transport, config_hash, dump_con
 from hil.harness.engine.heap import fix_mmap_threshold
 from hil.timing.clock import MonotonicClock
 
-SYNC_WARMUP_SAMPLES = 8
 
 
 @dataclass(frozen=True)
@@ -145,37 +144,6 @@ def _target_batches(out_dir: Path) -> dict[str, Any] | None:
             "mean_size": round(sum(k * v for k, v in sizes.items()) / total, 3) if total else 0.0}
 
 
-def _exit_note(proc: Any) -> str:
-    """'; the target process exited with code N: <its log's last lines>' for a target
-    the harness started that is gone, else ''."""
-    code = proc.exited() if proc is not None and hasattr(proc, "exited") else None
-    if code is None:
-        return ""
-    tail = proc.log_tail()
-    return f"; the target process it started exited with code {code}" + (f": {tail}" if tail else "")
-
-
-def _check_identity(cfg: RunConfig, vehicles: list[Any], procs: list[Any]) -> None:
-    """The run measures the target it started or was told to reach, no other.
-
-    Raises:
-        TargetError: a target the harness started is gone although something answered
-            (another process on its endpoint), or a HELLO names another target than
-            ``target.expect_name``.
-    """
-    for p in procs:
-        if hasattr(p, "exited") and p.exited() is not None:
-            raise TargetError("another target answered on the endpoint, but the target this run started is gone"
-                              f"{_exit_note(p)} — refusing to measure a target it did not start (is a leftover "
-                              "target or another run using the port?)")
-    want = cfg.target.expect_name
-    for v in vehicles:
-        got = v.link.hello.target_name if v.link.hello is not None else ""
-        if want is not None and not got.startswith(want):
-            raise TargetError(f"{v.name}: the target that answered says it is {got!r}, not {want!r} "
-                              "(target.expect_name) — refusing to measure it")
-
-
 RESERVE_BYTES = 2 << 20  # kept free on the run's disk until the summary and report are written
 
 
@@ -230,23 +198,20 @@ def _sigterm_interrupts() -> Callable[[], None] | None:
 def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Callable[..., None] | None,
              notify: Callable[[str], None], install_signal_handlers: bool) -> RunResult:
     # Imported here: these pull in mujoco, whose GL backend the caller chose first.
-    from hil.harness.analysis.detector_observer import DetectorObserver
     from hil.harness.analysis.events import EventBus
-    from hil.harness.analysis.summary import build_summary
+    from hil.harness.analysis.summary import build_summary, wall_seconds
     from hil.harness.analysis.verdict import parse_fail_on, verdict_json
-    from hil.harness.analysis.timing_observer import TimingObserver
     from hil.harness.cases.recorder import CaseRecorder
     from hil.harness.config.model import LatencyKind
     from hil.harness.engine.pool import Engine, auto_workers
     from hil.harness.engine.procs import keep_off_core, restore_affinity
-    from hil.harness.record.channels import register_all, sync_sample_json
+    from hil.harness.record.channels import register_all
     from hil.harness.record.recorder import Recorder
     from hil.harness.report.run_report import write_report
     from hil.harness.run.latency import LatencyProfile
-    from hil.harness.run.assemble import local_loop
+    from hil.harness.run.fleet import LocalFleet, ShardedFleet, assign, shard_count
     from hil.harness.run.loop import encode_image, engine_specs
-    from hil.harness.run.target_launch import can_preflight, make_link
-    from hil.harness.run.vehicle_state import VehicleRun
+    from hil.harness.run.target_launch import can_preflight
     from hil import scenarios
     from hil.scenarios.sim import Simulation
 
@@ -276,8 +241,12 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
             size = len(encode_image(sim.render(sim.egos[0]), cfg.camera)[0])
             sim.close()
             notify(can_preflight(cfg, frame_bytes=int(size * 1.25)))
-        vehicles: list[VehicleRun] = []
-        procs: list[Any] = []  # TargetProcess, or a shared target's handle (anything with close())
+        n_shards = shard_count(cfg, len(sim.egos))
+        shard_of = assign(len(sim.egos), n_shards)
+        fleet: LocalFleet | ShardedFleet = (
+            LocalFleet(cfg, egos=sim.egos, clock=clock, out_dir=out_dir, session=meta["session"]) if n_shards == 1
+            else ShardedFleet(cfg, world=world, rules=rules, egos=sim.egos, shard_of=shard_of, clock=clock,
+                              out_dir=out_dir, session=meta["session"], latency=latency))
         engine: Engine | None = None
         reserve: Path | None = None
         affinity: set[int] | None = None
@@ -291,21 +260,9 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
             stall_s = cfg.engine.faults.stall_run_ms / 1e3
             engine = Engine(physics=phys_spec, render=render_spec, ring_bytes=cfg.engine.ring_kib * 1024,
                             workers=cfg.engine.render_workers or auto_workers(len(sim.egos)),
-                            stall_run=(round(0.5 / cfg.physics_step_s), stall_s) if stall_s else None)
-            for i, name in enumerate(sim.egos):
-                link, proc = make_link(cfg, vehicle_id=i, vehicle=name, clock=clock, out_dir=out_dir,
-                                       session=meta["session"])
-                if proc is not None:
-                    procs.append(proc)
-                vehicles.append(VehicleRun(name, i, link))
-                try:
-                    link.open(hello_timeout_s=cfg.target.startup_timeout_s)
-                except TargetError as err:
-                    raise TargetError(f"{name}: {err}{_exit_note(proc)}") from err
-            warmup = {v.name: [s for _ in range(SYNC_WARMUP_SAMPLES)
-                               if (s := v.link.sync_exchange(timeout_s=0.5)) is not None]
-                      for v in vehicles}
-            _check_identity(cfg, vehicles, procs)
+                            stall_run=(round(0.5 / cfg.physics_step_s), stall_s) if stall_s else None,
+                            shard_of=shard_of)
+            fleet.start(engine)
             guard = _RecordingGuard()
             reserve = _reserve_disk(out_dir)
             with guard, Recorder(mcap_path, queue_size=cfg.recording.queue_size, compression="zstd", metadata={
@@ -315,33 +272,17 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 cc = cfg.corner_cases
                 rec = CaseRecorder(main_rec, out_dir, run_meta=meta, history_s=cc.history_s, after_s=cc.after_s,
                                    trigger_kinds=set(cc.on_anomalies)) if cc.enabled else main_rec
-                register_all(rec, [v.name for v in vehicles])
+                register_all(rec, list(sim.egos))
                 # The run's one event bus: recorded on /events first, then the corner cases.
                 bus = EventBus.recording_to(rec)
                 if isinstance(rec, CaseRecorder):
                     bus.subscribe(rec.on_event)
-                from hil.adapters.impair import record_on
-
-                for v in vehicles:  # link faults in real time: each impaired message on /<vehicle>/impairment
-                    record_on(v.link.impairment, rec, f"/{v.name}/impairment")
-                timing = TimingObserver(cfg.timing, [v.name for v in vehicles], recorder=rec, events=bus)
-                detector = (DetectorObserver(cfg.detector.to_config(), [v.name for v in vehicles], camera=cfg.camera,
-                                             recorder=rec, timing=timing, events=bus)
-                            if cfg.detector.enabled else None)
-                for name, samples in warmup.items():
-                    for s in samples:
-                        rec.write_json(f"/{name}/clock_sync", sync_sample_json(s, warmup=True),
-                                       log_time_ns=s.t4_ns, publish_time_ns=s.t1_ns)
-                        timing.on_sync(name, s)
-                loop = local_loop(cfg, sim, vehicles, engine=engine, physics=phys_spec, rec=rec, bus=bus,
-                                   clock=clock, latency=latency)
-                loop.shards[0].tasks.observers.append(timing)
-                if detector is not None:
-                    loop.shards[0].tasks.observers.append(detector)
+                loop = fleet.attach(sim=sim, engine=engine, physics=phys_spec, rec=rec, main_rec=main_rec, bus=bus,
+                                    latency=latency)
                 if on_progress is not None:
                     loop.on_tick = lambda: on_progress(now_ns=clock.now_ns(), sim_time_s=sim.sim_time_ns / 1e9,
-                                                       duration_s=cfg.duration_s, vehicles=vehicles,
-                                                       anomalies=timing.anomaly_count)
+                                                       duration_s=cfg.duration_s,
+                                                       rows=fleet.progress_rows(clock.now_ns()))
                 restore = _install_stop_handlers(loop) if install_signal_handlers else None
                 cpu0 = time.process_time_ns()
                 try:
@@ -349,20 +290,17 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 finally:
                     if restore is not None:
                         restore()
-                for v in vehicles:
-                    v.link.close()
-                loop.collect_sync()  # answers that arrived while closing
-                timing.finish()
-                if detector is not None:
-                    detector.finish()
+                wall_s = wall_seconds(stats)
+                vehicles, camera, shard_cpu = fleet.finish(loop, wall_s=wall_s)
                 if isinstance(rec, CaseRecorder):
                     rec.close()  # writes the cases still open with what was recorded
                 main_rec.flush()
-                stats.run_cpu_ns = time.process_time_ns() - cpu0
+                stats.run_cpu_ns = time.process_time_ns() - cpu0 + shard_cpu
                 rec_stats = main_rec.stats
-                summary = build_summary(loop=loop, stats=stats, timing=timing, detector=detector, recorder_stats={
+                summary = build_summary(loop=loop, stats=stats, recorder_stats={
                     "written": rec_stats.written, "dropped": rec_stats.dropped, "enqueued": rec_stats.enqueued},
-                    meta=meta)
+                    meta=meta, vehicles=vehicles, camera=camera)
+                summary["realtime"]["shards"] = n_shards
                 if isinstance(rec, CaseRecorder):
                     summary["corner_cases"] = {"written": rec.cases_written, "errors": list(rec.errors),
                                                "triggers_dropped": rec.triggers_dropped}
@@ -390,10 +328,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 except HilError as err:
                     summary["corner_cases"]["errors"].append(str(err))
         finally:
-            for v in vehicles:
-                v.link.close()
-            for p in procs:
-                p.close()
+            fleet.close()
             if engine is not None:
                 engine.close()
             restore_affinity(affinity)

@@ -307,6 +307,8 @@ class SimLoop:
         def settled() -> bool:
             return not any(sh.busy() for sh in self.shards)
 
+        for sh in self.shards:
+            sh.begin_drain(deadline)
         while not settled() and self.clock.now_ns() <= deadline:
             if any(sh.gone() is not None for sh in self.shards) or not self.engine.alive():
                 break

@@ -189,6 +189,9 @@ class VehicleShard:
             ctls, self.ledger.lockstep_controls = self.ledger.lockstep_controls, []
             return ctls, None if self.held is None else self.held.next_due()
 
+    def begin_drain(self, deadline_ns: int) -> None:
+        """The run ends: answers are awaited until ``deadline_ns`` (the loop waits here)."""
+
     def end_of_run(self) -> list[ApplyControl]:
         """The run ends: every frame still in flight is dropped, held controls are
         recorded as pending; returns the lockstep controls answered while draining."""

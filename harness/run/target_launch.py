@@ -7,7 +7,9 @@ from __future__ import annotations
 import os
 import queue
 import subprocess
+import threading
 from pathlib import Path
+from typing import Any
 
 from hil.adapters.link import Link, Received, open_link
 from hil.adapters.process import die_with_parent, end_process
@@ -114,6 +116,78 @@ def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, ou
         raise
     impair(cfg, link, vehicle_id=vehicle_id, clock=clock)
     return link, proc
+
+
+def open_links(links: list[tuple[str, Link, TargetProcess | None]], *, timeout_s: float) -> None:
+    """Open every link at once: the local targets are spawned here, one after
+    another (each process dies with the thread that spawned it, so with this one),
+    then every HELLO is awaited together, so N targets start in the time of the
+    slowest, not the sum (issue 24, item 4).
+
+    Raises:
+        TargetError: a target could not start or did not say hello in time; the
+            message names its vehicle (the first in order) and, for a process the
+            harness started that is gone, its exit code and log.
+        TransportError: a transport could not connect.
+    """
+    for name, link, proc in links:
+        if link.transport_name == "local":
+            try:
+                link.start()
+            except TargetError as err:
+                raise TargetError(f"{name}: {err}{exit_note(proc)}") from err
+
+    errors: list[BaseException | None] = [None] * len(links)
+
+    def one(k: int) -> None:
+        name, link, proc = links[k]
+        try:
+            link.open(hello_timeout_s=timeout_s)
+        except TargetError as err:
+            errors[k] = TargetError(f"{name}: {err}{exit_note(proc)}")
+        except Exception as err:  # noqa: BLE001 - raised below, in vehicle order
+            errors[k] = err
+
+    # Daemon threads: a run interrupted meanwhile closes the links, which ends their waits.
+    threads = [threading.Thread(target=one, args=(k,), name=f"hil-open-{k}", daemon=True) for k in range(len(links))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for err in errors:
+        if err is not None:
+            raise err
+
+
+def exit_note(proc: object) -> str:
+    """'; the target process exited with code N: <its log's last lines>' for a target
+    the harness started that is gone, else ''."""
+    code = proc.exited() if proc is not None and hasattr(proc, "exited") else None
+    if code is None:
+        return ""
+    tail = proc.log_tail()  # type: ignore[attr-defined]
+    return f"; the target process it started exited with code {code}" + (f": {tail}" if tail else "")
+
+
+def check_identity(cfg: RunConfig, vehicles: list[Any], procs: list[Any]) -> None:
+    """The run measures the target it started or was told to reach, no other.
+
+    Raises:
+        TargetError: a target the harness started is gone although something answered
+            (another process on its endpoint), or a HELLO names another target than
+            ``target.expect_name``.
+    """
+    for p in procs:
+        if hasattr(p, "exited") and p.exited() is not None:
+            raise TargetError("another target answered on the endpoint, but the target this run started is gone"
+                              f"{exit_note(p)} — refusing to measure a target it did not start (is a leftover "
+                              "target or another run using the port?)")
+    want = cfg.target.expect_name
+    for v in vehicles:
+        got = v.link.hello.target_name if v.link.hello is not None else ""
+        if want is not None and not got.startswith(want):
+            raise TargetError(f"{v.name}: the target that answered says it is {got!r}, not {want!r} "
+                              "(target.expect_name) — refusing to measure it")
 
 
 def can_preflight(cfg: RunConfig, *, frame_bytes: int) -> str:

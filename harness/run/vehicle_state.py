@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 from hil.adapters.link import Link
 from hil.timing.anomaly import is_sane
@@ -22,6 +23,19 @@ class InFlight:
     t0_ns: int
     t_tx_ns: int
     t_state_ns: int | None = None  # the camera instant: when the physics reached sim_time_ns
+
+
+class ProgressRow(NamedTuple):
+    """One vehicle's line of the live display (plain values: a shard in another
+    process sends them)."""
+
+    name: str
+    frames: int
+    fps: float
+    e2e_p50_ms: float | None
+    e2e_p99_ms: float | None
+    dropped: int
+    anomalies: int | None
 
 
 @dataclass
@@ -70,3 +84,8 @@ class VehicleRun:
 
     def count(self, status: FrameStatus) -> int:
         return self.counts[status]
+
+    def progress_row(self, now_ns: int, anomalies: int | None = None) -> ProgressRow:
+        return ProgressRow(self.name, self.next_frame_id, self.fps_meter.rate_hz(now_ns),
+                           self.e2e_window.percentile_ms(50), self.e2e_window.percentile_ms(99),
+                           self.count(FrameStatus.DROPPED), anomalies)
