@@ -23,7 +23,6 @@ from hil.harness.run.loop import SimLoop
 from hil.harness.run.vehicle_state import ProgressRow, VehicleRun
 from hil.timing.clock import Clock
 
-SYNC_WARMUP_SAMPLES = 8
 VEHICLES_PER_SHARD = 16   # "auto": a shard process per this many vehicles ...
 CORES_PER_SHARD = 4       # ... at most one per this many cores
 
@@ -73,7 +72,7 @@ class LocalFleet:
             TargetError: a target could not start, did not answer or is not the one
                 expected; TransportError: a transport could not connect.
         """
-        from hil.harness.run.target_launch import check_identity, make_link, open_links
+        from hil.harness.run.target_launch import SYNC_WARMUP_SAMPLES, check_identity, make_link, open_links
 
         opening = []
         for i, name in enumerate(self.egos):

@@ -26,9 +26,10 @@ from hil.harness.engine.analysis import AnalysisThread
 from hil.harness.engine.messages import ApplyControl, WorldState
 from hil.harness.engine.pool import _without_main_module
 from hil.harness.record.producer import feed
+from hil.harness.run.shard_host import shard_main
 from hil.harness.run.shard_proc import (ShardDone, ShardDrain, ShardDrained, ShardFailed, ShardFinish, ShardIdle,
                                         ShardProgress, ShardReady, ShardSpec, ShardStart, ShardStop,
-                                        ShardStopRequest, shard_main)
+                                        ShardStopRequest)
 from hil.harness.run.vehicle_state import ProgressRow, VehicleRun
 
 FINISH_TIMEOUT_S = 120.0

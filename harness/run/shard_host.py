@@ -4,6 +4,8 @@ shard, and the loop that keeps its time and answers the run process."""
 from __future__ import annotations
 
 import math
+import os
+import signal
 import threading
 import time
 from multiprocessing.connection import Connection, wait
@@ -27,6 +29,24 @@ from hil.timing.clock import MonotonicClock
 TICK_NS = 20_000_000
 PROGRESS_NS = 250_000_000
 PHYSICS_DONE_TIMEOUT_S = 10.0
+
+
+def shard_main(spec: ShardSpec, ctl: Connection, data: Connection, parent_pid: int) -> None:
+    """Entry point of a shard process."""
+    from hil.harness.engine.heap import fix_mmap_threshold
+    from hil.harness.engine.procs import die_with_parent
+
+    die_with_parent(parent_pid)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group: the run process ends us
+    fix_mmap_threshold()
+    host = ShardHost(spec, ctl, data)
+    try:
+        host.serve()
+    except (EOFError, BrokenPipeError, OSError):
+        pass  # the run process is gone
+    finally:
+        host.close()
+        os._exit(0)
 
 
 class ShardHost:
@@ -68,8 +88,7 @@ class ShardHost:
         self._loop()
 
     def _start_targets(self) -> dict[str, list[Any]]:
-        from hil.harness.run.fleet import SYNC_WARMUP_SAMPLES
-        from hil.harness.run.target_launch import check_identity, make_link, open_links
+        from hil.harness.run.target_launch import SYNC_WARMUP_SAMPLES, check_identity, make_link, open_links
 
         cfg, out = self.cfg, Path(self.spec.out_dir)
         opening = []

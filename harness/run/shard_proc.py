@@ -1,5 +1,6 @@
 """A shard of a run's vehicles in a process of its own (issue 24: per-vehicle work
-spreads over processes).
+spreads over processes): what it is given, and what it and the run process tell
+each other (its body is ``hil.harness.run.shard_host``).
 
 The process starts its vehicles' targets (all at once), opens their links, takes
 the warm-up clock-sync samples and checks who answered; then it is a
@@ -24,7 +25,6 @@ with it.
 from __future__ import annotations
 
 import os
-import signal
 import threading
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
@@ -120,26 +120,6 @@ class ShardFinish(NamedTuple):
     wall_s: float
 
 
-def shard_main(spec: ShardSpec, ctl: Connection, data: Connection, parent_pid: int) -> None:
-    """Entry point of a shard process."""
-    from hil.harness.engine.heap import fix_mmap_threshold
-    from hil.harness.engine.procs import die_with_parent
-
-    die_with_parent(parent_pid)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group: the run process ends us
-    fix_mmap_threshold()
-    from hil.harness.run.shard_host import ShardHost
-
-    host = ShardHost(spec, ctl, data)
-    try:
-        host.serve()
-    except (EOFError, BrokenPipeError, OSError):
-        pass  # the run process is gone
-    finally:
-        host.close()
-        os._exit(0)
-
-
 class Outbox:
     """The shard's side of its pipe to the run process: any thread may send."""
 
@@ -185,4 +165,4 @@ class Doorbell:
 
 
 __all__ = ["ShardDone", "ShardDrain", "ShardDrained", "ShardFailed", "ShardFinish", "ShardIdle", "ShardProgress",
-           "ShardReady", "ShardSpec", "ShardStart", "ShardStop", "ShardStopRequest", "shard_main"]
+           "ShardReady", "ShardSpec", "ShardStart", "ShardStop", "ShardStopRequest"]

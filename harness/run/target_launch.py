@@ -19,6 +19,8 @@ from hil.harness.config.target import substitute
 from hil.harness.run.link_options import can_options, impair, run_key_prefix, target_command, zenoh_options
 from hil.timing.clock import Clock
 
+SYNC_WARMUP_SAMPLES = 8  # clock-sync exchanges each link makes before the run
+
 
 class TargetProcess:
     """A target program the harness started for a network transport. Ended by PID
