@@ -602,8 +602,11 @@ def main(argv: list[str] | None = None) -> int:
     for label, num, den, goal in checks:
         vals = [ratio(num, den, enc) for enc, *_ in cols]
         verdict = "–"
-        if goal is not None:
-            met = all(float(v) <= goal for v in vals if v != "–")
+        measured = [float(v) for v in vals if v != "–"]
+        if goal is not None and not measured:  # nothing to judge is not a goal met
+            verdict = f"≤ {goal:g}: not measured"
+        elif goal is not None:
+            met = all(v <= goal for v in measured)
             verdict = f"≤ {goal:g}: " + ("met" if met else "**not met on this machine**")
         print(f"| {label} | " + " | ".join(vals) + f" | {verdict} |")
     floor = rows["raw: hand-off floor (32 B, 2 thread hand-offs)"][ImageEncoding.RGB8].pct(50)
