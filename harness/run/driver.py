@@ -209,6 +209,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     from hil.harness.record.recorder import Recorder
     from hil.harness.report.run_report import write_report
     from hil.harness.run.latency import LatencyProfile
+    from hil.harness.run import capacity
     from hil.harness.run.fleet import LocalFleet, ShardedFleet, assign, shard_count
     from hil.harness.run.loop import encode_image, engine_specs
     from hil.harness.run.target_launch import can_preflight
@@ -241,6 +242,11 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
             size = len(encode_image(sim.render(sim.egos[0]), cfg.camera)[0])
             sim.close()
             notify(can_preflight(cfg, frame_bytes=int(size * 1.25)))
+        workers = cfg.engine.render_workers or auto_workers(len(sim.egos))
+        # Beyond 16 vehicles in real time: refuse what this machine cannot render in time.
+        note = capacity.check(cfg, sim, workers=workers, cores=os.cpu_count() or 1)
+        if note:
+            notify(note)
         n_shards = shard_count(cfg, len(sim.egos))
         shard_of = assign(len(sim.egos), n_shards)
         fleet: LocalFleet | ShardedFleet = (
@@ -259,8 +265,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
             affinity = keep_off_core(phys_spec.cpu)
             stall_s = cfg.engine.faults.stall_run_ms / 1e3
             engine = Engine(physics=phys_spec, render=render_spec, ring_bytes=cfg.engine.ring_kib * 1024,
-                            workers=cfg.engine.render_workers or auto_workers(len(sim.egos)),
-                            stall_run=(round(0.5 / cfg.physics_step_s), stall_s) if stall_s else None,
+                            workers=workers, stall_run=(round(0.5 / cfg.physics_step_s), stall_s) if stall_s else None,
                             shard_of=shard_of)
             fleet.start(engine)
             guard = _RecordingGuard()
