@@ -12,7 +12,9 @@ Per round, one after another (never two at once):
   ``--workers`` (render workers) and ``--shards`` (engine.shards) setting: frames/s
   over the loop's wall time (``summary.wall_time_s``), its ratio to the round's
   floor, and ``harness_cost.run_us_per_frame`` (every harness process but the
-  physics and the render workers, targets excluded).
+  physics and the render workers, targets excluded); ``start_s`` (command to first
+  step: targets, workers, shards), ``finish_s`` (last step to summary) and the whole
+  command's wall time (report included).
 
     .venv/bin/python bench/bench_lockstep.py [--vehicles 16] [--rounds 3] [--workers 1 2]
 """
@@ -67,6 +69,7 @@ def run(n: int, *, workers: int, shards: int | None, duration_s: float) -> dict[
     cost = s.get("harness_cost", {})
     return {"frames": frames, "wall_s": s["wall_time_s"], "fps": frames / s["wall_time_s"],
             "run_us": float(cost.get("run_us_per_frame", float("nan"))), "total_s": total,
+            "start_s": float(cost.get("start_s", float("nan"))), "finish_s": float(cost.get("finish_s", float("nan"))),
             "dropped": sum(v["dropped"] for v in s["vehicles"].values())}
 
 
@@ -82,8 +85,8 @@ def main() -> int:
     n = a.vehicles
     print(f"machine: {os.cpu_count()} cores; N={n} at 10 fps, lockstep, echo targets; load before {_load()}\n")
     print("| round | render workers | shards | frames | loop wall s | frames/s | floor img/s | ratio | "
-          "run µs/frame | dropped | load |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+          "run µs/frame | dropped | start s | finish s | command s | load |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     ratios: dict[tuple[int, int | None], list[float]] = {}
     costs: dict[tuple[int, int | None], list[float]] = {}
     for i in range(a.rounds):
@@ -96,8 +99,8 @@ def main() -> int:
                 ratios.setdefault((w, sh), []).append(ratio)
                 costs.setdefault((w, sh), []).append(r["run_us"])
                 print(f"| {i + 1} | {w} | {'auto' if sh is None else sh} | {r['frames']} | {r['wall_s']:.2f} | "
-                      f"{r['fps']:.0f} | {fl:.0f} | {ratio:.2f} | {r['run_us']:.0f} | {r['dropped']} | {load} |",
-                      flush=True)
+                      f"{r['fps']:.0f} | {fl:.0f} | {ratio:.2f} | {r['run_us']:.0f} | {r['dropped']} | "
+                      f"{r['start_s']:.1f} | {r['finish_s']:.1f} | {r['total_s']:.1f} | {load} |", flush=True)
     print("\n| render workers | shards | ratio to floor (median) | goal >= 0.8 | run µs/frame (median) | "
           "goal <= 300 |")
     print("|---:|---:|---:|---|---:|---|")

@@ -222,6 +222,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     latency = (None if lat_cfg.kind == LatencyKind.NONE and lat_cfg.drop_prob == 0
                else LatencyProfile(lat_cfg, seed=cfg.seed, vehicles=[v.name for v in world.egos]))
     clock = MonotonicClock()
+    began_ns = clock.now_ns()
     mcap_path = out_dir / "run.mcap"
     (out_dir / "config.json").write_text(json.dumps(dump_config(cfg), indent=2, sort_keys=True) + "\n")
     summary_path = out_dir / "summary.json"
@@ -306,6 +307,10 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                     "written": rec_stats.written, "dropped": rec_stats.dropped, "enqueued": rec_stats.enqueued},
                     meta=meta, vehicles=vehicles, camera=camera)
                 summary["realtime"]["shards"] = n_shards
+                # Start-up (targets, workers, shards) and the end-of-run work up to this
+                # summary (the report follows it; corner-case windows are cut after).
+                summary["harness_cost"].update(start_s=round((stats.wall_start_ns - began_ns) / 1e9, 3),
+                                               finish_s=round((clock.now_ns() - stats.wall_end_ns) / 1e9, 3))
                 if isinstance(rec, CaseRecorder):
                     summary["corner_cases"] = {"written": rec.cases_written, "errors": list(rec.errors),
                                                "triggers_dropped": rec.triggers_dropped}
