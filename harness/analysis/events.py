@@ -206,7 +206,10 @@ EVENT_SCHEMA: dict[str, Any] = {
 Subscriber = Callable[[Event, int], None]
 
 
-class _JsonWriter(Protocol):
+class JsonSink(Protocol):
+    """Where JSON messages are written (the run's Recorder, a corner-case recorder in
+    front of it, or a shard's encoding recorder): write-only."""
+
     def write_json(self, topic: str, obj: Mapping[str, Any], *, log_time_ns: int, publish_time_ns: int) -> bool: ...
 
 
@@ -236,7 +239,7 @@ class EventBus:
             fn(ev, t)
 
     @classmethod
-    def recording_to(cls, rec: _JsonWriter) -> EventBus:
+    def recording_to(cls, rec: JsonSink) -> EventBus:
         """A bus whose first subscriber writes every event on ``/events`` of ``rec``
         (publish time: when it happened; log time: when it was known)."""
         bus = cls()
@@ -250,4 +253,5 @@ class EventBus:
         return bus
 
 
-__all__ = ["DEFAULT_SEVERITY", "EVENT_SCHEMA", "Event", "EventBus", "EventKind", "MISMATCH_PREFIX", "Subscriber"]
+__all__ = ["DEFAULT_SEVERITY", "EVENT_SCHEMA", "Event", "EventBus", "EventKind", "JsonSink", "MISMATCH_PREFIX",
+           "Subscriber"]

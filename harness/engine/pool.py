@@ -39,7 +39,8 @@ def _without_main_module() -> Iterator[None]:
     script that calls ``execute`` without an ``if __name__ == "__main__"`` guard
     would otherwise run again in every child."""
     main = sys.modules.get("__main__")
-    saved = {k: main.__dict__[k] for k in ("__file__", "__spec__") if main is not None and k in main.__dict__}
+    saved: dict[str, Any] = {k: main.__dict__[k] for k in ("__file__", "__spec__")
+                             if main is not None and k in main.__dict__}
     try:
         if main is not None:
             main.__dict__.pop("__file__", None)

@@ -70,7 +70,9 @@ class Ring:
         self.capacity = capacity
         self._owner = owner
         self._shm: shared_memory.SharedMemory | None = shm
-        self._buf = shm.buf
+        buf = shm.buf
+        assert buf is not None
+        self._buf: memoryview = buf
         self._bell_r, self._bell_w = bell_r, bell_w
         self.dropped = 0
         self.written = 0
@@ -90,8 +92,7 @@ class Ring:
         import multiprocessing as mp
 
         capacity = max(_ALIGN * 16, (capacity + _ALIGN - 1) & ~(_ALIGN - 1))
-        shm = shared_memory.SharedMemory(create=True, size=_HEADER + capacity)
-        shm.buf[:_HEADER] = bytes(_HEADER)
+        shm = shared_memory.SharedMemory(create=True, size=_HEADER + capacity)  # zero-filled: the header too
         r, w = mp.get_context("spawn").Pipe(duplex=False)
         return cls(name, shm, capacity, owner=True, bell_r=r, bell_w=w)
 

@@ -97,7 +97,7 @@ def sync_sample_json(s: SyncSample, *, warmup: bool = False) -> dict[str, Any]:
             "t4_ns": s.t4_ns, "offset_ns": s.offset_ns, "delay_ns": s.delay_ns, "warmup": warmup}
 
 
-def register_all(rec: Recorder, vehicles: Iterable[str], *, anchor: TimeAnchor | None = None,
+def register_all(rec: Any, vehicles: Iterable[str], *, anchor: TimeAnchor | None = None,
                  views: bool = True) -> None:
     """Declare every JSON channel of a run; put the recording on the wall clock
     (``anchor``, captured now if not given; skipped if messages were already

@@ -200,8 +200,8 @@ class ShardHost:
             deadline = shard.next_deadline_ns()
             now = clock.now_ns()
             wait_ns = min(TICK_NS, max(0, deadline - now)) if deadline is not None else TICK_NS
-            ready = wait([self.ctl, self.bell], wait_ns / 1e9)
-            if self.bell in ready:
+            ready = wait([self.ctl, self.bell.fileno()], wait_ns / 1e9)
+            if self.bell.fileno() in ready:
                 self.bell.clear()
             if self.ctl in ready:
                 msg = self.ctl.recv()
@@ -237,7 +237,7 @@ class ShardHost:
     def _drain(self, deadline_ns: int) -> None:
         shard = self.shard
         while shard.busy() and self.clock.now_ns() <= deadline_ns and shard.gone() is None:
-            ready = wait([self.bell], 0.05)
+            ready = wait([self.bell.fileno()], 0.05)
             if ready:
                 self.bell.clear()
             shard.expire(self.clock.now_ns())

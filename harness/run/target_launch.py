@@ -156,9 +156,9 @@ def open_links(links: list[tuple[str, Link, TargetProcess | None]], *, timeout_s
         t.start()
     for t in threads:
         t.join()
-    for err in errors:
-        if err is not None:
-            raise err
+    for failed in errors:
+        if failed is not None:
+            raise failed
 
 
 def exit_note(proc: object) -> str:
