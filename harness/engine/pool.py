@@ -17,7 +17,7 @@ from hil.common.errors import SimulationError
 from hil.harness.engine.messages import (Advance, ApplyControl, Exit, Halt, PhysicsReady, Start, StopWorker,
                                          WorkerFailed, WorkerReady)
 from hil.harness.engine.physics import PhysicsOutputs, PhysicsSpec, physics_main
-from hil.harness.engine.procs import Pump, RingPump, widen_pipe
+from hil.harness.engine.procs import Pump, RingPump, end_child, widen_pipe
 from hil.harness.engine.render import FrameSlots, RenderSpec, render_main
 from hil.harness.engine.rings import Ring, RingSpec
 
@@ -33,7 +33,7 @@ def auto_workers(n_vehicles: int) -> int:
 
 
 @contextlib.contextmanager
-def _without_main_module() -> Iterator[None]:
+def without_main_module() -> Iterator[None]:
     """While starting children: hide ``__main__``'s file and spec, so a spawned child
     does not import the caller's main script (it needs only our modules). A user's
     script that calls ``execute`` without an ``if __name__ == "__main__"`` guard
@@ -115,7 +115,7 @@ class Engine:
                 outs = tuple(wr for _rd, wr in frames[w])
                 rp = ctx.Process(target=render_main, args=(b, self.rings[w].consumer_spec(), rs, os.getpid(), outs),
                                  name=f"hil-render-{w}", daemon=True)
-                with _without_main_module():
+                with without_main_module():
                     rp.start()
                 b.close()
                 for _rd, wr in frames[w]:
@@ -132,7 +132,7 @@ class Engine:
             widen_pipe(cc)
             p = ctx.Process(target=physics_main, args=(cc, outputs, physics, os.getpid()), name="hil-physics",
                             daemon=True)
-            with _without_main_module():
+            with without_main_module():
                 p.start()
             cc.close()
             for rd, _wr in controls:
@@ -243,13 +243,7 @@ class Engine:
             except (OSError, ValueError, AttributeError):
                 pass
         for p in procs:
-            p.join(2.0)
-            if p.is_alive():
-                p.terminate()
-                p.join(2.0)
-            if p.is_alive():
-                p.kill()
-                p.join(2.0)
+            end_child(p)
         for c in self._conns:
             c.close()
         self._conns = []

@@ -123,6 +123,18 @@ def lower_thread_priority(nice: int = 10) -> None:
         pass
 
 
+def end_child(p: Any, *, grace_s: float = 2.0) -> None:
+    """Wait ``grace_s`` for a child process (``multiprocessing``) to leave as asked,
+    then terminate it, then kill it."""
+    p.join(grace_s)
+    if p.is_alive():
+        p.terminate()
+        p.join(2.0)
+    if p.is_alive():
+        p.kill()
+        p.join(2.0)
+
+
 def widen_pipe(conn: Connection, size: int = 1 << 20) -> None:
     """Let a pipe hold ``size`` bytes, so a child never blocks on a busy reader."""
     try:

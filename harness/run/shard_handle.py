@@ -24,7 +24,8 @@ from hil.common.errors import SimulationError, TargetError
 from hil.harness.analysis.events import Event, EventBus
 from hil.harness.engine.analysis import AnalysisThread
 from hil.harness.engine.messages import ApplyControl, WorldState
-from hil.harness.engine.pool import _without_main_module
+from hil.harness.engine.pool import without_main_module
+from hil.harness.engine.procs import end_child
 from hil.harness.record.producer import feed
 from hil.harness.run.shard_host import shard_main
 from hil.harness.run.shard_proc import (ShardDone, ShardDrain, ShardDrained, ShardFailed, ShardFinish, ShardIdle,
@@ -64,7 +65,7 @@ class RemoteShard:
         self._data, child_data = ctx.Pipe(duplex=False)
         self.proc = ctx.Process(target=shard_main, args=(spec, child_ctl, child_data, os.getpid()),
                                 name=f"hil-shard-{spec.index}", daemon=True)
-        with _without_main_module():
+        with without_main_module():
             self.proc.start()
         child_ctl.close()
         child_data.close()
@@ -219,11 +220,4 @@ class RemoteShard:
                 c.close()
             except OSError:
                 pass
-        p = self.proc
-        p.join(5.0)
-        if p.is_alive():
-            p.terminate()
-            p.join(3.0)
-        if p.is_alive():
-            p.kill()
-            p.join(3.0)
+        end_child(self.proc, grace_s=5.0)

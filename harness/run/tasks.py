@@ -58,8 +58,16 @@ class TruthCache:
         self.steps = -1
         self.gt: GroundTruth | None = None
 
-    def put(self, steps: int, gt: GroundTruth) -> None:
+    def take(self, sim: Simulation, steps: int, qpos: np.ndarray, qvel: np.ndarray, collisions: tuple[Any, ...],
+             names: tuple[str, ...]) -> GroundTruth:
+        """The ground truth of a camera instant (``names``: its capturing egos), taken
+        on the mirror ``sim`` and kept."""
+        sim.load_state(steps, qpos, qvel)
+        if collisions:
+            sim.add_collisions(list(collisions))
+        gt = sim.ground_truth(egos=names)
         self.steps, self.gt = steps, gt
+        return gt
 
     def get(self, steps: int, vehicle: str) -> GroundTruth | None:
         gt = self.gt
@@ -87,13 +95,7 @@ class WorldTasks:
 
     def truth(self, steps: int, qpos: np.ndarray, qvel: np.ndarray, collisions: tuple[Any, ...],
               names: tuple[str, ...]) -> None:
-        sim = self.sim
-        sim.load_state(steps, qpos, qvel)
-        if collisions:
-            sim.add_collisions(list(collisions))
-        gt = sim.ground_truth(egos=names)
-        self.cache.put(steps, gt)
-        self._record_truth(gt)
+        self._record_truth(self.cache.take(self.sim, steps, qpos, qvel, collisions, names))
 
     def final_state(self, steps: int, qpos: np.ndarray, qvel: np.ndarray, collisions: tuple[Any, ...]) -> None:
         """The mirror takes the final state (the summary reads it); collisions since
@@ -142,12 +144,7 @@ class VehicleTasks:
               names: tuple[str, ...]) -> None:
         """A camera instant of this shard's egos, for its observers (a shard in its own
         process; in the run process they get the world's ground truth)."""
-        sim = self.sim
-        sim.load_state(steps, qpos, qvel)
-        if collisions:
-            sim.add_collisions(list(collisions))
-        gt = sim.ground_truth(egos=names)
-        self.cache.put(steps, gt)
+        gt = self.cache.take(self.sim, steps, qpos, qvel, collisions, names)
         t = self.clock.now_ns()
         for ob in self.observers:
             ob.on_truth(gt, t_ns=t)
