@@ -38,7 +38,8 @@ class Handoff(Generic[T]):
         if len(self._items) >= self.maxsize:
             return False
         self._items.append(item)
-        if self._sleeping:
+        if self._sleeping:  # one wake-up per sleep: the producers after this one need none
+            self._sleeping = False
             self._wake.set()
         return True
 
@@ -46,6 +47,7 @@ class Handoff(Generic[T]):
         """Append ``item`` whatever the size (a command that must not be lost)."""
         self._items.append(item)
         if self._sleeping:
+            self._sleeping = False
             self._wake.set()
 
     def get(self, timeout_s: float) -> T | None:

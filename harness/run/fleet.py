@@ -120,9 +120,9 @@ class LocalFleet:
         """After the loop: every vehicle summed up (``vehicle_summary``, camera
         figures), and the CPU time spent outside this process (none here)."""
         from hil.harness.analysis.summary import CameraFigures, vehicle_summary
+        from hil.harness.run.target_launch import close_links
 
-        for v in self.vehicles:
-            v.link.close()
+        close_links([v.link for v in self.vehicles])
         loop.collect_sync()  # answers that arrived while closing
         self.timing.finish()
         if self.detector is not None:
@@ -132,8 +132,9 @@ class LocalFleet:
         return vehicles, {v.name: CameraFigures.of(v) for v in self.vehicles}, 0
 
     def close(self) -> None:
-        for v in self.vehicles:
-            v.link.close()
+        from hil.harness.run.target_launch import close_links
+
+        close_links([v.link for v in self.vehicles])
         for p in self.procs:
             p.close()
 

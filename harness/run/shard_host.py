@@ -23,6 +23,7 @@ from hil.harness.engine.rings import Ring
 from hil.harness.run.shard_proc import (Doorbell, Outbox, ShardDone, ShardDrain, ShardDrained, ShardFailed,
                                         ShardFinish, ShardIdle, ShardProgress, ShardReady, ShardSpec, ShardStart,
                                         ShardStop, ShardStopRequest)
+from hil.harness.run.target_launch import close_links
 from hil.harness.run.vehicle_state import VehicleRun
 from hil.timing.clock import MonotonicClock
 
@@ -253,8 +254,7 @@ class ShardHost:
         shard.unconfirmed()
         assert self.analysis is not None
         self.analysis.close()
-        for v in self.vehicles:
-            v.link.close()
+        close_links([v.link for v in self.vehicles])
         shard.collect_sync()  # answers that arrived while closing (run here: the thread is closed)
         self.timing.finish()
         if self.detector is not None:
@@ -270,11 +270,7 @@ class ShardHost:
 
     def close(self) -> None:
         """Links, targets and everything else go (idempotent; the process ends next)."""
-        for v in self.vehicles:
-            try:
-                v.link.close()
-            except Exception:  # noqa: BLE001 - leaving anyway
-                pass
+        close_links([v.link for v in self.vehicles])
         for p in self.procs:
             try:
                 p.close()

@@ -161,6 +161,17 @@ def open_links(links: list[tuple[str, Link, TargetProcess | None]], *, timeout_s
             raise failed
 
 
+def close_links(links: list[Link]) -> None:
+    """Close every link at once (each says BYE and waits a moment for its target to
+    leave): N links end in the time of the slowest, not the sum (~33 ms each here)."""
+    threads = [threading.Thread(target=link.close, name=f"hil-close-{k}", daemon=True)
+               for k, link in enumerate(links)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+
+
 def exit_note(proc: object) -> str:
     """'; the target process exited with code N: <its log's last lines>' for a target
     the harness started that is gone, else ''."""
