@@ -72,8 +72,10 @@ def test_two_shards_record_what_one_does_to_the_byte(pair) -> None:
     assert two.summary["realtime"]["shards"] == 2 and one.summary["realtime"]["shards"] == 1
     a, b = read_mcap(one.mcap_path), read_mcap(two.mcap_path)
     assert set(a) == set(b)  # today's channels, one run.mcap
+    timed = ("/events", "/log", "/clock", "/clock_sync")  # what depends on the machine's timing
     for topic in a:
-        assert len(a[topic]) == len(b[topic]), topic
+        if not topic.endswith(timed):
+            assert len(a[topic]) == len(b[topic]), topic
         if topic == "/ground_truth" or topic.endswith(("/truth", "/estimate")):
             assert [m.data for m, _ in a[topic]] == [m.data for m, _ in b[topic]], topic
     for name in ("ego0", "ego1", "ego2", "ego3"):
@@ -82,7 +84,9 @@ def test_two_shards_record_what_one_does_to_the_byte(pair) -> None:
             assert cam.startswith(b'{"timestamp":{"sec":') and b'"format":"jpeg","data":"/9j/' in cam
         va, vb = one.summary["vehicles"][name], two.summary["vehicles"][name]
         assert vb["frames_sent"] == va["frames_sent"] == 15 and vb["estimates_applied"] == 15
-        assert vb["outcome"] == va["outcome"] and vb["events"] == va["events"]
+        assert vb["outcome"] == va["outcome"]
+        assert {k: n for k, n in vb["events"].items() if k.startswith("mismatch.")} == \
+            {k: n for k, n in va["events"].items() if k.startswith("mismatch.")}  # timing anomalies may differ
         assert vb["target"]["name"] == "echo"
     for s in (one.summary, two.summary):  # the bus's counts are exactly what /events holds
         counts: dict[str, dict[str, int]] = {}
