@@ -59,6 +59,7 @@ from scipy.optimize import linear_sum_assignment
 from hil.adapters.messages import DrivingState, Estimate
 from hil.common.classes import ObjectClass
 from hil.harness.analysis.late_reaction import Decision, EgoView, LateReactionJudge
+from hil.harness.config.cases import DetectorSettings
 from hil.timing.anomaly import Severity
 
 _INF = 1e9
@@ -105,23 +106,6 @@ class FrameTruth:
     objects: tuple[TruthObject, ...]
     ref_state: DrivingState
     ego: EgoView | None = None
-
-
-@dataclass(frozen=True)
-class DetectorConfig:
-    """Tolerances (m, frames, m/s^2). See the module docstring and
-    ``harness/analysis/late_reaction.py`` (``near_miss_m``, ``avoid_decel_mps2``)."""
-
-    pos_tol_m: float = 1.5
-    pos_tol_rel: float = 0.1
-    ghost_gate_m: float = 4.0
-    max_range_m: float = 50.0
-    min_visible_px: int = 40
-    min_visible_fraction: float = 0.25
-    min_frames: int = 3
-    clear_frames: int = 5
-    near_miss_m: float = 1.0
-    avoid_decel_mps2: float = 4.0
 
 
 @dataclass(frozen=True)
@@ -219,9 +203,9 @@ _Key = tuple[MismatchKind, "str | None", Cause]
 class CornerCaseDetector:
     """Judges one vehicle's estimates; returns the mismatches to report."""
 
-    def __init__(self, vehicle: str, config: DetectorConfig | None = None) -> None:
+    def __init__(self, vehicle: str, config: DetectorSettings | None = None) -> None:
         self.vehicle = vehicle
-        self.cfg = config or DetectorConfig()
+        self.cfg = config or DetectorSettings()
         self._episodes: dict[_Key, _Episode] = {}
         self.last_state: DrivingState | None = None
         self.last_state_right_at_t0 = True

@@ -320,7 +320,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 for v in vehicles:  # link faults in real time: each impaired message on /<vehicle>/impairment
                     record_on(v.link.impairment, rec, f"/{v.name}/impairment")
                 timing = TimingObserver(cfg.timing, [v.name for v in vehicles], recorder=rec, events=bus)
-                detector = (DetectorObserver(cfg.detector.to_config(), [v.name for v in vehicles], camera=cfg.camera,
+                detector = (DetectorObserver(cfg.detector, [v.name for v in vehicles], camera=cfg.camera,
                                              recorder=rec, timing=timing, events=bus)
                             if cfg.detector.enabled else None)
                 for name, samples in warmup.items():
