@@ -158,12 +158,12 @@ def build_timeline(run: RunData) -> Timeline:
         t = ev.data.get("harness_time_ns")
         t_ns = t if isinstance(t, int) and not isinstance(t, bool) and t > 0 else ev.t_ns
         frames = [f for f in ev.data.get("frame_ids") or () if isinstance(f, int)]
-        for v in [v for v in ev.vehicles if v in known] or [None]:
-            flows = []
-            for f in frames if v is not None else ():
-                frame_flows.setdefault((v, f), []).append(next_flow)
-                flows.append(next_flow)
-                next_flow += 1
+        concerned: list[str | None] = [v for v in ev.vehicles if v in known]
+        for v in concerned or [None]:
+            flows = list(range(next_flow, next_flow + len(frames))) if v is not None else []
+            for f, flow in zip(frames, flows):
+                frame_flows.setdefault((str(v), f), []).append(flow)
+            next_flow += len(flows)
             tl.marks.append(Mark(v, track, ev.kind, t_ns, None, args, ends_flows=tuple(flows)))
     steps: dict[str, list[int]] = {}
     for m in tl.marks:
@@ -219,12 +219,11 @@ def _frame_marks(rec: PipelineRecord, model: tuple[SyncState | None, str], worke
     v, base = rec.vehicle, {"frame_id": rec.frame_id}
     out: list[Mark] = []
 
-    def add(track: str, name: str, start: int, end: int | None, *, exact_end: bool = False, **args: Arg) -> None:
+    def add(track: str, name: str, start: int, end: int | None, **args: Arg) -> None:
         a: dict[str, Arg] = {**base, **args}
         if end is not None and end < start:
-            # Drawn with no length at its exact (harness-clock) end; the value is in the arguments.
-            a["negative_ns"] = end - start
-            start, end = (end, end) if exact_end else (start, start)
+            a["negative_ns"] = end - start  # drawn with no length; the value is in the arguments
+            end = start
         out.append(Mark(v, track, name, start, end, a, (flow,)))
 
     if rec.t_state_ns is not None:
@@ -296,5 +295,7 @@ def _target_marks(rec: PipelineRecord, mapping: tuple[SyncState | None, str], ad
             last = end
     name = "reply" if last is not rx else "target (no inference stamps)"
     add("inference", name, last[0], reply[0], uncertainty_ns=max(last[1], reply[1]), **clock_args)
-    add("downlink", "downlink", reply[0], rec.t0p_ns, exact_end=True, downlink_ns=down.value_ns, uncertainty_ns=down.uncertainty_ns,
-        t_reply_target_ns=rec.t_reply_target_ns, **clock_args)
+    # A negative downlink is drawn with no length at t0' (exact), not at the mapped t_reply.
+    neg: dict[str, Arg] = {"negative_ns": rec.t0p_ns - reply[0]} if reply[0] > rec.t0p_ns else {}
+    add("downlink", "downlink", min(reply[0], rec.t0p_ns), rec.t0p_ns, downlink_ns=down.value_ns,
+        uncertainty_ns=down.uncertainty_ns, t_reply_target_ns=rec.t_reply_target_ns, **neg, **clock_args)

@@ -436,3 +436,35 @@ def test_overlapping_frames_go_to_tracks_of_the_same_name(tmp_path: Path) -> Non
                 assert a.end is not None and b.end is not None and (a.end <= b.start or b.end <= a.start)
     assert [s.args["target_queue_ns"] for s in sorted(queues, key=lambda s: s.args["frame_id"])] == [
         100_000 + k * 20_000_000 for k in range(4)]
+
+
+def test_what_cannot_be_placed_is_drawn_whole_and_says_why(tmp_path: Path) -> None:
+    t = 1_000_000_000
+    dropped = PipelineRecord("ego0", 0, 0, t, t + 100, FrameStatus.DROPPED, t_state_ns=t - 50)
+    no_stamps = PipelineRecord("ego0", 1, 0, t, t + 100, FrameStatus.OK, t0p_ns=t + 900, t_apply_ns=t + 950,
+                               sim_time_apply_ns=5, t_state_ns=t - 50)
+    # the target's t_rx maps to 1 ms before t_tx: beyond any bound (the model's is 10 ns)
+    acausal = PipelineRecord("ego0", 2, 0, t, t + 100, FrameStatus.OK, t - 1_000_000 + OFFSET_NS, None, None,
+                             t + 500 + OFFSET_NS, t + 900, t + 950, 5, t - 50)
+    unsynced = PipelineRecord("ego1", 0, 0, t, t + 100, FrameStatus.OK, t + 200 + OFFSET_NS, None, None,
+                              t + 500 + OFFSET_NS, t + 900, t + 950, 5, t - 50)
+    run = RunData(run_dir=tmp_path, summary=None, summary_problem=None, meta={}, mcap_present=True,
+                  truncated=False, mcap_bytes=0, messages=0,
+                  pipeline={"ego0": [r.to_json() for r in (dropped, no_stamps, acausal)],
+                            "ego1": [unsynced.to_json()]},
+                  clock_states={"ego0": [_state(t + 1000, OFFSET_NS)]})
+    tl = build_timeline(run)
+    assert tl.notes == ["ego1: no clock model recorded; its target stages are drawn unmapped"]
+    path = tmp_path / "t.trace"
+    with open(path, "wb") as f:
+        write_trace(tl, f)
+    frames = {(p, fid): g for p in ("ego0", "ego1") for fid, g in _by_frame(decode(path).of(p)).items()}
+    assert sorted(frames[("ego0", 0)]) == ["capture → send", "frame", "physics", "render"]
+    assert _one(frames[("ego0", 0)], "frame").args["status"] == "dropped"
+    for key, why in ((("ego0", 1), "the target gave no t_rx or t_reply"),
+                     (("ego0", 2), "causality: a mapped stamp is earlier than its cause beyond its bound"),
+                     (("ego1", 0), "no clock model recorded")):
+        whole = _one(frames[key], "uplink", "link + target")
+        assert (whole.start, whole.end, whole.args["unmapped"]) == (t + 100, t + 900, why), key
+        assert not {"target queue", "inference", "downlink"} & set(frames[key])
+        assert _one(frames[key], "apply").end == t + 950
