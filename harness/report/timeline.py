@@ -149,7 +149,8 @@ def build_timeline(run: RunData) -> Timeline:
     """Everything ``run`` recorded, as marks on tracks (see the module docstring)."""
     tl = Timeline(vehicles=list(run.vehicles))
     known = set(tl.vehicles)
-    frame_flows: dict[tuple[str, int], list[int]] = {}
+    frame_flows: dict[tuple[str, int], list[int]] = {}  # the flows from a frame to the events naming it
+    drawn_frames = {(v, d.get("frame_id")) for v, recs in run.pipeline.items() for d in recs}
     next_flow = 1
     for ev in run.events:
         args = _event_args(ev.data)
@@ -160,8 +161,9 @@ def build_timeline(run: RunData) -> Timeline:
         frames = [f for f in ev.data.get("frame_ids") or () if isinstance(f, int)]
         concerned: list[str | None] = [v for v in ev.vehicles if v in known]
         for v in concerned or [None]:
-            flows = list(range(next_flow, next_flow + len(frames))) if v is not None else []
-            for f, flow in zip(frames, flows):
+            linked = [f for f in frames if (v, f) in drawn_frames]
+            flows = list(range(next_flow, next_flow + len(linked)))
+            for f, flow in zip(linked, flows):
                 frame_flows.setdefault((str(v), f), []).append(flow)
             next_flow += len(flows)
             tl.marks.append(Mark(v, track, ev.kind, t_ns, None, args, ends_flows=tuple(flows)))

@@ -31,7 +31,7 @@ from hil.harness.report.timeline import COUNTER_TRACKS, Arg, CounterPoint, Mark,
 
 TRACE_NAME = "trace.perfetto-trace"
 _SEQUENCE_ID = 1  # every packet on one writer sequence
-_RUN = "run"      # the process of events that name no vehicle
+_RUN = ""         # the process of events that name no vehicle (no vehicle has an empty name)
 
 
 @dataclass(frozen=True)
@@ -84,7 +84,7 @@ def _events(tl: Timeline, tracks: _Tracks) -> Iterator[tuple[int, int, str, Any]
     it must be read (a slice's end before the next one's begin at the same instant)."""
     order = 0
     for m in sorted(tl.marks, key=lambda m: (m.start_ns, m.end_ns if m.end_ns is not None else m.start_ns)):
-        who = m.vehicle or _RUN
+        who = _RUN if m.vehicle is None else m.vehicle
         uuid = tracks.place(who, m.track, m.start_ns, m.end_ns)
         if m.end_ns is None:
             yield m.start_ns, order, "instant", (uuid, m)

@@ -2,13 +2,10 @@
 that wrote it and checked slice by slice, track by track and flow by flow against the
 run's ``/<vehicle>/pipeline`` records; a killed run's truncated recording; bad input.
 
-The decoder: protobuf's generic descriptor machinery (a fresh ``DescriptorPool`` and
-``message_factory``) over Perfetto's published trace schema
-``protos/perfetto/trace/perfetto_trace.proto`` — the ``FileDescriptorProto`` that
-upstream compiled into the ``perfetto`` package (0.59.1) — so the file is read as any
-Perfetto reader reads it, not through the message classes that wrote it; every field
-must be one the schema knows (no unknown fields). The records are read with the
-``mcap`` reader directly (``tests.conftest.read_mcap``).
+The decoder (``tests.harness.perfetto_reader``): protobuf's generic descriptor
+machinery over Perfetto's published trace schema, not the message classes that wrote
+the file. The records are read with the ``mcap`` reader directly
+(``tests.conftest.read_mcap``).
 
 Injected truth: the echo targets stamp with a clock exactly 2.5 s ahead of the
 harness's, so each mapped target stamp is checked against its true harness instant
@@ -21,8 +18,6 @@ import json
 import sys
 from collections import Counter, defaultdict
 from collections.abc import Iterator
-from dataclasses import dataclass, field
-from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -31,110 +26,17 @@ import pytest
 
 from hil.harness.cli.main import main as hil_main
 from hil.harness.config.model import parse_config
-from hil.harness.record.run_folder import RunData, read_run
+from hil.harness.record.run_folder import RecordedEvent, RunData, read_run
 from hil.harness.report.timeline import RecordedClock, build_timeline
 from hil.harness.report.trace import TRACE_NAME, write_trace
 from hil.harness.run.driver import execute, prepare_out_dir
 from hil.timing.records import FrameStatus, PipelineRecord
 from hil.timing.stats import summarize_ns
 from tests.conftest import GL_BACKEND, read_mcap
+from tests.harness.perfetto_reader import Decoded, Slice, decode
 
 OFFSET_NS = 2_500_000_000  # the targets' clock: harness + 2.5 s, no skew
 VEHICLES = ["ego0", "ego1", "ego2", "ego3"]
-
-
-# --- the independent reader -------------------------------------------------------------
-
-@lru_cache(maxsize=1)
-def _trace_class() -> Any:
-    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
-    from perfetto.protos.perfetto.trace import perfetto_trace_pb2 as published
-
-    fdp = descriptor_pb2.FileDescriptorProto.FromString(published.DESCRIPTOR.serialized_pb)
-    assert fdp.name == "protos/perfetto/trace/perfetto_trace.proto" and not fdp.dependency
-    pool = descriptor_pool.DescriptorPool()  # not the default pool the writer's classes live in
-    pool.Add(fdp)
-    return message_factory.GetMessageClass(pool.FindMessageTypeByName("perfetto.protos.Trace"))
-
-
-def _no_unknown_fields(msg: Any, where: str) -> None:
-    from google.protobuf.unknown_fields import UnknownFieldSet
-
-    assert len(UnknownFieldSet(msg)) == 0, f"{where}: fields the published schema does not have"
-    for f, value in msg.ListFields():
-        if f.message_type is None:
-            continue
-        for i, m in enumerate(value if f.is_repeated else [value]):
-            _no_unknown_fields(m, f"{where}.{f.name}[{i}]")
-
-
-@dataclass
-class Slice:
-    process: str
-    track: str
-    uuid: int
-    name: str
-    start: int
-    end: int | None  # None: an instant
-    args: dict[str, Any]
-    flows: list[int]
-    ends: list[int]
-
-
-@dataclass
-class Decoded:
-    processes: dict[int, str] = field(default_factory=dict)          # uuid -> process name
-    tracks: dict[int, tuple[str, str]] = field(default_factory=dict)  # uuid -> (process, track name)
-    counter_tracks: set[int] = field(default_factory=set)
-    marks: list[Slice] = field(default_factory=list)
-    counters: list[tuple[str, str, int, int]] = field(default_factory=list)
-
-    def of(self, process: str) -> list[Slice]:
-        return [m for m in self.marks if m.process == process]
-
-
-def decode(path: Path) -> Decoded:
-    trace = _trace_class().FromString(path.read_bytes())
-    out = Decoded()
-    open_: dict[int, Slice] = {}
-    last_ts = 0
-    for i, p in enumerate(trace.packet):
-        _no_unknown_fields(p, f"packet[{i}]")
-        if p.HasField("track_descriptor"):
-            d = p.track_descriptor
-            if d.HasField("process"):
-                out.processes[d.uuid] = d.process.process_name
-            else:
-                assert d.parent_uuid in out.processes, "a track before its process"
-                out.tracks[d.uuid] = (out.processes[d.parent_uuid], d.name)
-                if d.HasField("counter"):
-                    out.counter_tracks.add(d.uuid)
-            continue
-        assert p.HasField("track_event") and p.trusted_packet_sequence_id == 1
-        assert p.timestamp >= last_ts, "packets out of time order"
-        last_ts = p.timestamp
-        ev = p.track_event
-        process, track = out.tracks[ev.track_uuid]
-        kind = ev.Type.Name(ev.type)
-        if kind == "TYPE_COUNTER":
-            assert ev.track_uuid in out.counter_tracks
-            out.counters.append((process, track, p.timestamp, ev.counter_value))
-            continue
-        if kind == "TYPE_SLICE_END":
-            s = open_.pop(ev.track_uuid)
-            s.end = p.timestamp
-            continue
-        args = {a.name: next(v for f, v in a.ListFields() if f.name != "name") for a in ev.debug_annotations}
-        s = Slice(process, track, ev.track_uuid, ev.name, p.timestamp, None, args, list(ev.flow_ids),
-                  list(ev.terminating_flow_ids))
-        out.marks.append(s)
-        if kind == "TYPE_SLICE_BEGIN":
-            assert ev.track_uuid not in open_, f"slices overlap on one track: {track} of {process}"
-            open_[ev.track_uuid] = s
-        else:
-            assert kind == "TYPE_INSTANT", kind
-    assert not open_, "a slice never ended"
-    return out
 
 
 # --- a 4-vehicle run -----------------------------------------------------------------
@@ -159,6 +61,13 @@ def run4(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def traced(run4: Path) -> tuple[Decoded, dict[str, list[tuple[Any, Any]]]]:
     assert hil_main(["trace", str(run4)]) == 0
     return decode(run4 / TRACE_NAME), read_mcap(run4 / "run.mcap")
+
+
+def _flows_are_whole(tr: Decoded) -> None:
+    """Every flow starts on one mark, ends on another: none dangles."""
+    carried: Counter[int] = Counter(f for s in tr.marks for f in s.flows)
+    ended: Counter[int] = Counter(f for s in tr.marks for f in s.ends)
+    assert set(carried) == set(ended) and all(n == 1 for n in ended.values())
 
 
 def _by_frame(slices: list[Slice]) -> dict[int, dict[str, list[Slice]]]:
@@ -230,6 +139,7 @@ def test_every_slice_track_and_flow_matches_the_pipeline_records(traced: tuple[D
             enders = [s for s in chain if s.ends]
             assert len(enders) == 1 and enders[0].start == max(s.start for s in chain)
     assert workers == {0, 1}  # two render workers, each vehicle on its own one's track
+    _flows_are_whole(tr)
 
 
 def _check_target_side(r: dict[str, Any], g: dict[str, list[Slice]]) -> None:
@@ -331,6 +241,7 @@ def test_a_killed_run_gives_a_trace_of_what_was_recorded(run4: Path, tmp_path: P
     salvaged = read_run(killed).pipeline
     assert 0 < sum(map(len, salvaged.values())) < sum(map(len, read_run(run4).pipeline.values()))
     tr = decode(tmp_path / "k.trace")
+    _flows_are_whole(tr)  # no flow to an event or a frame the cut left out
     for v, records in salvaged.items():
         assert sorted(s.args["frame_id"] for s in tr.of(v) if s.track == "frame") == sorted(
             r["frame_id"] for r in records)
@@ -452,13 +363,26 @@ def test_what_cannot_be_placed_is_drawn_whole_and_says_why(tmp_path: Path) -> No
                   truncated=False, mcap_bytes=0, messages=0,
                   pipeline={"ego0": [r.to_json() for r in (dropped, no_stamps, acausal)],
                             "ego1": [unsynced.to_json()]},
-                  clock_states={"ego0": [_state(t + 1000, OFFSET_NS)]})
+                  clock_states={"ego0": [_state(t + 1000, OFFSET_NS)]},
+                  events=[RecordedEvent(t + 2000, "collision", (), "critical",
+                                        {"kind": "collision", "harness_time_ns": t + 2000, "a": "npc1", "b": "npc2"}),
+                          RecordedEvent(t + 3000, "mismatch.state_mismatch", ("ego0",), "critical",
+                                        {"kind": "mismatch.state_mismatch", "harness_time_ns": t + 3000,
+                                         "vehicle": "ego0", "frame_ids": [1, 99]})])  # frame 99 was never drawn
     tl = build_timeline(run)
     assert tl.notes == ["ego1: no clock model recorded; its target stages are drawn unmapped"]
     path = tmp_path / "t.trace"
     with open(path, "wb") as f:
         write_trace(tl, f)
-    frames = {(p, fid): g for p in ("ego0", "ego1") for fid, g in _by_frame(decode(path).of(p)).items()}
+    tr = decode(path)
+    _flows_are_whole(tr)
+    (crash,) = [s for s in tr.marks if s.name == "collision"]
+    assert (crash.process, crash.track, crash.start, crash.end) == ("run (events naming no vehicle)", "events",
+                                                                    t + 2000, None)
+    (mismatch,) = [s for s in tr.marks if s.track == "mismatches"]
+    assert mismatch.process == "ego0" and len(mismatch.ends) == 1  # a flow to frame 1 only
+    frames = {(p, fid): g for p in ("ego0", "ego1") for fid, g in _by_frame(tr.of(p)).items()}
+    assert mismatch.ends[0] in _one(frames[("ego0", 1)], "frame").flows
     assert sorted(frames[("ego0", 0)]) == ["capture → send", "frame", "physics", "render"]
     assert _one(frames[("ego0", 0)], "frame").args["status"] == "dropped"
     for key, why in ((("ego0", 1), "the target gave no t_rx or t_reply"),
