@@ -31,7 +31,7 @@ from __future__ import annotations
 import math
 from bisect import bisect_right
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from hil.harness.record.run_folder import RunData, pipeline_record
@@ -241,12 +241,11 @@ def _frame_marks(rec: PipelineRecord, model: tuple[SyncState | None, str], worke
             add("physics", "control applied", rec.t_apply_ns, None,
                 **({} if rec.sim_time_apply_ns is None else {"sim_time_apply_ns": rec.sim_time_apply_ns}))
     last = max(range(len(out)), key=lambda i: (out[i].start_ns, i))
-    out[last] = Mark(v, out[last].track, out[last].name, out[last].start_ns, out[last].end_ns, out[last].args,
-                     (), (flow,))
+    out[last] = replace(out[last], flows=(), ends_flows=(flow,))
     stamps = {k: val for k, val in rec.to_json().items() if isinstance(val, int) and k != "frame_id"}
     stages = {f"{k}_ns": val for k, val in rec.stages_ns().items()}
     start = rec.t_state_ns if rec.t_state_ns is not None else rec.t0_ns
-    end = max(t for t in (rec.t_tx_ns, rec.t0p_ns, rec.t_apply_ns) if t is not None)
+    end = max(t for t in (start, rec.t_tx_ns, rec.t0p_ns, rec.t_apply_ns) if t is not None)
     out.append(Mark(v, "frame", f"frame {rec.frame_id}", start, end,
                     {**base, "status": rec.status.value, **stamps, **stages}, tuple(event_flows)))
     return out
