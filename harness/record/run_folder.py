@@ -17,6 +17,7 @@ name says (a text file named ``summary.json``, a truncated summary, a file named
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -28,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from hil.common.errors import ConfigError
+from hil.timing.records import FrameStatus, PipelineRecord
 
 SUMMARY_NAME = "summary.json"
 MCAP_NAME = "run.mcap"
@@ -133,7 +135,12 @@ class RunData:
     """What a run folder holds, read back. ``pipeline``: per vehicle, the
     ``/V/pipeline`` records as written (dicts, file order); ``camera_times``: per
     vehicle, the publish times (``t0``) of its camera frames; ``clock`` per vehicle
-    from ``/V/clock`` when present, else from ``/V/clock_sync``."""
+    from ``/V/clock`` when present, else from ``/V/clock_sync``; ``clock_states``:
+    every ``/V/clock`` message as written, as ``(t4, position, message)`` (the harness
+    time of its sync sample; its index among the file's messages);
+    ``pipeline_positions``: the same index of each ``pipeline`` record (the file's
+    order is the order the run's analysis wrote them in); ``sync_exchanges``: every
+    ``/V/clock_sync`` message as written."""
 
     run_dir: Path
     summary: dict[str, Any] | None
@@ -148,6 +155,9 @@ class RunData:
     clock: dict[str, list[ClockPoint]] = field(default_factory=dict)
     clock_source: dict[str, str] = field(default_factory=dict)
     camera_times: dict[str, list[int]] = field(default_factory=dict)
+    clock_states: dict[str, list[tuple[int, int, dict[str, Any]]]] = field(default_factory=dict)
+    pipeline_positions: dict[str, list[int]] = field(default_factory=dict)
+    sync_exchanges: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
     first_ns: int | None = None
     last_ns: int | None = None
 
@@ -243,6 +253,9 @@ def read_run(path: str | os.PathLike[str]) -> RunData:
     sync: dict[str, list[ClockPoint]] = defaultdict(list)
     clock: dict[str, list[ClockPoint]] = defaultdict(list)
     cams: dict[str, list[int]] = defaultdict(list)
+    states: dict[str, list[tuple[int, int, dict[str, Any]]]] = defaultdict(list)
+    positions: dict[str, list[int]] = defaultdict(list)
+    exchanges: dict[str, list[dict[str, Any]]] = defaultdict(list)
     first = last = None
     n = 0
     offset: int | None = None  # log_time - monotonic (the recorder's time anchor; 0 in old runs)
@@ -271,7 +284,13 @@ def read_run(path: str | os.PathLike[str]) -> RunData:
             continue
         if what == "pipeline":
             pipeline[vehicle].append(d)
-        elif what == "clock_sync" and _num(d, "offset_ns") and _num(d, "delay_ns"):
+            positions[vehicle].append(n - 1)
+            continue
+        if what == "clock_sync":
+            exchanges[vehicle].append(d)
+        else:
+            states[vehicle].append((msg.log_time, n - 1, d))
+        if what == "clock_sync" and _num(d, "offset_ns") and _num(d, "delay_ns"):
             sync[vehicle].append(ClockPoint(msg.log_time, float(d["offset_ns"]), d["delay_ns"] / 2, None))
         elif what == "clock" and _num(d, "offset_ns"):
             unc = d.get("uncertainty_ns")
@@ -285,6 +304,8 @@ def read_run(path: str | os.PathLike[str]) -> RunData:
         last = None if last is None else last - off
         for points in (*sync.values(), *clock.values()):
             points[:] = [replace(p, t_ns=p.t_ns - off) for p in points]
+        for v, vs in states.items():
+            states[v] = [(t - off, i, d) for t, i, d in vs]
     data.messages, data.first_ns, data.last_ns = n, first, last
     data.truncated = not is_finalized_mcap(mcap_path)
     if n == 0 and data.truncated and data.mcap_bytes < 64 and summary is None:
@@ -292,6 +313,7 @@ def read_run(path: str | os.PathLike[str]) -> RunData:
         raise ConfigError(f"{mcap_path}: truncated MCAP with no complete message ({data.mcap_bytes} bytes)")
     data.pipeline = dict(pipeline)
     data.camera_times = {v: sorted(ts) for v, ts in cams.items()}
+    data.clock_states, data.pipeline_positions, data.sync_exchanges = dict(states), dict(positions), dict(exchanges)
     for v in set(sync) | set(clock):
         if clock.get(v):
             data.clock[v], data.clock_source[v] = clock[v], f"/{v}/clock"
@@ -353,6 +375,22 @@ def _as_compressed(d: dict[str, Any]) -> tuple[str, str] | None:
     return ("jpeg", base64.b64encode(buf.tobytes()).decode()) if ok else None
 
 
+_RECORD_FIELDS = {f.name for f in dataclasses.fields(PipelineRecord)}
+
+
+def pipeline_record(d: Any) -> PipelineRecord | None:
+    """A ``/V/pipeline`` message as a :class:`hil.timing.records.PipelineRecord`
+    (fields it does not know are left out); ``None`` when it is not one."""
+    if not isinstance(d, dict):
+        return None
+    try:
+        kw = {k: v for k, v in d.items() if k in _RECORD_FIELDS}
+        kw["status"] = FrameStatus(str(d["status"]))
+        return PipelineRecord(**kw)
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
 def _json(data: bytes) -> Any:
     try:
         return json.loads(data)
@@ -366,4 +404,4 @@ def _num(d: dict[str, Any], key: str) -> bool:
 
 
 __all__ = ["ClockPoint", "RecordedEvent", "RunData", "camera_images", "is_finalized_mcap", "load_summary",
-           "read_run", "run_dir_of", "summary_path_of"]
+           "pipeline_record", "read_run", "run_dir_of", "summary_path_of"]

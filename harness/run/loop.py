@@ -530,7 +530,9 @@ class SimLoop:
         if rec.t0p_ns is not None and rec.status == FrameStatus.OK:
             v.e2e_window.add(rec.t0p_ns - rec.t0_ns)
         t = rec.t0p_ns or self.clock.now_ns()
-        self.rec.write_json(f"/{v.name}/pipeline", rec.to_json(), log_time_ns=t, publish_time_ns=rec.t0_ns)
+        d = rec.to_json()
+        d["render_worker"] = self.engine.assign[v.name]  # which render process drew it (hil trace)
+        self.rec.write_json(f"/{v.name}/pipeline", d, log_time_ns=t, publish_time_ns=rec.t0_ns)
 
     def _sync_task(self, name: str, s: Any) -> None:
         for ob in self.observers:
