@@ -299,14 +299,19 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--point", action="store_true",
                    help="compare the summaries' figures as points (no samples, no statistics)")
     p.add_argument("--failures-only", action="store_true", help="list only the failing checks")
+    from hil.harness.report.ci_outputs import add_ci_args
+
+    add_ci_args(p)
 
 
 def cmd(args: argparse.Namespace) -> int:
     """``hil compare``: 0 no regression, 1 regression; ConfigError (exit 2) on bad input."""
     from rich.console import Console
 
+    from hil.harness.report.ci_outputs import check_ci_args, write_ci_outputs
     from hil.harness.report.compare_render import judged_lines, outcome_lines, render
 
+    check_ci_args(args)
     tol = tolerances_from_args(args)
     settings = GateSettings(alpha=args.alpha, resamples=args.resamples, seed=args.seed)
     settings.check()
@@ -319,7 +324,8 @@ def cmd(args: argparse.Namespace) -> int:
     console = Console()
     if not console.is_terminal:
         console.width = max(console.width, 150)
-    for note in differences(baseline, run):
+    notes = differences(baseline, run)
+    for note in notes:
         console.print(f"[yellow]note: {note}[/yellow]")
     for name, x in (("baseline", xb), ("run", xr)):
         if x.note and not args.point:
@@ -327,7 +333,12 @@ def cmd(args: argparse.Namespace) -> int:
     console.print(render(checks, failures_only=args.failures_only, confidence=settings.confidence))
     for line in [*judged_lines(checks, tol, settings), *outcome_lines(checks)]:
         console.print(line, highlight=False)
-    return EXIT_REGRESSION if any(c.verdict.fails for c in checks) else EXIT_OK
+    code = EXIT_REGRESSION if any(c.verdict.fails for c in checks) else EXIT_OK
+    from hil.harness.report.ci_cases import of_compare
+
+    write_ci_outputs(of_compare(checks, baseline=str(args.baseline), run=str(args.run), exit_code=code, notes=notes),
+                     args)
+    return code
 
 
 __all__ = ["Check", "GateSettings", "Method", "Tolerance", "Tolerances", "Verdict", "add_parser", "check_selection", "cmd",

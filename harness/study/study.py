@@ -96,10 +96,16 @@ def add_parser(sub: Any) -> None:
                    help="distributed: impair the veth pair with the kernel's tc netem, both directions, e.g. "
                         "'delay 20ms 2ms loss 1%%' (kernels without sch_netem: the points are skipped with the "
                         "reason; target.impair works on any kernel)")
+    from hil.harness.report.ci_outputs import add_ci_args
+
+    add_ci_args(p)
 
 
 def cmd(args: argparse.Namespace) -> int:
     """Run the study. Raises ConfigError (exit 2, one line) for bad input, before any run."""
+    from hil.harness.report.ci_outputs import check_ci_args, write_ci_outputs
+
+    check_ci_args(args)
     placements = [Placement(p) for p in dict.fromkeys(args.placement)]
     vehicles = sorted(set(args.vehicles))
     if vehicles[0] < 1 or vehicles[-1] > 16:
@@ -131,7 +137,11 @@ def cmd(args: argparse.Namespace) -> int:
     report = write_study(out, results, config=str(args.config), floor_fps=args.floor_fps,
                          study_wall_s=study_wall_s, loadavg=_loadavg())
     print(f"study: {report}", flush=True)
-    return 0 if all(r.status == "ok" for r in results) else 1
+    code = 0 if all(r.status == "ok" for r in results) else 1
+    from hil.harness.report.ci_cases import of_study
+
+    write_ci_outputs(of_study(results, out=out, exit_code=code, wall_s=study_wall_s), args)
+    return code
 
 
 def _load(config: str, overrides: Sequence[str]) -> Any:

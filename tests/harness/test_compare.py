@@ -422,3 +422,29 @@ def test_the_readme_compare_example_is_what_the_command_prints(runs: dict[str, P
     # Every row over its limit that did not fail has its line with the numbers under the table.
     rows = [ln for ln in printed if ln.startswith("│") and "over, not significant" in ln]
     assert len(rows) == sum("over the limit but not significant" in ln for ln in printed)
+
+
+def test_junit_and_json_have_one_case_per_check(runs: dict[str, Path], tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    from tests.harness.junit_check import read_junit
+
+    junit, js = tmp_path / "c.xml", tmp_path / "c.json"
+    code = hil_main(["compare", str(runs["base"]), str(runs["slow"]), "--stage", "inference", "--stage", "transport",
+                     "--junit", str(junit), "--json", str(js)])
+    assert code == 1
+    (sb, xb), (sr, xr) = load_run(runs["base"]), load_run(runs["slow"])
+    from hil.harness.report.compare_tolerances import Tolerances as Tol
+
+    checks = compare(sb, sr, Tol(only_stages=("inference", "transport")), base_samples=xb, run_samples=xr)
+    (suite,) = read_junit(junit)
+    doc = json.loads(js.read_text())
+    assert doc["exit_code"] == 1 and not doc["passed"] and suite.properties["exit_code"] == "1"
+    assert len(suite.cases) == len(checks) == len(doc["checks"])
+    for c in checks:
+        case = suite.cases[f"{c.vehicle} {c.stage} {c.metric}".replace(" - ", " ")]
+        assert case.failed == c.verdict.fails and case.properties["verdict"] == c.verdict.value
+        assert case.properties["limit"] == str(c.limit) and case.properties["p_worse"] == str(c.p_worse)
+        if c.verdict.fails:
+            assert case.message.endswith(": REGRESSION") and f"limit ≤ {c.limit:.3f} ms" in case.message
+        if c.verdict is Verdict.NOT_SIGNIFICANT:  # passes, and says why
+            assert not case.failed and "over the limit but not significant (P(worse)" in (case.system_out or "")
