@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.harness.report.compare_render import render
+from hil.harness.report.compare_render import percent, render
 from hil.harness.report.compare_samples import RunSamples, VehicleSamples, load_run
 from hil.harness.report.compare_tolerances import (
                                                    LATENCY_METRICS,
@@ -239,12 +239,6 @@ def compare(baseline: Mapping[str, Any], run: Mapping[str, Any], tol: Tolerances
                                method=Method.SAMPLES, ci=(s.ci_lo, s.ci_hi), p_worse=s.p_worse, need=need,
                                note=f"{s.n_base}/{s.n_run} frames", reason=reason)
     return checks
-
-
-def percent(p: float, decimals: int = 1) -> str:
-    """A probability as a person reads it: ``96.4 %``, ``<0.1 %``, ``>99.9 %``."""
-    v, edge = p * 100, 10.0 ** -decimals
-    return f"<{edge:g} %" if v < edge else f">{100 - edge:g} %" if v > 100 - edge else f"{v:.{decimals}f} %"
 
 
 def check_selection(baseline: Mapping[str, Any], tol: Tolerances) -> None:

@@ -45,9 +45,13 @@ def interval(c: Check) -> str:
     return f"{lo:+.3f} .. {hi:+.3f}"
 
 
-def sure(c: Check) -> str:
-    from hil.harness.report.compare import percent
+def percent(p: float, decimals: int = 1) -> str:
+    """A probability as a person reads it: ``96.4 %``, ``<0.1 %``, ``>99.9 %``."""
+    v, edge = p * 100, 10.0 ** -decimals
+    return f"<{edge:g} %" if v < edge else f">{100 - edge:g} %" if v > 100 - edge else f"{v:.{decimals}f} %"
 
+
+def sure(c: Check) -> str:
     return "–" if c.p_worse is None else percent(c.p_worse)
 
 
@@ -126,4 +130,5 @@ def outcome_lines(checks: Sequence[Check]) -> list[str]:
     return lines
 
 
-__all__ = ["change", "interval", "judged_lines", "name_of", "outcome_lines", "render", "row_text", "sure", "value"]
+__all__ = ["change", "interval", "judged_lines", "name_of", "outcome_lines", "percent", "render", "row_text", "sure",
+           "value"]
