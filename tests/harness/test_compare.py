@@ -394,7 +394,7 @@ def _shape(lines: list[str]) -> dict[str, Any]:
             "rows": {tuple(r[:3]): [_cell_shape(c) for c in r[3:9]] for r in rows},
             "verdicts": {r[9] for r in rows},
             "judged": [_cell_shape(ln) for ln in lines if "checks judged" in ln or "run-to-run noise" in ln],
-            "over": {_cell_shape(ln.split(" ", 3)[3]) for ln in lines if "over the limit but not significant" in ln},
+            "over": [ln.partition(": ") for ln in lines if "over the limit but not significant" in ln],
             "last": _cell_shape(lines[-1])}
 
 
@@ -417,7 +417,12 @@ def test_the_readme_compare_example_is_what_the_command_prints(runs: dict[str, P
 
     assert want["verdicts"] <= {v.value for v in Verdict} and got["verdicts"] <= {v.value for v in Verdict}
     assert got["judged"] == want["judged"]
-    assert got["over"] <= want["over"]  # the lines under the table: the same form
+    # The lines under the table: the check with its numbers, then the reason, in the same form.
+    numbers = re.compile(r"ego\d+ (\w+ )?\w+ [\d.]+ → [\d.]+ (ms|%), [+-][\d.]+ (ms \(([+-][\d.]+ %|×\d+)\)|pp), "
+                         r"limit ≤ [\d.]+ (ms|%)")
+    assert want["over"] and {_cell_shape(r) for _, _, r in got["over"]} <= {_cell_shape(r) for _, _, r in want["over"]}
+    for head, _, _ in want["over"] + got["over"]:
+        assert numbers.fullmatch(head), head
     assert re.sub(r"\(.*\)", "", got["last"]) == re.sub(r"\(.*\)", "", want["last"])
     # Every row over its limit that did not fail has its line with the numbers under the table.
     rows = [ln for ln in printed if ln.startswith("│") and "over, not significant" in ln]
