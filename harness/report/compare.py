@@ -36,7 +36,7 @@ noted, not failed.
 from __future__ import annotations
 
 import argparse
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from enum import Enum
 from typing import Any
@@ -165,18 +165,22 @@ class _Pending:
 
 
 def _shift(base: np.ndarray, run: np.ndarray, metric: Metric, tol: Tolerance, noise: Tolerance,
-           settings: GateSettings, rng: np.random.Generator) -> Shift:
+           settings: GateSettings, rng: np.random.Generator, on_judged: Callable[[], None] | None) -> Shift:
     allowed = tol.allowance(metric.of(np.asarray(base, np.float64)))
-    return compare_metric(base, run, metric, allowed=allowed, confidence=settings.confidence,
-                          run_noise_rel=noise.rel, run_noise_abs=noise.abs, resamples=settings.resamples, rng=rng)
+    shift = compare_metric(base, run, metric, allowed=allowed, confidence=settings.confidence,
+                           run_noise_rel=noise.rel, run_noise_abs=noise.abs, resamples=settings.resamples, rng=rng)
+    if on_judged is not None:
+        on_judged()
+    return shift
 
 
 def compare(baseline: Mapping[str, Any], run: Mapping[str, Any], tol: Tolerances | None = None, *,
             base_samples: RunSamples | None = None, run_samples: RunSamples | None = None,
-            settings: GateSettings | None = None) -> list[Check]:
+            settings: GateSettings | None = None, on_judged: Callable[[], None] | None = None) -> list[Check]:
     """Every check of ``run`` against ``baseline`` (two parsed summary.json), judged
     from the per-frame samples where both runs have them for a vehicle, else as
-    points (see the module docstring)."""
+    points (see the module docstring). ``on_judged`` is called after each check
+    judged from samples (a bootstrap each: the long part on long runs)."""
     tol = tol or Tolerances()
     settings = settings or GateSettings()
     rng = np.random.default_rng(settings.seed)
@@ -199,7 +203,7 @@ def compare(baseline: Mapping[str, Any], run: Mapping[str, Any], tol: Tolerances
         xr = run_samples.vehicles.get(vehicle) if run_samples is not None else None
         if xb is not None and xr is not None and xb.dropped.size and xr.dropped.size:
             pending.append(_Pending(len(checks), _shift(xb.dropped, xr.dropped, Metric.MEAN, tol.drop_rate,
-                                                         Tolerance(0.0, 0.0), settings, rng)))
+                                                         Tolerance(0.0, 0.0), settings, rng, on_judged)))
             checks.append(Check(vehicle, "-", "drop_rate", None, None, None, Verdict.OK))
         else:
             checks.append(_judge(vehicle, "-", "drop_rate", _num(b, "drop_rate"), _num(r, "drop_rate"),
@@ -219,7 +223,8 @@ def compare(baseline: Mapping[str, Any], run: Mapping[str, Any], tol: Tolerances
             if sb is not None and sr is not None:
                 for metric in LATENCY_METRICS:
                     pending.append(_Pending(len(checks), _shift(sb, sr, Metric(metric), tol.for_stage(metric, stage),
-                                                                 tol.noise_of(metric, stage), settings, rng)))
+                                                                 tol.noise_of(metric, stage), settings, rng,
+                                                                 on_judged)))
                     checks.append(Check(vehicle, stage, metric, None, None, None, Verdict.OK))
                 continue
             for metric in POINT_METRICS:
@@ -254,6 +259,20 @@ def check_selection(baseline: Mapping[str, Any], tol: Tolerances) -> None:
         if stage not in have:
             raise ConfigError(f"--stage {stage}: the baseline has no samples of this stage, so nothing would be "
                               f"checked (its stages with samples: {', '.join(_stage_order(sorted(have))) or 'none'})")
+
+
+def samples_checks(xb: RunSamples, xr: RunSamples, tol: Tolerances) -> int:
+    """How many checks ``compare`` judges from samples (the drop rate and four per
+    stage of each vehicle both runs have samples of)."""
+    n = 0
+    for v, b in xb.vehicles.items():
+        r = xr.vehicles.get(v)
+        if r is None:
+            continue
+        n += bool(b.dropped.size and r.dropped.size)
+        n += len(LATENCY_METRICS) * sum(1 for s in b.stages_ms if tol.checks_stage(s) and _stage_samples(b, s) is not None
+                                        and _stage_samples(r, s) is not None)
+    return n
 
 
 def _stage_samples(x: VehicleSamples | None, stage: str) -> np.ndarray | None:
@@ -302,6 +321,7 @@ def cmd(args: argparse.Namespace) -> int:
     """``hil compare``: 0 no regression, 1 regression; ConfigError (exit 2) on bad input."""
     from rich.console import Console
 
+    from hil.harness.cli.progress import WorkProgress
     from hil.harness.report.ci_outputs import check_ci_args, write_ci_outputs
     from hil.harness.report.compare_render import judged_lines, outcome_lines, render
 
@@ -309,15 +329,23 @@ def cmd(args: argparse.Namespace) -> int:
     tol = tolerances_from_args(args)
     settings = GateSettings(alpha=args.alpha, resamples=args.resamples, seed=args.seed)
     settings.check()
-    baseline, xb = load_run(args.baseline)
-    run, xr = load_run(args.run)
-    check_selection(baseline, tol)
-    if args.point:
-        xb = xr = RunSamples({}, "--point")
-    checks = compare(baseline, run, tol, base_samples=xb, run_samples=xr, settings=settings)
     console = Console()
     if not console.is_terminal:
         console.width = max(console.width, 150)
+    # Long runs: reading both recordings and a bootstrap per check take a while; on a
+    # terminal a bar says how far it got and the time left (nothing in CI logs).
+    with WorkProgress(console, what="reading the runs", total=2, unit="runs", lines=False) as progress:
+        baseline, xb = load_run(args.baseline)
+        progress.advance(note=str(args.baseline))
+        run, xr = load_run(args.run)
+        progress.advance(note=str(args.run))
+    check_selection(baseline, tol)
+    if args.point:
+        xb = xr = RunSamples({}, "--point")
+    with WorkProgress(console, what="judging", total=samples_checks(xb, xr, tol), unit="checks",
+                      lines=False) as progress:
+        checks = compare(baseline, run, tol, base_samples=xb, run_samples=xr, settings=settings,
+                         on_judged=progress.advance)
     notes = differences(baseline, run)
     for note in notes:
         console.print(f"[yellow]note: {note}[/yellow]")

@@ -122,15 +122,20 @@ def cmd(args: argparse.Namespace) -> int:
     (out / "points").mkdir(exist_ok=True)
     results: list[PointResult] = []
     t_start = time.monotonic()
-    for pl in placements:
-        pts = [pt for pt in points if pt.placement is pl]
-        with _placement_host(pl, netem=args.netem) as (ns, why):
-            for pt in pts:
-                if why is not None:
-                    results.append(PointResult(pt, "skipped", why))
-                    print(f"study: {pt.name}: skipped ({why})", flush=True)
-                    continue
-                results.append(_run_point(args, pt, ns=ns, out=out))
+    from hil.harness.cli.progress import WorkProgress, make_console
+
+    # Points cost about their simulated time: the time left is estimated from the pace so far.
+    with WorkProgress(make_console(), what="study", total=len(points), unit="points", live=False) as progress:
+        for pl in placements:
+            pts = [pt for pt in points if pt.placement is pl]
+            with _placement_host(pl, netem=args.netem) as (ns, why):
+                for pt in pts:
+                    if why is not None:
+                        results.append(PointResult(pt, "skipped", why))
+                        print(f"study: {pt.name}: skipped ({why})", flush=True)
+                    else:
+                        results.append(_run_point(args, pt, ns=ns, out=out))
+                    progress.advance(note=pt.name)
     study_wall_s = time.monotonic() - t_start
     from hil.harness.study.report import write_study
 

@@ -191,6 +191,7 @@ def test_study_writes_one_testcase_per_point(tmp_path: Path) -> None:
     p = hil("study", "hil_configs/study.yaml", "--vehicles", "1", "--placement", "replicated", "--duration", "1",
             "--out", str(out), "--junit", str(tmp_path / "st.xml"), "--json", str(tmp_path / "st.json"), timeout=300)
     assert p.returncode == 0, p.stdout + p.stderr
+    assert "study: 1 of 1 points done (" in p.stdout and ", done: replicated-n1-fps" in p.stdout  # item 9
     cases, _ = _agree(tmp_path / "st.xml", tmp_path / "st.json", 0)
     point = json.loads((out / "results.json").read_text())["points"][0]
     assert list(cases) == [f"replicated-n1-fps{point['fps']:g}"]
