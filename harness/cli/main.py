@@ -218,12 +218,11 @@ def _cmd_scenarios(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     from hil.harness.cli.progress import Progress, final_table, make_console
     from hil.harness.config.model import load_config
+    from hil.harness.report.ci_outputs import check_ci_args, write_ci_outputs
     from hil.harness.run.driver import default_out_dir, execute, prepare_out_dir
     from hil.scenarios.gl import select_backend
 
-    from hil.harness.report.ci_outputs import check_ci_args, write_ci_outputs
-
-    check_ci_args(args)
+    check_ci_args(args)  # --junit / --json writable: checked before anything runs
     overrides = [*args.overrides, "recording.live=true"] if args.live else args.overrides
     cfg = load_config(args.config, overrides=overrides)
     if args.fail_on:

@@ -86,22 +86,32 @@ class CanTrafficLog:
     def _write_loop(self) -> None:
         import can
 
-        while (item := self._q.get()) is not None:
-            msg, t_ns, is_rx = item
-            if self.stats.error is not None:
-                self.stats.dropped += 1
-                continue
-            out = can.Message(timestamp=(t_ns + self.offset_ns) / 1e9, arbitration_id=msg.arbitration_id,
-                              is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
-                              is_error_frame=msg.is_error_frame, channel=0, dlc=msg.dlc, data=bytes(msg.data),
-                              is_fd=msg.is_fd, is_rx=is_rx, bitrate_switch=msg.bitrate_switch,
-                              error_state_indicator=msg.error_state_indicator)
-            try:
-                self._writer.on_message_received(out)
-                self.stats.frames += 1
-            except (OSError, ValueError) as err:  # a full disk: count what is lost, keep the run
-                self.stats.error = f"{type(err).__name__}: {err}"
-                self.stats.dropped += 1
+        done = False
+        while not done:
+            # What is waiting, in time order: frames tapped on two threads may enqueue a
+            # few µs out of order (ASC rewrites a timestamp earlier than the last one).
+            batch = [self._q.get()]
+            while len(batch) < 4096 and not self._q.empty():
+                batch.append(self._q.get_nowait())
+            done = None in batch
+            for msg, t_ns, is_rx in sorted((x for x in batch if x is not None), key=lambda x: x[1]):
+                self._write(can, msg, t_ns, is_rx)
+
+    def _write(self, can: Any, msg: Any, t_ns: int, is_rx: bool) -> None:
+        if self.stats.error is not None:
+            self.stats.dropped += 1
+            return
+        out = can.Message(timestamp=(t_ns + self.offset_ns) / 1e9, arbitration_id=msg.arbitration_id,
+                          is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
+                          is_error_frame=msg.is_error_frame, channel=0, dlc=msg.dlc, data=bytes(msg.data),
+                          is_fd=msg.is_fd, is_rx=is_rx, bitrate_switch=msg.bitrate_switch,
+                          error_state_indicator=msg.error_state_indicator)
+        try:
+            self._writer.on_message_received(out)
+            self.stats.frames += 1
+        except (OSError, ValueError) as err:  # a full disk: count what is lost, keep the run
+            self.stats.error = f"{type(err).__name__}: {err}"
+            self.stats.dropped += 1
 
     def close(self) -> None:
         if self._closed:

@@ -112,9 +112,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from hil.harness.search.progress import CampaignProgress
     from hil.harness.search.shard import Shard, parse_shard
     from hil.harness.search.spec import load_spec
-    from hil.scenarios.gl import select_backend
-
     from hil.harness.report.ci_outputs import check_ci_args
+    from hil.scenarios.gl import select_backend
 
     check_ci_args(args)
     shard = parse_shard(args.shard) if args.shard is not None else Shard()
