@@ -7,6 +7,11 @@ so a message is stamped with its last frame), decodes DBC frames (``hil.adapters
 sends this side's heartbeat every 250 ms and watches the other side's. A sender thread
 runs ISO-TP transmissions (waiting for flow control), so a camera frame in flight never
 delays receive stamps. DBC frames are sent at once from the caller's thread.
+
+A ``tap`` sees every CAN frame this side sends or receives, with the side's own stamp
+(``tap(msg, t_ns, is_rx)``: a received frame's ``t_ns`` is its receive stamp, a sent
+one's the clock right after ``bus.send`` returned), for a bus log (the harness writes
+``run.blf``). It runs on the reader and sender threads: it must not block.
 """
 
 from __future__ import annotations
@@ -32,6 +37,9 @@ from hil.adapters.can_dbc import MESSAGE_MASK, VEHICLE_MASK, HilCan, Role
 from hil.adapters.messages import Bye, Heartbeat, Hello, Message, MsgType
 from hil.common.errors import ProtocolError, TransportError
 from hil.timing.clock import Clock
+
+#: Sees each frame sent or received: (the frame, its stamp on the side's clock in ns, received).
+CanTap = Callable[[can.Message, int, bool], None]
 
 HEARTBEAT_PERIOD_S = 0.25
 HEARTBEAT_TIMEOUT_S = 0.75  # three missed heartbeats
@@ -71,8 +79,9 @@ class CanPeer:
                  deliver: Callable[[Message | ProtocolError, int, int], None],
                  deliver_bytes: Callable[[bytes, int], None], on_error: Callable[[str], None],
                  on_silent: Callable[[str], None], on_fatal: Callable[[str], None],
-                 heartbeat_timeout_s: float, camera_over: str = "isotp") -> None:
+                 heartbeat_timeout_s: float, camera_over: str = "isotp", tap: CanTap | None = None) -> None:
         self.role, self.bus, self._owns_bus, self.clock = role, bus, owns_bus, clock
+        self._tap = tap
         self.vehicle_id = vehicle_id
         self.codec = HilCan(role=role, vehicle_id=vehicle_id)
         self.stats = CanStats()
@@ -165,6 +174,8 @@ class CanPeer:
                     self._stop.wait(_ENOBUFS_WAIT_S)
                 except (can.CanError, OSError) as err:
                     raise TransportError(f"CAN send failed: {err}") from err
+            if self._tap is not None:  # under the send lock: frames are tapped in the order they left
+                self._tap(msg, self.clock.now_ns(), False)
         self.stats.frames_sent += 1
 
     def _send_loop(self) -> None:
@@ -235,6 +246,8 @@ class CanPeer:
             now = self.clock.now_ns()
             try:
                 if msg is not None:
+                    if self._tap is not None:
+                        self._tap(msg, now, True)
                     self._on_frame(msg, now)
                 if self._heard_ns is not None and now - self._heard_ns > self._timeout_ns:
                     self._heard_ns = None
@@ -325,4 +338,4 @@ def _decode_small(buf: bytes) -> Message | None:
         return None
 
 
-__all__ = ["CanPeer", "CanStats", "HEARTBEAT_PERIOD_S", "HEARTBEAT_TIMEOUT_S", "ISOTP_MAX_MESSAGE"]
+__all__ = ["CanPeer", "CanStats", "CanTap", "HEARTBEAT_PERIOD_S", "HEARTBEAT_TIMEOUT_S", "ISOTP_MAX_MESSAGE"]

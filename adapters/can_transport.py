@@ -63,7 +63,7 @@ from hil.adapters import protocol
 from hil.adapters.can_capacity import CapacityReport, bus_capacity
 from hil.adapters.can_dbc import MAX_VEHICLE_ID, VEHICLE_MASK, Role
 from hil.adapters.can_interfaces import LOCAL_INTERFACES
-from hil.adapters.can_peer import HEARTBEAT_TIMEOUT_S, CanPeer, CanStats
+from hil.adapters.can_peer import HEARTBEAT_TIMEOUT_S, CanPeer, CanStats, CanTap
 from hil.adapters.link import Link, LinkStats, Received
 from hil.adapters.messages import Hello, Message
 from hil.adapters.sdk import serving
@@ -145,7 +145,8 @@ class CanHalf:
     """
 
     def __init__(self, *, vehicle_id: int, clock: Clock, interface: str, channel: str, bitrate: int,
-                 data_bitrate: int, fd: bool, camera_over: str, heartbeat_timeout_s: float) -> None:
+                 data_bitrate: int, fd: bool, camera_over: str, heartbeat_timeout_s: float,
+                 tap: CanTap | None = None) -> None:
         _check_options(interface=interface, vehicle_id=vehicle_id, bitrate=bitrate, data_bitrate=data_bitrate, fd=fd)
         if camera_over not in ("isotp", "none"):
             raise ConfigError(f"camera_over={camera_over!r}; expected 'isotp' (frames on this bus) or 'none' "
@@ -154,6 +155,7 @@ class CanHalf:
         self.interface, self.channel = interface, channel
         self.bitrate, self.data_bitrate, self.camera_over = bitrate, data_bitrate, camera_over
         self.heartbeat_timeout_s = heartbeat_timeout_s
+        self.tap = tap
         self._peer: CanPeer | None = None
         self._hello_seen = False
 
@@ -189,7 +191,8 @@ class CanHalf:
             self._peer = CanPeer(role=Role.HARNESS, bus=bus, owns_bus=True, vehicle_id=self.vehicle_id,
                                  clock=self.clock, deliver=deliver, deliver_bytes=deliver_bytes,
                                  on_error=count_error, on_silent=on_gone, on_fatal=on_gone,
-                                 heartbeat_timeout_s=self.heartbeat_timeout_s, camera_over=self.camera_over)
+                                 heartbeat_timeout_s=self.heartbeat_timeout_s, camera_over=self.camera_over,
+                                 tap=self.tap)
         except BaseException:
             bus.shutdown()
             raise
@@ -223,6 +226,8 @@ class CanLink(Link):
         camera_over: ``"isotp"`` (camera frames on this bus) or ``"none"`` (a mixed
             target takes frames over another transport).
         heartbeat_timeout_s: silence after which the target is gone.
+        tap: sees every frame sent and received with its stamp on ``clock``
+            (``hil.adapters.can_peer.CanTap``; the harness's bus log).
 
     Raises:
         ConfigError: an option is invalid (names it).
@@ -233,10 +238,11 @@ class CanLink(Link):
     def __init__(self, *, vehicle_id: int, clock: Clock, interface: str = "socketcan", channel: str = "vcan0",
                  bitrate: int = 500_000, data_bitrate: int = 2_000_000, fd: bool = True,
                  camera_over: str = "isotp", heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_S,
-                 rx_queue_size: int = 1024, rx_queue: queue.Queue[Received] | None = None) -> None:
+                 rx_queue_size: int = 1024, rx_queue: queue.Queue[Received] | None = None,
+                 tap: CanTap | None = None) -> None:
         self.can = CanHalf(vehicle_id=vehicle_id, clock=clock, interface=interface, channel=channel,
                            bitrate=bitrate, data_bitrate=data_bitrate, fd=fd, camera_over=camera_over,
-                           heartbeat_timeout_s=heartbeat_timeout_s)
+                           heartbeat_timeout_s=heartbeat_timeout_s, tap=tap)
         super().__init__(vehicle_id=vehicle_id, clock=clock, rx_queue_size=rx_queue_size, rx_queue=rx_queue)
 
     @property

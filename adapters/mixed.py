@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from hil.adapters import protocol
-from hil.adapters.can_peer import HEARTBEAT_TIMEOUT_S, CanStats
+from hil.adapters.can_peer import HEARTBEAT_TIMEOUT_S, CanStats, CanTap
 from hil.adapters.can_transport import CanHalf, check_interface
 from hil.adapters.can_transport import serve_endpoint as serve_can
 from hil.adapters.link import Link, Received
@@ -93,10 +93,10 @@ class MixedLink(Link):
                  key_prefix: str = "hil", multicast_scouting: bool = False, tls: Mapping[str, object] | None = None,
                  usrpwd: Mapping[str, str] | None = None, congestion_control: str = "block",
                  lease_ms: int = DEFAULT_LEASE_MS, shared_memory: bool | None = None, rx_queue_size: int = 1024,
-                 rx_queue: queue.Queue[Received] | None = None) -> None:
+                 rx_queue: queue.Queue[Received] | None = None, tap: CanTap | None = None) -> None:
         self.can = CanHalf(vehicle_id=vehicle_id, clock=clock, interface=interface, channel=channel,
                            bitrate=bitrate, data_bitrate=data_bitrate, fd=fd, camera_over="none",
-                           heartbeat_timeout_s=heartbeat_timeout_s)
+                           heartbeat_timeout_s=heartbeat_timeout_s, tap=tap)
         self.zenoh = ZenohHalf(vehicle_id=vehicle_id, connect=connect, listen=listen, mode=mode,
                                key_prefix=key_prefix, multicast_scouting=multicast_scouting, tls=tls,
                                usrpwd=usrpwd, congestion_control=congestion_control, lease_ms=lease_ms,

@@ -47,7 +47,7 @@ import argparse
 import hashlib
 import json
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -425,12 +425,33 @@ def split_digest(split_dir: Path) -> str:
     return h.hexdigest()
 
 
-def build_dataset(out_dir: Path, *, seed: int, n_train: int, n_val: int) -> dict[str, object]:
-    """Write the train and validation splits and ``meta.json``; returns the meta."""
+def _counted(frames: Iterator[Sample], *, total: int, first: int, log: Callable[[str], None]) -> Iterator[Sample]:
+    """``frames``, saying every tenth of ``total`` how many are rendered and the time left."""
+    import time
+
+    from hil.common.eta import time_left
+
+    t0, step = time.monotonic(), max(1, total // 10)
+    for i, s in enumerate(frames, first + 1):
+        yield s
+        if i % step == 0 or i == total:
+            dt = time.monotonic() - t0
+            log(f"dataset: {i} of {total} frames rendered ({dt:.0f} s, {time_left(i - first, total - first, dt)})")
+
+
+def build_dataset(out_dir: Path, *, seed: int, n_train: int, n_val: int,
+                  log: Callable[[str], None] | None = None) -> dict[str, object]:
+    """Write the train and validation splits and ``meta.json``; returns the meta.
+    ``log``: a line every tenth of the frames, with the time left."""
     out_dir.mkdir(parents=True, exist_ok=True)
     counts, digests = {}, {}
+    done = 0
     for k, (split, n) in enumerate(zip(SPLITS, (n_train, n_val))):
-        counts[split] = write_split(out_dir / split, generate(seed=seed, n_frames=n, split=k))
+        frames: Iterator[Sample] = generate(seed=seed, n_frames=n, split=k)
+        if log is not None:
+            frames = _counted(frames, total=n_train + n_val, first=done, log=log)
+        counts[split] = write_split(out_dir / split, frames)
+        done += n
         digests[split] = split_digest(out_dir / split)
     meta = {"seed": seed, "frames": counts, "sha256": digests, "lookahead_m": LOOKAHEAD_M,
             "composed_share": COMPOSED_SHARE,

@@ -44,6 +44,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from hil.common.eta import time_left
+
 EVAL_MIN_HEIGHT_PX = 16.0
 EVAL_MIN_VISIBLE = 0.3
 TRAIN_MIN_VISIBLE_PX = 4
@@ -186,7 +188,8 @@ def _loop(model: Any, n: int, batch_fn: Any, *, epochs: int, batch: int, lr: flo
             sched.step()
             total += float(loss.detach()) * len(idx)
         losses.append(total / n)
-        log(f"{name}: epoch {epoch + 1}/{epochs} loss {losses[-1]:.4f} ({time.perf_counter() - t0:.0f} s)")
+        dt = time.perf_counter() - t0
+        log(f"{name}: epoch {epoch + 1}/{epochs} loss {losses[-1]:.4f} ({dt:.0f} s, {time_left(epoch + 1, epochs, dt)})")
     model.eval()
     return losses
 
@@ -401,7 +404,7 @@ def train_all(out_dir: Path, *, seed: int = 0, data_dir: Path | None = None, thr
             meta = json.loads(meta_path.read_text())
         else:
             log(f"dataset: rendering {train_frames} + {val_frames} frames into {data_dir}")
-            meta = dataset.build_dataset(data_dir, seed=seed, n_train=train_frames, n_val=val_frames)
+            meta = dataset.build_dataset(data_dir, seed=seed, n_train=train_frames, n_val=val_frames, log=log)
         timings["dataset_s"] = time.perf_counter() - t
         t = time.perf_counter()
         train_data = prepare(dataset.read_split(data_dir / "train"))

@@ -349,6 +349,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--vehicle", type=int, default=0, help="vehicle id the target serves (default 0)")
     p.add_argument("--key-prefix", default="hil", help="zenoh key prefix (default hil)")
     p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for each answer (default 5)")
+    from hil.harness.report.ci_outputs import add_ci_args
+
+    add_ci_args(p)
 
 
 def cmd(args: argparse.Namespace) -> int:
@@ -362,7 +365,10 @@ def cmd(args: argparse.Namespace) -> int:
     if args.timeout <= 0 or not 0 <= args.vehicle <= 0xFFFF_FFFF:
         print("hil target-check: error: --timeout must be > 0 and --vehicle in 0..4294967295", file=sys.stderr)
         return EXIT_USAGE
+    from hil.harness.report.ci_outputs import CiCase, CiReport, check_ci_args, write_ci_outputs
+
     try:
+        check_ci_args(args)
         transport, options = parse_endpoint(args.endpoint, command, vehicle_id=args.vehicle,
                                             key_prefix=args.key_prefix)
         link = open_link(transport, vehicle_id=args.vehicle, clock=MonotonicClock(), **options)
@@ -371,7 +377,14 @@ def cmd(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     rows = run_checks(link, timeout_s=args.timeout)
     sys.stdout.write(format_table(rows))
-    return EXIT_PASS if all(r.ok for r in rows) else EXIT_FAIL
+    code = EXIT_PASS if all(r.ok for r in rows) else EXIT_FAIL
+    cases = [CiCase(r.name, r.ok, r.detail, {"section": f"PROTOCOL.md §{r.section}"}, group="protocol") for r in rows]
+    try:
+        write_ci_outputs(CiReport("target-check", args.endpoint, cases, code, {"endpoint": args.endpoint}), args)
+    except HilError as err:
+        print(f"hil target-check: error: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    return code
 
 
 def main(argv: list[str] | None = None) -> int:

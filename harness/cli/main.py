@@ -40,6 +40,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "anomaly (adds to the config's verdict.fail_on)")
     r.add_argument("--live", action="store_true",
                    help="serve the run live to Foxglove on ws://127.0.0.1:PORT (port printed; recording.live)")
+    from hil.harness.report.ci_outputs import add_ci_args
+
+    add_ci_args(r)
     sc = sub.add_parser("scenarios", help="list the scenarios with their parameters, ranges and defaults")
     sc.add_argument("name", nargs="?", default=None, help="show only this scenario")
     sc.add_argument("--json", action="store_true", help="machine-readable output")
@@ -218,9 +221,11 @@ def _cmd_scenarios(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     from hil.harness.cli.progress import Progress, final_table, make_console
     from hil.harness.config.model import load_config
+    from hil.harness.report.ci_outputs import check_ci_args, write_ci_outputs
     from hil.harness.run.driver import default_out_dir, execute, prepare_out_dir
     from hil.scenarios.gl import select_backend
 
+    check_ci_args(args)  # --junit / --json writable: checked before anything runs
     overrides = [*args.overrides, "recording.live=true"] if args.live else args.overrides
     cfg = load_config(args.config, overrides=overrides)
     if args.fail_on:
@@ -267,7 +272,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if errors:
         console.print(f"[red]{len(errors)} corner case(s) could not be written[/red] "
                       f"(summary.json corner_cases.errors): {errors[0]}", highlight=False)
-    return run_exit_code(s)
+    code = run_exit_code(s)
+    from hil.harness.report.ci_cases import of_run
+
+    write_ci_outputs(of_run(s, run_dir=result.out_dir, exit_code=code), args)
+    return code
 
 
 def print_verdict(console: Any, summary: dict[str, Any]) -> None:

@@ -148,13 +148,16 @@ class TargetConfig(BaseModel):
 class RecordingConfig(BaseModel):
     """The recorder: its bounded queue (items), whether images are stored, and
     whether the run is also served live to Foxglove (``hil run --live``: a WebSocket
-    server on 127.0.0.1, port printed; see harness/record/live.py)."""
+    server on 127.0.0.1, port printed; see harness/record/live.py); a CAN run's bus
+    traffic as ``run.blf`` or ``run.asc`` beside ``run.mcap`` (``can_log``; see
+    harness/record/can_log.py)."""
 
     model_config = _MODEL_CONFIG
 
     queue_size: Int = Field(4096, ge=16, le=1_000_000)
     images: bool = True
     live: bool = False
+    can_log: Literal["blf", "asc", "none"] = "blf"
 
 
 class TruthConfig(BaseModel):

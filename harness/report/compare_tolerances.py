@@ -19,6 +19,9 @@ Defaults (``--tolerances FILE.yaml`` sets any of these, flags win over the file)
     skip_stages: [apply_delay]        # not checked
     only_stages: [end_to_end]         # check these alone (same as --stage, repeatable)
 
+A stage name that is not one of ``summary.json``'s stages (``STAGES``), an unknown
+key or metric, is refused with the valid names: a typo must not switch a check off.
+
 A figure may grow by ``max(rel × baseline, abs)``. ``noise`` is the standard
 deviation of each figure between runs of the same build, ``sqrt((rel × value)² +
 abs²)``: the run-to-run variation that one pair of runs cannot show (the machine's
@@ -46,6 +49,7 @@ from typing import Any
 import yaml
 
 from hil.common.errors import ConfigError
+from hil.timing.records import STAGES
 
 LATENCY_METRICS = ("p1", "p50", "p99", "std")
 _DEFAULTS = {"p1": (0.10, 0.5), "p50": (0.10, 0.5), "p99": (0.20, 2.0), "std": (0.25, 1.0)}
@@ -116,10 +120,22 @@ def _tolerance(node: Any, base: Tolerance, where: str, source: str, *, abs_key: 
     return out
 
 
+def check_stage(name: str, where: str) -> str:
+    """``name`` when it is a stage of ``summary.json`` (``STAGES``).
+
+    Raises:
+        ConfigError: ``where`` (a flag or a key path) names an unknown stage; the
+            message lists the valid ones. A typo must not switch a check off.
+    """
+    if name not in STAGES:
+        raise ConfigError(f"{where}: unknown stage {name!r} (valid: {', '.join(STAGES)})")
+    return name
+
+
 def _stage_list(v: Any, where: str, source: str) -> tuple[str, ...]:
     if not isinstance(v, list) or not all(isinstance(s, str) for s in v):
         raise ConfigError(f"{source}: tolerances error at {where}: got {v!r}; expected a list of stage names")
-    return tuple(v)
+    return tuple(check_stage(s, f"{source}: tolerances error at {where}") for s in v)
 
 
 def _noise(node: Any, base: Mapping[str, Tolerance], source: str, where: str = "noise") -> dict[str, Tolerance]:
@@ -170,6 +186,7 @@ def parse_tolerances(data: Any, *, source: str = "<tolerances>", base: Tolerance
             stages = {k: dict(v) for k, v in tol.stages.items()}
             stage_noise = {k: dict(v) for k, v in tol.stage_noise.items()}
             for stage, per in node.items():
+                check_stage(str(stage), f"{source}: tolerances error at stages")
                 if not isinstance(per, dict):
                     raise ConfigError(f"{source}: tolerances error at stages.{stage}: got {per!r}; expected a "
                                       "mapping of p1/p50/p99/std to {rel, abs_ms}, and noise")
@@ -246,9 +263,9 @@ def tolerances_from_args(args: argparse.Namespace) -> Tolerances:
             raise ConfigError(f"--drop-rate-abs: got {args.drop_rate_abs:g}; expected a number >= 0")
         tol = dataclasses.replace(tol, drop_rate=Tolerance(tol.drop_rate.rel, args.drop_rate_abs))
     if args.stage:
-        tol = dataclasses.replace(tol, only_stages=tuple(args.stage))
+        tol = dataclasses.replace(tol, only_stages=tuple(check_stage(s, "--stage") for s in args.stage))
     return tol
 
 
 __all__ = ["LATENCY_METRICS", "RUN_NOISE", "STAGE_NOISE", "Tolerance", "Tolerances", "add_tolerance_args",
-           "load_tolerances", "parse_tolerances", "tolerances_from_args"]
+           "check_stage", "load_tolerances", "parse_tolerances", "tolerances_from_args"]

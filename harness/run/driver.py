@@ -240,8 +240,9 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     from hil.harness.cases.recorder import CaseRecorder
     from hil.harness.config.model import LatencyKind
     from hil.harness.engine.pool import Engine, auto_workers
+    from hil.harness.record.can_log import open_can_log
     from hil.harness.record.channels import register_all, sync_sample_json
-    from hil.harness.record.recorder import Recorder
+    from hil.harness.record.recorder import Recorder, TimeAnchor
     from hil.harness.report.run_report import write_report
     from hil.harness.run.latency import LatencyProfile
     from hil.harness.run.loop import SimLoop, encode_image, engine_specs
@@ -281,6 +282,9 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
         procs: list[Any] = []  # TargetProcess, or a shared target's handle (anything with close())
         engine: Engine | None = None
         reserve: Path | None = None
+        # One wall-clock anchor for run.mcap's log_time and the CAN log's timestamps.
+        anchor = TimeAnchor.capture()
+        can_log = open_can_log(cfg, out_dir, offset_ns=anchor.offset_ns, now_ns=clock.now_ns())
         try:
             # Physics and render processes start first: their start-up (MuJoCo, EGL,
             # shaders) overlaps the targets'.
@@ -289,7 +293,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                             workers=cfg.engine.render_workers or auto_workers(len(sim.egos)))
             for i, name in enumerate(sim.egos):
                 link, proc = make_link(cfg, vehicle_id=i, vehicle=name, clock=clock, out_dir=out_dir, rx=rx,
-                                       session=meta["session"])
+                                       session=meta["session"], can_tap=None if can_log is None else can_log.tap)
                 if proc is not None:
                     procs.append(proc)
                 vehicles.append(VehicleRun(name, i, link))
@@ -310,7 +314,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 cc = cfg.corner_cases
                 rec = CaseRecorder(main_rec, out_dir, run_meta=meta, history_s=cc.history_s, after_s=cc.after_s,
                                    trigger_kinds=set(cc.on_anomalies)) if cc.enabled else main_rec
-                register_all(rec, [v.name for v in vehicles])
+                register_all(rec, [v.name for v in vehicles], anchor=anchor)
                 # The run's one event bus: recorded on /events first, then the corner cases.
                 bus = EventBus.recording_to(rec)
                 if isinstance(rec, CaseRecorder):
@@ -345,6 +349,8 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                         restore()
                 for v in vehicles:
                     v.link.close()
+                if can_log is not None:
+                    can_log.close()
                 loop.collect_sync()  # answers that arrived while closing
                 timing.finish()
                 if detector is not None:
@@ -359,6 +365,8 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 if isinstance(rec, CaseRecorder):
                     summary["corner_cases"] = {"written": rec.cases_written, "errors": list(rec.errors),
                                                "triggers_dropped": rec.triggers_dropped}
+                if can_log is not None:
+                    summary["can_log"] = can_log.summary(out_dir)
                 vc = cfg.verdict
                 summary["verdict"] = verdict_json(summary, fail_on=parse_fail_on(vc.fail_on),
                                                   deadline_miss_fraction=vc.deadline_miss_fraction,
@@ -385,6 +393,8 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
         finally:
             for v in vehicles:
                 v.link.close()
+            if can_log is not None:
+                can_log.close()
             for p in procs:
                 p.close()
             if engine is not None:

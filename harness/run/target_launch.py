@@ -7,7 +7,9 @@ from __future__ import annotations
 import os
 import queue
 import subprocess
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from hil.adapters.link import Link, Received, open_link
 from hil.adapters.process import die_with_parent, end_process
@@ -69,10 +71,12 @@ class TargetProcess:
 
 
 def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, out_dir: Path,
-              rx: queue.Queue[Received], session: str | None = None) -> tuple[Link, TargetProcess | None]:
+              rx: queue.Queue[Received], session: str | None = None,
+              can_tap: Callable[[Any, int, bool], None] | None = None) -> tuple[Link, TargetProcess | None]:
     """Build (not open) the link of one vehicle, starting its local target process
     first where a network transport has a ``command``. A ``mixed`` target takes
-    frames over ``target.zenoh`` and answers over ``target.can``.
+    frames over ``target.zenoh`` and answers over ``target.can``; ``can_tap`` sees
+    every CAN frame of a ``can`` or ``mixed`` link (the run's bus log).
 
     Raises:
         TargetError: the command cannot be started.
@@ -102,11 +106,11 @@ def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, ou
             link = open_link("tcp", vehicle_id=vehicle_id, clock=clock, rx_queue=rx, kernel_stamps=tc.kernel_stamps,
                              **{tc.mode.value: substitute(tc.address, vehicle_id=vehicle_id, base_port=tc.base_port)})
         elif t.transport == Transport.MIXED:  # frames over target.zenoh, the rest over target.can
-            link = open_link("mixed", vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
+            link = open_link("mixed", vehicle_id=vehicle_id, clock=clock, rx_queue=rx, tap=can_tap,
                              **zenoh_options(cfg, vehicle_id, session), **can_options(cfg, vehicle_id))
         else:
             link = open_link("can", vehicle_id=vehicle_id, clock=clock, camera_over=t.can.camera_over, rx_queue=rx,
-                             **can_options(cfg, vehicle_id))
+                             tap=can_tap, **can_options(cfg, vehicle_id))
     except BaseException:
         if proc is not None:
             proc.close()

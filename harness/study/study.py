@@ -96,10 +96,16 @@ def add_parser(sub: Any) -> None:
                    help="distributed: impair the veth pair with the kernel's tc netem, both directions, e.g. "
                         "'delay 20ms 2ms loss 1%%' (kernels without sch_netem: the points are skipped with the "
                         "reason; target.impair works on any kernel)")
+    from hil.harness.report.ci_outputs import add_ci_args
+
+    add_ci_args(p)
 
 
 def cmd(args: argparse.Namespace) -> int:
     """Run the study. Raises ConfigError (exit 2, one line) for bad input, before any run."""
+    from hil.harness.report.ci_outputs import check_ci_args, write_ci_outputs
+
+    check_ci_args(args)
     placements = [Placement(p) for p in dict.fromkeys(args.placement)]
     vehicles = sorted(set(args.vehicles))
     if vehicles[0] < 1 or vehicles[-1] > 16:
@@ -116,22 +122,31 @@ def cmd(args: argparse.Namespace) -> int:
     (out / "points").mkdir(exist_ok=True)
     results: list[PointResult] = []
     t_start = time.monotonic()
-    for pl in placements:
-        pts = [pt for pt in points if pt.placement is pl]
-        with _placement_host(pl, netem=args.netem) as (ns, why):
-            for pt in pts:
-                if why is not None:
-                    results.append(PointResult(pt, "skipped", why))
-                    print(f"study: {pt.name}: skipped ({why})", flush=True)
-                    continue
-                results.append(_run_point(args, pt, ns=ns, out=out))
+    from hil.harness.cli.progress import WorkProgress, make_console
+
+    # Points cost about their simulated time: the time left is estimated from the pace so far.
+    with WorkProgress(make_console(), what="study", total=len(points), unit="points", live=False) as progress:
+        for pl in placements:
+            pts = [pt for pt in points if pt.placement is pl]
+            with _placement_host(pl, netem=args.netem) as (ns, why):
+                for pt in pts:
+                    if why is not None:
+                        results.append(PointResult(pt, "skipped", why))
+                        print(f"study: {pt.name}: skipped ({why})", flush=True)
+                    else:
+                        results.append(_run_point(args, pt, ns=ns, out=out))
+                    progress.advance(note=pt.name)
     study_wall_s = time.monotonic() - t_start
     from hil.harness.study.report import write_study
 
     report = write_study(out, results, config=str(args.config), floor_fps=args.floor_fps,
                          study_wall_s=study_wall_s, loadavg=_loadavg())
     print(f"study: {report}", flush=True)
-    return 0 if all(r.status == "ok" for r in results) else 1
+    code = 0 if all(r.status == "ok" for r in results) else 1
+    from hil.harness.report.ci_cases import of_study
+
+    write_ci_outputs(of_study(results, out=out, exit_code=code, wall_s=study_wall_s), args)
+    return code
 
 
 def _load(config: str, overrides: Sequence[str]) -> Any:
