@@ -23,7 +23,6 @@ from hil.harness.config.model import parse_config
 from hil.harness.record.recorder import Recorder
 from hil.harness.record.run_folder import RecordedEvent, read_run
 from hil.harness.report import plots as rp
-from hil.harness.report import timeseries
 from hil.harness.report.run_report import build_report, write_report
 from hil.harness.run.driver import execute, prepare_out_dir
 from tests.conftest import GL_BACKEND
@@ -312,7 +311,9 @@ def test_frame_rate_is_counted_in_whole_frame_periods(paced_run: Path) -> None:
     floor = [float(ln.get("y1")) for ln in svg.iter("line") if (ln.findtext("title") or "").startswith("frame-rate")]
     assert floor == [pytest.approx(sent[0], abs=0.1)]  # the rate sits on the 10/s floor, as it truly does
     assert _texts_inside(svg) == []
-    rates = timeseries.rate_bins(np.array([k / 10 + 0.02 * (-1) ** k for k in range(60)]), start_s=-0.05,
+    from hil.harness.report.timeseries import rate_bins
+
+    rates = rate_bins(np.array([k / 10 + 0.02 * (-1) ** k for k in range(60)]), start_s=-0.05,
                                  period_s=0.1, frames=3, end_s=5.9)[1]
     assert set(rates.round(9)) == {10.0}
 
