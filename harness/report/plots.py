@@ -97,13 +97,16 @@ def log_ticks(lo: float, hi: float) -> list[float]:
 
 @dataclass(frozen=True)
 class Series:
-    """A line (``style="line"``) or dots (``"points"``); NaN in ``ys`` breaks a line."""
+    """A line (``style="line"``) or dots (``"points"``); NaN in ``ys`` breaks a line.
+    ``width``: the line's stroke (px); a wider line drawn first stays visible under a
+    narrower one on the same values."""
 
     label: str
     xs: Sequence[float] | np.ndarray
     ys: Sequence[float] | np.ndarray
     colour: str
     style: str = "line"
+    width: float = 1.4
 
 
 @dataclass(frozen=True)
@@ -234,7 +237,8 @@ def _header(title: str, keys: Sequence[tuple[str, str, bool]], *, x0: float, x1:
     return body, 8 + (row + 1) * _ROW_H
 
 
-def _y_range(data: np.ndarray, rules: Sequence[Rule], *, y_zero: bool) -> tuple[float, float]:
+def _y_range(data: np.ndarray, rules: Sequence[Rule], *, y_zero: bool,
+             headroom: float = 0.05) -> tuple[float, float]:
     """The y axis: the data's range (with 0 when ``y_zero``), widened for stretching
     rules only as far as the data keeps :data:`DATA_SHARE` of the height."""
     if data.size == 0:
@@ -248,7 +252,7 @@ def _y_range(data: np.ndarray, rules: Sequence[Rule], *, y_zero: bool) -> tuple[
         if span / (new_hi - new_lo) >= DATA_SHARE - 1e-9:
             lo, hi = new_lo, new_hi
     pad = (hi - lo) * 0.05 or 1.0
-    return (lo - pad if (not y_zero or lo < 0) else lo), hi + pad
+    return (lo - pad if (not y_zero or lo < 0) else lo), hi + ((hi - lo) * headroom or pad)
 
 
 def _integers(ticks: list[float], lo: float, hi: float) -> list[float]:
@@ -262,7 +266,7 @@ def line_chart(*, series: Sequence[Series], bands: Sequence[Band] = (), strips: 
                rules: Sequence[Rule] = (), x_label: str, y_label: str, width: int = 1000, height: int = 220,
                y_zero: bool = True, title: str = "", left: int = 0,
                x_range: tuple[float, float] | None = None, x_ticks: Sequence[float] | None = None,
-               y_integer: bool = False) -> str:
+               y_integer: bool = False, headroom: float = 0.05) -> str:
     """Lines and dots over a shared x axis, optional shaded bands, horizontal rules
     (deadlines, thresholds), and event strips under the axis (one row each).
     The y axis is scaled to the data (see :class:`Rule`); the title and a legend of
@@ -272,7 +276,8 @@ def line_chart(*, series: Sequence[Series], bands: Sequence[Band] = (), strips: 
     left margin (px), so charts drawn with the same value line up; ``x_range``: the x
     axis span (charts of several vehicles on one time axis); ``x_ticks``: the x tick
     values (e.g. the numbers of vehicles a study ran), instead of round ones;
-    ``y_integer``: y ticks at whole numbers only (counts)."""
+    ``y_integer``: y ticks at whole numbers only (counts); ``headroom``: the share of the
+    y span left free above the highest value."""
     left = max(64, left, strip_margin(strips))
     right, bottom = 14, 40
     strip_h = 14 * len(strips) + (6 if strips else 0)
@@ -291,7 +296,7 @@ def line_chart(*, series: Sequence[Series], bands: Sequence[Band] = (), strips: 
     x_lo, x_hi = float(xcat.min()), float(xcat.max())
     if 0 < x_lo < 0.02 * (x_hi - x_lo):  # a time axis that starts a hair after zero: show 0
         x_lo = 0.0
-    y_lo, y_hi = _y_range(ycat, rules, y_zero=y_zero)
+    y_lo, y_hi = _y_range(ycat, rules, y_zero=y_zero, headroom=headroom)
     pw = width - left - right
     shown = [r for r in rules if y_lo <= r.y <= y_hi]
     keys = [(s.label, s.colour, False) for s in series] + [(b.label, b.colour, False) for b in bands]
@@ -337,7 +342,7 @@ def line_chart(*, series: Sequence[Series], bands: Sequence[Band] = (), strips: 
             body.append(f'<path d="{d}" stroke="{s.colour}" stroke-width="3" stroke-linecap="round" '
                         f'fill="none"><title>{escape(s.label)}</title></path>')
         else:
-            body.append(f'<path d="{d}" stroke="{s.colour}" stroke-width="1.4" fill="none" '
+            body.append(f'<path d="{d}" stroke="{s.colour}" stroke-width="{s.width:g}" fill="none" '
                         f'stroke-linejoin="round"><title>{escape(s.label)}</title></path>')
     body += head
     y0 = top + ph + 42

@@ -132,7 +132,7 @@ def fps_section(d: RunData) -> str:
         k = frames_per_bin(period, float(sent.max() - sent.min()))
         start = float(sent.min()) - period / 2
         xs, ys = rate_bins(sent, start_s=start, period_s=period, frames=k, end_s=float(sent.max()))
-        series = [rp.Series("frames sent/s", xs, ys, "#4c78a8")]
+        series = [rp.Series("frames sent/s", xs, ys, "#4c78a8", width=4.0)]
         if applied.size:
             lag = float(np.median([(r["t_apply_ns"] - r["t0_ns"]) / 1e9 for r in ok]))
             xa, ya = rate_bins(applied, start_s=start + lag, period_s=period, frames=k,
@@ -143,7 +143,7 @@ def fps_section(d: RunData) -> str:
         out.append(rp.line_chart(series=series, rules=rules, x_label="time since first frame (s)",
                                  y_label="per second",
                                  title=f"{vehicle} (bins of {k} frame period{'s' if k != 1 else ''}, "
-                                       f"{k * period:.3g} s)", height=200,
+                                       f"{k * period:.3g} s)", height=200, headroom=0.25,
                                  left=fleet.chart_left(d, strips), x_range=time_span(d)))
     return "".join(out)
 
