@@ -11,15 +11,18 @@ nothing from anywhere. Sections:
   box plots and histograms;
 * end-to-end latency over time per vehicle, with every ``/events`` kind marked
   under it (coloured by ``severity`` when the event has one);
-* frames sent and estimates applied per second over time;
+* frames sent and estimates applied per second over time, in bins of whole camera
+  periods (these three: :mod:`hil.harness.report.timeseries`);
 * the target clock's offset and its uncertainty over time (``/V/clock`` when the run
-  has it, else the raw ``/V/clock_sync`` samples: uncertainty = round trip / 2);
-* the events, counted and listed;
+  has it, else the raw ``/V/clock_sync`` samples: uncertainty = round trip / 2), and
+  its skew ± bound;
+* the events, counted and listed in words (:mod:`hil.harness.record.event_text`);
 * corner cases from ``RUN/corner_cases.sqlite`` (table ``cases``), each with the
   camera frame nearest to its simulated time.
 
 A truncated ``run.mcap`` (a killed run) is reported from its complete chunks, with a
-note saying so. :func:`write_report` is what ``hil.harness.run.driver`` calls after a run.
+note saying so, and what ran from ``RUN/config.json``. A page written elsewhere
+(``--out``) links the run's files relative to its own folder. :func:`write_report` is what ``hil.harness.run.driver`` calls after a run.
 
 Raises: :class:`hil.common.errors.ConfigError` (one line, exit 2 from the CLI) for a
 path that is not a run, a foreign ``summary.json`` or ``run.mcap``, or a report
@@ -90,11 +93,15 @@ def _notes(d: RunData) -> list[str]:
     return [f'<div class="note {c}">{escape(t)}</div>' for c, t in notes]
 
 
-def _recorder_text(rec: dict[str, Any]) -> str:
+def _recorder_text(rec: dict[str, Any], in_file: int | None) -> str:
     """The recorder's counters in words: every message written (the Foxglove views among
-    them), drops, bytes."""
+    them), drops, bytes; ``in_file``: the messages of the complete ``run.mcap``, when
+    they differ (a harness before the count included the views)."""
     if "written" not in rec:
         return ", ".join(f"{k} {v}" for k, v in rec.items()) or "–"
+    if "derived" not in rec and in_file is not None and in_file != rec["written"]:
+        return (f"{rec['written']} messages counted, {rec.get('dropped', '?')} dropped; run.mcap holds {in_file}: "
+                "the harness that wrote it did not count the Foxglove views derived from the hil channels")
     parts = [f"{rec['written']} messages written"
              + (f" ({rec['derived']} of them Foxglove views derived from the hil channels)" if rec.get("derived")
                 else "")]
@@ -151,7 +158,8 @@ def _run_section(d: RunData) -> str:
                 f"loop thread {cost.get('loop_thread_us_per_frame')} µs, analysis thread "
                 f"{cost.get('analysis_thread_us_per_frame')} µs (CPU), analysis tasks dropped "
                 f"{cost.get('analysis_tasks_dropped')}")))
-        rows.append(("recorder", escape(_recorder_text(s.get("recorder") or {}))))
+        rows.append(("recorder", escape(_recorder_text(s.get("recorder") or {},
+                                                       None if d.truncated or not d.mcap_present else d.messages))))
         rows.append(("collisions", str(len(s.get("collisions") or []))))
     rows.append(("run.mcap", f"{d.mcap_bytes / 1e6:.2f} MB, {d.messages} messages"
                              + (' <span class="nok">(truncated)</span>' if d.truncated else "")))

@@ -388,7 +388,7 @@ def test_report_written_elsewhere_keeps_its_links(run_dir: Path, tmp_path: Path)
         assert (out.parent / h).resolve() == (run_dir / "corner_cases" / "case-1.mcap").resolve(), h
 
 
-def test_recorder_count_agrees_with_the_file_and_the_report(run_dir: Path) -> None:
+def test_recorder_count_agrees_with_the_file_and_the_report(run_dir: Path, tmp_path: Path) -> None:
     from mcap.reader import make_reader
 
     summary = json.loads((run_dir / "summary.json").read_text())
@@ -399,6 +399,15 @@ def test_recorder_count_agrees_with_the_file_and_the_report(run_dir: Path) -> No
     html = write_report(run_dir).read_text()
     assert f"{in_file} messages written ({rec['derived']} of them Foxglove views" in html
     assert f"{in_file} messages" in re.search(r"<tr><th>run.mcap</th><td>(.*?)</td>", html).group(1)
+    # a summary of an older harness, which left the derived views out, is not shown as if it agreed
+    old = tmp_path / "old"
+    old.mkdir()
+    shutil.copy(run_dir / "run.mcap", old / "run.mcap")
+    summary["recorder"] = {"written": in_file - rec["derived"], "dropped": 0}
+    (old / "summary.json").write_text(json.dumps(summary))
+    html = write_report(old).read_text()
+    assert (f"{in_file - rec['derived']} messages counted, 0 dropped; run.mcap holds {in_file}: the harness that "
+            "wrote it did not count the Foxglove views") in html
 
 
 # --- as a person sees it: headless Chromium -------------------------------------------
