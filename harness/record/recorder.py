@@ -123,8 +123,11 @@ _RAW_ENCODINGS = ("rgb8", "bgr8")
 class RecorderStats:
     """Counters of one recorder (messages unless named otherwise).
 
+    ``written`` is every message in the file, the ``derived`` ones (written on the
+    writer thread by :meth:`Recorder.add_derivation`, e.g. the Foxglove views)
+    included: it equals the MCAP statistics record's ``message_count``.
     ``enqueued + dropped`` is every write attempt; once closed (and barring a write
-    failure, which also counts in ``errors``), ``written + errors == enqueued``.
+    failure, which also counts in ``errors``), ``written - derived + errors == enqueued``.
     """
 
     enqueued: int
@@ -134,6 +137,7 @@ class RecorderStats:
     bytes_written: int
     max_queue_depth: int
     first_error: str | None
+    derived: int = 0
 
 
 @dataclass(frozen=True)
@@ -535,6 +539,7 @@ class Recorder:
                 bytes_written=self._sink.position,
                 max_queue_depth=self._max_depth,
                 first_error=self._first_error,
+                derived=self._derived,
             )
 
     def flush(self, *, timeout_s: float = 30.0) -> bool:
@@ -702,7 +707,7 @@ class Recorder:
                 width, height, encoding.encode(), 3 * width)
             data = _image_json(pub_ns + self._offset_ns, c, fields, a)
         self._add(topic, data, log_ns, pub_ns, seq)
-        self._written += 1  # only this thread writes it; stats reads an int
+        self._written += 1  # only this thread writes it (derived ones too); stats reads an int
         if op is _Op.JSON and topic in self._derivations:
             self._derive(topic, a, log_ns - self._offset_ns, pub_ns)
 
@@ -724,6 +729,7 @@ class Recorder:
                 except ValueError:
                     data = self._encoder.encode(_finite(d_obj)).encode()
                 self._add(d_topic, data, d_log + self._offset_ns, d_pub, seq)
+                self._written += 1  # every message in the file: the statistics record's count
                 with self._lock:
                     self._derived += 1
 

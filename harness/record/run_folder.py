@@ -33,6 +33,7 @@ from hil.timing.records import FrameStatus, PipelineRecord
 
 SUMMARY_NAME = "summary.json"
 MCAP_NAME = "run.mcap"
+CONFIG_NAME = "config.json"
 CORNER_DB_NAME = "corner_cases.sqlite"
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 _VEHICLE_TOPIC = re.compile(r"^/(?P<vehicle>[^/]+)/(?P<what>pipeline|camera|clock_sync|clock)$")
@@ -122,12 +123,14 @@ class RecordedEvent:
 class ClockPoint:
     """One clock-mapping sample of a vehicle's target clock: ``offset_ns`` (target −
     harness), ``uncertainty_ns`` (half the round trip, or the estimator's own),
-    ``skew_ppm`` when the source gives one. ``t_ns``: harness time of the sample."""
+    ``skew_ppm`` and its bound ``skew_uncertainty_ppm`` when the source gives them.
+    ``t_ns``: harness time of the sample."""
 
     t_ns: int
     offset_ns: float
     uncertainty_ns: float
     skew_ppm: float | None
+    skew_uncertainty_ppm: float | None = None
 
 
 @dataclass
@@ -293,11 +296,11 @@ def read_run(path: str | os.PathLike[str]) -> RunData:
         if what == "clock_sync" and _num(d, "offset_ns") and _num(d, "delay_ns"):
             sync[vehicle].append(ClockPoint(msg.log_time, float(d["offset_ns"]), d["delay_ns"] / 2, None))
         elif what == "clock" and _num(d, "offset_ns"):
-            unc = d.get("uncertainty_ns")
-            skew = d.get("skew_ppm")
             clock[vehicle].append(ClockPoint(msg.log_time, float(d["offset_ns"]),
-                                             float(unc) if isinstance(unc, (int, float)) else 0.0,
-                                             float(skew) if isinstance(skew, (int, float)) else None))
+                                             float(d["uncertainty_ns"]) if _num(d, "uncertainty_ns") else 0.0,
+                                             float(d["skew_ppm"]) if _num(d, "skew_ppm") else None,
+                                             float(d["skew_uncertainty_ppm"]) if _num(d, "skew_uncertainty_ppm")
+                                             else None))
     off = offset or 0
     if off:
         first = None if first is None else first - off
@@ -321,7 +324,32 @@ def read_run(path: str | os.PathLike[str]) -> RunData:
             data.clock[v], data.clock_source[v] = sync[v], f"/{v}/clock_sync"
     if not data.truncated:
         data.meta = _metadata(mcap_path)
+    if not data.meta:
+        data.meta = meta_from_config(run_dir)
     return data
+
+
+def meta_from_config(run_dir: Path) -> dict[str, Any]:
+    """What ran, from ``RUN/config.json`` (written before the run starts, so a killed
+    run has it while its ``run.mcap`` has no metadata): ``name``, ``scenario``,
+    ``scenario_params`` (as configured, defaults not filled in), ``seed`` and
+    ``config_hash`` (the digest ``hil run`` records: sha256 of the canonical JSON),
+    with ``meta_source`` naming the file. Empty when it is missing or not a config."""
+    import hashlib
+
+    try:
+        cfg = json.loads((run_dir / CONFIG_NAME).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(cfg, dict):
+        return {}
+    scenario = cfg.get("scenario")
+    if not isinstance(scenario, dict):
+        scenario = {}
+    out = {"name": cfg.get("name"), "scenario": scenario.get("name"), "scenario_params": scenario.get("params"),
+           "seed": cfg.get("seed"),
+           "config_hash": hashlib.sha256(json.dumps(cfg, sort_keys=True, separators=(",", ":")).encode()).hexdigest()}
+    return {**{k: v for k, v in out.items() if v is not None}, "meta_source": CONFIG_NAME}
 
 
 def camera_images(mcap_path: Path, wanted: Iterable[tuple[str, int]]) -> dict[tuple[str, int], tuple[str, str]]:
@@ -403,5 +431,5 @@ def _num(d: dict[str, Any], key: str) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
-__all__ = ["ClockPoint", "RecordedEvent", "RunData", "camera_images", "is_finalized_mcap", "load_summary",
-           "pipeline_record", "read_run", "run_dir_of", "summary_path_of"]
+__all__ = ["CONFIG_NAME", "ClockPoint", "RecordedEvent", "RunData", "camera_images", "is_finalized_mcap",
+           "load_summary", "meta_from_config", "pipeline_record", "read_run", "run_dir_of", "summary_path_of"]

@@ -379,7 +379,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 summary["recorder_error"] = guard.error
                 if summary.get("ended_by") == "duration":
                     summary["ended_by"] = f"the recording failed: {guard.error}"
-            summary["recorder"] = {"written": final.written, "dropped": final.dropped,
+            summary["recorder"] = {"written": final.written, "derived": final.derived, "dropped": final.dropped,
                                    "enqueued": final.enqueued, "bytes_written": final.bytes_written}
             if isinstance(rec, CaseRecorder) and rec.cases_written:
                 # Windows are cut from the finalized run.mcap, after the run (nothing

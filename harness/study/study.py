@@ -2,10 +2,10 @@
 
 Sweeps the number of vehicles (and camera fps) of a multi-vehicle configuration, in
 one or both placements, runs each point as a short ``hil run`` of its own, and writes
-a study folder (``harness/study/report.py``): ``report.md`` opening with a reading of
-the results, ``results.csv``/``results.json``, and SVG plots like the paper's figures
-7-13 (total and per-vehicle frames/s with the 10 fps floor, end-to-end and inference
-latency p50/p99/std vs N, real-time health vs N)::
+a study folder (``harness/study/report.py``): ``report.md`` and ``report.html``
+opening with a reading of the results, ``results.csv``/``results.json``, and six SVG
+charts against N (total and per-vehicle frames/s with the 10 fps floor, end-to-end
+and inference latency p50/p99/std, physics-step lateness, late physics steps)::
 
     hil study hil_configs/study.yaml --vehicles 1 2 4 8 --placement replicated distributed
 
@@ -77,8 +77,8 @@ class PointResult:
 def add_parser(sub: Any) -> None:
     p = sub.add_parser("study", help="sweep the number of vehicles (and fps) and write a study report",
                        description="Sweep N vehicles (and camera fps) in replicated and/or distributed "
-                                   "placement; each point is a short run; writes report.md, results.csv/json "
-                                   "and plots like the paper's figures 7-13.")
+                                   "placement; each point is a short run; writes report.md, report.html, "
+                                   "results.csv/json and SVG charts against N.")
     p.add_argument("config", help="a multi-vehicle hil_configs/*.yaml (e.g. hil_configs/study.yaml)")
     p.add_argument("--vehicles", type=int, nargs="+", default=[1, 2, 4, 8], metavar="N",
                    help="numbers of vehicles to run (default 1 2 4 8)")
@@ -141,7 +141,7 @@ def cmd(args: argparse.Namespace) -> int:
 
     report = write_study(out, results, config=str(args.config), floor_fps=args.floor_fps,
                          study_wall_s=study_wall_s, loadavg=_loadavg())
-    print(f"study: {report}", flush=True)
+    print(f"study: {report} ({report.with_suffix('.html').name} beside it)", flush=True)
     code = 0 if all(r.status == "ok" for r in results) else 1
     from hil.harness.report.ci_cases import of_study
 
