@@ -26,7 +26,7 @@ from hil.common.errors import ConfigError, TransportError
 try:
     from cyclonedds._clayer import ddspy_take, ddspy_write
     from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsParticipant, BuiltinTopicDcpsPublication
-    from cyclonedds.core import DDSException, InstanceState, Policy, Qos, ReadCondition, SampleState, ViewState
+    from cyclonedds.core import DDSException, Policy, Qos
     from cyclonedds.domain import Domain, DomainParticipant
     from cyclonedds.idl import IdlStruct
     from cyclonedds.pub import DataWriter
@@ -114,7 +114,6 @@ class Participant:
             self.dp = DomainParticipant(domain_id, qos=Qos(Policy.EntityName(name)))
             self._pubs = BuiltinDataReader(self.dp, BuiltinTopicDcpsPublication)
             self._parts = BuiltinDataReader(self.dp, BuiltinTopicDcpsParticipant)
-            self._alive = ReadCondition(self._pubs, ViewState.Any | SampleState.Any | InstanceState.Alive)
         except DDSException as err:
             _DOMAINS.release(domain_id)
             raise TransportError(f"Cyclone DDS refused a participant on domain {domain_id}: {err}") from err
@@ -146,11 +145,11 @@ class Participant:
             raise TransportError(f"Cyclone DDS refused a reader on {ros_topic!r}: {err}") from err
 
     def writers(self) -> list[WriterInfo]:
-        """Every remote and local writer discovered so far (not those of this participant)."""
+        """Every writer discovered so far, gone ones included (not this participant's)."""
         self._learn_participants()
         own = str(self.dp.guid)
         out = []
-        for s in self._pubs.read(N=4096, condition=self._alive):
+        for s in self._pubs.read(N=4096):
             if str(s.participant_key) == own:
                 continue
             part = str(s.participant_key)

@@ -233,7 +233,10 @@ class Ros2Link(Link):
                 return
 
     def _check_types(self) -> None:
-        """A writer on one of our topics with another type: named once, counted."""
+        """A writer on one of our topics with another type: named once, counted. Only
+        writers discovered after this link opened are seen (Cyclone 11.0.1 gives a
+        new discovery reader no history of remote writers); one already running is
+        missed, and the HELLO timeout still names the type the harness expects."""
         assert self._dds is not None
         ours = {dds_topic(self.topics[k]): dds_name(self.reply_type(k)) for k in self._r}
         for w in self._dds.writers():
