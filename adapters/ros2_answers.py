@@ -36,8 +36,9 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 
 from hil.adapters.messages import Control, DetectedObject, DrivingState, Estimate, ObjectClass
-from hil.adapters.ros2_msgs import (AckermannDrive, BoundingBox2D, Detection2D, Detection2DArray, Header, ObjectHypothesis,
-                                    ObjectHypothesisWithPose, Point, Point2D, Pose, Pose2D, PoseWithCovariance, Time)
+from hil.adapters.ros2_msgs import (AckermannDrive, BoundingBox2D, CameraInfo, Detection2D, Detection2DArray, Header,
+                                    ObjectHypothesis, ObjectHypothesisWithPose, Point, Point2D, Pose, Pose2D,
+                                    PoseWithCovariance, Quaternion, Time)
 from hil.common.errors import ConfigError
 
 PIXEL_CENTRE = 0.5  # a pixel's centre: harness coordinates (edges on integers) minus ROS 2's
@@ -83,6 +84,24 @@ class DriveMapping:
         a = self.max_accel_mps2 * c.throttle - self.max_decel_mps2 * c.brake
         speed = 0.0 if state == DrivingState.STOP else max(0.0, ego_speed_mps)
         return AckermannDrive(steering_angle=c.steering_rad, speed=speed, acceleration=a)
+
+
+OPTICAL_Q = Quaternion(-0.5, 0.5, -0.5, 0.5)  # camera_link (x fwd, z up) -> optical frame (z fwd, y down)
+
+
+def mount_quaternion(pitch_rad: float, yaw_rad: float = 0.0) -> Quaternion:
+    """The camera mount's rotation: yaw (about z, positive left) then pitch (about
+    y, positive looks down)."""
+    cy, sy, cp, sp = math.cos(yaw_rad / 2), math.sin(yaw_rad / 2), math.cos(pitch_rad / 2), math.sin(pitch_rad / 2)
+    return Quaternion(-sy * sp, cy * sp, sy * cp, cy * cp)
+
+
+def camera_info_of(header: Header, width: int, height: int, fx: float, fy: float, cx: float, cy: float) -> CameraInfo:
+    """``sensor_msgs/CameraInfo`` of an undistorted pinhole camera whose principal
+    point ``(cx, cy)`` is in the harness's pixel coordinates (ROS 2's are 0.5 px less)."""
+    cx, cy = cx - PIXEL_CENTRE, cy - PIXEL_CENTRE
+    return CameraInfo(header, height, width, "plumb_bob", [0.0] * 5, [fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0],
+                      [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], [fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0])
 
 
 def _clip01(x: float) -> float:
@@ -207,5 +226,5 @@ class AnswerBook:
         return Estimate(self.vehicle_id, s.frame_id, state, control, s.objects, None, None, None, source), t_rx
 
 
-__all__ = ["ALIASES", "PIXEL_CENTRE", "CONTROL", "DETECTIONS", "AnswerBook", "DriveMapping", "Sent", "class_of", "detections_of",
+__all__ = ["ALIASES", "OPTICAL_Q", "PIXEL_CENTRE", "CONTROL", "camera_info_of", "mount_quaternion", "DETECTIONS", "AnswerBook", "DriveMapping", "Sent", "class_of", "detections_of",
            "ns_of", "objects_of", "stamp_of"]

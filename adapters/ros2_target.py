@@ -38,9 +38,9 @@ from hil.adapters.ros2_cdr import CdrError, decode
 from hil.adapters.ros2_dds import Participant, take, write
 from hil.adapters.ros2_msgs import (AckermannDriveStamped, CameraInfo, CompressedImage, Detection2DArray, Header, Image,
                                     TFMessage, TwistStamped)
-from hil.adapters.ros2_options import IMAGE_QOS, REPLY_QOS, STATIC_QOS, cyclone_xml
+from hil.adapters.ros2_options import IMAGE_QOS, REPLY_QOS, STATIC_QOS, cyclone_xml, topic_problem
 from hil.adapters.sdk import Endpoint, serving
-from hil.common.errors import ConfigError
+from hil.common.errors import ConfigError, TransportError
 
 DEFAULT_TOPICS: Mapping[str, str] = {
     "image": "/camera/image_raw", "compressed_image": "/camera/image_raw/compressed",
@@ -197,6 +197,9 @@ def node_topics(topics: Mapping[str, str] | None = None) -> dict[str, str]:
         if unknown:
             raise ConfigError(f"ros2 topics: unknown {unknown}; valid: {', '.join(DEFAULT_TOPICS)}")
         out.update(layer)
+    for role, name in out.items():
+        if name and (problem := topic_problem(name)) is not None:
+            raise ConfigError(f"ros2 topic {role}: expected {problem}")
     return out
 
 
@@ -207,18 +210,23 @@ def serve_endpoint(ep: Endpoint, *, vehicle_id: int = 0, domain_id: int | None =
     with ``keep_serving``, until SIGTERM or ``ep.stop()``).
 
     Raises:
-        ConfigError: a bad domain id, topic name or ``HIL_ROS2_TOPICS``.
-        TransportError: Cyclone DDS refused the participant or an endpoint.
+        TransportError: a bad ``ROS_DOMAIN_ID``, topic name or ``HIL_ROS2_TOPICS`` (one
+            line), or Cyclone DDS refused the participant or an endpoint.
     """
-    if domain_id is None:
-        raw = os.environ.get("ROS_DOMAIN_ID", "0") or "0"
-        if not raw.isdigit():
-            raise ConfigError(f"ROS_DOMAIN_ID={raw!r}: expected an integer in 0..232")
-        domain_id = int(raw)
-    config = cyclone_config or os.environ.get("CYCLONEDDS_URI") or cyclone_xml()
+    try:
+        if domain_id is None:
+            raw = os.environ.get("ROS_DOMAIN_ID", "0") or "0"
+            if not raw.isdigit():
+                raise ConfigError(f"ROS_DOMAIN_ID={raw!r}: expected an integer in 0..232")
+            domain_id = int(raw)
+        names = node_topics(topics)
+        dds = Participant(domain_id=domain_id, config=cyclone_config or os.environ.get("CYCLONEDDS_URI") or cyclone_xml(),
+                          name=ep.target_name)
+    except ConfigError as err:  # the target programs report a TransportError in one line
+        raise TransportError(str(err)) from err
     gone = threading.Event()
-    with Participant(domain_id=domain_id, config=config, name=ep.target_name) as dds:
-        node = Ros2Node(ep, dds=dds, topics=node_topics(topics), vehicle_id=vehicle_id, mapping=mapping or DriveMapping())
+    with dds:
+        node = Ros2Node(ep, dds=dds, topics=names, vehicle_id=vehicle_id, mapping=mapping or DriveMapping())
         with serving(ep, harness_gone=gone):
             ep.start(node.send)
             seen = False

@@ -38,7 +38,6 @@ and no answer writer is matched (its participant left, or its lease ran out:
 
 from __future__ import annotations
 
-import math
 import queue
 import threading
 from collections.abc import Sequence
@@ -47,13 +46,12 @@ from typing import Any
 from hil.adapters import protocol
 from hil.adapters.link import Link, ProtocolFault, Received
 from hil.adapters.messages import ClockId, Frame, Hello, ImageEncoding, MsgType, SyncResponse
-from hil.adapters.ros2_answers import (CONTROL, DETECTIONS, PIXEL_CENTRE, AnswerBook, DriveMapping, Sent, ns_of, objects_of,
-                                      stamp_of)
+from hil.adapters.ros2_answers import (CONTROL, DETECTIONS, OPTICAL_Q, AnswerBook, DriveMapping, Sent, camera_info_of,
+                                      mount_quaternion, ns_of, objects_of, stamp_of)
 from hil.adapters.ros2_cdr import CdrError, decode
 from hil.adapters.ros2_dds import Participant, WriterInfo, handle_of, matched_writers, take, write
 from hil.adapters.ros2_msgs import (AckermannDriveStamped, CameraInfo, Clock, CompressedImage, Detection2DArray, Header,
-                                    Image, Quaternion, TFMessage, Transform, TransformStamped, Twist, TwistStamped,
-                                    Vector3, dds_name)
+                                    Image, TFMessage, Transform, TransformStamped, Twist, TwistStamped, Vector3, dds_name)
 from hil.adapters.ros2_options import (CLOCK_QOS, IMAGE_QOS, REPLY_QOS, STATIC_QOS, ClockMode, QosProfile, cyclone_xml,
                                        dds_topic, topic_problem)
 from hil.common.errors import ConfigError, TransportError
@@ -63,13 +61,6 @@ from hil.timing.sync import SyncSample
 
 POLL_S = 0.05  # the reader thread's longest wait: discovery and liveness are checked this often
 MAX_NAMED = 16  # foreign writers and type mismatches named in the stats (all are counted)
-OPTICAL_Q = Quaternion(-0.5, 0.5, -0.5, 0.5)  # camera_link (x fwd, z up) -> optical (z fwd, y down)
-
-
-def mount_quaternion(pitch_rad: float, yaw_rad: float = 0.0) -> Quaternion:
-    """Rotation of yaw (about z) then pitch (about y; positive looks down)."""
-    cy, sy, cp, sp = math.cos(yaw_rad / 2), math.sin(yaw_rad / 2), math.cos(pitch_rad / 2), math.sin(pitch_rad / 2)
-    return Quaternion(-sy * sp, cy * sp, sy * cp, cy * cp)
 
 
 class Ros2Link(Link):
@@ -320,10 +311,7 @@ class Ros2Link(Link):
         stamp_ns = f.sim_time_ns if self.clock_mode == ClockMode.SIM else f.t0_ns + self._rt_offset_ns
         header = Header(stamp_of(stamp_ns), self.frames[2])
         c = f.camera
-        cx, cy = c.cx - PIXEL_CENTRE, c.cy - PIXEL_CENTRE
-        info = CameraInfo(header, f.height, f.width, "plumb_bob", [0.0] * 5, [c.fx, 0.0, cx, 0.0, c.fy, cy, 0.0, 0.0, 1.0],
-                          [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-                          [c.fx, 0.0, cx, 0.0, 0.0, c.fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0])
+        info = camera_info_of(header, f.width, f.height, c.fx, c.fy, c.cx, c.cy)
         if f.encoding == ImageEncoding.JPEG:
             image: Any = CompressedImage(header, "jpeg", f.data)
         else:

@@ -309,4 +309,40 @@ def _mount_tf(vehicles: list[str], cam: dict[str, Any], stamp: Any) -> TFMessage
     return TFMessage(out)
 
 
-__all__ = ["ROS_DISTRO", "VERSION", "Bag", "export", "qos_yaml"]
+def add_parser(sub: Any) -> None:
+    p = sub.add_parser("rosbag", help="write a run, or one corner case's window, as a ROS 2 bag (rosbag2, MCAP)",
+                       description="Write a run folder (or run.mcap, or a case's window file) as a rosbag2 folder "
+                                   "that `ros2 bag play` feeds into a ROS 2 stack.")
+    p.add_argument("run", type=Path, help="a run folder, its run.mcap, or a corner_cases/case-NNNN.mcap")
+    p.add_argument("--case", type=int, default=None, metavar="ID",
+                   help="only this corner case's vehicle and window (see hil cases RUN)")
+    p.add_argument("--out", type=Path, default=None,
+                   help="the bag folder to create (default: RUN/rosbag2, or RUN/rosbag2-case-ID)")
+
+
+def cmd(args: Any) -> int:
+    """``hil rosbag``: prints the bag's folder and its topics. Raises ConfigError (one line)."""
+    src = Path(args.run)
+    run_dir = src if src.is_dir() else src.parent
+    mcap = src / "run.mcap" if src.is_dir() else src
+    vehicles, window = None, None
+    if args.case is not None:
+        from hil.harness.cases.recorder import read_cases
+
+        rows = {int(r["id"]): r for r in read_cases(run_dir)[0]}
+        row = rows.get(args.case)
+        if row is None:
+            raise ConfigError(f"{run_dir}: no corner case {args.case} (cases: {sorted(rows) or 'none'})")
+        vehicles = [str(row["vehicle"])]
+        start, end = row.get("window_start_ns"), row.get("window_end_ns")
+        window = (int(start), int(end)) if start is not None and end is not None else None
+    out = args.out or run_dir / ("rosbag2" if args.case is None else f"rosbag2-case-{args.case:04d}")
+    bag = export(mcap, out, vehicles=vehicles, sim_window_ns=window)
+    print(f"{bag.path}: {sum(bag.counts.values())} messages, {(bag.end_ns - bag.start_ns) / 1e9:.2f} s "
+          f"(ros2 bag play {bag.path})")
+    for topic, n in sorted(bag.counts.items()):
+        print(f"  {topic}: {n}")
+    return 0
+
+
+__all__ = ["ROS_DISTRO", "VERSION", "Bag", "add_parser", "cmd", "export", "qos_yaml"]

@@ -234,7 +234,9 @@ def test_sdk_target_as_a_ros2_node_in_a_child_process_and_its_death(tmp_path) ->
         assert proc.wait(20) == 3
         t_dead = time.monotonic()
         assert wait_for(lambda: not link.alive, 10)
-        assert time.monotonic() - t_dead < 3.0
+        noticed_s = time.monotonic() - t_dead
+        assert noticed_s < 3.0, noticed_s
+        print(f"dead node noticed after {noticed_s:.2f} s (lease 0.5 s)")
         assert "the ROS 2 node left DDS domain" in link.peer_gone_reason
     finally:
         link.close()
