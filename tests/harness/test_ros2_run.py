@@ -127,3 +127,43 @@ def test_realtime_on_the_system_clock(tmp_path) -> None:
     t = v["link"]["transport"]
     assert t["clock"] == "system" and t["matched_by_stamp"] >= v["estimates_applied"]
     assert "rosbag2" not in r.summary and not (r.out_dir / "rosbag2").exists()
+
+
+def test_a_window_of_the_run_as_a_bag(ros2_run, tmp_path) -> None:
+    from hil.harness.record.rosbag2 import export
+
+    mcap = read_mcap(ros2_run.mcap_path)
+    window = (500_000_000, 1_000_000_000)
+    inside = [d for _, d in mcap["/ego0/pipeline"] if window[0] <= d["sim_time_ns"] <= window[1]]
+    truths = [d for _, d in mcap["/ground_truth"] if window[0] <= d["sim_time_ns"] <= window[1]]
+    bag = export(ros2_run.mcap_path, tmp_path / "w", vehicles=["ego0"], sim_window_ns=window)
+    assert 0 < len(inside) < 40
+    assert bag.counts["/ego0/camera/image_raw/compressed"] == len(inside)
+    assert bag.counts["/tf"] == len(truths) and bag.counts["/tf_static"] == 1
+    assert export(ros2_run.mcap_path, tmp_path / "none", vehicles=["nobody"]).counts.keys() == {
+        "/tf", "/tf_static"}  # another vehicle's frames are left out; the world is shared
+
+
+def test_hil_rosbag_command_and_its_mistakes(ros2_run, tmp_path) -> None:
+    from tests.harness.test_cli import assert_one_line_error, hil
+
+    out = tmp_path / "bag"
+    p = hil("rosbag", str(ros2_run.out_dir), "--out", str(out))
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.startswith(f"{out}: {ros2_run.summary['rosbag2']['messages']} messages")
+    assert (out / "metadata.yaml").is_file() and (out / "bag_0.mcap").is_file()
+    assert_one_line_error(hil("rosbag", str(ros2_run.out_dir), "--out", str(out)), "already exists")
+    assert_one_line_error(hil("rosbag", str(ros2_run.out_dir), "--case", "999", "--out", str(tmp_path / "c")),
+                          "no corner case 999")
+    assert_one_line_error(hil("rosbag", str(tmp_path / "missing")), "no such recording")
+
+
+def test_bad_ros2_config_is_one_line_before_anything_starts() -> None:
+    from hil.common.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"target\.ros2\.topics\.control.*fully qualified ROS 2 topic"):
+        load_config(ROOT / "hil_configs/ros2.yaml", overrides=["target.ros2.topics.control=cmd"])
+    with pytest.raises(ConfigError, match=r"target\.ros2\.domain_id"):
+        load_config(ROOT / "hil_configs/ros2.yaml", overrides=["target.ros2.domain_id=233"])
+    with pytest.raises(ConfigError, match=r"target\.shared"):
+        load_config(ROOT / "hil_configs/ros2.yaml", overrides=["target.shared=true"])
