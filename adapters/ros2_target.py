@@ -224,13 +224,20 @@ def serve_endpoint(ep: Endpoint, *, vehicle_id: int = 0, domain_id: int | None =
                           name=ep.target_name)
     except ConfigError as err:  # the target programs report a TransportError in one line
         raise TransportError(str(err)) from err
+    from cyclonedds.core import GuardCondition, InstanceState, ReadCondition, SampleState, ViewState, WaitSet
+
     gone = threading.Event()
     with dds:
         node = Ros2Node(ep, dds=dds, topics=names, vehicle_id=vehicle_id, mapping=mapping or DriveMapping())
-        with serving(ep, harness_gone=gone):
+        ws, wake = WaitSet(dds.dp), GuardCondition(dds.dp)
+        ws.attach(wake)
+        for reader in node.readers.values():  # wakes as a sample arrives, not at the next poll
+            ws.attach(ReadCondition(reader, SampleState.Any | ViewState.Any | InstanceState.Any))
+        with serving(ep, harness_gone=gone, on_term=lambda: wake.set(True)):
             ep.start(node.send)
             seen = False
-            while not ep.wait_stopped(POLL_S):
+            while not ep.stopped:
+                ws.wait(int(POLL_S * 1e9))
                 node.poll()
                 present = node.harness_present()
                 if seen and not present and not keep_serving:
