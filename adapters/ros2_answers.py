@@ -101,7 +101,8 @@ def camera_info_of(header: Header, width: int, height: int, fx: float, fy: float
     point ``(cx, cy)`` is in the harness's pixel coordinates (ROS 2's are 0.5 px less)."""
     cx, cy = cx - PIXEL_CENTRE, cy - PIXEL_CENTRE
     return CameraInfo(header, height, width, "plumb_bob", [0.0] * 5, [fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0],
-                      [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], [fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0])
+                      [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                      [fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0])
 
 
 def _clip01(x: float) -> float:
@@ -226,5 +227,5 @@ class AnswerBook:
         return Estimate(self.vehicle_id, s.frame_id, state, control, s.objects, None, None, None, source), t_rx
 
 
-__all__ = ["ALIASES", "OPTICAL_Q", "PIXEL_CENTRE", "CONTROL", "camera_info_of", "mount_quaternion", "DETECTIONS", "AnswerBook", "DriveMapping", "Sent", "class_of", "detections_of",
-           "ns_of", "objects_of", "stamp_of"]
+__all__ = ["ALIASES", "CONTROL", "DETECTIONS", "OPTICAL_Q", "PIXEL_CENTRE", "AnswerBook", "DriveMapping", "Sent",
+           "camera_info_of", "class_of", "detections_of", "mount_quaternion", "ns_of", "objects_of", "stamp_of"]

@@ -57,6 +57,13 @@ class QosProfile:
     durability: Durability = Durability.VOLATILE
 
     def __post_init__(self) -> None:
+        """Names ("reliable", ...) become the enums. Raises ConfigError: a bad value."""
+        for name, kind in (("reliability", Reliability), ("history", History), ("durability", Durability)):
+            try:
+                object.__setattr__(self, name, kind(getattr(self, name)))
+            except ValueError:
+                valid = ", ".join(k.value for k in kind)
+                raise ConfigError(f"QoS {name}={getattr(self, name)!r}: expected one of {valid}") from None
         if not isinstance(self.depth, int) or not 1 <= self.depth <= 10_000:
             raise ConfigError(f"QoS depth={self.depth!r}: expected an integer in 1..10000")
 

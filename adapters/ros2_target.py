@@ -220,8 +220,8 @@ def serve_endpoint(ep: Endpoint, *, vehicle_id: int = 0, domain_id: int | None =
                 raise ConfigError(f"ROS_DOMAIN_ID={raw!r}: expected an integer in 0..232")
             domain_id = int(raw)
         names = node_topics(topics)
-        dds = Participant(domain_id=domain_id, config=cyclone_config or os.environ.get("CYCLONEDDS_URI") or cyclone_xml(),
-                          name=ep.target_name)
+        config = cyclone_config or os.environ.get("CYCLONEDDS_URI") or cyclone_xml()
+        dds = Participant(domain_id=domain_id, config=config, name=ep.target_name)
     except ConfigError as err:  # the target programs report a TransportError in one line
         raise TransportError(str(err)) from err
     from cyclonedds.core import GuardCondition, InstanceState, ReadCondition, SampleState, ViewState, WaitSet

@@ -51,7 +51,8 @@ from hil.adapters.ros2_answers import (CONTROL, DETECTIONS, OPTICAL_Q, AnswerBoo
 from hil.adapters.ros2_cdr import CdrError, decode
 from hil.adapters.ros2_dds import Participant, WriterInfo, handle_of, matched_writers, take, write
 from hil.adapters.ros2_msgs import (AckermannDriveStamped, CameraInfo, Clock, CompressedImage, Detection2DArray, Header,
-                                    Image, TFMessage, Transform, TransformStamped, Twist, TwistStamped, Vector3, dds_name)
+                                    Image, TFMessage, Transform, TransformStamped, Twist, TwistStamped, Vector3,
+                                    dds_name)
 from hil.adapters.ros2_options import (CLOCK_QOS, IMAGE_QOS, REPLY_QOS, STATIC_QOS, ClockMode, QosProfile, cyclone_xml,
                                        dds_topic, topic_problem)
 from hil.common.errors import ConfigError, TransportError
@@ -148,7 +149,8 @@ class Ros2Link(Link):
         base, cam, optical = self.frames
         stamp = stamp_of(self._realtime.now_ns())
         return TFMessage([
-            TransformStamped(Header(stamp, base), cam, Transform(Vector3(fwd, lat, height), mount_quaternion(pitch, yaw))),
+            TransformStamped(Header(stamp, base), cam,
+                             Transform(Vector3(fwd, lat, height), mount_quaternion(pitch, yaw))),
             TransformStamped(Header(stamp, cam), optical, Transform(Vector3(), OPTICAL_Q))])
 
     def _matched(self) -> bool:
@@ -243,7 +245,8 @@ class Ros2Link(Link):
             lst: list[str] = self.ros2_stats[named]
             if len(lst) < MAX_NAMED:
                 lst.append(text)
-        self._enqueue(self._rx, Received(ProtocolFault(text, offset), self.clock.now_ns(), self.vehicle_id))  # type: ignore[arg-type]
+        fault = Received(ProtocolFault(text, offset), self.clock.now_ns(), self.vehicle_id)  # type: ignore[arg-type]
+        self._enqueue(self._rx, fault)
 
     def _on_sample(self, kind: str, reader: Any, data: bytes, info: Any, t_rx: int) -> None:
         st = self.ros2_stats

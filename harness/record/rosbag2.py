@@ -43,8 +43,9 @@ from hil.adapters import ros2_cdr
 from hil.adapters.messages import Control, DetectedObject, DrivingState, ObjectClass
 from hil.adapters.ros2_answers import (OPTICAL_Q, DriveMapping, camera_info_of, detections_of, mount_quaternion,
                                        stamp_of)
-from hil.adapters.ros2_msgs import (AckermannDriveStamped, CompressedImage, Header, Image, Quaternion, String, TFMessage,
-                                    Transform, TransformStamped, Twist, TwistStamped, Vector3, msg_definitions, ros_name)
+from hil.adapters.ros2_msgs import (AckermannDriveStamped, CompressedImage, Header, Image, Quaternion, String,
+                                    TFMessage, Transform, TransformStamped, Twist, TwistStamped, Vector3,
+                                    msg_definitions, ros_name)
 from hil.common.errors import ConfigError
 from hil.harness.record.recorder import iter_salvaged_messages
 
@@ -118,7 +119,8 @@ class _Writer:
         b = self.bag
         meta = {"rosbag2_bagfile_information": {
             "version": VERSION, "storage_identifier": "mcap", "relative_file_paths": [b.mcap.name],
-            "duration": {"nanoseconds": b.end_ns - b.start_ns}, "starting_time": {"nanoseconds_since_epoch": b.start_ns},
+            "duration": {"nanoseconds": b.end_ns - b.start_ns},
+            "starting_time": {"nanoseconds_since_epoch": b.start_ns},
             "message_count": sum(b.counts.values()),
             "topics_with_message_count": [
                 {"topic_metadata": {"name": t, "type": typ, "serialization_format": "cdr", "offered_qos_profiles": qos},
@@ -184,7 +186,8 @@ class _Run:
         self._sims = sorted(states)
         self._states = [states[s] for s in self._sims]
         if not self.camera:
-            raise ConfigError(f"{mcap}: no run config in its metadata (a truncated run.mcap?): cannot write camera info")
+            raise ConfigError(f"{mcap}: no run config in its metadata (a truncated run.mcap?): "
+                              f"cannot write camera info")
 
     def exposure_ns(self, sim_ns: int, fallback_ns: int) -> int:
         """t_state of sim time ``sim_ns`` (monotonic ns): recorded, or interpolated

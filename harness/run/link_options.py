@@ -58,13 +58,13 @@ def ros2_domain(cfg: RunConfig, vehicle_id: int, session: str | None = None) -> 
 def ros2_topics(cfg: RunConfig, vehicle_id: int) -> dict[str, str]:
     """The run's ROS 2 topics by role (``target.ros2.topics``, ``{vehicle_id}`` filled)."""
     t = cfg.target.ros2.topics
-    image = t.image or ("/camera/image_raw/compressed" if ros2_options_compressed(cfg) else "/camera/image_raw")
+    image = t.image or ("/camera/image_raw/compressed" if ros2_compressed(cfg) else "/camera/image_raw")
     out = {"image": image, "camera_info": t.camera_info, "speed": t.speed, "clock": t.clock, "control": t.control,
            "detections": t.detections}
     return {k: substitute(v, vehicle_id=vehicle_id, base_port=0) for k, v in out.items()}
 
 
-def ros2_options_compressed(cfg: RunConfig) -> bool:
+def ros2_compressed(cfg: RunConfig) -> bool:
     """Frames go out as ``CompressedImage`` (JPEG), else as ``Image``."""
     return cfg.camera.encoding.value == "jpeg"
 
@@ -80,7 +80,7 @@ def ros2_options(cfg: RunConfig, vehicle_id: int, session: str | None = None) ->
     topics = ros2_topics(cfg, vehicle_id)
     return {"domain_id": ros2_domain(cfg, vehicle_id, session), "interface": r.interface, "peers": tuple(r.peers),
             "multicast": r.multicast, "lease_ms": r.lease_ms, "clock_mode": r.clock,
-            "compressed": ros2_options_compressed(cfg), "image_topic": topics["image"],
+            "compressed": ros2_compressed(cfg), "image_topic": topics["image"],
             "camera_info_topic": topics["camera_info"], "speed_topic": topics["speed"], "clock_topic": topics["clock"],
             "control_topic": topics["control"], "detections_topic": topics["detections"],
             "base_frame": r.base_frame, "camera_frame": r.camera_frame, "optical_frame": r.optical_frame,
@@ -101,7 +101,7 @@ def ros2_node_env(cfg: RunConfig, vehicle_id: int, session: str | None = None) -
 
     r = cfg.target.ros2
     topics = ros2_topics(cfg, vehicle_id)
-    image_role = "compressed_image" if ros2_options_compressed(cfg) else "image"
+    image_role = "compressed_image" if ros2_compressed(cfg) else "image"
     node = {image_role: topics["image"], **{k: topics[k] for k in ("camera_info", "speed", "control", "detections")}}
     xml = cyclone_xml(interface=r.interface, peers=tuple(r.peers), multicast=r.multicast, lease_ms=r.lease_ms)
     return {**node_env(ros2_domain(cfg, vehicle_id, session), xml), "HIL_ROS2_TOPICS": json.dumps(node)}

@@ -244,3 +244,25 @@ def test_sdk_target_as_a_ros2_node_in_a_child_process_and_its_death(tmp_path) ->
             proc.terminate()
             proc.wait(10)
         log.close()
+
+
+def test_answer_qos_must_match_a_best_effort_stack() -> None:
+    from hil.adapters.ros2_options import QosProfile
+
+    dom = domain()
+    dds = Participant(domain_id=dom, config=XML, name="be_node")
+    kept = (dds.reader("/camera/image_raw", Image, IMAGE_QOS),  # dropped entities are deleted: keep them
+            dds.writer("/control/ackermann_cmd", AckermannDriveStamped, QosProfile("best_effort")))
+    strict = link_for(dom)
+    try:
+        want = r"missing a writer on /control/ackermann_cmd \(ackermann_msgs.*asks reliable"
+        with pytest.raises(TargetError, match=want):
+            strict.open(hello_timeout_s=1.0)
+    finally:
+        strict.close()
+    relaxed = link_for(dom, reply_qos=QosProfile("best_effort"))
+    try:
+        assert relaxed.open(hello_timeout_s=10).target_name == "be_node" and kept
+    finally:
+        relaxed.close()
+        dds.close()
