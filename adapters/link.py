@@ -65,6 +65,7 @@ class LinkStats:
     target_errors: int = 0
     last_error: str | None = None
     impairment: dict[str, dict[str, int]] | None = None  # adapters/impair.py counts per direction, if set
+    transport: dict[str, object] | None = None  # counters only one transport has (ros2: Ros2Link.ros2_stats)
 
 
 class Link(ABC):

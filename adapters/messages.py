@@ -129,17 +129,22 @@ class Inference:
 
 @dataclass(frozen=True)
 class Estimate:
-    """The target's answer to one frame, stamped on the target's own clock."""
+    """The target's answer to one frame, stamped on the target's own clock.
+
+    A stamp is ``None`` where the target cannot give it (a ROS 2 node reached over
+    the ``ros2`` transport has no receipt or inference stamps: PROTOCOL.md targets
+    always give all four); the stages that need it are then unknown, never zero.
+    """
 
     vehicle_id: int
     frame_id: int
     state: DrivingState
     control: Control
     objects: tuple[DetectedObject, ...]
-    t_rx_target_ns: int
-    t_infer_start_target_ns: int
-    t_infer_end_target_ns: int
-    t_reply_target_ns: int
+    t_rx_target_ns: int | None
+    t_infer_start_target_ns: int | None
+    t_infer_end_target_ns: int | None
+    t_reply_target_ns: int | None
 
 
 @dataclass(frozen=True)

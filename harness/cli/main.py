@@ -80,13 +80,17 @@ def build_parser() -> argparse.ArgumentParser:
     from hil.harness.report import trace
 
     trace.add_parser(sub)
+    from hil.harness.record import rosbag2
+
+    rosbag2.add_parser(sub)
     return p
 
 
 # Commands whose module has add_parser(sub) and cmd(args), by name.
 COMMANDS = {"report": "hil.harness.report.run_report", "compare": "hil.harness.report.compare",
             "train": "hil.training.train", "calibrate": "hil.harness.check.calibrate",
-            "study": "hil.harness.study.study", "trace": "hil.harness.report.trace"}
+            "study": "hil.harness.study.study", "trace": "hil.harness.report.trace",
+            "rosbag": "hil.harness.record.rosbag2"}
 # Example targets by name: module with a main(argv) -> int.
 TARGETS = {"cnn": "hil.targets.cnn.target", "cv": "hil.targets.cv_baseline", "echo": "hil.targets.echo"}
 

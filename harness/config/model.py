@@ -38,7 +38,7 @@ from hil.adapters.protocol import FRAME_META_SIZE, MAX_PAYLOAD
 from hil.adapters.transports import Transport  # how the harness reaches the AI target: one enum, one table
 from hil.common.errors import ConfigError
 from hil.harness.config.cases import CornerCaseSettings, DetectorSettings
-from hil.harness.config.target import CanTargetConfig, ImpairConfig, TcpTargetConfig, ZenohTargetConfig
+from hil.harness.config.target import CanTargetConfig, ImpairConfig, Ros2TargetConfig, TcpTargetConfig, ZenohTargetConfig
 from hil.harness.config.timing import TimingConfig
 from hil.harness.config.types import MODEL_CONFIG, Float, Int
 
@@ -130,6 +130,7 @@ class TargetConfig(BaseModel):
     zenoh: ZenohTargetConfig = Field(default_factory=ZenohTargetConfig)
     can: CanTargetConfig = Field(default_factory=CanTargetConfig)
     tcp: TcpTargetConfig = Field(default_factory=TcpTargetConfig)
+    ros2: Ros2TargetConfig = Field(default_factory=Ros2TargetConfig)
     impair: ImpairConfig = Field(default_factory=ImpairConfig)  # link faults in real time (config_target.py)
     # Commands for the targets' control software at given sim times, e.g.
     # [{at_s: 5.0, command: "swap detector cv"}] (targets announcing CAP_COMMANDS).
@@ -158,6 +159,9 @@ class RecordingConfig(BaseModel):
     images: bool = True
     live: bool = False
     can_log: Literal["blf", "asc", "none"] = "blf"
+    # Also write rosbag2/ (ROS 2's bag: MCAP, CDR, metadata.yaml) after the run, for
+    # `ros2 bag play` (harness/record/rosbag2.py); run.mcap is unchanged.
+    rosbag2: bool = False
 
 
 class TruthConfig(BaseModel):

@@ -390,6 +390,8 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                     summary["corner_cases"]["errors"] += write_case_windows(out_dir, limit=cc.windows)
                 except HilError as err:
                     summary["corner_cases"]["errors"].append(str(err))
+            if cfg.recording.rosbag2:  # ROS 2's bag beside run.mcap, cut from it (harness/record/rosbag2.py)
+                summary["rosbag2"] = _write_rosbag2(mcap_path, out_dir)
         finally:
             for v in vehicles:
                 v.link.close()
@@ -407,6 +409,16 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     summary_path.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
     write_report(out_dir)
     return RunResult(out_dir, mcap_path, summary_path, summary)
+
+
+def _write_rosbag2(mcap_path: Path, out_dir: Path) -> dict[str, Any]:
+    """``rosbag2/`` from the finished ``run.mcap``: what it holds, or why it could not be written."""
+    from hil.harness.record.rosbag2 import export
+
+    try:
+        return export(mcap_path, out_dir / "rosbag2").to_json()
+    except (HilError, OSError, ValueError, KeyError) as err:
+        return {"error": f"rosbag2 not written: {type(err).__name__}: {err}"}
 
 
 def _install_stop_handlers(loop: Any) -> Callable[[], None]:

@@ -521,7 +521,7 @@ class SimLoop:
                         "brake": m.control.brake},
             "objects": [{"cls": o.cls.name, "confidence": o.confidence, "box_px": list(o.box_px),
                          "position_m": list(o.position_m)} for o in m.objects],
-        }, log_time_ns=t0p, publish_time_ns=m.t_reply_target_ns)
+        }, log_time_ns=t0p, publish_time_ns=t0p if m.t_reply_target_ns is None else m.t_reply_target_ns)
 
     def _record_task(self, v: VehicleRun, rec: PipelineRecord, estimate: Estimate | None = None) -> None:
         v.add(rec)

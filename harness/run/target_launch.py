@@ -1,6 +1,6 @@
 """Starting and reaching a run's targets: one link per vehicle, built from the
 ``target:`` config, plus the locally started target process where the transport
-does not start one itself (zenoh, can and mixed with a ``command``)."""
+does not start one itself (zenoh, can, mixed, tcp and ros2 with a ``command``)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,8 @@ from hil.adapters.process import die_with_parent, end_process
 from hil.common.errors import TargetError
 from hil.harness.config.model import RunConfig, Transport
 from hil.harness.config.target import substitute
-from hil.harness.run.link_options import can_options, impair, run_key_prefix, target_command, zenoh_options
+from hil.harness.run.link_options import (can_options, impair, ros2_node_env, ros2_options, run_key_prefix,
+                                         target_command, zenoh_options)
 from hil.timing.clock import Clock
 
 
@@ -96,6 +97,8 @@ def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, ou
     env = {"HIL_SESSION": session} if session else {}
     if t.transport in (Transport.ZENOH, Transport.MIXED):
         env["HIL_ZENOH_KEY_PREFIX"] = run_key_prefix(cfg, session)
+    elif t.transport == Transport.ROS2:  # its own domain, Cyclone on loopback, the run's topics
+        env.update(ros2_node_env(cfg, vehicle_id, session))
     proc = TargetProcess(target_command(cfg, vehicle_id=vehicle_id), log_path=log, env=env) if t.command else None
     try:
         if t.transport == Transport.ZENOH:
@@ -105,6 +108,9 @@ def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, ou
             tc = t.tcp
             link = open_link("tcp", vehicle_id=vehicle_id, clock=clock, rx_queue=rx, kernel_stamps=tc.kernel_stamps,
                              **{tc.mode.value: substitute(tc.address, vehicle_id=vehicle_id, base_port=tc.base_port)})
+        elif t.transport == Transport.ROS2:  # target.ros2: a ROS 2 node over Cyclone DDS
+            link = open_link("ros2", vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
+                             **ros2_options(cfg, vehicle_id, session))
         elif t.transport == Transport.MIXED:  # frames over target.zenoh, the rest over target.can
             link = open_link("mixed", vehicle_id=vehicle_id, clock=clock, rx_queue=rx, tap=can_tap,
                              **zenoh_options(cfg, vehicle_id, session), **can_options(cfg, vehicle_id))
