@@ -26,6 +26,8 @@ def main() -> int:
     (VIEW / "hil").mkdir(parents=True, exist_ok=True)
     for folder in FOLDERS:
         link = VIEW / "hil" / folder
+        if link.is_symlink() and link.resolve() != (ROOT / folder).resolve():
+            link.unlink()  # a view left by a copy of this checkout (another worktree's venv)
         if not link.is_symlink():
             link.symlink_to(ROOT / folder, target_is_directory=True)
     cmd = [sys.executable, "-m", "mypy", "--config-file", str(ROOT / "pyproject.toml"), "--explicit-package-bases",
