@@ -14,8 +14,9 @@ from __future__ import annotations
 import bisect
 import sqlite3
 from html import escape
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
+from urllib.parse import quote
 
 from hil.harness.cases.recorder import query_cases
 from hil.harness.record.run_folder import CORNER_DB_NAME, MCAP_NAME, RunData, camera_images
@@ -145,12 +146,28 @@ def thumbnail_for_case(d: RunData, row: dict[str, Any], *, width: int = _THUMB_W
     return "" if img is None else img_tag(img[0], img[1], width=width, alt=alt)
 
 
+def _inside(run_dir: Path, rel: str) -> str | None:
+    """Why ``rel`` is not a plain relative path to a file inside ``run_dir`` (a scheme
+    such as ``javascript:``, an absolute path, ``..``, a symlink leading out, nothing
+    there); None when it is."""
+    p = PurePosixPath(rel)
+    if p.is_absolute() or ".." in p.parts or ":" in rel or "\\" in rel or any(ord(c) < 32 for c in rel):
+        return "not a file in the run folder"
+    full = (run_dir / p).resolve()
+    if not full.is_relative_to(run_dir.resolve()):
+        return "not a file in the run folder"
+    return None if full.is_file() else "not written"
+
+
 def _mcap_link(d: RunData, rel: Any) -> str:
+    """A case's recording: a link only to a file inside the run folder (the row may
+    have been tampered with); anything else is shown as text."""
     if not isinstance(rel, str) or not rel:
         return "–"
-    exists = (d.run_dir / rel).is_file()
-    return (f'<a href="{escape(rel)}">{escape(rel)}</a>' if exists
-            else f'{escape(rel)} <span class="muted">(not written)</span>')
+    why = _inside(d.run_dir, rel)
+    if why is None:
+        return f'<a href="{escape(quote(rel))}">{escape(rel)}</a>'
+    return f'{escape(rel)} <span class="muted">({why})</span>'
 
 
 def cases_section(d: RunData) -> str:
