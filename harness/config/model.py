@@ -147,14 +147,16 @@ class TargetConfig(BaseModel):
 
 class RecordingConfig(BaseModel):
     """The recorder: its bounded queue (items), whether images are stored, and
-    whether the run is also served live to Foxglove (``hil run --live``: a WebSocket
-    server on 127.0.0.1, port printed; see harness/record/live.py)."""
+    whether the run is also served live to Foxglove (``hil run --live [HOST:PORT]``: a
+    WebSocket server on ``live_address``, default 127.0.0.1 and a free port, printed;
+    see harness/record/live.py)."""
 
     model_config = _MODEL_CONFIG
 
     queue_size: Int = Field(4096, ge=16, le=1_000_000)
     images: bool = True
     live: bool = False
+    live_address: str | None = Field(None, pattern=r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+):[0-9]{1,5}$")
 
 
 class TruthConfig(BaseModel):
