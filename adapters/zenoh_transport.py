@@ -84,6 +84,7 @@ HELLO_POLL_S = 0.1  # harness HEARTBEAT period until HELLO
 BYE_LINGER_S = 1.0  # how long a stopping target waits for the harness to leave after its BYE
 USRPWD_KEYS = ("user", "password", "dictionary_file")
 CLOSE_TIMEOUT_S = 2.0  # how long closing a session may take (s) before it is left to finish alone
+GONE_CLOSE_TIMEOUT_S = 0.5  # the same once the peer is gone: a frozen peer blocks close ~10 s
 _RETRY = MappingProxyType({"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 2})
 _WILDCARD_CHARS = frozenset("*$?#")
 
@@ -345,14 +346,15 @@ class ZenohHalf:
                 f"listen={self.listen}): is the target running, e.g. with "
                 f"--transport zenoh --listen tcp/0.0.0.0:7447, and reachable?")
 
-    def close(self, link_stats: LinkStats) -> None:
+    def close(self, link_stats: LinkStats, *, peer_gone: bool = False) -> None:
         """Undeclare everything and close the session, bounded by ``CLOSE_TIMEOUT_S``
-        (a frozen peer made an unbounded close block ~10 s and then raise "close
-        operation timed out", which cost a run its summary). Idempotent; never raises."""
+        (``GONE_CLOSE_TIMEOUT_S`` when the peer is already gone: a frozen peer made
+        an unbounded close block ~10 s and then raise "close operation timed out",
+        which cost a run its summary). Idempotent; never raises."""
         session, self._session = self._session, None
         self._publisher, self._entities = None, []
         if session is not None and not session.is_closed():
-            reason = close_session(session, timeout_s=CLOSE_TIMEOUT_S)
+            reason = close_session(session, timeout_s=GONE_CLOSE_TIMEOUT_S if peer_gone else CLOSE_TIMEOUT_S)
             if reason is not None:
                 self.stats.close_failures += 1
                 link_stats.last_error = reason
@@ -450,7 +452,7 @@ class ZenohLink(Link):
             thread.join(timeout=2.0)
         half = getattr(self, "zenoh", None)
         if half is not None:
-            half.close(self.stats)
+            half.close(self.stats, peer_gone=not self.alive)
 
 
 def serve_endpoint(ep: Endpoint, **options: object) -> None:

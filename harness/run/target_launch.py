@@ -62,10 +62,23 @@ class TargetProcess:
 
     def close(self) -> None:
         proc, self.proc = getattr(self, "proc", None), None
+        if proc is not None and proc.poll() is None and _stopped(proc.pid):
+            proc.kill()  # frozen (SIGSTOP): it can neither leave on BYE nor act on SIGTERM
+            proc.wait()
         end_process(proc, term_s=3.0)  # it got BYE; let it leave on its own first
         log = getattr(self, "_log", None)
         if log is not None and not log.closed:
             log.close()
+
+
+def _stopped(pid: int) -> bool:
+    """True when process ``pid`` is stopped (state T or t in ``/proc/PID/stat``)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    fields = stat.rpartition(")")[2].split()
+    return bool(fields) and fields[0] in ("T", "t")
 
 
 def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, out_dir: Path,
