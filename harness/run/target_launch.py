@@ -11,10 +11,12 @@ from pathlib import Path
 
 from hil.adapters.link import Link, Received, open_link
 from hil.adapters.process import die_with_parent, end_process
+from hil.adapters.zenoh_options import AUTH_ENV
 from hil.common.errors import TargetError
 from hil.harness.config.model import RunConfig, Transport
 from hil.harness.config.target import substitute
-from hil.harness.run.link_options import can_options, impair, run_key_prefix, target_command, zenoh_options
+from hil.harness.run.link_options import (can_options, impair, run_credentials, run_key_prefix, target_command,
+                                          zenoh_options)
 from hil.timing.clock import Clock
 
 
@@ -103,20 +105,24 @@ def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, ou
         impair(cfg, link, vehicle_id=vehicle_id, clock=clock)
         return link, None
     env = {"HIL_SESSION": session} if session else {}
+    creds = None
     if t.transport in (Transport.ZENOH, Transport.MIXED):
         env["HIL_ZENOH_KEY_PREFIX"] = run_key_prefix(cfg, session)
+        creds = run_credentials(cfg, session, vehicle_id)  # a third peer gets no session
+        if creds is not None:
+            env[AUTH_ENV] = ":".join(creds)
     proc = TargetProcess(target_command(cfg, vehicle_id=vehicle_id), log_path=log, env=env) if t.command else None
     try:
         if t.transport == Transport.ZENOH:
             link = open_link("zenoh", vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
-                             **zenoh_options(cfg, vehicle_id, session))
+                             **zenoh_options(cfg, vehicle_id, session, creds))
         elif t.transport == Transport.TCP:  # target.tcp: {mode: address}, as hil.adapters.tcp.TcpLink takes it
             tc = t.tcp
             link = open_link("tcp", vehicle_id=vehicle_id, clock=clock, rx_queue=rx, kernel_stamps=tc.kernel_stamps,
                              **{tc.mode.value: substitute(tc.address, vehicle_id=vehicle_id, base_port=tc.base_port)})
         elif t.transport == Transport.MIXED:  # frames over target.zenoh, the rest over target.can
             link = open_link("mixed", vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
-                             **zenoh_options(cfg, vehicle_id, session), **can_options(cfg, vehicle_id))
+                             **zenoh_options(cfg, vehicle_id, session, creds), **can_options(cfg, vehicle_id))
         else:
             link = open_link("can", vehicle_id=vehicle_id, clock=clock, camera_over=t.can.camera_over, rx_queue=rx,
                              **can_options(cfg, vehicle_id))
