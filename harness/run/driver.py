@@ -342,6 +342,8 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 finally:
                     if restore is not None:
                         restore()
+                if main_rec.failure is not None:  # the disk filled: the reserve is for the case rows,
+                    reserve.unlink(missing_ok=True)  # the summary and the report, from now on
                 for v in vehicles:
                     v.link.close()
                 loop.collect_sync()  # answers that arrived while closing
@@ -368,7 +370,11 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                     summary["ended_by"] = f"the recording failed: {guard.error}"
             summary["recorder"] = {"written": final.written, "dropped": final.dropped,
                                    "enqueued": final.enqueued, "bytes_written": final.bytes_written}
-            if isinstance(rec, CaseRecorder) and rec.cases_written:
+            if isinstance(rec, CaseRecorder) and rec.cases_written and guard.error is not None:
+                summary["corner_cases"]["errors"].append(
+                    "case windows not cut: the recording failed (is the disk full?); once there is room: "
+                    f"hil cases {out_dir} --window ID")  # the space left is the summary's and the report's
+            elif isinstance(rec, CaseRecorder) and rec.cases_written:
                 # Windows are cut from the finalized run.mcap, after the run (nothing
                 # of a case's history is held during it).
                 from hil.harness.cases.windows import write_case_windows
