@@ -234,6 +234,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     from hil.adapters.link import Received
     from hil.harness.analysis.detector_observer import DetectorObserver
     from hil.harness.analysis.events import EventBus
+    from hil.harness.analysis.spill import spill_summary
     from hil.harness.analysis.summary import build_summary
     from hil.harness.analysis.timing_observer import TimingObserver
     from hil.harness.cases.recorder import CaseRecorder
@@ -357,6 +358,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 summary = build_summary(loop=loop, stats=stats, timing=timing, detector=detector, recorder_stats={
                     "written": rec_stats.written, "dropped": rec_stats.dropped, "enqueued": rec_stats.enqueued},
                     meta=meta)
+                summary["spill"] = spill_summary(vehicles, timing)  # per-frame columns that stayed in memory
                 if isinstance(rec, CaseRecorder):
                     summary["corner_cases"] = {"written": rec.cases_written, "errors": list(rec.errors),
                                                "triggers_dropped": rec.triggers_dropped}

@@ -314,6 +314,7 @@ def test_hil_run_live_on_a_fixed_address_with_a_stalled_viewer(tmp_path: Path) -
     assert proc.returncode == 0, err[-2000:]
     run = tmp_path / "run"
     assert (run / "summary.json").is_file() and (run / "report.html").is_file() and not (run / "FAILED").exists()
+    assert json.loads((run / "summary.json").read_text())["spill"] == {"failures": 0}
     with open(run / "run.mcap", "rb") as f:
         meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
     live = meta["live_view"]
