@@ -111,7 +111,8 @@ def shipped_episode(c: Campaign, d: Draw, *, shard: str, gl_backend: str) -> tup
 
 # Dask starts an HTTP server on every scheduler, worker and nanny whatever the
 # dashboard setting: with these, they answer nothing (404) about the campaign.
-_NO_HTTP_ROUTES = {f"distributed.{role}.http.routes": [] for role in ("scheduler", "worker", "nanny")}
+_NO_HTTP_ROUTES: dict[str, list[str]] = {f"distributed.{role}.http.routes": []
+                                          for role in ("scheduler", "worker", "nanny")}
 
 
 def _campaign_security() -> Any:
