@@ -203,7 +203,8 @@ def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str =
     keys = Keys.of(key_prefix, vehicle_id)
     cfg = make_config(mode=mode, connect=connect, listen=listen, tls=tls, multicast_scouting=multicast_scouting,
                       lease_ms=lease_ms, shared_memory=shared_memory, usrpwd=usrpwd)
-    session = open_session(cfg, f"listen={list(listen)} connect={list(connect)}")
+    session = open_session(cfg, f"listen={list(listen)} connect={list(connect)}",
+                           dictionary=(usrpwd or {}).get("dictionary"))
 
     def on_frame(sample: zenoh.Sample) -> None:
         t_rx = ep.clock.now_ns()

@@ -39,7 +39,7 @@ from hil.adapters import protocol, transports
 from hil.adapters.messages import (Bye, ClockId, Command, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
                                    Inference, Message, SyncRequest, SyncResponse)
 from hil.adapters.stream import StreamDecoder
-from hil.common.errors import ProtocolError, TransportError
+from hil.common.errors import ConfigError, ProtocolError, TransportError
 from hil.timing.clock import Clock, MonotonicClock
 
 InferFn = Callable[[Frame], Inference]
@@ -367,7 +367,8 @@ def add_transport_args(parser: argparse.ArgumentParser) -> None:
 
 
 def _zenoh_security(args: argparse.Namespace) -> dict[str, object]:
-    """``tls`` and ``usrpwd`` options from ``--tls KEY=VALUE`` and ``--auth-dictionary``."""
+    """``tls`` and ``usrpwd`` options from ``--tls KEY=VALUE`` and ``--auth-dictionary`` (else
+    the run's own credentials in ``HIL_ZENOH_AUTH``, set by a harness that starts the target)."""
     out: dict[str, object] = {}
     tls: dict[str, object] = {}
     for item in getattr(args, "tls", None) or []:
@@ -383,6 +384,16 @@ def _zenoh_security(args: argparse.Namespace) -> dict[str, object]:
         out["tls"] = tls
     if getattr(args, "auth_dictionary", None):
         out["usrpwd"] = {"dictionary_file": args.auth_dictionary}
+    else:  # started by a harness: the run's own credentials, from the environment
+        from hil.adapters.zenoh_options import usrpwd_from_env
+
+        try:
+            creds = usrpwd_from_env()
+        except ConfigError as err:
+            print(str(err), file=sys.stderr)
+            raise SystemExit(2) from None
+        if creds is not None:
+            out["usrpwd"] = creds
     return out
 
 

@@ -55,7 +55,9 @@ def _security(listen: Sequence[str], connect: Sequence[str], tls: Mapping[str, o
     parts = []
     if any(str(e).startswith(("tls/", "quic/")) for e in (*listen, *connect)):
         parts.append("mutual TLS" if (tls or {}).get("enable_mtls") else "TLS")
-    if (usrpwd or {}).get("dictionary_file"):
+    if (usrpwd or {}).get("dictionary"):
+        parts.append("user/password of this run (from the harness that started it)")
+    elif (usrpwd or {}).get("dictionary_file"):
         parts.append("user/password")
     return " + ".join(parts) or "open (anyone who reaches the endpoint can join; see README, threat model)"
 
@@ -90,7 +92,8 @@ def serve_endpoint(ep: Endpoint, *, listen: Sequence[str] = (), connect: Sequenc
     keys = Keys.of(key_prefix, vehicle_id)
     cfg = make_config(mode=mode, connect=connect, listen=listen, tls=tls, multicast_scouting=multicast_scouting,
                       lease_ms=lease_ms, shared_memory=shared_memory, usrpwd=usrpwd)
-    session = open_session(cfg, f"listen={list(listen)} connect={list(connect)}")
+    session = open_session(cfg, f"listen={list(listen)} connect={list(connect)}",
+                           dictionary=(usrpwd or {}).get("dictionary"))
     quit_ = threading.Event()  # SIGTERM or Ctrl-C: no further runs
     current = ep
 

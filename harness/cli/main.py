@@ -8,6 +8,7 @@ missing file, target that cannot start) with a one-line message and no traceback
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -24,6 +25,18 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_USAGE, f"hil: error: {message} (see hil {self.prog.split()[-1]} --help)\n")
 
 
+def _live_address(text: str) -> str:
+    """``--live``'s value: HOST:PORT (checked here, so a mistake is argparse's one line)."""
+    if text:
+        from hil.harness.record.live_front import split_address
+
+        try:
+            split_address(text)
+        except ConfigError as err:
+            raise argparse.ArgumentTypeError(str(err)) from None
+    return text
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="hil", description="Hardware-in-the-loop timing harness for autonomous-driving AI.")
     p.add_argument("--version", action="version", version=f"hil {__version__}")
@@ -38,8 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--fail-on", dest="fail_on", default="", metavar="CHECK,...",
                    help="exit 3 when one of these verdicts fails: realtime, deadline, drop, collision, mismatch, "
                         "anomaly (adds to the config's verdict.fail_on)")
-    r.add_argument("--live", action="store_true",
-                   help="serve the run live to Foxglove on ws://127.0.0.1:PORT (port printed; recording.live)")
+    r.add_argument("--live", nargs="?", const="", default=None, metavar="HOST:PORT", type=_live_address,
+                   help="serve the run live to Foxglove (foxglove.sdk.v1 and foxglove.websocket.v1) on HOST:PORT "
+                        "(default 127.0.0.1 and a free port, printed; recording.live, recording.live_address)")
     from hil.harness.report.ci_outputs import add_ci_args
 
     add_ci_args(r)
@@ -230,7 +244,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from hil.scenarios.gl import select_backend
 
     check_ci_args(args)  # --junit / --json writable: checked before anything runs
-    overrides = [*args.overrides, "recording.live=true"] if args.live else args.overrides
+    overrides = list(args.overrides)
+    if args.live is not None:  # --live, or --live HOST:PORT (a JSON string: "[::1]:8765" is no YAML list)
+        overrides.append("recording.live=true")
+        if args.live:
+            overrides.append(f"recording.live_address={json.dumps(args.live)}")
     cfg = load_config(args.config, overrides=overrides)
     if args.fail_on:
         from hil.harness.analysis.verdict import parse_fail_on
@@ -259,7 +277,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
             result = execute(cfg, out_dir=out, gl_backend=backend, on_progress=progress.update,
                              notify=console.print)
     except (HilError, KeyboardInterrupt) as err:
-        mark_failed(out, err)
+        reason = mark_failed(out, err)
+        if isinstance(err, KeyboardInterrupt) and (out / "run.mcap").is_file():
+            print(f"hil: {reason}", file=sys.stderr)  # not main's "before the run started"
+            return EXIT_EARLY
         raise
     s = result.summary
     print_verdict(console, s)
@@ -307,18 +328,26 @@ def print_verdict(console: Any, summary: dict[str, Any]) -> None:
         console.print(f"[bold red]the run fails on: {', '.join(sorted(fails))} (--fail-on): exit 3[/bold red]")
 
 
-def mark_failed(out: Path, err: BaseException) -> None:
+def mark_failed(out: Path, err: BaseException) -> str:
     """Say in the run folder ``out`` that its run never produced a summary, and why
-    (``OUT/FAILED``), so a half-made folder is never taken for a run."""
+    (``OUT/FAILED``), so a half-made folder is never taken for a run; returns the
+    reason. An interruption says whether the recording had begun (``run.mcap``)."""
+    reason = str(err)
+    if isinstance(err, KeyboardInterrupt):
+        mcap = out / "run.mcap"
+        reason = "interrupted before the run started"
+        if mcap.is_file():
+            reason = (f"interrupted after the recording began, before the summary was written: {mcap} "
+                      f"({mcap.stat().st_size:,} bytes) keeps what reached the disk (hil report {out} reads it)")
     if (out / "summary.json").exists():
-        return
-    reason = "interrupted before the run started" if isinstance(err, KeyboardInterrupt) else str(err)
+        return reason
     try:
         from hil.harness.record.out_dir import FAILED_NAME
 
         (out / FAILED_NAME).write_text(f"this run did not start or did not finish: {reason}\n")
     except OSError:
         pass  # the folder itself is the problem; the error line says so
+    return reason
 
 
 def _scenario_switch_hint(overrides: Sequence[str], message: str) -> str:

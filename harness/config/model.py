@@ -148,10 +148,10 @@ class TargetConfig(BaseModel):
 
 class RecordingConfig(BaseModel):
     """The recorder: its bounded queue (items), whether images are stored, and
-    whether the run is also served live to Foxglove (``hil run --live``: a WebSocket
-    server on 127.0.0.1, port printed; see harness/record/live.py); a CAN run's bus
-    traffic as ``run.blf`` or ``run.asc`` beside ``run.mcap`` (``can_log``; see
-    harness/record/can_log.py)."""
+    whether the run is also served live to Foxglove (``hil run --live [HOST:PORT]``: a
+    WebSocket server on ``live_address``, default 127.0.0.1 and a free port, printed;
+    see harness/record/live.py); a CAN run's bus traffic as ``run.blf`` or ``run.asc``
+    beside ``run.mcap`` (``can_log``; see harness/record/can_log.py)."""
 
     model_config = _MODEL_CONFIG
 
@@ -162,6 +162,7 @@ class RecordingConfig(BaseModel):
     # Also write rosbag2/ (ROS 2's bag: MCAP, CDR, metadata.yaml) after the run, for
     # `ros2 bag play` (harness/record/rosbag2.py); run.mcap is unchanged.
     rosbag2: bool = False
+    live_address: str | None = Field(None, pattern=r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+):[0-9]{1,5}$")
 
 
 class TruthConfig(BaseModel):

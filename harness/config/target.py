@@ -124,6 +124,11 @@ class ZenohTargetConfig(BaseModel):
     # target on the endpoint (a leftover, a foreign one) can answer for it. Off for a
     # started third-party target that keeps the fixed keys of PROTOCOL.md 10.2.
     per_run_keys: bool = True
+    # With per_run_keys and no ``auth``, a started target and the harness also share
+    # user/password credentials made for this run (passed in HIL_ZENOH_AUTH, which the
+    # SDK follows; never written to the run folder): a third peer on the endpoint gets
+    # no session, so it can neither read the run nor end it with a forged BYE.
+    per_run_auth: bool = True
 
 
 class CanTargetConfig(BaseModel):

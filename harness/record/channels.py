@@ -131,10 +131,14 @@ def register_all(rec: Recorder, vehicles: Iterable[str], *, anchor: TimeAnchor |
         ok = isinstance(cam, dict) and all(k in cam for k in ("width", "height", "fovy_deg"))
         foxglove_out.FoxgloveViews(vehicles, camera=cam if ok else None, offset_ns=inner.log_time_offset_ns,
                                    deadline_ms=_deadlines(cfg, vehicles)).install(inner)
-    if (cfg.get("recording") or {}).get("live") is True:
-        from hil.harness.record.live import LiveView
+    recording = cfg.get("recording") or {}
+    if recording.get("live") is True:
+        from hil.harness.record.live import DEFAULT_HOST, LiveView
+        from hil.harness.record.live_front import split_address
 
-        live = LiveView()
+        address = recording.get("live_address")
+        host, port = split_address(address) if isinstance(address, str) else (DEFAULT_HOST, 0)
+        live = LiveView(host=host, port=port)
         inner.add_tap("live_view", live)
         print(f"live view: {live.url} (Foxglove: Open connection -> Foxglove WebSocket; "
               "layout hil_configs/foxglove_layout.json)", file=sys.stderr, flush=True)

@@ -28,6 +28,10 @@ thread for every message of one topic; the messages it returns are written too
 (Foxglove views of the hil.* channels, see :mod:`hil.harness.record.foxglove_out`). Their cost
 stays off the producers.
 
+Bounded memory: the writer's chunk indexes (one per chunk, the only thing of the
+file it would otherwise hold for the whole run) go to an unnamed file beside the
+recording until close (:mod:`hil.harness.record.chunk_index`).
+
 Crash safety: messages are written in chunks. A chunk is written when it holds
 ``chunk_size`` bytes (default 1 MiB), when the newest log time written has moved on by
 ``chunk_duration_ns`` since the chunk began (default 1 s), on :meth:`Recorder.flush`
@@ -93,6 +97,7 @@ from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
 from hil.common.errors import ConfigError, RecordingError
 from hil.harness import __version__
+from hil.harness.record import chunk_index
 from hil.harness.record import foxglove_schemas as fx
 
 _MESSAGE_ENCODING = "json"
@@ -270,6 +275,7 @@ class Recorder:
         self._stop_sent = False
         self._closing = False
         self._file: BinaryIO | None = None
+        self._chunk_indexes: chunk_index.ChunkIndexSpill | None = None
         self._sink = _Sink(None)
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
@@ -342,6 +348,8 @@ class Recorder:
                 compression=_MCAP_COMPRESSION[self._compression],
             )
             self._writer.start(library=f"hil-harness/{__version__}; {LIBRARY_IDENTIFIER}")
+            # One chunk index per chunk, on disk until close (hil.harness.record.chunk_index).
+            self._chunk_indexes = chunk_index.install(self._writer, path.parent)
         except OSError as err:
             raise ConfigError(f"cannot record to {path}: {err.strerror or err}; choose a writable path") from err
         self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=False)
@@ -584,6 +592,8 @@ class Recorder:
                     self._file.close()
                 except OSError as err:  # pragma: no cover - close of an unbuffered file
                     self._note_error(err)
+            if self._chunk_indexes is not None:
+                self._chunk_indexes.close()
             self._closed = True
         if self._io_error is not None and not self._io_error_raised:
             self._io_error_raised = True
@@ -791,6 +801,7 @@ class Recorder:
                 "queue_size": str(self._queue_size),
                 "chunk_size": str(self._chunk_size),
                 "compression": self._compression.value,
+                "chunk_indexes_spilled": str(self._chunk_indexes.count if self._chunk_indexes else 0),
             }
             if self._first_error is not None:
                 counters["first_error"] = self._first_error

@@ -16,7 +16,7 @@ import json
 import os
 import sqlite3
 from html import escape
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 from urllib.parse import quote
 
@@ -149,15 +149,29 @@ def thumbnail_for_case(d: RunData, row: dict[str, Any], *, width: int = _THUMB_W
     return "" if img is None else img_tag(img[0], img[1], width=width, alt=alt)
 
 
+def _inside(run_dir: Path, rel: str) -> str | None:
+    """Why ``rel`` is not a plain relative path to a file inside ``run_dir`` (a scheme
+    such as ``javascript:``, an absolute path, ``..``, a symlink leading out, nothing
+    there); None when it is."""
+    p = PurePosixPath(rel)
+    if p.is_absolute() or ".." in p.parts or ":" in rel or "\\" in rel or any(ord(c) < 32 for c in rel):
+        return "not a file in the run folder"
+    full = (run_dir / p).resolve()
+    if not full.is_relative_to(run_dir.resolve()):
+        return "not a file in the run folder"
+    return None if full.is_file() else "not written"
+
+
 def _mcap_link(d: RunData, rel: Any, page_dir: Path) -> str:
-    """A link to a file of the run (``rel``: relative to the run folder) that works from
-    a page in ``page_dir``."""
+    """A case's recording, linked so that it works from a page in ``page_dir``: a link
+    only to a file inside the run folder (the row may have been tampered with);
+    anything else is shown as text."""
     if not isinstance(rel, str) or not rel:
         return "–"
-    target = d.run_dir / rel
-    if not target.is_file():
-        return f'{escape(rel)} <span class="muted">(not written)</span>'
-    href = quote(Path(os.path.relpath(target.resolve(), page_dir.resolve())).as_posix())
+    why = _inside(d.run_dir, rel)
+    if why is not None:
+        return f'{escape(rel)} <span class="muted">({why})</span>'
+    href = quote(Path(os.path.relpath((d.run_dir / rel).resolve(), page_dir.resolve())).as_posix())
     return f'<a href="{escape(href)}">{escape(rel)}</a>'
 
 

@@ -234,6 +234,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     from hil.adapters.link import Received
     from hil.harness.analysis.detector_observer import DetectorObserver
     from hil.harness.analysis.events import EventBus
+    from hil.harness.analysis.spill import spill_summary
     from hil.harness.analysis.summary import build_summary
     from hil.harness.analysis.verdict import parse_fail_on, verdict_json
     from hil.harness.analysis.timing_observer import TimingObserver
@@ -347,6 +348,8 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 finally:
                     if restore is not None:
                         restore()
+                if main_rec.failure is not None:  # the disk filled: the reserve is for the case rows,
+                    reserve.unlink(missing_ok=True)  # the summary and the report, from now on
                 for v in vehicles:
                     v.link.close()
                 if can_log is not None:
@@ -362,6 +365,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 summary = build_summary(loop=loop, stats=stats, timing=timing, detector=detector, recorder_stats={
                     "written": rec_stats.written, "dropped": rec_stats.dropped, "enqueued": rec_stats.enqueued},
                     meta=meta)
+                summary["spill"] = spill_summary(vehicles, timing)  # per-frame columns that stayed in memory
                 if isinstance(rec, CaseRecorder):
                     summary["corner_cases"] = {"written": rec.cases_written, "errors": list(rec.errors),
                                                "triggers_dropped": rec.triggers_dropped}
@@ -381,7 +385,11 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                     summary["ended_by"] = f"the recording failed: {guard.error}"
             summary["recorder"] = {"written": final.written, "derived": final.derived, "dropped": final.dropped,
                                    "enqueued": final.enqueued, "bytes_written": final.bytes_written}
-            if isinstance(rec, CaseRecorder) and rec.cases_written:
+            if isinstance(rec, CaseRecorder) and rec.cases_written and guard.error is not None:
+                summary["corner_cases"]["errors"].append(
+                    "case windows not cut: the recording failed (is the disk full?); once there is room: "
+                    f"hil cases {out_dir} --window ID")  # the space left is the summary's and the report's
+            elif isinstance(rec, CaseRecorder) and rec.cases_written:
                 # Windows are cut from the finalized run.mcap, after the run (nothing
                 # of a case's history is held during it).
                 from hil.harness.cases.windows import write_case_windows

@@ -4,6 +4,8 @@ inject. Shared by the per-vehicle launch (``target_launch``) and the shared targ
 
 from __future__ import annotations
 
+import secrets
+
 from hil.adapters.link import Link
 from hil.common.errors import ConfigError
 from hil.harness.config.model import RunConfig, Transport
@@ -27,14 +29,29 @@ def run_key_prefix(cfg: RunConfig, session: str | None) -> str:
     return z.key_prefix
 
 
-def zenoh_options(cfg: RunConfig, vehicle_id: int, session: str | None = None) -> dict[str, object]:
-    """Keyword options of the Zenoh link of one vehicle (``target.zenoh``)."""
+def run_credentials(cfg: RunConfig, session: str | None, vehicle_id: int) -> tuple[str, str] | None:
+    """This run's own Zenoh user and password for a target the harness starts
+    (``target.zenoh.per_run_auth``), or None. The password is fresh randomness, never
+    the session nonce (which summary.json shows)."""
     z = cfg.target.zenoh
+    if not (z.per_run_auth and z.auth is None and run_key_prefix(cfg, session) != z.key_prefix):
+        return None
+    return f"hil-{session}-v{vehicle_id}", secrets.token_urlsafe(24)
+
+
+def zenoh_options(cfg: RunConfig, vehicle_id: int, session: str | None = None,
+                  credentials: tuple[str, str] | None = None) -> dict[str, object]:
+    """Keyword options of the Zenoh link of one vehicle (``target.zenoh``);
+    ``credentials``: the run's own (``run_credentials``)."""
+    from hil.adapters.zenoh_options import run_usrpwd
+
+    z = cfg.target.zenoh
+    auth = run_usrpwd(*credentials) if credentials else z.auth.usrpwd() if z.auth else None
     return {"connect": [substitute(e, vehicle_id=vehicle_id, base_port=z.base_port) for e in z.connect],
             "listen": [substitute(e, vehicle_id=vehicle_id, base_port=z.base_port) for e in z.listen],
             "mode": z.mode.value, "key_prefix": run_key_prefix(cfg, session), "multicast_scouting": z.multicast_scouting,
             "congestion_control": z.congestion_control.value, "lease_ms": z.lease_ms,
-            "tls": dict(z.tls) if z.tls else None, **({"usrpwd": z.auth.usrpwd()} if z.auth else {})}
+            "tls": dict(z.tls) if z.tls else None, **({"usrpwd": auth} if auth else {})}
 
 
 def ros2_domain(cfg: RunConfig, vehicle_id: int, session: str | None = None) -> int:

@@ -13,11 +13,12 @@ from typing import Any
 
 from hil.adapters.link import Link, Received, open_link
 from hil.adapters.process import die_with_parent, end_process
+from hil.adapters.zenoh_options import AUTH_ENV
 from hil.common.errors import TargetError
 from hil.harness.config.model import RunConfig, Transport
 from hil.harness.config.target import substitute
-from hil.harness.run.link_options import (can_options, impair, ros2_node_env, ros2_options, run_key_prefix,
-                                         target_command, zenoh_options)
+from hil.harness.run.link_options import (can_options, impair, ros2_node_env, ros2_options, run_credentials,
+                                         run_key_prefix, target_command, zenoh_options)
 from hil.timing.clock import Clock
 
 
@@ -65,10 +66,23 @@ class TargetProcess:
 
     def close(self) -> None:
         proc, self.proc = getattr(self, "proc", None), None
+        if proc is not None and proc.poll() is None and _stopped(proc.pid):
+            proc.kill()  # frozen (SIGSTOP): it can neither leave on BYE nor act on SIGTERM
+            proc.wait()
         end_process(proc, term_s=3.0)  # it got BYE; let it leave on its own first
         log = getattr(self, "_log", None)
         if log is not None and not log.closed:
             log.close()
+
+
+def _stopped(pid: int) -> bool:
+    """True when process ``pid`` is stopped (state T or t in ``/proc/PID/stat``)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    fields = stat.rpartition(")")[2].split()
+    return bool(fields) and fields[0] in ("T", "t")
 
 
 def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, out_dir: Path,
@@ -95,15 +109,19 @@ def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, ou
         impair(cfg, link, vehicle_id=vehicle_id, clock=clock)
         return link, None
     env = {"HIL_SESSION": session} if session else {}
+    creds = None
     if t.transport in (Transport.ZENOH, Transport.MIXED):
         env["HIL_ZENOH_KEY_PREFIX"] = run_key_prefix(cfg, session)
+        creds = run_credentials(cfg, session, vehicle_id)  # a third peer gets no session
+        if creds is not None:
+            env[AUTH_ENV] = ":".join(creds)
     elif t.transport == Transport.ROS2:  # its own domain, Cyclone on loopback, the run's topics
         env.update(ros2_node_env(cfg, vehicle_id, session))
     proc = TargetProcess(target_command(cfg, vehicle_id=vehicle_id), log_path=log, env=env) if t.command else None
     try:
         if t.transport == Transport.ZENOH:
             link = open_link("zenoh", vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
-                             **zenoh_options(cfg, vehicle_id, session))
+                             **zenoh_options(cfg, vehicle_id, session, creds))
         elif t.transport == Transport.TCP:  # target.tcp: {mode: address}, as hil.adapters.tcp.TcpLink takes it
             tc = t.tcp
             link = open_link("tcp", vehicle_id=vehicle_id, clock=clock, rx_queue=rx, kernel_stamps=tc.kernel_stamps,
@@ -113,7 +131,7 @@ def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, ou
                              **ros2_options(cfg, vehicle_id, session))
         elif t.transport == Transport.MIXED:  # frames over target.zenoh, the rest over target.can
             link = open_link("mixed", vehicle_id=vehicle_id, clock=clock, rx_queue=rx, tap=can_tap,
-                             **zenoh_options(cfg, vehicle_id, session), **can_options(cfg, vehicle_id))
+                             **zenoh_options(cfg, vehicle_id, session, creds), **can_options(cfg, vehicle_id))
         else:
             link = open_link("can", vehicle_id=vehicle_id, clock=clock, camera_over=t.can.camera_over, rx_queue=rx,
                              tap=can_tap, **can_options(cfg, vehicle_id))
