@@ -10,7 +10,9 @@ weights, an unusable device or transport.
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -100,8 +102,17 @@ def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.target
                                steer_error_max_rad=steer_max)
         return _serve(a, target, shared=shared)
     finally:
-        target.close()
         print(f"cnn: {target.status()}", file=sys.stderr, flush=True)
+        target.close()
+
+
+class _Terminated(BaseException):
+    """SIGTERM in a shared local target: leave serving through every ``finally``."""
+
+
+def _terminate(*_: object) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM ends it where it stands
+    raise _Terminated
 
 
 def _serve(a: argparse.Namespace, target: CnnTarget, *, shared: bool) -> int:
@@ -122,6 +133,12 @@ def _serve(a: argparse.Namespace, target: CnnTarget, *, shared: bool) -> int:
             except ValueError as err:
                 print(f"cnn: {err}", file=sys.stderr)
                 return 2
+            if a.transport == "local" and threading.current_thread() is threading.main_thread():
+                # The shared local transport's loop keeps SIGTERM's default (the process
+                # dies where it stands): leave through the finally blocks instead, so the
+                # scheduler finishes its batch, the batch log closes and the decode
+                # workers are told to go (the Zenoh one stops on SIGTERM itself).
+                signal.signal(signal.SIGTERM, _terminate)
             try:
                 serve_batched(target.infer_batch, target_name=name, transport=a.transport, on_command=target.command,
                               window_ns=int(a.batch_window_ms * 1e6), max_batch=a.max_batch, vehicles=vehicles,
@@ -130,6 +147,8 @@ def _serve(a: argparse.Namespace, target: CnnTarget, *, shared: bool) -> int:
             except ConfigError as err:
                 print(f"cnn: {err}", file=sys.stderr)
                 return 2
+            except _Terminated:
+                print("cnn: SIGTERM: stopping", file=sys.stderr, flush=True)
         else:
             serve(target.infer, target_name=name, transport=a.transport, on_command=target.command,
                   **transport_options(a))
