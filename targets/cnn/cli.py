@@ -118,7 +118,8 @@ def _terminate(*_: object) -> None:
 def _serve(a: argparse.Namespace, target: CnnTarget, *, shared: bool) -> int:
     import torch
 
-    from hil.adapters.sdk import TransportError, serve, transport_options
+    from hil.adapters.sdk import serve, transport_options
+    from hil.common.errors import TransportError
     from hil.targets.cnn.device import hello_name
 
     name = hello_name(a.name, target.device, detail=target.device_name)

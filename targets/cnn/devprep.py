@@ -124,7 +124,7 @@ def gpu_jpeg_decoder(device: torch.device) -> Callable[[Sequence[Frame]], torch.
     if device.type != "cuda":
         return None
     try:
-        from torchvision.io import decode_jpeg
+        from torchvision.io import decode_jpeg  # type: ignore[import-not-found, unused-ignore]
     except Exception:  # noqa: BLE001 - ImportError, or torchvision built for another torch (RuntimeError)
         return None
 

@@ -133,8 +133,8 @@ def synthetic_frames(n: int, *, width: int = 320, height: int = 240) -> list[Fra
         img[height // 2:, width // 2 - 2: width // 2 + 2] = 230
         x = 40 + 8 * i % (width - 80)
         img[height // 2 - 20: height // 2 + 10, x: x + 40] = (40, 40, 160)
-        img = cv2.add(img, rng.integers(0, 6, img.shape, dtype=np.uint8))
-        ok, jpeg = cv2.imencode(".jpg", img, (cv2.IMWRITE_JPEG_QUALITY, 85))
+        noisy = cv2.add(img, rng.integers(0, 6, img.shape, dtype=np.uint8))
+        ok, jpeg = cv2.imencode(".jpg", noisy, (cv2.IMWRITE_JPEG_QUALITY, 85))
         if not ok:  # pragma: no cover - OpenCV always encodes a plain image
             raise RuntimeError("cannot encode a synthetic frame")
         f = height / 2 / math.tan(math.radians(30))  # 60 degrees vertical field of view

@@ -85,12 +85,12 @@ class Layout:
     def nbytes(self, slots: int) -> int:
         return slots * sum(int(np.prod(shape)) for _, shape in self.outputs)
 
-    def views(self, buf: object, slots: int) -> dict[str, np.ndarray]:
+    def views(self, buf: mmap.mmap | bytearray, slots: int) -> dict[str, np.ndarray]:
         """One (slots, *shape) uint8 array per output over ``buf``, output after
         output, so any first n slots of an output are one contiguous batch."""
         out, offset = {}, 0
         for name, shape in self.outputs:
-            arr = np.ndarray((slots, *shape), np.uint8, buffer=buf, offset=offset)  # type: ignore[call-overload]
+            arr = np.ndarray((slots, *shape), np.uint8, buffer=buf, offset=offset)
             out[name] = arr
             offset += arr.nbytes
         return out

@@ -181,8 +181,13 @@ class CnnTarget:
         from hil.targets.cnn.frontend import Frontend, _median_ms
 
         inputs = Frontend(0, slots=len(frames)).prepare(frames, ("det", "steer"))
-        return _median_ms(lambda: (self.nets.steering(inputs["steer"]), self.nets.detector(inputs["det"]),
-                                   self.nets.sync()), 3)
+
+        def both() -> None:
+            self.nets.steering(inputs["steer"])
+            self.nets.detector(inputs["det"])
+            self.nets.sync()
+
+        return _median_ms(both, 3)
 
     # -- models ----------------------------------------------------------------
 
