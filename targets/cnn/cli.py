@@ -41,7 +41,7 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     s = p.add_argument_group("speed (hil.targets.cnn.accel, hil.targets.cnn.frontend)")
     s.add_argument("--decode-workers", default="0",
                    help="decode and preprocess a batch's frames on N workers (0: in this process; auto: measure "
-                        "at start and use one per core when that saves >= 5%% of a batch; shared targets only)")
+                        "at start, one per core when they decode a batch >= 20%% faster; shared targets only)")
     s.add_argument("--decode-pool", choices=("process", "thread"), default="process",
                    help="the workers are processes (default) or threads of this process")
     s.add_argument("--precision", default="auto",

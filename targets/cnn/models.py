@@ -157,8 +157,8 @@ def decode_batch(out: torch.Tensor, *, threshold: float, top_k: int = 32) -> lis
 
 def _max3x3(x: torch.Tensor) -> torch.Tensor:
     """``F.max_pool2d(x, 3, 1, 1)``, exactly (a maximum is a maximum), as two passes of
-    three shifted views: 20x faster for a batch on the CPU (1.36 ms against 0.07 ms
-    for 16 x 3 x 30 x 40, torch 2.13, one thread)."""
+    three shifted views: torch 2.13's stride-1 max pooling on the CPU was the slowest
+    step of post-processing a batch (``bench/README.md``, bench_shared.py)."""
     p = F.pad(x, (1, 1, 1, 1), value=float("-inf"))
     r = torch.maximum(torch.maximum(p[..., :, :-2], p[..., :, 1:-1]), p[..., :, 2:])
     return torch.maximum(torch.maximum(r[..., :-2, :], r[..., 1:-1, :]), r[..., 2:, :])

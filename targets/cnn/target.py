@@ -152,7 +152,7 @@ class CnnTarget:
         self.device_prep = DevicePrep(self.device) if sv.preprocess == "device" else None
         self.gpu_decode = gpu_jpeg_decoder(self.device) if sv.preprocess == "device" else None
         if sv.decode_workers is None:
-            self.frontend = (auto_frontend(self._nets_ms, slots=sv.max_batch, kind=sv.decode_pool) if sv.batched
+            self.frontend = (auto_frontend(slots=sv.max_batch, kind=sv.decode_pool) if sv.batched
                              else Frontend(0, slots=sv.max_batch))
         else:
             self.frontend = Frontend(sv.decode_workers, kind=sv.decode_pool, slots=sv.max_batch)
@@ -175,19 +175,6 @@ class CnnTarget:
         return {"decode": self.frontend.describe(),
                 "preprocess": "device" + (" (nvJPEG)" if self.gpu_decode else "") if self.device_prep else "cpu",
                 "precision": precision_name(self.dtype), "cuda_graphs": ",".join(self.nets.graphed) or "none"}
-
-    def _nets_ms(self, frames: Sequence[Frame]) -> float:
-        """Both nets on ``frames``' inputs, ms (median of 3, after one warm-up)."""
-        from hil.targets.cnn.frontend import Frontend, _median_ms
-
-        inputs = Frontend(0, slots=len(frames)).prepare(frames, ("det", "steer"))
-
-        def both() -> None:
-            self.nets.steering(inputs["steer"])
-            self.nets.detector(inputs["det"])
-            self.nets.sync()
-
-        return _median_ms(both, 3)
 
     # -- models ----------------------------------------------------------------
 

@@ -317,16 +317,25 @@ def test_cuda_paths_stay_off_on_the_cpu_and_precision_auto_is_fp32_there():
     assert x.device.type == "cpu" and tuple(x.shape) == (2, 3, 120, 160) and x.is_contiguous()
 
 
-def test_decode_workers_auto_measures_and_stays_in_process_when_the_nets_dominate():
-    from hil.targets.cnn.frontend import auto_frontend
+def test_decode_workers_auto_measures_and_says_what_it_chose():
+    import re
 
+    from hil.targets.cnn.frontend import AUTO_GAIN, auto_frontend, pool_pays
+
+    assert pool_pays(10.0, 10.0 * (1 - AUTO_GAIN)) and not pool_pays(10.0, 10.0 * (1 - AUTO_GAIN) + 0.01)
     said: list[str] = []
-    fe = auto_frontend(lambda fs: 1e9, slots=4, log=said.append, reps=2)  # nets of a billion ms: no pool pays
+    fe = auto_frontend(slots=8, cores=2, log=said.append, reps=3)
     try:
-        assert fe.describe() == "in process" and fe.pids == []
-        assert len(said) == 1 and "decode in process" in said[0] and said[0].endswith(": in process")
+        assert len(said) == 1, said
+        t_in, t_pool = (float(x) for x in re.findall(r"([0-9.]+) ms", said[0]))
+        chose = said[0].rsplit(": ", 1)[1]
+        assert chose == ("2 processes" if pool_pays(t_in, t_pool) else "in process") == fe.describe()
+        assert len(fe.pids) == (2 if chose == "2 processes" else 0)  # a pool not taken was ended
     finally:
         fe.close()
+    said.clear()
+    assert auto_frontend(slots=4, cores=1, log=said.append, reps=1).describe() == "in process"
+    assert said[0].endswith("one core: in process")
     one = CnnTarget(serving=Serving(decode_workers=None, batched=False))  # one vehicle: nothing to spread
     assert one.frontend.describe() == "in process"
 
