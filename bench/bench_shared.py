@@ -320,7 +320,8 @@ def main(argv: list[str] | None = None) -> int:
     for threads in sorted({1, a.shared_threads}):
         print(f"\nin-process CnnTarget.infer_batch, {threads} torch thread(s), device {a.device}, "
               f"loadavg {_loadavg()} (ms, p50 of 15):\n")
-        table, nets = batch_cost(frames, device=a.device, threads=threads, workers=a.workers)
+        table, nets = batch_cost(frames, device=a.device, threads=threads, workers=a.workers,
+                                 sizes=tuple(sorted({1, *ns})))
         if threads == a.shared_threads:
             floors = nets
         print("\n".join(table), flush=True)
