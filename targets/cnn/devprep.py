@@ -124,7 +124,7 @@ def gpu_jpeg_decoder(device: torch.device) -> Callable[[Sequence[Frame]], torch.
     if device.type != "cuda":
         return None
     try:
-        from torchvision.io import decode_jpeg  # type: ignore[import-not-found, unused-ignore]
+        from torchvision.io import ImageReadMode, decode_jpeg  # type: ignore[import-not-found, unused-ignore]
     except Exception:  # noqa: BLE001 - ImportError, or torchvision built for another torch (RuntimeError)
         return None
 
@@ -133,7 +133,7 @@ def gpu_jpeg_decoder(device: torch.device) -> Callable[[Sequence[Frame]], torch.
             raise ValueError("the GPU decoder takes JPEG frames only")
         data = [torch.frombuffer(bytearray(f.data), dtype=torch.uint8) for f in frames]
         try:
-            images = decode_jpeg(data, mode="RGB", device=device)
+            images = decode_jpeg(data, mode=ImageReadMode.RGB, device=device)
         except RuntimeError as err:
             raise ProtocolError(f"JPEG image does not decode on the GPU: {err}", offset=0) from err
         for f, img in zip(frames, images):

@@ -159,8 +159,10 @@ class CnnTarget:
 
     def close(self) -> None:
         """End the decode workers (idempotent); ``infer`` decodes in process afterwards."""
+        from hil.targets.cnn.frontend import Frontend
+
         self.frontend.close()
-        self.frontend = type(self.frontend)(0, slots=self.serving.max_batch)
+        self.frontend = Frontend(0, slots=self.serving.max_batch)
 
     def __enter__(self) -> CnnTarget:
         return self
