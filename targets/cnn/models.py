@@ -126,25 +126,42 @@ class Detection:
 
 def decode(out: torch.Tensor, *, threshold: float, top_k: int = 32) -> list[Detection]:
     """Detections of one output (7 x 30 x 40, or 1 x 7 x 30 x 40), best first."""
-    if out.dim() == 4:
-        out = out[0]
-    nc = len(CLASSES)
-    heat = torch.sigmoid(out[:nc])
-    peaks = heat * (F.max_pool2d(heat[None], 3, 1, 1)[0] == heat)
+    return decode_batch(out if out.dim() == 4 else out[None], threshold=threshold, top_k=top_k)[0]
+
+
+def decode_batch(out: torch.Tensor, *, threshold: float, top_k: int = 32) -> list[list[Detection]]:
+    """Detections of each output of a batch (N x 7 x 30 x 40, any dtype, on any
+    device), best first: heatmap peaks (3x3 local maxima) at or above ``threshold``
+    among the ``top_k`` best, their boxes, then ``nms``. One set of tensor operations
+    for the whole batch and one copy to the CPU; per frame only the kept peaks are
+    Python objects."""
+    out = out.float()
+    n, nc = out.shape[0], len(CLASSES)
+    heat = torch.sigmoid(out[:, :nc])
+    peaks = heat * (_max3x3(heat) == heat)
     gh, gw = heat.shape[-2:]
-    scores, idx = peaks.reshape(-1).topk(min(top_k, peaks.numel()))
-    keep = scores >= threshold
-    scores, idx = scores[keep].tolist(), idx[keep]
-    cls = (idx // (gh * gw)).tolist()
-    cell = idx % (gh * gw)
-    ys, xs = (cell // gw), (cell % gw)
-    reg = out[nc:, ys, xs]  # 4 x k
-    w, h = torch.exp(reg[0]).tolist(), torch.exp(reg[1]).tolist()
-    cx = ((xs.float() + reg[2]) * STRIDE).tolist()
-    cy = ((ys.float() + reg[3]) * STRIDE).tolist()
-    dets = [Detection(c, s, (x - ww / 2, y - hh / 2, x + ww / 2, y + hh / 2))
-            for c, s, x, y, ww, hh in zip(cls, scores, cx, cy, w, h)]
-    return nms(dets, NMS_IOU)
+    cells = gh * gw
+    scores, idx = peaks.reshape(n, -1).topk(min(top_k, nc * cells), dim=1)
+    cell = idx % cells
+    ys, xs = cell // gw, cell % gw
+    reg = out[:, nc:].reshape(n, 4, cells).gather(2, cell[:, None, :].expand(n, 4, cell.shape[1]))  # n x 4 x k
+    table = torch.stack([(scores >= threshold).float(), scores, (idx // cells).float(), (xs.float() + reg[:, 2]) * STRIDE,
+                         (ys.float() + reg[:, 3]) * STRIDE, torch.exp(reg[:, 0]), torch.exp(reg[:, 1])], 2)
+    result = []
+    for rows in table.cpu().tolist():
+        dets = [Detection(int(c), s, (x - ww / 2, y - hh / 2, x + ww / 2, y + hh / 2))
+                for keep, s, c, x, y, ww, hh in rows if keep]
+        result.append(nms(dets, NMS_IOU))
+    return result
+
+
+def _max3x3(x: torch.Tensor) -> torch.Tensor:
+    """``F.max_pool2d(x, 3, 1, 1)``, exactly (a maximum is a maximum), as two passes of
+    three shifted views: torch 2.13's stride-1 max pooling on the CPU was the slowest
+    step of post-processing a batch (``bench/README.md``, bench_shared.py)."""
+    p = F.pad(x, (1, 1, 1, 1), value=float("-inf"))
+    r = torch.maximum(torch.maximum(p[..., :, :-2], p[..., :, 1:-1]), p[..., :, 2:])
+    return torch.maximum(torch.maximum(r[..., :-2, :], r[..., 1:-1, :]), r[..., 2:, :])
 
 
 def _iou(a: tuple[float, ...], b: tuple[float, ...]) -> float:
