@@ -106,7 +106,7 @@ COMMANDS = {"report": "hil.harness.report.run_report", "compare": "hil.harness.r
             "study": "hil.harness.study.study", "trace": "hil.harness.report.trace",
             "rosbag": "hil.harness.record.rosbag2"}
 # Example targets by name: module with a main(argv) -> int.
-TARGETS = {"cnn": "hil.targets.cnn.target", "cv": "hil.targets.cv_baseline", "echo": "hil.targets.echo"}
+TARGETS = {"cnn": "hil.targets.cnn.cli", "cv": "hil.targets.cv_baseline", "echo": "hil.targets.echo"}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -368,10 +368,3 @@ def _iou(a: Sequence[float], b: Sequence[float]) -> float:
     inter = ix * iy
     union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
     return inter / union if union > 0 else 0.0
-
-
-def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.targets.cnn") -> int:
-    """``hil.targets.cnn.cli.main``: serve the CNN target (its options there)."""
-    from hil.targets.cnn.cli import main as serve_main
-
-    return serve_main(argv, prog=prog)

@@ -116,7 +116,7 @@ def test_every_shipped_config_command_passes_the_option_table(tmp_path: Path):
 
 def _parser_options(module: str) -> dict[str, bool]:
     """Every option of ``module``'s real parser: name → takes a value (read from its --help usage)."""
-    mod = importlib.import_module(module if module != "hil.targets.cnn" else "hil.targets.cnn.target")
+    mod = importlib.import_module(module if module != "hil.targets.cnn" else "hil.targets.cnn.cli")
     out = io.StringIO()
     with contextlib.redirect_stdout(out), pytest.raises(SystemExit):
         mod.main(["--help"])

@@ -20,7 +20,8 @@ from hil.adapters.messages import (CameraInfo, DetectedObject, DrivingState, Fra
                                    ObjectClass)
 from hil.targets.cnn import commands, geometry, models  # noqa: E402
 from hil.targets.cnn.decision import Policy, decide, in_path, path_y  # noqa: E402
-from hil.targets.cnn.target import CnnTarget, main  # noqa: E402
+from hil.targets.cnn.cli import main  # noqa: E402
+from hil.targets.cnn.target import CnnTarget  # noqa: E402
 from hil.targets.cv_baseline import CvBaseline  # noqa: E402
 
 CAM = CameraInfo(207.846, 207.846, 160.0, 120.0, 1.3, 0.0)  # 320 x 240, 60 deg, 1.3 m

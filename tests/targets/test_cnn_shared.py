@@ -59,7 +59,7 @@ def test_target_loads_its_weights_on_the_device_and_names_it():
 
 
 def test_bad_device_is_one_line_and_exit_2(capsys):
-    from hil.targets.cnn.target import main
+    from hil.targets.cnn.cli import main
 
     assert main(["--device", "gpu"]) == 2
     err = capsys.readouterr().err.strip().splitlines()

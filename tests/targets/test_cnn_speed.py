@@ -292,7 +292,7 @@ def test_no_decode_worker_outlives_its_target(tmp_path: Path, sig):
 def test_bad_speed_options_are_one_line_and_exit_2(capsys, argv, needle):
     if argv[0] == "--device" and torch.cuda.is_available():
         pytest.skip("CUDA is here: --device cuda is valid")
-    from hil.targets.cnn.target import main
+    from hil.targets.cnn.cli import main
 
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
