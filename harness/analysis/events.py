@@ -221,7 +221,7 @@ class EventBus:
 
     def counts(self, vehicle: str | None) -> dict[str, int]:
         """Events published for ``vehicle`` (``None``: the whole run's), by kind."""
-        return {k: n for (v, k), n in sorted(self._counts.items()) if v == vehicle}
+        return dict(sorted((k, n) for (v, k), n in self._counts.items() if v == vehicle))
 
     def publish(self, ev: Event, log_time_ns: int | None = None) -> None:
         self.published += 1
