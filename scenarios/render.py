@@ -33,12 +33,12 @@ class SceneRenderer:
     def __init__(self, model: mujoco.MjModel, *, width: int, height: int, shadows: bool = False,
                  reflections: bool = False, geom_entity: np.ndarray | None = None) -> None:
         """``geom_entity``: entity index of every model geom (-1: none), for ``segment``."""
-        self._gl: object | None = None
+        self._gl: mujoco.GLContext | None = None
         self._ctx: mujoco.MjrContext | None = None
         self.model, self.width, self.height = model, width, height
         try:
             self._gl = mujoco.GLContext(max(width, 1), max(height, 1))
-            self._gl.make_current()  # type: ignore[attr-defined]
+            self._gl.make_current()
             self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150.value)
             mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._ctx)
         except Exception as err:  # mujoco raises bare RuntimeError/ImportError here
@@ -116,10 +116,10 @@ class SceneRenderer:
         self._ctx = self._gl = None
         if ctx is not None:
             if gl is not None:
-                gl.make_current()  # type: ignore[attr-defined]
+                gl.make_current()
             ctx.free()
         if gl is not None:
-            gl.free()  # type: ignore[attr-defined]
+            gl.free()
 
     def __enter__(self) -> SceneRenderer:
         return self

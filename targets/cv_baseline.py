@@ -402,13 +402,16 @@ def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.target
                                 description="A classical OpenCV driving AI served over the target SDK.")
     p.add_argument("--cruise-speed", type=float, default=10.0, help="speed to hold when the lane is clear (m/s)")
     p.add_argument("--name", default="cv-baseline", help="target name reported in HELLO")
-    from hil.adapters.sdk import TransportError, add_transport_args, serve, transport_options
+    from hil.adapters.sdk import add_transport_args, serve, transport_options
+    from hil.common.errors import TransportError
 
     add_transport_args(p)
     a = p.parse_args(argv)
     try:
+        # transport_options() types every value `object`, which mypy cannot match to serve's named
+        # parameters; only transport options are in it (a TypedDict in adapters/sdk.py would say so).
         serve(CvBaseline(cruise_speed_mps=a.cruise_speed).infer, target_name=a.name,
-              transport=a.transport, **transport_options(a))
+              transport=a.transport, **transport_options(a))  # type: ignore[arg-type]
     except TransportError as err:
         print(f"cv_baseline: {err}", file=sys.stderr)
         return 2

@@ -154,7 +154,7 @@ def _capture(sim: Simulation, vehicle: str, rng: np.random.Generator, source: st
     if not ok:  # pragma: no cover - OpenCV failing on a valid array
         raise RuntimeError("JPEG encoding failed")
     truth = sim.camera_truth(vehicle)
-    boxes = tuple(LabelBox(b.cls, tuple(int(v) for v in b.box_px), int(b.visible_px), float(b.visible_fraction),
+    boxes = tuple(LabelBox(b.cls, b.box_px, int(b.visible_px), float(b.visible_fraction),
                            bool(b.truncated), float(b.path_s_m), float(b.path_lateral_m)) for b in truth.boxes)
     k = sim.intrinsics()
     cam = sim.world.camera
@@ -192,7 +192,7 @@ def _clear_of_entities(sim: Simulation, x: float, y: float, yaw: float, ego: str
 def _paint(rng: np.random.Generator) -> tuple[float, float, float, float]:
     if rng.random() < 0.5:
         return PAINTS[int(rng.integers(len(PAINTS)))]
-    hsv = np.uint8([[[rng.integers(0, 180), rng.integers(60, 256), rng.integers(70, 256)]]])
+    hsv = np.array([[[rng.integers(0, 180), rng.integers(60, 256), rng.integers(70, 256)]]], np.uint8)
     r, g, b = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, 0] / 255.0
     return (float(r), float(g), float(b), 1.0)
 
@@ -288,7 +288,9 @@ def _composed_samples(rng: np.random.Generator, n: int, camera: CameraSpec) -> I
 
 
 def _scenario_params(name: str, rng: np.random.Generator) -> dict[str, float]:
-    u = lambda lo, hi: float(rng.uniform(lo, hi))  # noqa: E731
+    def u(lo: float, hi: float) -> float:
+        return float(rng.uniform(lo, hi))
+
     if name == "stopped_car":
         return {"gap_m": u(15, 120), "ego_speed_mps": u(4, 12), "lateral_offset_m": u(-1, 1)}
     if name == "curved_road":

@@ -58,6 +58,8 @@ class Detector(nn.Module):
     """Input: N x 3 x 120 x 160 RGB, 0-255 floats. Output: N x 7 x 30 x 40 raw maps
     (3 heatmap logits, log w, log h, offset x, offset y)."""
 
+    rows: torch.Tensor  # a buffer (register_buffer): nn.Module's attribute lookup types it Tensor | Module
+
     def __init__(self, widths: tuple[int, ...] = DET_WIDTHS) -> None:
         super().__init__()
         c1, c2, c3, c4, c5 = widths
@@ -74,8 +76,10 @@ class Detector(nn.Module):
         self.merge8 = _cbr(c3 + c4, c3)
         self.merge4 = _cbr(c2 + c3, 32)
         self.head = nn.Conv2d(32, len(CLASSES) + 4, 1)
+        head_bias = self.head.bias
+        assert head_bias is not None  # a Conv2d made with its bias
         with torch.no_grad():  # CenterNet's prior: heatmaps start near 0.1 % so the loss starts sane
-            self.head.bias[: len(CLASSES)].fill_(-6.9)
+            head_bias[: len(CLASSES)].fill_(-6.9)
 
     @staticmethod
     def _up(x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
@@ -90,7 +94,8 @@ class Detector(nn.Module):
         c = self.merge16(torch.cat([c, self._up(d, c)], 1))
         b = self.merge8(torch.cat([b, self._up(c, b)], 1))
         a = self.merge4(torch.cat([a, self._up(b, a)], 1))
-        return self.head(a)
+        out: torch.Tensor = self.head(a)  # nn.Module.__call__ is typed Any
+        return out
 
 
 class SteeringNet(nn.Module):
@@ -111,7 +116,8 @@ class SteeringNet(nn.Module):
                                 nn.Linear(50, 10), nn.ReLU(inplace=True), nn.Linear(10, 2))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.fc(self.features(x * (1 / 127.5) - 1.0))
+        out: torch.Tensor = self.fc(self.features(x * (1 / 127.5) - 1.0))  # nn.Module.__call__ is typed Any
+        return out
 
 
 @dataclass(frozen=True)
@@ -184,11 +190,13 @@ def nms(dets: list[Detection], iou: float) -> list[Detection]:
 
 def fold_batchnorm(model: nn.Module) -> nn.Module:
     """Fold every Conv2d + BatchNorm2d pair of ``model`` (in eval mode) into the
-    convolution, in place; returns the model. Same outputs, fewer operations."""
+    convolution, in place; returns the model. Same outputs, fewer operations. A
+    BatchNorm2d without running statistics (it normalizes by each batch's) stays."""
     for mod in model.modules():
         kids = list(mod.named_children())
         for (_, a), (name_b, b) in zip(kids, kids[1:]):
-            if isinstance(a, nn.Conv2d) and isinstance(b, nn.BatchNorm2d):
+            if (isinstance(a, nn.Conv2d) and isinstance(b, nn.BatchNorm2d)
+                    and b.running_mean is not None and b.running_var is not None):
                 scale = b.weight.detach() / torch.sqrt(b.running_var + b.eps)
                 bias = b.bias.detach() - b.running_mean * scale
                 if a.bias is not None:
