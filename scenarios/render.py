@@ -73,9 +73,9 @@ class SceneRenderer:
 
     def rgb(self, data: mujoco.MjData, cam_id: int, out: np.ndarray) -> np.ndarray:
         """Draw camera ``cam_id`` into ``out`` (height x width x 3 uint8, top row first)."""
-        if self._ctx is None:
+        if self._ctx is None or self._gl is None:
             raise SimulationError("renderer is closed")
-        self._gl.make_current()  # type: ignore[union-attr]
+        self._gl.make_current()
         mujoco.mjv_updateScene(self.model, data, self._opt, None, self._camera(cam_id),
                                mujoco.mjtCatBit.mjCAT_ALL.value, self._scene)
         mujoco.mjr_render(self._rect, self._scene, self._ctx)
@@ -86,9 +86,9 @@ class SceneRenderer:
     def segment(self, data: mujoco.MjData, cam_id: int, out: np.ndarray) -> np.ndarray:
         """Entity index of every pixel of camera ``cam_id`` into ``out`` (height x width
         int32, top row first; ``BACKGROUND`` where no entity is seen)."""
-        if self._ctx is None:
+        if self._ctx is None or self._gl is None:
             raise SimulationError("renderer is closed")
-        self._gl.make_current()  # type: ignore[union-attr]
+        self._gl.make_current()
         scn = self._seg_scene
         mujoco.mjv_updateScene(self.model, data, self._seg_opt, None, self._camera(cam_id),
                                mujoco.mjtCatBit.mjCAT_ALL.value, scn)

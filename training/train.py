@@ -550,7 +550,7 @@ pedestrians falls to {ped8:.2f} with boxes down to 8 px.
 """
 
 
-def add_parser(sub: Any) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Register ``hil train``."""
     p = sub.add_parser("train", help="reproduce the CNN target's weights from scratch (seeded)",
                        description="Reproduce the CNN target's weights from scratch: render the dataset, "

@@ -137,7 +137,8 @@ def current_config_commands(places: Sequence[Path] = ()) -> set[tuple[tuple[str,
                 continue
             target = data.get("target") if isinstance(data, dict) else None
             if isinstance(target, dict) and isinstance(target.get("command"), list):
-                args = target.get("args") if isinstance(target.get("args"), list) else []
+                given = target.get("args")
+                args = given if isinstance(given, list) else []
                 out.add((tuple(map(str, target["command"])), tuple(map(str, args))))
     return out
 
@@ -167,7 +168,8 @@ def check_replay_command(cfg_data: dict[str, Any], *, source: str, trust: bool,
     Raises:
         ConfigError: one line naming the command, why it is not trusted, and ``--trust-config``.
     """
-    target = cfg_data.get("target") if isinstance(cfg_data.get("target"), dict) else {}
+    given = cfg_data.get("target")
+    target: dict[str, Any] = given if isinstance(given, dict) else {}
     command = [str(w) for w in target.get("command") or []] if isinstance(target.get("command"), list) else []
     args = [str(w) for w in target.get("args") or []] if isinstance(target.get("args"), list) else []
     reason = None if trust else untrusted_reason(command, args)

@@ -212,7 +212,7 @@ def render(cal: Calibration) -> str:
     return "\n".join(lines)
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("calibrate", help="check the harness's own accuracy against a reference target",
                        description="Run a reference target that injects known truth (clock offset and skew, "
                                    "inference time, spikes, a drop, a reorder, a clock step, malformed "

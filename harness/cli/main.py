@@ -12,7 +12,7 @@ import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from hil.common.errors import ConfigError, HilError
 from hil.harness import __version__
@@ -21,7 +21,7 @@ EXIT_OK, EXIT_EARLY, EXIT_USAGE = 0, 1, 2
 
 
 class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one line, exit 2, like every user mistake
+    def error(self, message: str) -> NoReturn:  # one line, exit 2, like every user mistake
         self.exit(EXIT_USAGE, f"hil: error: {message} (see hil {self.prog.split()[-1]} --help)\n")
 
 
@@ -40,7 +40,8 @@ def _live_address(text: str) -> str:
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="hil", description="Hardware-in-the-loop timing harness for autonomous-driving AI.")
     p.add_argument("--version", action="version", version=f"hil {__version__}")
-    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    sub: argparse._SubParsersAction[argparse.ArgumentParser] = p.add_subparsers(dest="command", required=True,
+                                                                                parser_class=_Parser)
     r = sub.add_parser("run", help="run a configuration and write a run folder")
     r.add_argument("config", help="a hil_configs/*.yaml file")
     r.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",

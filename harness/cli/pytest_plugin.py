@@ -89,8 +89,8 @@ class HilRunResult:
             AssertionError: what, measured, budget, by how much; and the run folder.
         """
         __tracebackhide__ = True  # pytest shows the user's line, not this one
-        budgets = dict(zip(_BUDGET_KEYS, (p50_ms, p90_ms, p99_ms, max_ms, mean_ms, std_ms)))
-        budgets = {k: v for k, v in budgets.items() if v is not None}
+        budgets = {k: v for k, v in zip(_BUDGET_KEYS, (p50_ms, p90_ms, p99_ms, max_ms, mean_ms, std_ms))
+                   if v is not None}
         if not budgets:
             raise TypeError("assert_budget needs at least one budget, e.g. p99_ms=80")
         over = []

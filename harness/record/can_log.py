@@ -25,7 +25,10 @@ import threading
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from can.io.generic import MessageWriter
 
 QUEUE_FRAMES = 200_000
 
@@ -62,15 +65,16 @@ class CanTrafficLog:
             raise ConfigError(f"CAN log {path}: expected a .blf or .asc file")
         self.path, self.offset_ns = path, offset_ns
         self.stats = CanLogStats()
-        self._writer: Any = can.Logger(str(path))
+        writer = can.Logger(str(path))
         # Both formats keep their start with millisecond precision: start on a whole
         # millisecond (BLF), a whole second for ASC (python-can 4.6 writes the date's
         # milliseconds unpadded, ".78" for 78 ms, which its reader takes for 780 ms).
-        if path.suffix == ".asc":
-            self._writer.log_event("hil: timestamps are the harness clock on the wall clock, as run.mcap's log_time",
-                                   timestamp=float((start_ns + offset_ns) // 1_000_000_000))
-        else:
-            self._writer.start_timestamp = (start_ns + offset_ns) // 1_000_000 / 1000
+        if isinstance(writer, can.ASCWriter):
+            writer.log_event("hil: timestamps are the harness clock on the wall clock, as run.mcap's log_time",
+                             timestamp=float((start_ns + offset_ns) // 1_000_000_000))
+        elif isinstance(writer, can.BLFWriter):
+            writer.start_timestamp = (start_ns + offset_ns) // 1_000_000 / 1000
+        self._writer: MessageWriter = writer
         self._q: queue.Queue[tuple[Any, int, bool] | None] = queue.Queue(maxsize=QUEUE_FRAMES)
         self._closed = False
         self._thread = threading.Thread(target=self._write_loop, name="can-log", daemon=True)

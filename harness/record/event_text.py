@@ -25,8 +25,13 @@ _CORE = ("kind", "vehicle", "frame_ids", "sim_time_ns", "harness_time_ns", "meas
 _LIST_ITEMS = 6  # numbers of a list shown before "(+N more)"
 
 
-def _num(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+def _finite(v: object) -> float | None:
+    """``v`` as a float when it is a finite number (a bool is not one), else None."""
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) else None
+
+
+def _num(v: object) -> bool:
+    return _finite(v) is not None
 
 
 def number(v: float) -> str:
@@ -49,15 +54,14 @@ def value_vs_threshold(data: Mapping[str, Any]) -> str:
     """``measured`` against ``threshold`` with their unit (``61.2 ms > 50 ms``); a
     state mismatch as the two states (``AI STOP, truth SLOW``); ``–`` without a value."""
     m, th, unit = data.get("measured"), data.get("threshold"), data.get("unit")
-    if not _num(m):
+    mf, tf = _finite(m), _finite(th)
+    if mf is None:
         return "–"
     if unit == "state":
-        return f"AI {state_name(m)}" + (f", truth {state_name(th)}" if _num(th) else "")
+        return f"AI {state_name(m)}" + (f", truth {state_name(th)}" if tf is not None else "")
     u = f" {unit}" if isinstance(unit, str) and unit else ""
-    mf = float(m)  # type: ignore[arg-type]  # a number: checked above
-    if not _num(th):
+    if tf is None:
         return f"{number(mf)}{u}"
-    tf = float(th)  # type: ignore[arg-type]
     return f"{number(mf)}{u} {'>' if mf > tf else '≤'} {number(tf)}{u}"
 
 

@@ -27,6 +27,7 @@ harness had it (t0 for images, t0' for estimates), which ``ros2 bag play`` paces
 
 from __future__ import annotations
 
+import argparse
 import base64
 import bisect
 import json
@@ -312,7 +313,7 @@ def _mount_tf(vehicles: list[str], cam: dict[str, Any], stamp: Any) -> TFMessage
     return TFMessage(out)
 
 
-def add_parser(sub: Any) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("rosbag", help="write a run, or one corner case's window, as a ROS 2 bag (rosbag2, MCAP)",
                        description="Write a run folder (or run.mcap, or a case's window file) as a rosbag2 folder "
                                    "that `ros2 bag play` feeds into a ROS 2 stack.")

@@ -173,7 +173,7 @@ class RunData:
     @property
     def t_start_ns(self) -> int:
         """Time zero of plots: the first capture ``t0``, else the first message."""
-        t0s = [r["t0_ns"] for recs in self.pipeline.values() for r in recs[:64] if "t0_ns" in r]
+        t0s: list[int] = [r["t0_ns"] for recs in self.pipeline.values() for r in recs[:64] if "t0_ns" in r]
         if t0s:
             return min(t0s)
         return self.first_ns or 0

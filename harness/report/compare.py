@@ -294,7 +294,7 @@ def differences(baseline: Mapping[str, Any], run: Mapping[str, Any]) -> list[str
 # --- the command -------------------------------------------------------------------------
 
 
-def add_parser(sub: Any) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Register ``hil compare`` on the CLI's subparsers."""
     p = sub.add_parser("compare", help="fail (exit 1) when RUN's latency regressed against BASELINE",
                        description="Compare two runs' per-frame latencies (from run.mcap) and exit 1 when one "

@@ -8,9 +8,12 @@ A check over its limit is never printed ``ok``: it fails (``REGRESSION``), or it
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from rich.console import JustifyMethod
+    from rich.table import Table
+
     from hil.harness.report.compare import Check, GateSettings
     from hil.harness.report.compare_tolerances import Tolerances
 
@@ -74,17 +77,19 @@ def row_text(c: Check, *, p_worse: bool = True) -> str:
     return text
 
 
-def render(checks: Sequence[Check], *, failures_only: bool = False, confidence: float = 0.95) -> Any:
+def render(checks: Sequence[Check], *, failures_only: bool = False, confidence: float = 0.95) -> Table:
     """A rich table of ``checks``."""
     from rich.table import Table
 
     style = {"REGRESSION": "bold red", "MISSING": "bold red", "better": "green", "new": "cyan", "no data": "dim",
              "over, not significant": "yellow", "ok": ""}
     t = Table(title="latency regression check (RUN against BASELINE)", title_justify="left")
-    for col, just in (("vehicle", "left"), ("stage", "left"), ("metric", "left"), ("baseline", "right"),
-                      ("run", "right"), ("change", "right"), (f"{confidence * 100:g} % interval", "right"),
-                      ("limit", "right"), ("P(worse)", "right"), ("verdict", "left")):
-        t.add_column(col, justify=just)  # type: ignore[arg-type]
+    columns: tuple[tuple[str, JustifyMethod], ...] = (
+        ("vehicle", "left"), ("stage", "left"), ("metric", "left"), ("baseline", "right"), ("run", "right"),
+        ("change", "right"), (f"{confidence * 100:g} % interval", "right"), ("limit", "right"), ("P(worse)", "right"),
+        ("verdict", "left"))
+    for col, just in columns:
+        t.add_column(col, justify=just)
     for c in checks:
         if failures_only and not c.verdict.fails:
             continue

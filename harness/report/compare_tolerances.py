@@ -104,6 +104,23 @@ class Tolerances:
     def checks_stage(self, stage: str) -> bool:
         return stage not in self.skip_stages and (not self.only_stages or stage in self.only_stages)
 
+    def with_metric(self, metric: str, tol: Tolerance) -> Tolerances:
+        """A copy with the tolerance of ``metric`` (one of ``LATENCY_METRICS``) set to ``tol``.
+
+        Raises:
+            ValueError: ``metric`` is not a latency metric.
+        """
+        match metric:
+            case "p1":
+                return dataclasses.replace(self, p1=tol)
+            case "p50":
+                return dataclasses.replace(self, p50=tol)
+            case "p99":
+                return dataclasses.replace(self, p99=tol)
+            case "std":
+                return dataclasses.replace(self, std=tol)
+        raise ValueError(f"not a latency metric: {metric!r}; expected one of {LATENCY_METRICS}")
+
 
 def _tolerance(node: Any, base: Tolerance, where: str, source: str, *, abs_key: str) -> Tolerance:
     if not isinstance(node, dict):
@@ -172,13 +189,15 @@ def parse_tolerances(data: Any, *, source: str = "<tolerances>", base: Tolerance
     valid = (*LATENCY_METRICS, "drop_rate", "noise", "stages", "only_stages", "skip_stages")
     for key, node in data.items():
         if key in LATENCY_METRICS:
-            tol = dataclasses.replace(tol, **{key: _tolerance(node, getattr(tol, key), key, source, abs_key="abs_ms")})
+            tol = tol.with_metric(key, _tolerance(node, getattr(tol, key), key, source, abs_key="abs_ms"))
         elif key == "drop_rate":
             tol = dataclasses.replace(tol, drop_rate=_tolerance(node, tol.drop_rate, key, source, abs_key="abs"))
         elif key == "noise":
             tol = dataclasses.replace(tol, noise=_noise(node, tol.noise, source))
-        elif key in ("only_stages", "skip_stages"):
-            tol = dataclasses.replace(tol, **{key: _stage_list(node, key, source)})
+        elif key == "only_stages":
+            tol = dataclasses.replace(tol, only_stages=_stage_list(node, key, source))
+        elif key == "skip_stages":
+            tol = dataclasses.replace(tol, skip_stages=_stage_list(node, key, source))
         elif key == "stages":
             if not isinstance(node, dict):
                 raise ConfigError(f"{source}: tolerances error at stages: got {node!r}; expected a mapping "
@@ -256,8 +275,7 @@ def tolerances_from_args(args: argparse.Namespace) -> Tolerances:
         for flag, v in ((f"--{metric}-rel", rel), (f"--{metric}-abs-ms", abs_ms)):
             if v is not None and v < 0:
                 raise ConfigError(f"{flag}: got {v:g}; expected a number >= 0")
-        tol = dataclasses.replace(tol, **{metric: Tolerance(t.rel if rel is None else rel,
-                                                            t.abs if abs_ms is None else abs_ms)})
+        tol = tol.with_metric(metric, Tolerance(t.rel if rel is None else rel, t.abs if abs_ms is None else abs_ms))
     if args.drop_rate_abs is not None:
         if args.drop_rate_abs < 0:
             raise ConfigError(f"--drop-rate-abs: got {args.drop_rate_abs:g}; expected a number >= 0")

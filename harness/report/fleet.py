@@ -119,7 +119,7 @@ def fleet_section(d: RunData, *, left: int = 0) -> str:
     out.append('<p class="muted">End-to-end latency (t0′−t0, ms) of every applied frame of every vehicle, '
                "on an axis scaled to the data; dashed lines: the end-to-end deadline (with the frames over it) and "
                "the estimate timeout of the run's config, named above the chart when they lie beyond the data.</p>")
-    end = max((float(s.xs.max()) for s in series if len(s.xs)), default=1.0)  # type: ignore[union-attr]
+    end = max((float(np.max(s.xs)) for s in series if len(s.xs)), default=1.0)
     out.append(rp.line_chart(series=series, rules=rules, x_label="time since first frame (s)",
                              y_label="end-to-end (ms)", title="all vehicles", left=left, x_range=(0.0, end)))
     if boxes:

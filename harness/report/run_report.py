@@ -334,7 +334,7 @@ def _write(d: RunData, out: Path | None) -> Path:
     return path
 
 
-def add_parser(sub: Any) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Register ``hil report`` on the CLI's subparsers."""
     p = sub.add_parser("report", help="write RUN/report.html: one self-contained HTML page about a run")
     p.add_argument("run", help="a run folder (or its run.mcap / summary.json)")

@@ -192,7 +192,7 @@ def trace_run(run: str | os.PathLike[str], out: Path | None = None) -> tuple[Pat
     return path, stats, tl, data
 
 
-def add_parser(sub: Any) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Register ``hil trace`` on the CLI's subparsers."""
     p = sub.add_parser("trace", help="write a run's frames, clock sync and events as a Perfetto trace",
                        description="Every frame of a run as slices on per-vehicle tracks (physics, render, "

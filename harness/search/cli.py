@@ -22,19 +22,23 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from hil.common.errors import HilError
+
+if TYPE_CHECKING:
+    from rich.console import Console
 
 EXIT_OK, EXIT_INCOMPLETE, EXIT_USAGE = 0, 1, 2
 SUBCOMMANDS = ("merge", "cases", "report")
 
 
 class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one line, exit 2, like every user mistake
+    def error(self, message: str) -> NoReturn:  # one line, exit 2, like every user mistake
         self.exit(EXIT_USAGE, f"hil: error: {message} (see {self.prog} --help)\n")
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """List ``hil search`` in ``hil --help`` (``main`` parses its arguments)."""
     sub.add_parser("search", help="search for corner cases: many episodes with drawn parameters "
                                   "(hil search --help)", add_help=False)
@@ -160,13 +164,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return code
 
 
-def _console():
+def _console() -> Console:
     from hil.harness.cli.progress import make_console
 
     return make_console()
 
 
-def _print_summary(console, s: dict, folder: Path) -> None:
+def _print_summary(console: Console, s: dict[str, Any], folder: Path) -> None:
     from rich.table import Table
 
     e, k = s["episodes"], s["cases"]

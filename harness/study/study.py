@@ -74,7 +74,7 @@ class PointResult:
     metrics: dict[str, Any] = field(default_factory=dict)
 
 
-def add_parser(sub: Any) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("study", help="sweep the number of vehicles (and fps) and write a study report",
                        description="Sweep N vehicles (and camera fps) in replicated and/or distributed "
                                    "placement; each point is a short run; writes report.md, report.html, "

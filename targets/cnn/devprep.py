@@ -123,7 +123,7 @@ def gpu_jpeg_decoder(device: torch.device) -> Callable[[Sequence[Frame]], torch.
     ``device``), or None: not CUDA, or torchvision does not import here."""
     if device.type != "cuda":
         return None
-    try:
+    try:  # torchvision: on GPU hosts only (not a dependency), so mypy may or may not find it
         from torchvision.io import ImageReadMode, decode_jpeg  # type: ignore[import-not-found, unused-ignore]
     except Exception:  # noqa: BLE001 - ImportError, or torchvision built for another torch (RuntimeError)
         return None

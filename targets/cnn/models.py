@@ -207,11 +207,11 @@ def fold_batchnorm(model: nn.Module) -> nn.Module:
     return model
 
 
-def save(model: nn.Module, path: Path, meta: dict[str, Any]) -> None:
+def save(model: Detector | SteeringNet, path: Path, meta: dict[str, Any]) -> None:
     """Write ``model``'s weights, its widths and ``meta`` (plain data) to ``path``."""
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().clone().contiguous() for k, v in model.state_dict().items()}
-    torch.save({"widths": list(model.widths), "state": state, "meta": meta}, path)  # type: ignore[arg-type]
+    torch.save({"widths": list(model.widths), "state": state, "meta": meta}, path)
 
 
 def load(kind: str, path: Path | None = None) -> tuple[nn.Module, dict[str, Any]]:
