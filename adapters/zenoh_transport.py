@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import json
 import queue
+import re
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -241,11 +242,19 @@ def _tcp_answers(endpoint: str, *, timeout_s: float = 0.5) -> bool:
         return False
 
 
+_RUST_WHERE = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")  # " at /root/.cargo/.../unicast.rs:338."
+
+
+def zenoh_error_text(err: BaseException) -> str:
+    """A Zenoh error for a person: without the Rust source locations it carries."""
+    return _RUST_WHERE.sub("", str(err)).replace("[", "").replace("]", "").strip()
+
+
 def open_session(cfg: zenoh.Config, where: str) -> zenoh.Session:
     try:
         return zenoh.open(cfg)
     except zenoh.ZError as err:
-        raise TransportError(f"cannot open a zenoh session ({where}): {err}") from err
+        raise TransportError(f"cannot open a zenoh session ({where}): {zenoh_error_text(err)}") from err
 
 
 def _is(data: bytes, mtype: MsgType) -> bool:

@@ -9,10 +9,12 @@ ENDPOINT is one of::
     can://INTERFACE/CHANNEL    a CAN FD target (section 10.3), e.g. can://socketcan/vcan0
     local -- COMMAND ARGS...   a program started as a local target (section 10.1)
 
-The session: HELLO; a clock-sync burst; one FRAME of each encoding (RGB8, BGR8,
-JPEG); a HEARTBEAT; malformed messages (bad header CRC, bad version, bad payload
-CRC, bytes without a magic); a COMMAND if the target announces ``CAP_COMMANDS``;
-BYE. Each check prints one row: PASS or FAIL, the PROTOCOL.md section, and what was
+The session: HELLO (over TCP with ``--token-env NAME``: and the AUTH proof of the
+token in that environment variable, PROTOCOL.md 4.8); a clock-sync burst; one FRAME
+of each encoding (RGB8, BGR8, JPEG); a HEARTBEAT; malformed messages (bad header CRC,
+bad version, bad payload CRC, ``payload_crc`` without its flag, bytes without a
+magic, the same garbage split over two writes); a COMMAND if the target announces
+``CAP_COMMANDS``; BYE. Each check prints one row: PASS or FAIL, the PROTOCOL.md section, and what was
 wrong with the byte offsets of the fields concerned. Exit 0 when all pass, 1 when
 any fails, 2 for a bad endpoint or option.
 """
@@ -29,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hil.adapters import protocol
+from hil.adapters.auth import token_from_env
 from hil.adapters.link import Link, Received, open_link
 from hil.adapters.messages import (Bye, CameraInfo, Command, ErrorMsg, Estimate, Frame, Heartbeat, Hello,
                                    ImageEncoding, SyncRequest)
@@ -39,7 +42,7 @@ from hil.timing.clock import MonotonicClock
 EXIT_PASS, EXIT_FAIL, EXIT_USAGE = 0, 1, 2
 CAM = CameraInfo(277.0, 277.0, 160.0, 120.0, 1.3)
 W, H = 320, 240
-KNOWN_CAPS = 0x0000_0003  # SHM_FRAMES | CAP_COMMANDS
+KNOWN_CAPS = 0x0000_0007  # SHM_FRAMES | CAP_COMMANDS | CAP_AUTH
 
 
 @dataclass
@@ -144,6 +147,20 @@ def check_hello(s: Session, hello: Hello) -> None:
           f"{hello.clock_resolution_ns} ns, capabilities 0x{hello.capabilities:x}")
 
 
+def check_auth(s: Session, hello: Hello, token_env: str | None) -> None:
+    """The AUTH proof (PROTOCOL.md 4.8): over TCP the link has checked it already
+    (a wrong or missing proof refuses the connection: the hello row fails)."""
+    announced = bool(hello.capabilities & protocol.CAP_AUTH)
+    if s.link.transport_name != "tcp":
+        s.add("auth (token proof)", "4.8", [], "skipped: checked over tcp (a local target is the harness's own child)")
+    elif token_env:
+        s.add("auth (token proof)", "4.8", [], f"proved the token in ${token_env} (HMAC-SHA256 of a fresh challenge)")
+    else:
+        s.add("auth (token proof)", "4.8", [], "skipped: the target announces CAP_AUTH; give --token-env NAME to "
+              "check its proof" if announced else "skipped: the target announces no CAP_AUTH (a harness that "
+              "requires a token refuses it)")
+
+
 def check_sync(s: Session, n: int = 16) -> tuple[int, int] | None:
     """A burst of ``n`` exchanges; returns (target clock offset, round trip) of the
     tightest one, ns, or None when any check failed."""
@@ -231,6 +248,8 @@ def _expect_error(s: Session, name: str, section: str, raw: bytes, codes: tuple[
             p.append(f"ERROR code (offset 64) is {m.code}, expected {' or '.join(map(str, codes))}")
         if offset is not None and str(offset) not in m.message:
             p.append(f"ERROR text does not name byte offset {offset}: {m.message!r}")
+        if m.vehicle_id != s.link.vehicle_id:  # the vehicle it serves, never one read from the bad header
+            p.append(f"ERROR vehicle_id (offset 8) is {m.vehicle_id}, expected the served vehicle {s.link.vehicle_id}")
     if (gone := _still_alive(s)) is not None:
         p.append(f"session did not go on: {gone}")
     s.add(name, section, p, f"ERROR {r.msg.code}: {r.msg.message[:70]!r}" if r is not None and
@@ -254,6 +273,66 @@ def check_malformed(s: Session) -> None:
     if s.link.transport_name in ("local", "tcp"):  # a stream: bytes before a magic are skipped
         _expect_error(s, "bytes without a magic", "8", b"\x00junk!" + bytes(protocol.encode(SyncRequest(vid, 901, 5))),
                       (protocol.ErrorCode.MALFORMED,), 0)
+    check_flagless_crc(s)
+    if s.link.transport_name in ("local", "tcp"):
+        check_garbage_once(s)
+
+
+def _answered(s: Session, seq: int) -> bool:
+    """Whether the SYNC_REQUEST ``seq`` sent raw gets its SYNC_RESPONSE in time."""
+    deadline = time.monotonic() + s.timeout_s
+    while time.monotonic() < deadline:
+        if any(m.seq == seq for m in s.link.sync_samples()):
+            return True
+        if s.wait_for(lambda r: False, timeout_s=0.05) is None and not s.link.alive:
+            return False
+    return False
+
+
+def _errors(s: Session, quiet_s: float = 0.3) -> list[ErrorMsg]:
+    s.wait_for(lambda r: False, timeout_s=quiet_s)  # what came meanwhile is kept by wait_for
+    return [r.msg for r in s.drain() if isinstance(r.msg, ErrorMsg)]
+
+
+def check_flagless_crc(s: Session) -> None:
+    """PROTOCOL.md 2 and 8: a non-zero ``payload_crc`` with its flag clear is a bad
+    header: one ERROR naming offset 56, then the next magic (a stream) is decoded."""
+    vid = s.link.vehicle_id
+    bad = bytearray(protocol.encode(SyncRequest(vid, 902, s.link.clock.now_ns())))
+    bad[56:60] = (0x0BADC0DE).to_bytes(4, "little")
+    bad[60:64] = zlib.crc32(bytes(bad[:60])).to_bytes(4, "little")
+    good = protocol.encode(SyncRequest(vid, 903, s.link.clock.now_ns()))
+    s.drain()
+    if s.link.transport_name in ("local", "tcp"):
+        s.link.send_raw(bytes(bad) + good)  # one write: the target resyncs on the good one's magic
+    else:
+        s.link.send_raw(bytes(bad))
+        s.link.send_raw(good)
+    answered = _answered(s, 903)
+    errors = _errors(s)
+    p = [] if answered else ["the SYNC_REQUEST right after it was not answered (resync on its magic)"]
+    if len(errors) != 1:
+        p.append(f"{len(errors)} ERRORs, expected one")
+    elif "56" not in errors[0].message:
+        p.append(f"ERROR text does not name byte offset 56: {errors[0].message!r}")
+    s.add("payload_crc without its flag", "2, 8", p, f"ERROR {errors[0].code}: {errors[0].message[:60]!r}"
+          if len(errors) == 1 else "")
+
+
+def check_garbage_once(s: Session) -> None:
+    """PROTOCOL.md 8: garbage is reported once, even when it arrives in pieces (the
+    search goes on silently after keeping the last 3 bytes)."""
+    vid = s.link.vehicle_id
+    s.drain()
+    s.link.send_raw(b"garbage, part one ")
+    first = s.wait_for(lambda r: isinstance(r.msg, ErrorMsg))
+    s.link.send_raw(b"and part two" + protocol.encode(SyncRequest(vid, 904, s.link.clock.now_ns())))
+    answered = _answered(s, 904)
+    errors = ([first.msg] if first is not None else []) + _errors(s)  # type: ignore[list-item]
+    p = [] if answered else ["the SYNC_REQUEST after the garbage was not answered"]
+    if len(errors) != 1:
+        p.append(f"{len(errors)} ERRORs for one run of garbage in two writes, expected one")
+    s.add("garbage reported once", "8", p, "one ERROR, then the next message decoded" if not p else "")
 
 
 def check_heartbeat(s: Session) -> None:
@@ -297,15 +376,15 @@ def check_bye(s: Session) -> None:
     s.add("bye ends the session", "1", p, s.link.peer_gone_reason or "closed")
 
 
-def run_checks(link: Link, *, timeout_s: float) -> list[Check]:
+def run_checks(link: Link, *, timeout_s: float, token_env: str | None = None) -> list[Check]:
     """The scripted session on a built (not opened) link; always closes it."""
     s = Session(link, timeout_s)
     dispatch = link._dispatch  # noqa: SLF001 - record what the target sent that did not decode
 
-    def recording(item: object, t_rx_ns: int) -> None:
+    def recording(item: object, t_rx_ns: int, uncertainty_ns: int = 0) -> None:
         if isinstance(item, ProtocolError):
             s.decode_errors.append(str(item))
-        dispatch(item, t_rx_ns)  # type: ignore[arg-type]
+        dispatch(item, t_rx_ns, uncertainty_ns)  # type: ignore[arg-type]
 
     link._dispatch = recording  # type: ignore[method-assign]  # noqa: SLF001
     try:
@@ -315,6 +394,7 @@ def run_checks(link: Link, *, timeout_s: float) -> list[Check]:
             s.add("hello", "1, 4.1", [str(err)], "")
             return s.rows
         check_hello(s, hello)
+        check_auth(s, hello, token_env)
         sync = check_sync(s)
         check_frames(s, sync)
         check_heartbeat(s)
@@ -349,6 +429,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--vehicle", type=int, default=0, help="vehicle id the target serves (default 0)")
     p.add_argument("--key-prefix", default="hil", help="zenoh key prefix (default hil)")
     p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for each answer (default 5)")
+    p.add_argument("--token-env", default=None, metavar="NAME",
+                   help="tcp: check the target's AUTH proof of the token in this environment variable (PROTOCOL.md 4.8)")
 
 
 def cmd(args: argparse.Namespace) -> int:
@@ -365,11 +447,15 @@ def cmd(args: argparse.Namespace) -> int:
     try:
         transport, options = parse_endpoint(args.endpoint, command, vehicle_id=args.vehicle,
                                             key_prefix=args.key_prefix)
+        if args.token_env:
+            if transport != "tcp":
+                raise TransportError("--token-env: the AUTH proof is checked over tcp only")
+            options["token"] = token_from_env(args.token_env, field="--token-env", required=True)
         link = open_link(transport, vehicle_id=args.vehicle, clock=MonotonicClock(), **options)
     except HilError as err:
         print(f"hil target-check: error: {err}", file=sys.stderr)
         return EXIT_USAGE
-    rows = run_checks(link, timeout_s=args.timeout)
+    rows = run_checks(link, timeout_s=args.timeout, token_env=args.token_env)
     sys.stdout.write(format_table(rows))
     return EXIT_PASS if all(r.ok for r in rows) else EXIT_FAIL
 

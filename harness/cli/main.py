@@ -20,7 +20,17 @@ EXIT_OK, EXIT_EARLY, EXIT_USAGE = 0, 1, 2
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # one line, exit 2, like every user mistake
-        self.exit(EXIT_USAGE, f"hil: error: {message} (see hil {self.prog.split()[-1]} --help)\n")
+        self.exit(EXIT_USAGE, f"hil: error: {message} (see {self.prog} --help)\n")
+
+    def parse_args(self, args: Sequence[str] | None = None, namespace: object = None) -> argparse.Namespace:  # type: ignore[override]
+        """As argparse's, but an unknown option is reported with the help of the
+        command it was given to (``hil run --bogus``: see ``hil run --help``)."""
+        ns, extra = self.parse_known_args(args, namespace)  # type: ignore[arg-type]
+        if extra:
+            command = getattr(ns, "command", None)
+            prog = f"{self.prog} {command}" if command else self.prog
+            self.exit(EXIT_USAGE, f"hil: error: unrecognized arguments: {' '.join(extra)} (see {prog} --help)\n")
+        return ns
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,12 +1,12 @@
 """What a run's config says about one vehicle's link: the target's command line, the
-Zenoh key prefix of the run, each transport's link options, and the link faults to
-inject. Shared by the per-vehicle launch (``target_launch``) and the shared target."""
+Zenoh key prefix and the TCP token of the run, each transport's link options, and the
+link faults to inject. Shared by the per-vehicle launch (``target_launch``) and the shared target."""
 
 from __future__ import annotations
 
 from hil.adapters.link import Link
 from hil.harness.config.model import RunConfig, Transport
-from hil.harness.config.target import substitute
+from hil.harness.config.target import TcpAuth, substitute
 from hil.timing.clock import Clock
 
 
@@ -34,6 +34,34 @@ def zenoh_options(cfg: RunConfig, vehicle_id: int, session: str | None = None) -
             "mode": z.mode.value, "key_prefix": run_key_prefix(cfg, session), "multicast_scouting": z.multicast_scouting,
             "congestion_control": z.congestion_control.value, "lease_ms": z.lease_ms,
             "tls": dict(z.tls) if z.tls else None, **({"usrpwd": z.auth.usrpwd()} if z.auth else {})}
+
+
+def tcp_token(cfg: RunConfig) -> str | None:
+    """The token a TCP target must prove (PROTOCOL.md 4.8): the one in
+    ``target.tcp.token_env``, else a fresh per-run secret when the harness starts the
+    target itself, else None (``target.tcp.auth: off``: always None).
+
+    Raises:
+        ConfigError: ``token_env`` names an unset variable, or a token under 16 bytes.
+    """
+    from hil.adapters.auth import new_token, token_from_env
+
+    tc = cfg.target.tcp
+    if tc.auth == TcpAuth.OFF:
+        return None
+    if tc.token_env:
+        raw = token_from_env(tc.token_env, field="target.tcp.token_env", required=True)
+        assert raw is not None
+        return raw.decode("utf-8")
+    return new_token() if cfg.target.command else None
+
+
+def tcp_options(cfg: RunConfig, vehicle_id: int, token: str | None) -> dict[str, object]:
+    """Keyword options of the TCP link of one vehicle (``target.tcp``): ``{mode: address}``
+    as ``hil.adapters.tcp.TcpLink`` takes it, the token and the expected name."""
+    tc = cfg.target.tcp
+    return {tc.mode.value: substitute(tc.address, vehicle_id=vehicle_id, base_port=tc.base_port),
+            "kernel_stamps": tc.kernel_stamps, "token": token, "expect_name": cfg.target.expect_name}
 
 
 def can_options(cfg: RunConfig, vehicle_id: int) -> dict[str, object]:

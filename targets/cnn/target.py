@@ -28,7 +28,6 @@ the target also times its own stages (decode, steering, detector, decision), whi
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import threading
@@ -282,8 +281,9 @@ def _iou(a: Sequence[float], b: Sequence[float]) -> float:
 def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.targets.cnn") -> int:
     """Serve the CNN target through the target SDK; 2 when the transport is unusable
     (started by hand rather than by the harness) or the weights are missing."""
-    p = argparse.ArgumentParser(prog=prog,
-                                description="The two-CNN driving AI served over the target SDK.")
+    from hil.adapters.sdk import TargetArgumentParser
+
+    p = TargetArgumentParser(prog=prog, description="The two-CNN driving AI served over the target SDK.")
     p.add_argument("--detector", choices=commands.MODELS, default="cnn", help="object detector to start with")
     p.add_argument("--steering", choices=commands.MODELS, default="cnn", help="steering model to start with")
     p.add_argument("--cruise-speed", type=float, default=10.0, help="speed to hold when the lane is clear (m/s)")
@@ -309,7 +309,8 @@ def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.target
     g.add_argument("--max-batch", type=int, default=16, help="most frames per batch")
     g.add_argument("--batch-log", default=None,
                    help="CSV of every frame's batch (default: $HIL_BATCH_LOG, set by the harness)")
-    from hil.adapters.sdk import TransportError, add_transport_args, serve, transport_options
+    from hil.adapters.sdk import add_transport_args, serve, transport_options
+    from hil.common.errors import HilError
 
     add_transport_args(p)
     a = p.parse_args(argv)
@@ -359,9 +360,11 @@ def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.target
         else:
             serve(target.infer, target_name=name, transport=a.transport, on_command=target.command,
                   **transport_options(a))
-    except TransportError as err:
+    except HilError as err:  # an unusable transport, a port in use: one line
         print(f"cnn: {err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        return 0
     finally:
         print(f"cnn: {target.status()}", file=sys.stderr, flush=True)
     return 0
