@@ -321,7 +321,9 @@ def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str =
                     on_session(current)
                 ended = _serve_session(current, bus, vehicle_id=vehicle_id, heartbeat_timeout_s=heartbeat_timeout_s,
                                        quit_=quit_)
-                say(session_line(current, n, f"the harness on {channel}", ended))
+                st = current.stats
+                if st.frames_received or st.sync_answered or current.harness_said_bye:  # a harness came
+                    say(session_line(current, n, f"the harness on {channel}", ended))
                 if quit_.is_set() or not keep_serving:
                     return
                 current = fresh_endpoint(ep, current)
@@ -358,7 +360,8 @@ def _serve_session(ep: Endpoint, bus: can.BusABC, *, vehicle_id: int, heartbeat_
             ep.start(peer.send_bytes)  # HELLO first, so the reader can repeat it
             peer.start()
             while not ep.wait_stopped(0.25):
-                pass
+                if quit_.is_set():  # a SIGTERM that came between two sessions
+                    ep.stop()
     finally:
         peer.close()
     if peer.failed:

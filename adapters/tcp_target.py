@@ -80,6 +80,9 @@ def serve_endpoint(ep: Endpoint, *, listen: str | None = None, connect: str | No
                 if got is None:
                     return
                 sock, peer = got
+                if quit_.is_set():  # a SIGTERM that came while the harness connected
+                    sock.close()
+                    return
                 ended = _serve_one(current, sock, quit_)
                 say(session_line(current, n, peer, ended))
                 if quit_.is_set() or not keep_serving:
