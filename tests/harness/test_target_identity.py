@@ -114,12 +114,8 @@ def test_a_rogue_dialling_a_listening_harness_first_is_never_measured(tmp_path):
     port = _free_port()
     rogue = subprocess.Popen([sys.executable, "-m", "hil.targets.echo", "--transport", "tcp", "--connect",
                               f"127.0.0.1:{port}", "--keep-serving", "--name", "rogue"], env=_no_token_env(),
-                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
-    try:
-        import select
-
-        assert rogue.stderr is not None and select.select([rogue.stderr], [], [], 30)[0], "the rogue did not start"
-        assert "dialling the harness" in rogue.stderr.readline()  # it is up, dialling
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:  # it dials every 50 ms, long before the harness (MuJoCo, its processes) listens
         p = _hil("run", "hil_configs/tcp.yaml", "--no-progress", "--out", str(tmp_path / "run"),
                  "--set", f"target.tcp.base_port={port}", "--set", "target.tcp.mode=listen", "--set", "duration_s=2",
                  "--set", 'target.command=["{python}","-m","hil.targets.echo","--transport","tcp","--connect",'
