@@ -32,10 +32,11 @@ harness that starts later still gets one. The harness marks the target gone afte
 ``heartbeat_timeout_s`` (0.75 s, three periods) without a frame from it, so a vanished
 device is noticed within 1 s.
 
-Receive stamps: a reader thread stamps each frame on the link's ``Clock`` the moment
-``bus.recv`` returns (a multi-frame message: its last frame). python-can's own
-``Message.timestamp`` is ``time.time()``-based (wall clock, or the adapter's clock
-mapped onto it), not the harness clock, so it is not used.
+Receive stamps: a message is stamped with its (last) frame's arrival. On the harness
+side that is python-can's ``Message.timestamp`` where it is on the host's realtime
+clock (socketcan: the kernel's receive time; virtual: the send), mapped onto the
+link's ``Clock`` (``hil.adapters.receipt.RealtimeMapper``); otherwise, and on the
+target side, the moment ``bus.recv`` returns.
 
 Camera frames are newest-wins: while one is in transmission, a newer frame replaces
 the one waiting (``CanLink.frames_superseded`` counts them; the harness sees them as
