@@ -59,7 +59,6 @@ side +- 3.7 m / 2 when the other is missing (a gap in the dashes).
 from __future__ import annotations
 
 import math
-import sys
 from collections.abc import Sequence
 
 import cv2

@@ -154,7 +154,9 @@ def _target_help() -> str:
     names, transports = "|".join(sorted(TARGETS)), "|".join(TRANSPORTS)
     lines = [f"usage: hil target {{{names}}} [--transport {transports}] [options of the target]", "",
              "Serve an example AI target over a transport, e.g. on a remote host or device:",
-             "  hil target cv --transport zenoh --listen tcp/0.0.0.0:7447", "",
+             "  hil target cv --transport zenoh --listen tcp/0.0.0.0:7447",
+             "  hil target cv --transport tcp --listen 0.0.0.0:7600", "",
+             "It serves run after run until Ctrl-C/SIGTERM (--once: one run).", "",
              "targets:"]
     lines += [f"  {name:<6} {_TARGET_SUMMARIES.get(name, '')}" for name in sorted(TARGETS)]
     lines += ["", "Each target's own options: hil target NAME --help (e.g. hil target cv --help)."]

@@ -139,7 +139,7 @@ class TcpMode(str, Enum):
 
 class TcpAuth(str, Enum):
     AUTO = "auto"  # a target proves the run's token when there is one (the harness starts it, or token_env)
-    OFF = "off"  # no proof asked: any program on the port (or dialling in first) is measured
+    NONE = "none"  # no proof asked: any program on the port (or dialling in first) is measured
 
 
 class TcpTargetConfig(BaseModel):
@@ -152,7 +152,7 @@ class TcpTargetConfig(BaseModel):
     (``target.command``) gets a fresh per-run token in ``HIL_SESSION_TOKEN`` and must
     prove it; a target started by hand must prove the token in the environment
     variable named by ``token_env`` (set on both sides, never in a file), or, without
-    one, is accepted on its HELLO (and ``target.expect_name``). ``auth: off`` asks no
+    one, is accepted on its HELLO (and ``target.expect_name``). ``auth: none`` asks no
     proof even of a started target (a version-1 target that predates AUTH)."""
 
     model_config = MODEL_CONFIG

@@ -39,7 +39,7 @@ def zenoh_options(cfg: RunConfig, vehicle_id: int, session: str | None = None) -
 def tcp_token(cfg: RunConfig) -> str | None:
     """The token a TCP target must prove (PROTOCOL.md 4.8): the one in
     ``target.tcp.token_env``, else a fresh per-run secret when the harness starts the
-    target itself, else None (``target.tcp.auth: off``: always None).
+    target itself, else None (``target.tcp.auth: none``: always None).
 
     Raises:
         ConfigError: ``token_env`` names an unset variable, or a token under 16 bytes.
@@ -47,7 +47,7 @@ def tcp_token(cfg: RunConfig) -> str | None:
     from hil.adapters.auth import new_token, token_from_env
 
     tc = cfg.target.tcp
-    if tc.auth == TcpAuth.OFF:
+    if tc.auth == TcpAuth.NONE:
         return None
     if tc.token_env:
         raw = token_from_env(tc.token_env, field="target.tcp.token_env", required=True)

@@ -130,3 +130,28 @@ def test_a_rogue_dialling_a_listening_harness_first_is_never_measured(tmp_path):
     finally:
         os.killpg(rogue.pid, signal.SIGTERM)
         rogue.wait(10)
+
+
+def test_the_tcp_token_of_a_run(monkeypatch):
+    """A started target gets a fresh per-run token; a hand-started one proves the token
+    in target.tcp.token_env (checked before the run: unset or short is one clear line,
+    never the value); auth: none asks none."""
+    from hil.common.errors import ConfigError
+    from hil.harness.config.model import load_config
+    from hil.harness.run.link_options import tcp_token
+
+    cfg = ROOT / "hil_configs" / "tcp.yaml"
+    a, b = tcp_token(load_config(cfg)), tcp_token(load_config(cfg))
+    assert a and b and a != b and len(a) == 64  # per run, 32 random bytes
+    assert tcp_token(load_config(cfg, overrides=["target.command=[]"])) is None  # v1 peers started by hand
+    assert tcp_token(load_config(cfg, overrides=["target.tcp.auth=none"])) is None
+    hand = load_config(cfg, overrides=["target.command=[]", "target.tcp.token_env=HIL_TEST_TCP_TOKEN"])
+    monkeypatch.delenv("HIL_TEST_TCP_TOKEN", raising=False)
+    with pytest.raises(ConfigError, match=r"target.tcp.token_env: the environment variable HIL_TEST_TCP_TOKEN is not set"):
+        tcp_token(hand)
+    monkeypatch.setenv("HIL_TEST_TCP_TOKEN", "short")
+    with pytest.raises(ConfigError, match=r"is 5 bytes; use at least 16") as err:
+        tcp_token(hand)
+    assert "short" not in str(err.value)
+    monkeypatch.setenv("HIL_TEST_TCP_TOKEN", "a-long-enough-shared-token")
+    assert tcp_token(hand) == "a-long-enough-shared-token"
