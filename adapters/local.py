@@ -98,6 +98,7 @@ class LocalLink(Link):
         self._inline_below = max(shm_inline_below, protocol.HEADER_SIZE)
         self.local_stats = LocalStats()
         self.receipt_stats = ReaderStats()  # how each message's receipt was stamped (hil.adapters.receipt)
+        self._opened_ns = 0
         self._proc: subprocess.Popen[bytes] | None = None
         self._sock: socket.socket | None = None
         self._reader: threading.Thread | None = None
@@ -138,6 +139,7 @@ class LocalLink(Link):
         return theirs
 
     def _open(self) -> None:
+        self._opened_ns = self.clock.now_ns()  # before the child can write a byte
         theirs = self._socket_and_ring()
         env = dict(os.environ if self._env is None else self._env)
         env[ENV_FD] = str(theirs.fileno())
@@ -174,7 +176,8 @@ class LocalLink(Link):
     def _read_loop(self) -> None:
         assert self._sock is not None
         prioritise_this_thread()  # receipt stamps must not wait behind analysis or recording
-        reader: StreamReader[NoReturn] = StreamReader(self._sock, self.clock, stats=self.receipt_stats)  # a message a read
+        reader: StreamReader[NoReturn] = StreamReader(self._sock, self.clock, stats=self.receipt_stats,
+                                                      not_before_ns=self._opened_ns)  # a message a read
         while True:
             try:
                 r = reader.next()

@@ -137,10 +137,13 @@ class StreamReader(Generic[R]):
         uncertainty: work out each stamp's uncertainty (one more non-blocking call
             per message; a target, whose stamps carry none, turns it off).
         stats: count into this (a transport's own subclass), else a fresh one.
+        not_before_ns: on ``clock``, an instant before any byte of this stream
+            arrived (when the connection was made; default: now).
     """
 
     def __init__(self, sock: socket.socket, clock: Clock, *, decoder: StreamDecoder[R] | None = None,
-                 kernel_stamps: bool = False, uncertainty: bool = True, stats: ReaderStats | None = None) -> None:
+                 kernel_stamps: bool = False, uncertainty: bool = True, stats: ReaderStats | None = None,
+                 not_before_ns: int | None = None) -> None:
         self.sock = sock
         self.clock = clock
         self.decoder: StreamDecoder[R] = decoder if decoder is not None else StreamDecoder()
@@ -151,7 +154,8 @@ class StreamReader(Generic[R]):
         self._buf = bytearray(READ_BYTES)
         self._view = memoryview(self._buf)
         self._peek = memoryview(bytearray(1))
-        self._lower_ns = clock.now_ns()  # the bytes not yet read arrived after this (on `clock`)
+        # The bytes not yet read arrived after this (on `clock`).
+        self._lower_ns = clock.now_ns() if not_before_ns is None else not_before_ns
 
     def next(self) -> Receipt[R] | None:
         """The next message (or bad bytes reported), read and stamped; None at end of

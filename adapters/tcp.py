@@ -118,6 +118,7 @@ class TcpLink(Link):
         self._connect_error = ""
         self._abandoned = ""
         self._next_dial = 0.0
+        self._listening_ns = 0
 
     @property
     def bound_address(self) -> tuple[str, int] | None:
@@ -149,6 +150,7 @@ class TcpLink(Link):
             TransportError: cannot listen on the address.
         """
         if self._listener is None:
+            self._listening_ns = self.clock.now_ns()
             ls = listening_socket(self.address, backlog=MAX_CANDIDATES)
             if self.kernel_stamps:  # inherited by the accepted connections
                 enable_kernel_stamps(ls)
@@ -222,15 +224,16 @@ class TcpLink(Link):
             sel.close()
 
     def _add(self, pending: list[Candidate], sel: selectors.BaseSelector,
-             conn: tuple[socket.socket, str] | None) -> None:
+             conn: tuple[socket.socket, str, int] | None) -> None:
         if conn is None:
             return
-        sock, peer = conn
+        sock, peer, opened_ns = conn
         tune(sock)
         # A dialled peer that stalls is left for the next dial; a listening harness
         # checks every caller at once, so a slow one holds no one up.
         late = time.monotonic() + HANDSHAKE_S if self.need.any and not self.listening else self._deadline
-        cand = Candidate(sock, peer, self.need, clock=self.clock, deadline=min(late, self._deadline))
+        cand = Candidate(sock, peer, self.need, clock=self.clock, deadline=min(late, self._deadline),
+                         opened_ns=opened_ns)
         if len(pending) >= MAX_CANDIDATES:
             self._drop(pending, sel, pending[0], "too many connections waiting at once")
         pending.append(cand)
@@ -243,7 +246,7 @@ class TcpLink(Link):
         cand.refuse(why)
         self._refuse(cand.peer, why)
 
-    def _accept(self, listener: socket.socket) -> tuple[socket.socket, str] | None:
+    def _accept(self, listener: socket.socket) -> tuple[socket.socket, str, int] | None:
         try:
             sock, addr = listener.accept()
         except (BlockingIOError, InterruptedError):
@@ -251,12 +254,13 @@ class TcpLink(Link):
         except OSError as err:
             self._connect_error = str(err)
             return None
-        return sock, peer_text(addr)
+        return sock, peer_text(addr), self._listening_ns  # no byte came before we listened
 
-    def _dial_once(self) -> tuple[socket.socket, str] | None:
+    def _dial_once(self) -> tuple[socket.socket, str, int] | None:
         """One connection attempt (None: failed, the error kept). Stamping is on
         before the first byte can arrive, so that the HELLO is stamped by the kernel too."""
         left = max(0.05, self._deadline - time.monotonic())
+        opened_ns = self.clock.now_ns()
         try:
             info = socket.getaddrinfo(*self.address, type=socket.SOCK_STREAM)[0]
             sock = socket.socket(info[0], info[1], info[2])
@@ -273,7 +277,7 @@ class TcpLink(Link):
             sock.close()
             self._connect_error = str(err)
             return None
-        return sock, peer_text(info[4])
+        return sock, peer_text(info[4]), opened_ns
 
     # -- the session ------------------------------------------------------------------
 
@@ -302,7 +306,7 @@ class TcpLink(Link):
             beater.start()
             self._beater = beater
         reader = StreamReader(sock, self.clock, decoder=cand.decoder, kernel_stamps=self.kernel_stamps,
-                              stats=self.tcp_stats)
+                              stats=self.tcp_stats, not_before_ns=cand.opened_ns)
         while True:
             try:
                 r = reader.next()

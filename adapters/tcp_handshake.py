@@ -109,8 +109,12 @@ class Candidate:
     the handshake goes on, ``""`` once the peer is accepted, or why it is refused.
     """
 
-    def __init__(self, sock: socket.socket, peer: str, need: Requirements, *, clock: Clock, deadline: float) -> None:
+    def __init__(self, sock: socket.socket, peer: str, need: Requirements, *, clock: Clock, deadline: float,
+                 opened_ns: int) -> None:
+        """``opened_ns``: on ``clock``, an instant before any byte of the connection
+        arrived (the dial began, or the harness began listening)."""
         sock.setblocking(False)
+        self.opened_ns = opened_ns
         self.sock = sock
         self.peer = peer
         self.need = need
