@@ -315,8 +315,8 @@ class Link(ABC):
         if isinstance(item, ProtocolError):
             self.stats.protocol_errors += 1
             self.stats.last_error = str(item)
-            self._enqueue(self._rx, Received(ProtocolFault(str(item), item.offset), t_rx_ns, self.vehicle_id,  # type: ignore[arg-type]
-                                             uncertainty_ns))
+            fault = ProtocolFault(str(item), item.offset)
+            self._enqueue(self._rx, Received(fault, t_rx_ns, self.vehicle_id, uncertainty_ns))  # type: ignore[arg-type]
             return
         self.stats.messages_received += 1
         if isinstance(item, ErrorMsg):

@@ -23,11 +23,9 @@ from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
 
-from hil.adapters.messages import (
-                                   Auth, AuthStep, Bye, CameraInfo, ClockId, Command, Control, DetectedObject, DrivingState, ErrorMsg, Estimate,
-                                   Frame, Heartbeat, Hello, ImageEncoding, Message, MsgType, ObjectClass, SyncRequest,
-                                   SyncResponse,
-                                   )
+from hil.adapters.messages import (Auth, AuthStep, Bye, CameraInfo, ClockId, Command, Control, DetectedObject,
+                                   DrivingState, ErrorMsg, Estimate, Frame, Heartbeat, Hello, ImageEncoding, Message,
+                                   MsgType, ObjectClass, SyncRequest, SyncResponse)
 from hil.common.errors import ProtocolError
 
 MAGIC = b"HILP"
@@ -591,8 +589,8 @@ def decode(buf: bytes | bytearray | memoryview, *, header: Header | None = None)
 
 
 __all__ = [
-    "AUTH_DATA_SIZE", "CAP_AUTH", "CAP_COMMANDS", "ESTIMATE_FIXED_SIZE", "FLAG_PAYLOAD_CRC", "FRAME_META_SIZE", "HEADER_SIZE",
-    "HELLO_FIXED_SIZE", "KNOWN_FLAGS", "MAGIC", "MAX_ERROR_LEN", "MAX_IMAGE_SIDE",
+    "AUTH_DATA_SIZE", "CAP_AUTH", "CAP_COMMANDS", "ESTIMATE_FIXED_SIZE", "FLAG_PAYLOAD_CRC", "FRAME_META_SIZE",
+    "HEADER_SIZE", "HELLO_FIXED_SIZE", "KNOWN_FLAGS", "MAGIC", "MAX_ERROR_LEN", "MAX_IMAGE_SIDE",
     "MAX_COMMAND_LEN", "MAX_NAME_LEN", "MAX_OBJECTS", "MAX_PAYLOAD", "MAX_REASON_LEN", "OBJECT_SIZE",
     "STREAM_BUFFER_LIMIT", "SUPPORTED_VERSIONS", "VERSION", "ErrorCode", "Header",
     "decode", "decode_header", "encode", "encode_frame",

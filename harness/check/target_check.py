@@ -277,7 +277,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--key-prefix", default="hil", help="zenoh key prefix (default hil)")
     p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for each answer (default 5)")
     p.add_argument("--token-env", default=None, metavar="NAME",
-                   help="tcp: check the target's AUTH proof of the token in this environment variable (PROTOCOL.md 4.8)")
+                   help="tcp: check the target's AUTH proof of the token in this environment variable "
+                        "(PROTOCOL.md 4.8)")
 
 
 def cmd(args: argparse.Namespace) -> int:

@@ -22,7 +22,8 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # one line, exit 2, like every user mistake
         self.exit(EXIT_USAGE, f"hil: error: {message} (see {self.prog} --help)\n")
 
-    def parse_args(self, args: Sequence[str] | None = None, namespace: object = None) -> argparse.Namespace:  # type: ignore[override]
+    def parse_args(self, args: Sequence[str] | None = None,  # type: ignore[override]
+                   namespace: object = None) -> argparse.Namespace:
         """As argparse's, but an unknown option is reported with the help of the
         command it was given to (``hil run --bogus``: see ``hil run --help``)."""
         ns, extra = self.parse_known_args(args, namespace)  # type: ignore[arg-type]

@@ -147,7 +147,8 @@ def test_the_tcp_token_of_a_run(monkeypatch):
     assert tcp_token(load_config(cfg, overrides=["target.tcp.auth=none"])) is None
     hand = load_config(cfg, overrides=["target.command=[]", "target.tcp.token_env=HIL_TEST_TCP_TOKEN"])
     monkeypatch.delenv("HIL_TEST_TCP_TOKEN", raising=False)
-    with pytest.raises(ConfigError, match=r"target.tcp.token_env: the environment variable HIL_TEST_TCP_TOKEN is not set"):
+    with pytest.raises(ConfigError, match=r"target.tcp.token_env: the environment variable HIL_TEST_TCP_TOKEN is not "
+                                          r"set"):
         tcp_token(hand)
     monkeypatch.setenv("HIL_TEST_TCP_TOKEN", "short")
     with pytest.raises(ConfigError, match=r"is 5 bytes; use at least 16") as err:
