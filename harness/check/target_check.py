@@ -106,7 +106,8 @@ def check_auth(s: Session, hello: Hello, token_env: str | None) -> None:
     (a wrong or missing proof refuses the connection: the hello row fails)."""
     announced = bool(hello.capabilities & protocol.CAP_AUTH)
     if s.link.transport_name != "tcp":
-        s.add("auth (token proof)", "4.8", [], "skipped: checked over tcp (a local target is the harness's own child)")
+        why = "a local target is the harness's own child" if s.link.transport_name == "local" else "tcp only"
+        s.add("auth (token proof)", "4.8", [], f"skipped: the AUTH proof is checked over tcp ({why})")
     elif token_env:
         s.add("auth (token proof)", "4.8", [], f"proved the token in ${token_env} (HMAC-SHA256 of a fresh challenge)")
     else:
