@@ -35,6 +35,7 @@ except ImportError as err:  # pragma: no cover - depends on the install
 from hil.adapters import protocol
 from hil.adapters.can_dbc import MESSAGE_MASK, VEHICLE_MASK, HilCan, Role
 from hil.adapters.messages import Bye, Heartbeat, Hello, Message, MsgType
+from hil.adapters.receipt import RealtimeMapper
 from hil.common.errors import ProtocolError, TransportError
 from hil.timing.clock import Clock
 
@@ -67,6 +68,8 @@ class CanStats:
     isotp_received: int = 0
     isotp_errors: int = 0
     frames_superseded: int = 0  # camera frames replaced by a newer one before sending
+    interface_stamps: int = 0  # frames stamped with the interface's receive time (socketcan's kernel, virtual's send)
+    late_stamp_fallbacks: int = 0  # an interface time that could not be the arrival (> 1 s old, or ahead): read time
 
 
 class CanPeer:
@@ -89,6 +92,13 @@ class CanPeer:
         self._on_error, self._on_silent, self._on_fatal = on_error, on_silent, on_fatal
         self._timeout_ns = int(heartbeat_timeout_s * 1e9)
         self._camera_over = camera_over
+        # The harness stamps with socketcan's Message.timestamp (the kernel's receive
+        # time) and virtual's (the send), both on the host's realtime clock: mapped, they
+        # are the arrival however late the reader runs. Other adapters' clocks are not
+        # the host's, and a target's clock need not run with it: read time there.
+        module = type(bus).__module__
+        host_clock = module.endswith((".socketcan.socketcan", ".virtual"))
+        self._mapper = RealtimeMapper(clock) if host_clock and role is Role.HARNESS else None
         self._stop = threading.Event()
         self._send_lock = threading.Lock()
         self._heard_ns: int | None = None
@@ -246,9 +256,10 @@ class CanPeer:
             now = self.clock.now_ns()
             try:
                 if msg is not None:
+                    arrival = self._arrival(msg, now)
                     if self._tap is not None:
-                        self._tap(msg, now, True)
-                    self._on_frame(msg, now)
+                        self._tap(msg, arrival, True)
+                    self._on_frame(msg, arrival)
                 if self._heard_ns is not None and now - self._heard_ns > self._timeout_ns:
                     self._heard_ns = None
                     self._on_silent(f"no CAN frame from the {'target' if self.role is Role.HARNESS else 'harness'} "
@@ -262,6 +273,19 @@ class CanPeer:
             except TransportError as err:
                 self._fail(str(err))
                 return
+
+    def _arrival(self, msg: can.Message, read_ns: int) -> int:
+        """When ``msg`` arrived, on our clock: the interface's receive time where it is
+        on the host's realtime clock (a message of several frames: its last frame's),
+        else when ``recv`` returned (``read_ns``)."""
+        if self._mapper is None or not msg.timestamp:
+            return read_ns
+        t, now = self._mapper.map(round(msg.timestamp * 1e9))
+        if not now - 1_000_000_000 <= t <= now:
+            self.stats.late_stamp_fallbacks += 1
+            return read_ns
+        self.stats.interface_stamps += 1
+        return t
 
     @property
     def failed(self) -> bool:

@@ -27,6 +27,7 @@ class MsgType(IntEnum):
     ERROR = 7
     BYE = 8
     COMMAND = 9
+    AUTH = 10
 
 
 class DrivingState(IntEnum):
@@ -204,10 +205,26 @@ class Command:
     t_sender_ns: int = 0
 
 
-Message = Hello | Frame | Estimate | SyncRequest | SyncResponse | Heartbeat | ErrorMsg | Bye | Command
+class AuthStep(IntEnum):
+    CHALLENGE = 1  # harness -> target: 32 random bytes
+    PROOF = 2  # target -> harness: HMAC-SHA256 of the challenge under the shared token
+
+
+@dataclass(frozen=True)
+class Auth:
+    """The target proves it holds the run's token (PROTOCOL.md section 4.8): the
+    harness sends a CHALLENGE (32 random bytes) only to a target whose HELLO announced
+    ``CAP_AUTH``; the target answers with the PROOF, ``hil.adapters.auth.proof``."""
+
+    vehicle_id: int
+    step: AuthStep
+    data: bytes  # 32 bytes: the challenge, or the proof
+
+
+Message = Hello | Frame | Estimate | SyncRequest | SyncResponse | Heartbeat | ErrorMsg | Bye | Command | Auth
 
 __all__ = [
-    "Bye", "CameraInfo", "ClockId", "Command", "Control", "DetectedObject", "DrivingState",
+    "Auth", "AuthStep", "Bye", "CameraInfo", "ClockId", "Command", "Control", "DetectedObject", "DrivingState",
     "ErrorMsg", "Estimate", "Frame", "Heartbeat", "Hello", "ImageEncoding",
     "Inference", "Message", "MsgType", "ObjectClass", "SyncRequest", "SyncResponse",
 ]

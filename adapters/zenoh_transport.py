@@ -56,6 +56,7 @@ from __future__ import annotations
 import json
 import os
 import queue
+import re
 import tempfile
 import threading
 from collections.abc import Callable, Mapping, Sequence
@@ -248,6 +249,14 @@ def _tcp_answers(endpoint: str, *, timeout_s: float = 0.5) -> bool:
         return False
 
 
+_RUST_WHERE = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")  # " at /root/.cargo/.../unicast.rs:338."
+
+
+def zenoh_error_text(err: BaseException) -> str:
+    """A Zenoh error for a person: without the Rust source locations it carries."""
+    return _RUST_WHERE.sub("", str(err)).replace("[", "").replace("]", "").strip()
+
+
 def open_session(cfg: zenoh.Config, where: str, *, dictionary: str | None = None) -> zenoh.Session:
     """Open a session; ``dictionary`` (lines ``user:password``) is written to a file
     only this user can read, named as ``transport/auth/usrpwd/dictionary_file``, and
@@ -265,11 +274,10 @@ def open_session(cfg: zenoh.Config, where: str, *, dictionary: str | None = None
             cfg.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(path))
         return zenoh.open(cfg)
     except (zenoh.ZError, OSError) as err:
-        raise TransportError(f"cannot open a zenoh session ({where}): {err}") from err
+        raise TransportError(f"cannot open a zenoh session ({where}): {zenoh_error_text(err)}") from err
     finally:
         if path is not None:
             os.unlink(path)
-
 
 
 def _is(data: bytes, mtype: MsgType) -> bool:

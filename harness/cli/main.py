@@ -22,7 +22,18 @@ EXIT_OK, EXIT_EARLY, EXIT_USAGE = 0, 1, 2
 
 class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:  # one line, exit 2, like every user mistake
-        self.exit(EXIT_USAGE, f"hil: error: {message} (see hil {self.prog.split()[-1]} --help)\n")
+        self.exit(EXIT_USAGE, f"hil: error: {message} (see {self.prog} --help)\n")
+
+    def parse_args(self, args: Sequence[str] | None = None,  # type: ignore[override]
+                   namespace: object = None) -> argparse.Namespace:
+        """As argparse's, but an unknown option is reported with the help of the
+        command it was given to (``hil run --bogus``: see ``hil run --help``)."""
+        ns, extra = self.parse_known_args(args, namespace)  # type: ignore[arg-type]
+        if extra:
+            command = getattr(ns, "command", None)
+            prog = f"{self.prog} {command}" if command else self.prog
+            self.exit(EXIT_USAGE, f"hil: error: unrecognized arguments: {' '.join(extra)} (see {prog} --help)\n")
+        return ns
 
 
 def _live_address(text: str) -> str:
@@ -173,7 +184,9 @@ def _target_help() -> str:
     names, transports = "|".join(sorted(TARGETS)), "|".join(TRANSPORTS)
     lines = [f"usage: hil target {{{names}}} [--transport {transports}] [options of the target]", "",
              "Serve an example AI target over a transport, e.g. on a remote host or device:",
-             "  hil target cv --transport zenoh --listen tcp/0.0.0.0:7447", "",
+             "  hil target cv --transport zenoh --listen tcp/0.0.0.0:7447",
+             "  hil target cv --transport tcp --listen 0.0.0.0:7600", "",
+             "It serves run after run until Ctrl-C/SIGTERM (--once: one run).", "",
              "targets:"]
     lines += [f"  {name:<6} {_TARGET_SUMMARIES.get(name, '')}" for name in sorted(TARGETS)]
     lines += ["", "Each target's own options: hil target NAME --help (e.g. hil target cv --help)."]

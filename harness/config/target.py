@@ -150,11 +150,23 @@ class TcpMode(str, Enum):
     LISTEN = "listen"  # the harness listens; the target dials in
 
 
+class TcpAuth(str, Enum):
+    AUTO = "auto"  # a target proves the run's token when there is one (the harness starts it, or token_env)
+    NONE = "none"  # no proof asked: any program on the port (or dialling in first) is measured
+
+
 class TcpTargetConfig(BaseModel):
     """TCP connection of the harness (adapters/tcp.py, PROTOCOL.md section 10.5).
     ``address`` is host:port, ``{port}`` being ``base_port + vehicle_id``; loopback
     unless given otherwise. ``kernel_stamps``: stamp receipt with the kernel's receive
-    time (SO_TIMESTAMPNS) rather than when the reader thread woke."""
+    time (SO_TIMESTAMPNS) rather than when the reader thread woke.
+
+    Which target is measured (PROTOCOL.md 4.8): a target the harness starts
+    (``target.command``) gets a fresh per-run token in ``HIL_SESSION_TOKEN`` and must
+    prove it; a target started by hand must prove the token in the environment
+    variable named by ``token_env`` (set on both sides, never in a file), or, without
+    one, is accepted on its HELLO (and ``target.expect_name``). ``auth: none`` asks no
+    proof even of a started target (a version-1 target that predates AUTH)."""
 
     model_config = MODEL_CONFIG
 
@@ -162,6 +174,8 @@ class TcpTargetConfig(BaseModel):
     address: str = Field("127.0.0.1:{port}", pattern=r"^(tcp/)?(\[[0-9A-Fa-f:.]+\]|[^:\s\[\]]+):(\{port\}|[0-9]{1,5})$")
     base_port: Int = Field(7600, ge=1, le=65535)
     kernel_stamps: bool = True
+    token_env: str | None = Field(None, pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")
+    auth: TcpAuth = TcpAuth.AUTO
 
 
 class Ros2Topics(BaseModel):

@@ -46,7 +46,7 @@ PIPELINE = _obj("hil.PipelineRecord", {
     "sim_time_ns": _INT, "t0_ns": _INT, "t_tx_ns": _INT, "t_rx_target_ns": _NINT,
     "t_infer_start_target_ns": _NINT, "t_infer_end_target_ns": _NINT, "t_reply_target_ns": _NINT,
     "t0p_ns": _NINT, "t_apply_ns": _NINT, "sim_time_apply_ns": _NINT, "t_state_ns": _NINT,
-    "stages_ns": {"type": "object", "additionalProperties": _INT}, "render_worker": _INT,
+    "t0p_uncertainty_ns": _INT, "stages_ns": {"type": "object", "additionalProperties": _INT}, "render_worker": _INT,
 }, ["vehicle", "frame_id", "status", "t0_ns", "t_tx_ns"])
 
 CLOCK_SYNC = _obj("hil.ClockSyncSample", {

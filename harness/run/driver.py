@@ -22,7 +22,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from hil.common.errors import ConfigError, HilError, RecordingError, TargetError
+from hil.common.errors import ConfigError, HilError, RecordingError, TargetError, TransportError
 from hil.harness import __version__
 from hil.harness.config.model import RunConfig, Transport, config_hash, dump_config
 from hil.harness.engine.heap import fix_mmap_threshold
@@ -300,7 +300,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 vehicles.append(VehicleRun(name, i, link))
                 try:
                     link.open(hello_timeout_s=cfg.target.startup_timeout_s)
-                except TargetError as err:
+                except (TargetError, TransportError) as err:
                     raise TargetError(f"{name}: {err}{_exit_note(proc)}") from err
             warmup = {v.name: [s for _ in range(SYNC_WARMUP_SAMPLES)
                                if (s := v.link.sync_exchange(timeout_s=0.5)) is not None]

@@ -1,6 +1,6 @@
 """What a run's config says about one vehicle's link: the target's command line, the
-Zenoh key prefix of the run, each transport's link options, and the link faults to
-inject. Shared by the per-vehicle launch (``target_launch``) and the shared target."""
+Zenoh key prefix and the TCP token of the run, each transport's link options, and the
+link faults to inject. Shared by the per-vehicle launch (``target_launch``) and the shared target."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import secrets
 from hil.adapters.link import Link
 from hil.common.errors import ConfigError
 from hil.harness.config.model import RunConfig, Transport
-from hil.harness.config.target import substitute
+from hil.harness.config.target import TcpAuth, substitute
 from hil.timing.clock import Clock
 
 
@@ -122,6 +122,34 @@ def ros2_node_env(cfg: RunConfig, vehicle_id: int, session: str | None = None) -
     node = {image_role: topics["image"], **{k: topics[k] for k in ("camera_info", "speed", "control", "detections")}}
     xml = cyclone_xml(interface=r.interface, peers=tuple(r.peers), multicast=r.multicast, lease_ms=r.lease_ms)
     return {**node_env(ros2_domain(cfg, vehicle_id, session), xml), "HIL_ROS2_TOPICS": json.dumps(node)}
+
+
+def tcp_token(cfg: RunConfig) -> str | None:
+    """The token a TCP target must prove (PROTOCOL.md 4.8): the one in
+    ``target.tcp.token_env``, else a fresh per-run secret when the harness starts the
+    target itself, else None (``target.tcp.auth: none``: always None).
+
+    Raises:
+        ConfigError: ``token_env`` names an unset variable, or a token under 16 bytes.
+    """
+    from hil.adapters.auth import new_token, token_from_env
+
+    tc = cfg.target.tcp
+    if tc.auth == TcpAuth.NONE:
+        return None
+    if tc.token_env:
+        raw = token_from_env(tc.token_env, field="target.tcp.token_env", required=True)
+        assert raw is not None
+        return raw.decode("utf-8")
+    return new_token() if cfg.target.command else None
+
+
+def tcp_options(cfg: RunConfig, vehicle_id: int, token: str | None) -> dict[str, object]:
+    """Keyword options of the TCP link of one vehicle (``target.tcp``): ``{mode: address}``
+    as ``hil.adapters.tcp.TcpLink`` takes it, the token and the expected name."""
+    tc = cfg.target.tcp
+    return {tc.mode.value: substitute(tc.address, vehicle_id=vehicle_id, base_port=tc.base_port),
+            "kernel_stamps": tc.kernel_stamps, "token": token, "expect_name": cfg.target.expect_name}
 
 
 def can_options(cfg: RunConfig, vehicle_id: int) -> dict[str, object]:

@@ -574,6 +574,8 @@ class SimLoop:
             return
         m = r.msg
         if isinstance(m, Estimate):
+            if r.rx_uncertainty_ns and (fl := v.in_flight.get(m.frame_id)) is not None:
+                fl.t0p_uncertainty_ns = r.rx_uncertainty_ns  # its receipt stamp is known only to a span
             self._on_estimate(v, m, r.t_rx_ns)
         elif isinstance(m, ProtocolFault):
             self._on_protocol_fault(v, m, r.t_rx_ns)
@@ -754,4 +756,4 @@ def _record(v: VehicleRun, fl: InFlight, status: FrameStatus, m: Estimate | None
                               t_state_ns=fl.t_state_ns)
     return PipelineRecord(v.name, fl.frame_id, fl.sim_time_ns, fl.t0_ns, fl.t_tx_ns, status,
                           m.t_rx_target_ns, m.t_infer_start_target_ns, m.t_infer_end_target_ns,
-                          m.t_reply_target_ns, t0p, t_apply, sim_apply, fl.t_state_ns)
+                          m.t_reply_target_ns, t0p, t_apply, sim_apply, fl.t_state_ns, fl.t0p_uncertainty_ns)

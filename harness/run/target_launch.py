@@ -16,9 +16,9 @@ from hil.adapters.process import die_with_parent, end_process
 from hil.adapters.zenoh_options import AUTH_ENV
 from hil.common.errors import TargetError
 from hil.harness.config.model import RunConfig, Transport
-from hil.harness.config.target import substitute
+from hil.adapters.auth import ENV_TOKEN
 from hil.harness.run.link_options import (can_options, impair, ros2_node_env, ros2_options, run_credentials,
-                                         run_key_prefix, target_command, zenoh_options)
+                                         run_key_prefix, target_command, tcp_options, tcp_token, zenoh_options)
 from hil.timing.clock import Clock
 
 
@@ -117,15 +117,17 @@ def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, ou
             env[AUTH_ENV] = ":".join(creds)
     elif t.transport == Transport.ROS2:  # its own domain, Cyclone on loopback, the run's topics
         env.update(ros2_node_env(cfg, vehicle_id, session))
+    token = tcp_token(cfg) if t.transport == Transport.TCP else None
+    if token is not None:  # the target proves it holds this (PROTOCOL.md 4.8); never recorded
+        env[ENV_TOKEN] = token
     proc = TargetProcess(target_command(cfg, vehicle_id=vehicle_id), log_path=log, env=env) if t.command else None
     try:
         if t.transport == Transport.ZENOH:
             link = open_link("zenoh", vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
                              **zenoh_options(cfg, vehicle_id, session, creds))
-        elif t.transport == Transport.TCP:  # target.tcp: {mode: address}, as hil.adapters.tcp.TcpLink takes it
-            tc = t.tcp
-            link = open_link("tcp", vehicle_id=vehicle_id, clock=clock, rx_queue=rx, kernel_stamps=tc.kernel_stamps,
-                             **{tc.mode.value: substitute(tc.address, vehicle_id=vehicle_id, base_port=tc.base_port)})
+        elif t.transport == Transport.TCP:  # only the target that proves the token (or names itself as expected)
+            link = open_link("tcp", vehicle_id=vehicle_id, clock=clock, rx_queue=rx, abandon=_exited(proc),
+                             **tcp_options(cfg, vehicle_id, token))
         elif t.transport == Transport.ROS2:  # target.ros2: a ROS 2 node over Cyclone DDS
             link = open_link("ros2", vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
                              **ros2_options(cfg, vehicle_id, session))
@@ -141,6 +143,14 @@ def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, ou
         raise
     impair(cfg, link, vehicle_id=vehicle_id, clock=clock)
     return link, proc
+
+
+def _exited(proc: TargetProcess | None) -> Callable[[], str | None] | None:
+    """For a link that waits for a target this run started: why to stop waiting (its
+    process has exited, so whatever answers now is not it), else None."""
+    if proc is None:
+        return None
+    return lambda: "the target process this run started exited" if proc.exited() is not None else None
 
 
 def can_preflight(cfg: RunConfig, *, frame_bytes: int) -> str:

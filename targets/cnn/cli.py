@@ -22,7 +22,9 @@ from hil.targets.cnn.target import PARTS, CnnTarget, Serving
 
 
 def _parser(prog: str) -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=prog, description="The two-CNN driving AI served over the target SDK.")
+    from hil.adapters.sdk import TargetArgumentParser
+
+    p = TargetArgumentParser(prog=prog, description="The two-CNN driving AI served over the target SDK.")
     p.add_argument("--detector", choices=commands.MODELS, default="cnn", help="object detector to start with")
     p.add_argument("--steering", choices=commands.MODELS, default="cnn", help="steering model to start with")
     p.add_argument("--cruise-speed", type=float, default=10.0, help="speed to hold when the lane is clear (m/s)")
@@ -119,7 +121,7 @@ def _serve(a: argparse.Namespace, target: CnnTarget, *, shared: bool) -> int:
     import torch
 
     from hil.adapters.sdk import serve, transport_options
-    from hil.common.errors import TransportError
+    from hil.common.errors import HilError
     from hil.targets.cnn.device import hello_name
 
     name = hello_name(a.name, target.device, detail=target.device_name)
@@ -157,7 +159,9 @@ def _serve(a: argparse.Namespace, target: CnnTarget, *, shared: bool) -> int:
             # parameters; only transport options are in it (a TypedDict in adapters/sdk.py would say so).
             serve(target.infer, target_name=name, transport=a.transport, on_command=target.command,
                   **transport_options(a))  # type: ignore[arg-type]
-    except TransportError as err:
+    except HilError as err:  # an unusable transport, a port in use: one line
         print(f"cnn: {err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        return 0
     return 0
