@@ -10,7 +10,7 @@ import argparse
 import os
 import sys
 from collections.abc import Callable
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from hil.adapters import transports
 from hil.common.errors import ConfigError
@@ -88,7 +88,7 @@ def _zenoh_security(args: argparse.Namespace) -> dict[str, object]:
     return out
 
 
-def transport_options(args: argparse.Namespace) -> dict[str, object]:
+def transport_options(args: argparse.Namespace) -> dict[str, Any]:
     """The keyword options ``serve`` passes to ``args.transport``."""
     if args.transport == "zenoh":
         return {"listen": list(args.listen), "connect": list(args.connect), "mode": args.mode,

@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from typing import Any
 
 import numpy as np
 
@@ -42,7 +43,8 @@ W, H = 320, 240
 KNOWN_CAPS = 0x0000_0007  # SHM_FRAMES | CAP_COMMANDS | CAP_AUTH
 
 
-def parse_endpoint(endpoint: str, command: list[str], *, vehicle_id: int, key_prefix: str) -> tuple[str, dict]:
+def parse_endpoint(endpoint: str, command: list[str], *, vehicle_id: int,
+                   key_prefix: str) -> tuple[str, dict[str, Any]]:
     """ENDPOINT (and the command after ``--`` for ``local``) -> (transport, link options).
 
     Raises:
@@ -161,33 +163,40 @@ def check_frames(s: Session, sync: tuple[int, int] | None) -> None:
             s.add(name, "4.2, 4.3", [why], "")
             continue
         e = r.msg
+        assert isinstance(e, Estimate)  # what wait_for was asked for
         if e.frame_id != fid:
             p.append(f"frame_id (offset 16) is {e.frame_id}, expected {fid}")
         if e.vehicle_id != s.link.vehicle_id:
             p.append(f"vehicle_id (offset 8) is {e.vehicle_id}, expected {s.link.vehicle_id}")
-        stamps = [("t_rx", 24, e.t_rx_target_ns), ("t_infer_start", 32, e.t_infer_start_target_ns),
-                  ("t_infer_end", 40, e.t_infer_end_target_ns), ("t_reply", 48, e.t_reply_target_ns)]
+        t_rx, t_reply = e.t_rx_target_ns, e.t_reply_target_ns
+        got = [("t_rx", 24, t_rx), ("t_infer_start", 32, e.t_infer_start_target_ns),
+               ("t_infer_end", 40, e.t_infer_end_target_ns), ("t_reply", 48, t_reply)]
+        stamps = [(a, o, v) for a, o, v in got if v is not None]  # the wire always carries all four
+        if t_rx is None or t_reply is None or len(stamps) < len(got):
+            s.add(name, "3, 4.3", ["an ESTIMATE without its four target stamps"], "")
+            continue
         for (a, oa, va), (b, ob, vb) in zip(stamps, stamps[1:]):
             if va > vb:
                 p.append(f"{a} (offset {oa}) is after {b} (offset {ob}) by {va - vb} ns")
         if sync is not None and not p:
             offset, rtt = sync
             slack = rtt + 1_000_000  # the sync's own uncertainty plus 1 ms
-            rx, reply = e.t_rx_target_ns - offset, e.t_reply_target_ns - offset
+            rx, reply = t_rx - offset, t_reply - offset
             if rx < t_tx - slack:
                 p.append(f"t_rx (offset 24) maps to {(t_tx - rx) / 1e6:.3f} ms before the frame was sent")
             if reply > r.t_rx_ns + slack:
                 p.append(f"t_reply (offset 48) maps to {(reply - r.t_rx_ns) / 1e6:.3f} ms after the estimate arrived")
         s.add(name, "3, 4.2, 4.3", p, f"{e.state.name}, steer {e.control.steering_rad:+.3f} rad, throttle "
               f"{e.control.throttle:.2f}, brake {e.control.brake:.2f}, {len(e.objects)} objects; target "
-              f"{(e.t_reply_target_ns - e.t_rx_target_ns) / 1e6:.2f} ms")
+              f"{(t_reply - t_rx) / 1e6:.2f} ms")
 
 
 def check_heartbeat(s: Session) -> None:
     s.drain()
     s.link.send_raw(protocol.encode(Heartbeat(s.link.vehicle_id, s.link.clock.now_ns())))
-    p = [f"the target answered a HEARTBEAT with ERROR {r.msg.code}: {r.msg.message!r}"
-         for r in [s.wait_for(lambda r: isinstance(r.msg, ErrorMsg), timeout_s=0.3)] if r is not None]
+    err = s.wait_for(lambda r: isinstance(r.msg, ErrorMsg), timeout_s=0.3)
+    p = ([f"the target answered a HEARTBEAT with ERROR {err.msg.code}: {err.msg.message!r}"]
+         if err is not None and isinstance(err.msg, ErrorMsg) else [])
     if (gone := _still_alive(s)) is not None:
         p.append(gone)
     s.add("heartbeat accepted", "4.4", p, "no reply, session goes on")
@@ -205,13 +214,15 @@ def check_command(s: Session) -> None:
         p.append(f"no COMMAND reply within {s.timeout_s:g} s")
     else:
         m = r.msg
+        assert isinstance(m, Command)  # what wait_for was asked for
         if m.seq != cmd.seq:
             p.append(f"reply sequence (offset 16) is {m.seq}, expected {cmd.seq}")
         if m.vehicle_id != s.link.vehicle_id:
             p.append(f"reply vehicle_id (offset 8) is {m.vehicle_id}, expected {s.link.vehicle_id}")
         if not (m.text.startswith("ok") or m.text.startswith("error:")):
             p.append(f"reply text (offset 66) starts with neither 'ok' nor 'error:': {m.text[:40]!r}")
-    s.add("command 'status'", "4.7", p, f"reply {r.msg.text[:60]!r}" if r is not None else "")
+    s.add("command 'status'", "4.7", p, f"reply {r.msg.text[:60]!r}" if r is not None and isinstance(r.msg, Command)
+          else "")
 
 
 def check_bye(s: Session) -> None:

@@ -31,6 +31,7 @@ def _expect_error(s: Session, name: str, section: str, raw: bytes, codes: tuple[
         p.append(f"answered the bad message with an ESTIMATE (frame {r.msg.frame_id}): it must be dropped")
     else:
         m = r.msg
+        assert isinstance(m, ErrorMsg)  # what wait_for was asked for: an ERROR or an ESTIMATE
         if m.code not in codes:
             p.append(f"ERROR code (offset 64) is {m.code}, expected {' or '.join(map(str, codes))}")
         if offset is not None and str(offset) not in m.message:
@@ -115,7 +116,8 @@ def check_garbage_once(s: Session) -> None:
     first = s.wait_for(lambda r: isinstance(r.msg, ErrorMsg))
     s.link.send_raw(b"and part two" + protocol.encode(SyncRequest(vid, 904, s.link.clock.now_ns())))
     answered = _answered(s, 904)
-    errors = ([first.msg] if first is not None else []) + _errors(s)  # type: ignore[list-item]
+    errors = [first.msg] if first is not None and isinstance(first.msg, ErrorMsg) else []
+    errors += _errors(s)
     p = [] if answered else ["the SYNC_REQUEST after the garbage was not answered"]
     if len(errors) != 1:
         p.append(f"{len(errors)} ERRORs for one run of garbage in two writes, expected one")

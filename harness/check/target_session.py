@@ -26,6 +26,7 @@ class Session:
     timeout_s: float
     decode_errors: list[str] = field(default_factory=list)
     rows: list[Check] = field(default_factory=list)
+    _seen: list[Received] = field(default_factory=list, init=False, repr=False)  # waited past, kept for drain()
 
     def add(self, name: str, section: str, problems: list[str], good: str) -> bool:
         self.rows.append(Check(name, section, not problems, "; ".join(problems) if problems else good))
@@ -48,9 +49,6 @@ class Session:
     def drain(self) -> list[Received]:
         out, self._seen = self._seen, []
         return out
-
-    def __post_init__(self) -> None:
-        self._seen: list[Received] = []
 
 
 __all__ = ["Check", "Session"]

@@ -28,7 +28,7 @@ class _Parser(argparse.ArgumentParser):
                    namespace: object = None) -> argparse.Namespace:
         """As argparse's, but an unknown option is reported with the help of the
         command it was given to (``hil run --bogus``: see ``hil run --help``)."""
-        ns, extra = self.parse_known_args(args, namespace)  # type: ignore[arg-type]
+        ns, extra = self.parse_known_args(args, namespace if isinstance(namespace, argparse.Namespace) else None)
         if extra:
             command = getattr(ns, "command", None)
             prog = f"{self.prog} {command}" if command else self.prog

@@ -143,22 +143,18 @@ def _serve(a: argparse.Namespace, target: CnnTarget, *, shared: bool) -> int:
                 # workers are told to go (the Zenoh one stops on SIGTERM itself).
                 signal.signal(signal.SIGTERM, _terminate)
             try:
-                # transport_options() types every value `object`, which mypy cannot match to serve_batched's named
-                # parameters; only transport options are in it (a TypedDict in adapters/sdk.py would say so).
                 serve_batched(target.infer_batch, target_name=name, transport=a.transport, on_command=target.command,
                               window_ns=int(a.batch_window_ms * 1e6), max_batch=a.max_batch, vehicles=vehicles,
                               batch_log=a.batch_log, batch_parts=(PARTS, lambda: target.last_parts_ns),
-                              **transport_options(a))  # type: ignore[arg-type]
+                              **transport_options(a))
             except ConfigError as err:
                 print(f"cnn: {err}", file=sys.stderr)
                 return 2
             except _Terminated:
                 print("cnn: SIGTERM: stopping", file=sys.stderr, flush=True)
         else:
-            # transport_options() types every value `object`, which mypy cannot match to serve's named
-            # parameters; only transport options are in it (a TypedDict in adapters/sdk.py would say so).
             serve(target.infer, target_name=name, transport=a.transport, on_command=target.command,
-                  **transport_options(a))  # type: ignore[arg-type]
+                  **transport_options(a))
     except HilError as err:  # an unusable transport, a port in use: one line
         print(f"cnn: {err}", file=sys.stderr)
         return 2
