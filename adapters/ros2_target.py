@@ -39,7 +39,7 @@ from hil.adapters.ros2_dds import Participant, take, write
 from hil.adapters.ros2_msgs import (AckermannDriveStamped, CameraInfo, CompressedImage, Detection2DArray, Header, Image,
                                     TFMessage, TwistStamped)
 from hil.adapters.ros2_options import IMAGE_QOS, REPLY_QOS, STATIC_QOS, cyclone_xml, topic_problem
-from hil.adapters.sdk import Endpoint, serving
+from hil.adapters.sdk import Endpoint, announce_line, serving
 from hil.common.errors import ConfigError, TransportError
 
 DEFAULT_TOPICS: Mapping[str, str] = {
@@ -227,6 +227,13 @@ def serve_endpoint(ep: Endpoint, *, vehicle_id: int = 0, domain_id: int | None =
     from cyclonedds.core import GuardCondition, InstanceState, ReadCondition, SampleState, ViewState, WaitSet
 
     gone = threading.Event()
+    say = print_line
+    where = (f"on DDS domain {domain_id}, vehicle {vehicle_id}, image {names.get('image')} / "
+             f"{names.get('compressed_image')}, control {names.get('control')}")
+    access = ("the DDS domain: any participant on it can act as the harness (see README, threat model); "
+              + ("Cyclone as CYCLONEDDS_URI says" if (cyclone_config or os.environ.get("CYCLONEDDS_URI"))
+                 else "loopback discovery, no multicast"))
+    sessions = 0
     with dds:
         node = Ros2Node(ep, dds=dds, topics=names, vehicle_id=vehicle_id, mapping=mapping or DriveMapping())
         ws, wake = WaitSet(dds.dp), GuardCondition(dds.dp)
@@ -234,16 +241,26 @@ def serve_endpoint(ep: Endpoint, *, vehicle_id: int = 0, domain_id: int | None =
         for reader in node.readers.values():  # wakes as a sample arrives, not at the next poll
             ws.attach(ReadCondition(reader, SampleState.Any | ViewState.Any | InstanceState.Any))
         with serving(ep, harness_gone=gone, on_term=lambda: wake.set(True)):
+            say(announce_line(ep, transport="ros2", where=where, access=access, keep_serving=keep_serving))
             ep.start(node.send)
             seen = False
             while not ep.stopped:
                 ws.wait(int(POLL_S * 1e9))
                 node.poll()
                 present = node.harness_present()
-                if seen and not present and not keep_serving:
-                    gone.set()
-                    break
-                seen = seen or present
+                if seen and not present:
+                    sessions += 1
+                    st = ep.stats
+                    say(f"{ep.target_name}: harness {sessions} left the domain; {st.frames_received} frames, "
+                        f"{st.estimates_sent} estimates so far")
+                    if not keep_serving:
+                        gone.set()
+                        break
+                seen = present
+
+
+def print_line(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
 
 
 __all__ = ["DEFAULT_TOPICS", "Ros2Node", "node_topics", "serve_endpoint"]

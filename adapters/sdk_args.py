@@ -108,6 +108,8 @@ def transport_options(args: argparse.Namespace) -> dict[str, Any]:
         return {"listen": args.listen[-1] if args.listen else None,
                 "connect": args.connect[-1] if args.connect else None,
                 "keep_serving": bool(getattr(args, "keep_serving", False)), "token_env": args.token_env}
+    if args.transport == "ros2":  # the node's domain, topics and Cyclone set-up come from the environment
+        return {"vehicle_id": args.vehicle, "keep_serving": bool(getattr(args, "keep_serving", False))}
     return {}
 
 

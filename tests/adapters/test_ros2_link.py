@@ -266,3 +266,25 @@ def test_answer_qos_must_match_a_best_effort_stack() -> None:
     finally:
         relaxed.close()
         dds.close()
+
+
+def test_a_hand_started_ros2_target_announces_itself_and_keeps_serving_until_sigterm() -> None:
+    # `hil target echo --transport ros2`: one start-up line (where, clock, access), serving run
+    # after run by default, and SIGTERM ends it cleanly (issue 25 item 5, on ros2 too).
+    import signal
+
+    domain = random.randrange(150, 230)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
+    p = subprocess.Popen([sys.executable, "-m", "hil.harness.cli.main", "target", "echo", "--transport", "ros2"],
+                         stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env)
+    try:
+        assert p.stderr is not None
+        line = p.stderr.readline()
+        assert f"ros2 target on DDS domain {domain}, vehicle 0" in line, line
+        assert "access: the DDS domain" in line and "serving run after run until Ctrl-C/SIGTERM" in line
+        p.send_signal(signal.SIGTERM)
+        assert p.wait(timeout=10) == 0
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
