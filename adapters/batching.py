@@ -17,7 +17,9 @@ answers, COMMANDs and BYE, over its own socket or Zenoh keys), but frames go to 
   stamped as its estimate leaves.
 
 ``BatchLog`` records every frame's batch (CSV: batch number, batch size, vehicle,
-frame, the target's three stamps), the run folder's ``target-shared-batches.csv``
+frame, the target's three stamps, and the batch's parts when the AI reports them:
+``batch_parts``, e.g. the CNN's ``decode_ns,nets_ns,post_ns``, each measured inside
+``t_infer_start``..``t_infer_end``), the run folder's ``target-shared-batches.csv``
 when the harness started the target (``HIL_BATCH_LOG``).
 
 Needs only the standard library and the SDK (no numpy, no torch).
@@ -41,6 +43,8 @@ from hil.common.errors import ConfigError, ProtocolError, TransportError
 from hil.timing.clock import Clock, MonotonicClock
 
 BatchInferFn = Callable[[Sequence[Frame]], Sequence[Inference]]
+# The parts of the batch ``infer_batch`` last ran, in ns, in the order the log's header names them.
+BatchPartsFn = Callable[[], Sequence[int]]
 ENV_BATCH_LOG = "HIL_BATCH_LOG"
 ENV_CTL = "HIL_LOCAL_CTL"  # a shared local target's control socket (hil.adapters.shared_local)
 DEFAULT_WINDOW_NS = 2_000_000
@@ -50,21 +54,31 @@ BATCH_LOG_HEADER = "batch,batch_size,vehicle_id,frame_id,t_rx_ns,t_infer_start_n
 
 class BatchLog:
     """Per-frame batch records, one CSV line per frame, written per batch (flushed, so
-    a target ended by SIGTERM leaves what it served)."""
+    a target ended by SIGTERM leaves what it served). ``parts``: names of the batch's
+    parts (columns ``<name>_ns`` after the stamps, the same on every row of a batch)."""
 
-    def __init__(self, path: str | os.PathLike[str]) -> None:
-        """Raises: OSError: the file cannot be created."""
+    def __init__(self, path: str | os.PathLike[str], *, parts: Sequence[str] = ()) -> None:
+        """Raises: OSError: the file cannot be created. ValueError: a part name that
+        is not a plain identifier."""
+        bad = [p for p in parts if not p.isidentifier()]
+        if bad:
+            raise ValueError(f"batch log parts {bad}: expected plain names such as 'decode'")
         self.path = Path(path)
+        self.parts = tuple(parts)
         self._f: IO[str] | None = open(self.path, "w", encoding="ascii")  # noqa: SIM115 (closed in close())
-        self._f.write(BATCH_LOG_HEADER)
+        self._f.write(BATCH_LOG_HEADER.rstrip("\n") + "".join(f",{p}_ns" for p in self.parts) + "\n")
 
-    def write(self, batch: int, rows: Sequence[tuple[int, int, int]], t_start_ns: int, t_end_ns: int) -> None:
-        """``rows``: (vehicle_id, frame_id, t_rx_ns) of each frame of batch ``batch``."""
+    def write(self, batch: int, rows: Sequence[tuple[int, int, int]], t_start_ns: int, t_end_ns: int,
+              parts_ns: Sequence[int] = ()) -> None:
+        """``rows``: (vehicle_id, frame_id, t_rx_ns) of each frame of batch ``batch``;
+        ``parts_ns``: the batch's part durations, one per name in ``parts`` (empty
+        cells when the AI reported none)."""
         f = self._f
         if f is None:
             return
         n = len(rows)
-        f.write("".join(f"{batch},{n},{v},{fid},{t_rx},{t_start_ns},{t_end_ns}\n" for v, fid, t_rx in rows))
+        tail = "".join(f",{int(v)}" for v in parts_ns) if len(parts_ns) == len(self.parts) else "," * len(self.parts)
+        f.write("".join(f"{batch},{n},{v},{fid},{t_rx},{t_start_ns},{t_end_ns}{tail}\n" for v, fid, t_rx in rows))
         f.flush()
 
     def close(self) -> None:
@@ -98,13 +112,16 @@ class BatchScheduler:
         window_ns: longest a frame waits for others before its batch starts (>= 0).
         max_batch: most frames per batch (>= 1).
         log: per-frame batch records (optional).
+        batch_parts: the parts of the batch ``infer_batch`` last ran (ns, in the
+            order of ``log.parts``), read right after each batch on the worker thread.
 
     Raises:
         ValueError: a window below 0 or ``max_batch`` below 1.
     """
 
     def __init__(self, infer_batch: BatchInferFn, *, clock: Clock | None = None, window_ns: int = DEFAULT_WINDOW_NS,
-                 max_batch: int = DEFAULT_MAX_BATCH, log: BatchLog | None = None) -> None:
+                 max_batch: int = DEFAULT_MAX_BATCH, log: BatchLog | None = None,
+                 batch_parts: BatchPartsFn | None = None) -> None:
         if window_ns < 0:
             raise ValueError(f"batch window {window_ns} ns: expected >= 0")
         if max_batch < 1:
@@ -114,6 +131,7 @@ class BatchScheduler:
         self.window_ns = window_ns
         self.max_batch = max_batch
         self.log = log
+        self.batch_parts = batch_parts
         self.stats = BatchStats()
         self._cv = threading.Condition()
         # session -> (frame, t_rx); dict order is arrival order of the waiting frame
@@ -209,6 +227,12 @@ class BatchScheduler:
                                             f"infer failed: {type(err).__name__}: {err}"[:1000]))
                 continue
             t_end = self.clock.now_ns()
+            parts: Sequence[int] = ()
+            if self.batch_parts is not None:
+                try:
+                    parts = self.batch_parts()
+                except Exception:  # noqa: BLE001 - the log loses its parts, the service goes on
+                    parts = ()
             st = self.stats
             st.batches += 1
             st.frames += len(batch)
@@ -226,7 +250,8 @@ class BatchScheduler:
                 if sent:
                     s.stats.estimates_sent += 1
             if self.log is not None:
-                self.log.write(st.batches, [(f.vehicle_id, f.frame_id, t) for _, f, t in batch], t_start, t_end)
+                self.log.write(st.batches, [(f.vehicle_id, f.frame_id, t) for _, f, t in batch], t_start, t_end,
+                               parts)
 
 
 def _no_single_infer(frame: Frame) -> Inference:  # pragma: no cover - never called
@@ -274,14 +299,14 @@ class BatchedEndpoint(Endpoint):
         return True
 
 
-def open_batch_log(path: str | None) -> BatchLog | None:
+def open_batch_log(path: str | None, *, parts: Sequence[str] = ()) -> BatchLog | None:
     """The batch log at ``path``, else at ``HIL_BATCH_LOG``, else none; a path that
     cannot be written is reported on stderr and skipped (serving matters more)."""
     where = path or os.environ.get(ENV_BATCH_LOG) or None
     if where is None:
         return None
     try:
-        return BatchLog(where)
+        return BatchLog(where, parts=parts)
     except OSError as err:
         print(f"batch log {where}: {err}; batch sizes are only counted", file=sys.stderr, flush=True)
         return None
@@ -313,6 +338,7 @@ def parse_vehicles(text: str) -> list[int]:
 def serve_batched(infer_batch: BatchInferFn, *, target_name: str, transport: str = "local",
                   on_command: CommandFn | None = None, window_ns: int = DEFAULT_WINDOW_NS,
                   max_batch: int = DEFAULT_MAX_BATCH, vehicles: Sequence[int] = (), batch_log: str | None = None,
+                  batch_parts: tuple[Sequence[str], BatchPartsFn] | None = None,
                   announce: Callable[[str], None] | None = None, **transport_options: object) -> BatchStats:
     """Serve ``infer_batch`` to many vehicles from this one process (a shared target).
 
@@ -320,12 +346,16 @@ def serve_batched(infer_batch: BatchInferFn, *, target_name: str, transport: str
     vehicles arrive over ``HIL_LOCAL_CTL``, ``hil.adapters.shared_local``) or ``zenoh``
     (one session, the keys of each of ``vehicles``, ``hil.adapters.shared_zenoh``).
     ``announce`` gets one line when serving ends (default: stderr): the batch counts.
+    ``batch_parts``: (part names, a function giving the last batch's parts in ns):
+    the batch log gets a ``<name>_ns`` column per part.
 
     Raises:
         TransportError: another transport, or the transport cannot be used.
         ConfigError: bad Zenoh options. ValueError: bad window or batch size.
     """
-    scheduler = BatchScheduler(infer_batch, window_ns=window_ns, max_batch=max_batch, log=open_batch_log(batch_log))
+    names, parts_fn = batch_parts if batch_parts is not None else ((), None)
+    scheduler = BatchScheduler(infer_batch, window_ns=window_ns, max_batch=max_batch,
+                               log=open_batch_log(batch_log, parts=names), batch_parts=parts_fn)
 
     def make_endpoint() -> BatchedEndpoint:
         return BatchedEndpoint(scheduler, target_name=target_name, on_command=on_command)
@@ -348,5 +378,5 @@ def serve_batched(infer_batch: BatchInferFn, *, target_name: str, transport: str
     return scheduler.stats
 
 
-__all__ = ["BATCH_LOG_HEADER", "ConfigError", "BatchInferFn", "BatchLog", "BatchScheduler", "BatchStats", "BatchedEndpoint",
+__all__ = ["BATCH_LOG_HEADER", "ConfigError", "BatchInferFn", "BatchLog", "BatchPartsFn", "BatchScheduler", "BatchStats", "BatchedEndpoint",
            "ENV_BATCH_LOG", "ENV_CTL", "open_batch_log", "started_shared", "parse_vehicles", "serve_batched"]

@@ -7,6 +7,11 @@ so a message is stamped with its last frame), decodes DBC frames (``hil.adapters
 sends this side's heartbeat every 250 ms and watches the other side's. A sender thread
 runs ISO-TP transmissions (waiting for flow control), so a camera frame in flight never
 delays receive stamps. DBC frames are sent at once from the caller's thread.
+
+A ``tap`` sees every CAN frame this side sends or receives, with the side's own stamp
+(``tap(msg, t_ns, is_rx)``: a received frame's ``t_ns`` is its receive stamp, a sent
+one's the clock right after ``bus.send`` returned), for a bus log (the harness writes
+``run.blf``). It runs on the reader and sender threads: it must not block.
 """
 
 from __future__ import annotations
@@ -30,8 +35,12 @@ except ImportError as err:  # pragma: no cover - depends on the install
 from hil.adapters import protocol
 from hil.adapters.can_dbc import MESSAGE_MASK, VEHICLE_MASK, HilCan, Role
 from hil.adapters.messages import Bye, Heartbeat, Hello, Message, MsgType
+from hil.adapters.receipt import RealtimeMapper
 from hil.common.errors import ProtocolError, TransportError
 from hil.timing.clock import Clock
+
+#: Sees each frame sent or received: (the frame, its stamp on the side's clock in ns, received).
+CanTap = Callable[[can.Message, int, bool], None]
 
 HEARTBEAT_PERIOD_S = 0.25
 HEARTBEAT_TIMEOUT_S = 0.75  # three missed heartbeats
@@ -59,6 +68,8 @@ class CanStats:
     isotp_received: int = 0
     isotp_errors: int = 0
     frames_superseded: int = 0  # camera frames replaced by a newer one before sending
+    interface_stamps: int = 0  # frames stamped with the interface's receive time (socketcan's kernel, virtual's send)
+    late_stamp_fallbacks: int = 0  # an interface time that could not be the arrival (> 1 s old, or ahead): read time
 
 
 class CanPeer:
@@ -71,8 +82,9 @@ class CanPeer:
                  deliver: Callable[[Message | ProtocolError, int, int], None],
                  deliver_bytes: Callable[[bytes, int], None], on_error: Callable[[str], None],
                  on_silent: Callable[[str], None], on_fatal: Callable[[str], None],
-                 heartbeat_timeout_s: float, camera_over: str = "isotp") -> None:
+                 heartbeat_timeout_s: float, camera_over: str = "isotp", tap: CanTap | None = None) -> None:
         self.role, self.bus, self._owns_bus, self.clock = role, bus, owns_bus, clock
+        self._tap = tap
         self.vehicle_id = vehicle_id
         self.codec = HilCan(role=role, vehicle_id=vehicle_id)
         self.stats = CanStats()
@@ -80,6 +92,13 @@ class CanPeer:
         self._on_error, self._on_silent, self._on_fatal = on_error, on_silent, on_fatal
         self._timeout_ns = int(heartbeat_timeout_s * 1e9)
         self._camera_over = camera_over
+        # The harness stamps with socketcan's Message.timestamp (the kernel's receive
+        # time) and virtual's (the send), both on the host's realtime clock: mapped, they
+        # are the arrival however late the reader runs. Other adapters' clocks are not
+        # the host's, and a target's clock need not run with it: read time there.
+        module = type(bus).__module__
+        host_clock = module.endswith((".socketcan.socketcan", ".virtual"))
+        self._mapper = RealtimeMapper(clock) if host_clock and role is Role.HARNESS else None
         self._stop = threading.Event()
         self._send_lock = threading.Lock()
         self._heard_ns: int | None = None
@@ -165,6 +184,8 @@ class CanPeer:
                     self._stop.wait(_ENOBUFS_WAIT_S)
                 except (can.CanError, OSError) as err:
                     raise TransportError(f"CAN send failed: {err}") from err
+            if self._tap is not None:  # under the send lock: frames are tapped in the order they left
+                self._tap(msg, self.clock.now_ns(), False)
         self.stats.frames_sent += 1
 
     def _send_loop(self) -> None:
@@ -235,7 +256,10 @@ class CanPeer:
             now = self.clock.now_ns()
             try:
                 if msg is not None:
-                    self._on_frame(msg, now)
+                    arrival = self._arrival(msg, now)
+                    if self._tap is not None:
+                        self._tap(msg, arrival, True)
+                    self._on_frame(msg, arrival)
                 if self._heard_ns is not None and now - self._heard_ns > self._timeout_ns:
                     self._heard_ns = None
                     self._on_silent(f"no CAN frame from the {'target' if self.role is Role.HARNESS else 'harness'} "
@@ -249,6 +273,19 @@ class CanPeer:
             except TransportError as err:
                 self._fail(str(err))
                 return
+
+    def _arrival(self, msg: can.Message, read_ns: int) -> int:
+        """When ``msg`` arrived, on our clock: the interface's receive time where it is
+        on the host's realtime clock (a message of several frames: its last frame's),
+        else when ``recv`` returned (``read_ns``)."""
+        if self._mapper is None or not msg.timestamp:
+            return read_ns
+        t, now = self._mapper.map(round(msg.timestamp * 1e9))
+        if not now - 1_000_000_000 <= t <= now:
+            self.stats.late_stamp_fallbacks += 1
+            return read_ns
+        self.stats.interface_stamps += 1
+        return t
 
     @property
     def failed(self) -> bool:
@@ -325,4 +362,4 @@ def _decode_small(buf: bytes) -> Message | None:
         return None
 
 
-__all__ = ["CanPeer", "CanStats", "HEARTBEAT_PERIOD_S", "HEARTBEAT_TIMEOUT_S", "ISOTP_MAX_MESSAGE"]
+__all__ = ["CanPeer", "CanStats", "CanTap", "HEARTBEAT_PERIOD_S", "HEARTBEAT_TIMEOUT_S", "ISOTP_MAX_MESSAGE"]

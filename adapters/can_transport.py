@@ -32,10 +32,11 @@ harness that starts later still gets one. The harness marks the target gone afte
 ``heartbeat_timeout_s`` (0.75 s, three periods) without a frame from it, so a vanished
 device is noticed within 1 s.
 
-Receive stamps: a reader thread stamps each frame on the link's ``Clock`` the moment
-``bus.recv`` returns (a multi-frame message: its last frame). python-can's own
-``Message.timestamp`` is ``time.time()``-based (wall clock, or the adapter's clock
-mapped onto it), not the harness clock, so it is not used.
+Receive stamps: a message is stamped with its (last) frame's arrival. On the harness
+side that is python-can's ``Message.timestamp`` where it is on the host's realtime
+clock (socketcan: the kernel's receive time; virtual: the send), mapped onto the
+link's ``Clock`` (``hil.adapters.receipt.RealtimeMapper``); otherwise, and on the
+target side, the moment ``bus.recv`` returns.
 
 Camera frames are newest-wins: while one is in transmission, a newer frame replaces
 the one waiting (``CanLink.frames_superseded`` counts them; the harness sees them as
@@ -49,7 +50,9 @@ accepted (``hil.adapters.can_interfaces``): network interfaces would send frames
 
 from __future__ import annotations
 
+import itertools
 import queue
+import sys
 import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
@@ -63,10 +66,11 @@ from hil.adapters import protocol
 from hil.adapters.can_capacity import CapacityReport, bus_capacity
 from hil.adapters.can_dbc import MAX_VEHICLE_ID, VEHICLE_MASK, Role
 from hil.adapters.can_interfaces import LOCAL_INTERFACES
-from hil.adapters.can_peer import HEARTBEAT_TIMEOUT_S, CanPeer, CanStats
+from hil.adapters.can_peer import HEARTBEAT_TIMEOUT_S, CanPeer, CanStats, CanTap
 from hil.adapters.link import Link, LinkStats, Received
 from hil.adapters.messages import Hello, Message
-from hil.adapters.sdk import serving
+from hil.adapters.sdk import (add_stats, announce_line, fresh_endpoint, said_bye, serving, session_line,
+                              stop_on_sigterm)
 from hil.common.errors import ConfigError, ProtocolError, TransportError
 from hil.timing.clock import Clock
 
@@ -145,7 +149,8 @@ class CanHalf:
     """
 
     def __init__(self, *, vehicle_id: int, clock: Clock, interface: str, channel: str, bitrate: int,
-                 data_bitrate: int, fd: bool, camera_over: str, heartbeat_timeout_s: float) -> None:
+                 data_bitrate: int, fd: bool, camera_over: str, heartbeat_timeout_s: float,
+                 tap: CanTap | None = None) -> None:
         _check_options(interface=interface, vehicle_id=vehicle_id, bitrate=bitrate, data_bitrate=data_bitrate, fd=fd)
         if camera_over not in ("isotp", "none"):
             raise ConfigError(f"camera_over={camera_over!r}; expected 'isotp' (frames on this bus) or 'none' "
@@ -154,6 +159,7 @@ class CanHalf:
         self.interface, self.channel = interface, channel
         self.bitrate, self.data_bitrate, self.camera_over = bitrate, data_bitrate, camera_over
         self.heartbeat_timeout_s = heartbeat_timeout_s
+        self.tap = tap
         self._peer: CanPeer | None = None
         self._hello_seen = False
 
@@ -189,7 +195,8 @@ class CanHalf:
             self._peer = CanPeer(role=Role.HARNESS, bus=bus, owns_bus=True, vehicle_id=self.vehicle_id,
                                  clock=self.clock, deliver=deliver, deliver_bytes=deliver_bytes,
                                  on_error=count_error, on_silent=on_gone, on_fatal=on_gone,
-                                 heartbeat_timeout_s=self.heartbeat_timeout_s, camera_over=self.camera_over)
+                                 heartbeat_timeout_s=self.heartbeat_timeout_s, camera_over=self.camera_over,
+                                 tap=self.tap)
         except BaseException:
             bus.shutdown()
             raise
@@ -223,6 +230,8 @@ class CanLink(Link):
         camera_over: ``"isotp"`` (camera frames on this bus) or ``"none"`` (a mixed
             target takes frames over another transport).
         heartbeat_timeout_s: silence after which the target is gone.
+        tap: sees every frame sent and received with its stamp on ``clock``
+            (``hil.adapters.can_peer.CanTap``; the harness's bus log).
 
     Raises:
         ConfigError: an option is invalid (names it).
@@ -233,10 +242,11 @@ class CanLink(Link):
     def __init__(self, *, vehicle_id: int, clock: Clock, interface: str = "socketcan", channel: str = "vcan0",
                  bitrate: int = 500_000, data_bitrate: int = 2_000_000, fd: bool = True,
                  camera_over: str = "isotp", heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_S,
-                 rx_queue_size: int = 1024, rx_queue: queue.Queue[Received] | None = None) -> None:
+                 rx_queue_size: int = 1024, rx_queue: queue.Queue[Received] | None = None,
+                 tap: CanTap | None = None) -> None:
         self.can = CanHalf(vehicle_id=vehicle_id, clock=clock, interface=interface, channel=channel,
                            bitrate=bitrate, data_bitrate=data_bitrate, fd=fd, camera_over=camera_over,
-                           heartbeat_timeout_s=heartbeat_timeout_s)
+                           heartbeat_timeout_s=heartbeat_timeout_s, tap=tap)
         super().__init__(vehicle_id=vehicle_id, clock=clock, rx_queue_size=rx_queue_size, rx_queue=rx_queue)
 
     @property
@@ -275,15 +285,22 @@ class CanLink(Link):
 
 def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str = "vcan0", bitrate: int = 500_000,
                    data_bitrate: int = 2_000_000, vehicle_id: int = 0, bus: can.BusABC | None = None,
-                   heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_S) -> None:
-    """Target side: serve ``ep`` on the CAN bus until the harness says BYE (or
-    ``ep.stop()``). Sends HELLO (repeated until the harness is heard), then heartbeats
+                   heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_S, keep_serving: bool = False,
+                   announce: Callable[[str], None] | None = None, transport: str = "can", frames_from: str = "",
+                   on_session: Callable[[Endpoint], None] | None = None) -> None:
+    """Target side: serve ``ep`` on the CAN bus until the harness says BYE (with
+    ``keep_serving``: then the next harness, on the same bus), ``ep.stop()`` or
+    SIGTERM/Ctrl-C. Sends HELLO (repeated until the harness is heard), then heartbeats
     every 250 ms; sends BYE on leaving unless the harness said it first. A harness that
-    goes silent is waited for (a new one gets HELLO).
+    goes silent is waited for (a new one gets HELLO). Prints one start-up line and one
+    line per session to ``announce`` (default stderr).
 
     Args:
         bus: an open python-can bus to use instead of opening one (tests pass a
             ``virtual`` bus); the caller keeps ownership and closes it.
+        transport, frames_from, on_session: for a mixed target (``hil.adapters.mixed``):
+            the name and where frames come from in the start-up line, and a call with
+            each session's endpoint before it starts.
 
     Raises:
         ConfigError: an option is invalid.
@@ -296,7 +313,42 @@ def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str =
     if bus is None:
         bus = open_bus(interface=interface, channel=channel, bitrate=bitrate, data_bitrate=data_bitrate,
                        vehicle_id=vehicle_id)
+    say = announce or (lambda text: print(text, file=sys.stderr, flush=True))
+    quit_ = threading.Event()  # SIGTERM or Ctrl-C: no further runs
+    current = ep
+    try:
+        with stop_on_sigterm(quit_.set):
+            where = f"on {interface} channel {channel}, vehicle {vehicle_id}" + (f", frames {frames_from}"
+                                                                                  if frames_from else "")
+            say(announce_line(ep, transport=transport, where=where,
+                              access="open (any node on the bus can act as the harness; see README, threat model)",
+                              keep_serving=keep_serving))
+            for n in itertools.count(1):
+                if on_session is not None:
+                    on_session(current)
+                ended = _serve_session(current, bus, vehicle_id=vehicle_id, heartbeat_timeout_s=heartbeat_timeout_s,
+                                       quit_=quit_)
+                st = current.stats
+                if st.frames_received or st.sync_answered or current.harness_said_bye:  # a harness came
+                    say(session_line(current, n, f"the harness on {channel}", ended))
+                if quit_.is_set() or not keep_serving:
+                    return
+                current = fresh_endpoint(ep, current)
+    except KeyboardInterrupt:
+        quit_.set()
+    finally:
+        add_stats(ep, current)
+        if owns:
+            bus.shutdown()
 
+
+def _serve_session(ep: Endpoint, bus: can.BusABC, *, vehicle_id: int, heartbeat_timeout_s: float,
+                   quit_: threading.Event) -> str:
+    """One harness: HELLO until heard, serve until its BYE or we stop; how it ended.
+
+    Raises:
+        TransportError: the bus failed.
+    """
     def count_error(text: str) -> None:
         ep.stats.protocol_errors += 1
 
@@ -306,20 +358,22 @@ def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str =
         bus_failed.set()
         ep.stop()
 
-    peer = CanPeer(role=Role.TARGET, bus=bus, owns_bus=owns, vehicle_id=vehicle_id, clock=ep.clock,
+    peer = CanPeer(role=Role.TARGET, bus=bus, owns_bus=False, vehicle_id=vehicle_id, clock=ep.clock,
                    deliver=lambda item, t_rx, n: ep.on_message(item, t_rx), deliver_bytes=ep.on_message_bytes,
                    on_error=count_error, on_silent=lambda why: None, on_fatal=on_fatal,
                    heartbeat_timeout_s=heartbeat_timeout_s)
     try:
-        with serving(ep, vehicle_id=vehicle_id, harness_gone=bus_failed):
+        with serving(ep, vehicle_id=vehicle_id, harness_gone=bus_failed, on_term=quit_.set):
             ep.start(peer.send_bytes)  # HELLO first, so the reader can repeat it
             peer.start()
             while not ep.wait_stopped(0.25):
-                pass
+                if quit_.is_set():  # a SIGTERM that came between two sessions
+                    ep.stop()
     finally:
         peer.close()
     if peer.failed:
         raise TransportError(f"the target left the CAN bus: {peer.failure}")
+    return said_bye(ep) or "stopped (SIGTERM)"
 
 
 __all__ = ["CanHalf", "CanLink", "CanStats", "CapacityReport", "bus_capacity", "check_interface", "open_bus",

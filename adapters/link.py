@@ -20,11 +20,12 @@ import queue
 import threading
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NoReturn
 
 from hil.adapters import protocol, transports
 from hil.adapters.impair import LinkImpairment
+from hil.adapters.receipt import Receipt
 from hil.adapters.messages import (Bye, CameraInfo, Command, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
                                    Message, SyncRequest,
                                    SyncResponse)
@@ -36,12 +37,14 @@ from hil.timing.sync import SyncSample
 
 @dataclass(frozen=True)
 class Received:
-    """A message, the harness-clock instant (ns) its last byte arrived, and the
-    vehicle id of the link it came through."""
+    """A message, the harness-clock instant (ns) its last byte arrived, the vehicle id
+    of the link it came through, and how much earlier the arrival may have been: the
+    truth lies in ``[t_rx_ns - rx_uncertainty_ns, t_rx_ns]`` (``hil.adapters.receipt``)."""
 
     msg: Message
     t_rx_ns: int
     link_vehicle_id: int = 0
+    rx_uncertainty_ns: int = 0
 
 
 @dataclass(frozen=True)
@@ -65,6 +68,12 @@ class LinkStats:
     target_errors: int = 0
     last_error: str | None = None
     impairment: dict[str, dict[str, int]] | None = None  # adapters/impair.py counts per direction, if set
+    transport: dict[str, object] | None = None  # counters only one transport has (ros2: Ros2Link.ros2_stats)
+    # Connections closed before the session because the peer was not this run's target
+    # (tcp: no proof of the run's token, or another name than target.expect_name), and
+    # the first few different ones, each "peer address: why".
+    connections_refused: int = 0
+    refused: list[str] = field(default_factory=list)
 
 
 class Link(ABC):
@@ -322,6 +331,13 @@ class Link(ABC):
         for item in self._decoder.feed(data):
             self._dispatch(item, t_rx_ns)
 
+    def _on_receipt(self, r: Receipt[NoReturn]) -> None:
+        """Reader-thread entry for stream transports read one message at a time
+        (``hil.adapters.receipt.StreamReader``): each item with the read's own stamp."""
+        self.stats.bytes_received += r.nbytes
+        for item in r.items:
+            self._dispatch(item, r.t_rx_ns, r.uncertainty_ns)
+
     def _on_message_bytes(self, data: bytes, t_rx_ns: int) -> None:
         """Reader-thread entry for message transports (one message per call)."""
         self.stats.bytes_received += len(data)
@@ -331,11 +347,12 @@ class Link(ABC):
             item = err
         self._dispatch(item, t_rx_ns)
 
-    def _dispatch(self, item: Message | ProtocolError, t_rx_ns: int) -> None:
+    def _dispatch(self, item: Message | ProtocolError, t_rx_ns: int, uncertainty_ns: int = 0) -> None:
         if isinstance(item, ProtocolError):
             self.stats.protocol_errors += 1
             self.stats.last_error = str(item)
-            self._enqueue(self._rx, Received(ProtocolFault(str(item), item.offset), t_rx_ns, self.vehicle_id))  # type: ignore[arg-type]
+            fault = ProtocolFault(str(item), item.offset)
+            self._enqueue(self._rx, Received(fault, t_rx_ns, self.vehicle_id, uncertainty_ns))  # type: ignore[arg-type]
             return
         self.stats.messages_received += 1
         if isinstance(item, ErrorMsg):
@@ -345,7 +362,7 @@ class Link(ABC):
             self._mark_gone(f"target said bye ({item.reason or 'no reason given'})")
             return
         target = self._sync_rx if isinstance(item, SyncResponse) else self._rx
-        r = Received(item, t_rx_ns, self.vehicle_id)
+        r = Received(item, t_rx_ns, self.vehicle_id, uncertainty_ns)
         if self._impair is not None and self._impair.receive(r, target):
             return  # queued at its due time, stamped with the release instant
         self._enqueue(target, r)
@@ -366,6 +383,12 @@ class Link(ABC):
                 target.put_nowait(r)
             except (queue.Empty, queue.Full):
                 pass
+
+    def _refuse(self, peer: str, why: str) -> None:
+        """Count (and name the first few) connections refused before the session."""
+        self.stats.connections_refused += 1
+        if len(self.stats.refused) < 8 and not any(r.endswith(f": {why}") for r in self.stats.refused):
+            self.stats.refused.append(f"{peer}: {why}")
 
     def _mark_gone(self, reason: str) -> None:
         if not self._peer_gone.is_set():

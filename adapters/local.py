@@ -26,12 +26,13 @@ import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, BinaryIO
+from typing import TYPE_CHECKING, BinaryIO, NoReturn
 
 from hil.adapters import protocol
 from hil.adapters.link import Link, Received
-from hil.adapters.messages import Hello, MsgType
+from hil.adapters.messages import Hello, Message, MsgType
 from hil.adapters.process import die_with_parent, end_process, prioritise_this_thread
+from hil.adapters.receipt import ReaderStats, StreamReader
 from hil.adapters.sdk import serve_stream
 from hil.adapters.shm import (DEFAULT_INLINE_BELOW, DEFAULT_SLOT_BYTES, DEFAULT_SLOTS, ENV_SHM, NOTICES,
                               SHM_FRAMES, Notice, ShmReader, ShmRing)
@@ -44,7 +45,6 @@ if TYPE_CHECKING:
 
 ENV_FD = "HIL_LOCAL_FD"
 _SOCK_BUF = 4 * 1024 * 1024
-_RECV_BYTES = 1 << 20
 
 
 @dataclass
@@ -97,6 +97,8 @@ class LocalLink(Link):
         self._shm = (shm, shm_slots, shm_slot_bytes)
         self._inline_below = max(shm_inline_below, protocol.HEADER_SIZE)
         self.local_stats = LocalStats()
+        self.receipt_stats = ReaderStats()  # how each message's receipt was stamped (hil.adapters.receipt)
+        self._opened_ns = 0
         self._proc: subprocess.Popen[bytes] | None = None
         self._sock: socket.socket | None = None
         self._reader: threading.Thread | None = None
@@ -137,6 +139,7 @@ class LocalLink(Link):
         return theirs
 
     def _open(self) -> None:
+        self._opened_ns = self.clock.now_ns()  # before the child can write a byte
         theirs = self._socket_and_ring()
         env = dict(os.environ if self._env is None else self._env)
         env[ENV_FD] = str(theirs.fileno())
@@ -173,19 +176,19 @@ class LocalLink(Link):
     def _read_loop(self) -> None:
         assert self._sock is not None
         prioritise_this_thread()  # receipt stamps must not wait behind analysis or recording
-        sock = self._sock
+        reader: StreamReader[NoReturn] = StreamReader(self._sock, self.clock, stats=self.receipt_stats,
+                                                      not_before_ns=self._opened_ns)  # a message a read
         while True:
             try:
-                data = sock.recv(_RECV_BYTES)
+                r = reader.next()
             except OSError as err:
                 if not self._closed:
                     self._mark_gone(f"socket error: {err}")
                 break
-            t_rx = self.clock.now_ns()
-            if not data:
+            if r is None:
                 self._mark_gone(self._exit_reason())
                 break
-            self._on_bytes(data, t_rx)
+            self._on_receipt(r)
 
     def _exit_reason(self) -> str:
         proc = self._proc
@@ -283,8 +286,8 @@ def serve_endpoint(ep: Endpoint) -> None:
     """
     fd_text = os.environ.get(ENV_FD)
     if not fd_text or not fd_text.isdigit():
-        raise TransportError("HIL_LOCAL_FD is not set: a local target is started by the harness "
-                             "(hil run), not by hand")
+        raise TransportError("HIL_LOCAL_FD is not set: a local target is started by the harness (hil run); "
+                             "to serve by hand, give --transport tcp, zenoh, can or mixed (see --help)")
     serve_socket(ep, socket.socket(fileno=int(fd_text)), ShmReader.from_env())
 
 
@@ -292,25 +295,24 @@ def serve_socket(ep: Endpoint, sock: socket.socket, ring: ShmReader | None) -> N
     """Serve one harness's stream on ``sock`` (frames inline or through ``ring``) until
     it ends (SIGTERM: BYE, then leave; ``hil.adapters.sdk.serve_stream``); closes both. The
     shared target serves each vehicle's socket with this."""
-    decoder = StreamDecoder(NOTICES)
+    reader = StreamReader(sock, ep.clock, decoder=StreamDecoder(NOTICES), uncertainty=False)
     send: Callable[[bytes], None] = sock.sendall
     if ring is not None:
         send = _advertising(send, SHM_FRAMES)
 
-    def deliver(data: bytes | memoryview, t_rx: int) -> None:
-        for item in decoder.feed(data):
-            if isinstance(item, Notice):
-                if ring is None:
-                    item = ProtocolError("shared-memory notice, but no frame ring was negotiated", offset=0)
-                else:
-                    got = ring.read(item)
-                    if got is None:
-                        continue  # overwritten before it was read: the harness counted it
-                    item = got
-            ep.on_message(item, t_rx)
+    def deliver(item: Message | ProtocolError | Notice, t_rx: int) -> None:
+        if isinstance(item, Notice):
+            if ring is None:
+                item = ProtocolError("shared-memory notice, but no frame ring was negotiated", offset=0)
+            else:
+                got = ring.read(item)
+                if got is None:
+                    return  # overwritten before it was read: the harness counted it
+                item = got
+        ep.on_message(item, t_rx)
 
     try:
-        serve_stream(ep, sock, send=send, read=lambda: sock.recv(_RECV_BYTES), deliver=deliver)
+        serve_stream(ep, reader, send=send, deliver=deliver)
     finally:
         sock.close()
         if ring is not None:

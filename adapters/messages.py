@@ -27,6 +27,7 @@ class MsgType(IntEnum):
     ERROR = 7
     BYE = 8
     COMMAND = 9
+    AUTH = 10
 
 
 class DrivingState(IntEnum):
@@ -129,17 +130,22 @@ class Inference:
 
 @dataclass(frozen=True)
 class Estimate:
-    """The target's answer to one frame, stamped on the target's own clock."""
+    """The target's answer to one frame, stamped on the target's own clock.
+
+    A stamp is ``None`` where the target cannot give it (a ROS 2 node reached over
+    the ``ros2`` transport has no receipt or inference stamps: PROTOCOL.md targets
+    always give all four); the stages that need it are then unknown, never zero.
+    """
 
     vehicle_id: int
     frame_id: int
     state: DrivingState
     control: Control
     objects: tuple[DetectedObject, ...]
-    t_rx_target_ns: int
-    t_infer_start_target_ns: int
-    t_infer_end_target_ns: int
-    t_reply_target_ns: int
+    t_rx_target_ns: int | None
+    t_infer_start_target_ns: int | None
+    t_infer_end_target_ns: int | None
+    t_reply_target_ns: int | None
 
 
 @dataclass(frozen=True)
@@ -199,10 +205,26 @@ class Command:
     t_sender_ns: int = 0
 
 
-Message = Hello | Frame | Estimate | SyncRequest | SyncResponse | Heartbeat | ErrorMsg | Bye | Command
+class AuthStep(IntEnum):
+    CHALLENGE = 1  # harness -> target: 32 random bytes
+    PROOF = 2  # target -> harness: HMAC-SHA256 of the challenge under the shared token
+
+
+@dataclass(frozen=True)
+class Auth:
+    """The target proves it holds the run's token (PROTOCOL.md section 4.8): the
+    harness sends a CHALLENGE (32 random bytes) only to a target whose HELLO announced
+    ``CAP_AUTH``; the target answers with the PROOF, ``hil.adapters.auth.proof``."""
+
+    vehicle_id: int
+    step: AuthStep
+    data: bytes  # 32 bytes: the challenge, or the proof
+
+
+Message = Hello | Frame | Estimate | SyncRequest | SyncResponse | Heartbeat | ErrorMsg | Bye | Command | Auth
 
 __all__ = [
-    "Bye", "CameraInfo", "ClockId", "Command", "Control", "DetectedObject", "DrivingState",
+    "Auth", "AuthStep", "Bye", "CameraInfo", "ClockId", "Command", "Control", "DetectedObject", "DrivingState",
     "ErrorMsg", "Estimate", "Frame", "Heartbeat", "Hello", "ImageEncoding",
     "Inference", "Message", "MsgType", "ObjectClass", "SyncRequest", "SyncResponse",
 ]

@@ -33,12 +33,12 @@ from __future__ import annotations
 
 import queue
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from hil.adapters import protocol
-from hil.adapters.can_peer import HEARTBEAT_TIMEOUT_S, CanStats
+from hil.adapters.can_peer import HEARTBEAT_TIMEOUT_S, CanStats, CanTap
 from hil.adapters.can_transport import CanHalf, check_interface
 from hil.adapters.can_transport import serve_endpoint as serve_can
 from hil.adapters.link import Link, Received
@@ -93,10 +93,10 @@ class MixedLink(Link):
                  key_prefix: str = "hil", multicast_scouting: bool = False, tls: Mapping[str, object] | None = None,
                  usrpwd: Mapping[str, str] | None = None, congestion_control: str = "block",
                  lease_ms: int = DEFAULT_LEASE_MS, shared_memory: bool | None = None, rx_queue_size: int = 1024,
-                 rx_queue: queue.Queue[Received] | None = None) -> None:
+                 rx_queue: queue.Queue[Received] | None = None, tap: CanTap | None = None) -> None:
         self.can = CanHalf(vehicle_id=vehicle_id, clock=clock, interface=interface, channel=channel,
                            bitrate=bitrate, data_bitrate=data_bitrate, fd=fd, camera_over="none",
-                           heartbeat_timeout_s=heartbeat_timeout_s)
+                           heartbeat_timeout_s=heartbeat_timeout_s, tap=tap)
         self.zenoh = ZenohHalf(vehicle_id=vehicle_id, connect=connect, listen=listen, mode=mode,
                                key_prefix=key_prefix, multicast_scouting=multicast_scouting, tls=tls,
                                usrpwd=usrpwd, congestion_control=congestion_control, lease_ms=lease_ms,
@@ -182,10 +182,11 @@ def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str =
                    connect: Sequence[str] = (), mode: str = "peer", key_prefix: str = "hil",
                    multicast_scouting: bool = False, tls: Mapping[str, object] | None = None,
                    lease_ms: int = DEFAULT_LEASE_MS, shared_memory: bool | None = None,
-                   usrpwd: Mapping[str, str] | None = None) -> None:
+                   usrpwd: Mapping[str, str] | None = None, keep_serving: bool = False,
+                   announce: Callable[[str], None] | None = None) -> None:
     """Target side: frames from Zenoh (``listen``/``connect``), everything else on the
-    CAN bus, until the harness says BYE, ``ep.stop()``, or SIGTERM (then BYE on CAN,
-    ``hil.adapters.sdk.serving``).
+    CAN bus, until the harness says BYE (with ``keep_serving``: then the next
+    harness), ``ep.stop()``, or SIGTERM (then BYE on CAN, ``hil.adapters.sdk.serving``).
 
     Args:
         bus: an open python-can bus to use (tests pass a ``virtual`` one); the caller
@@ -203,12 +204,16 @@ def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str =
     keys = Keys.of(key_prefix, vehicle_id)
     cfg = make_config(mode=mode, connect=connect, listen=listen, tls=tls, multicast_scouting=multicast_scouting,
                       lease_ms=lease_ms, shared_memory=shared_memory, usrpwd=usrpwd)
-    session = open_session(cfg, f"listen={list(listen)} connect={list(connect)}")
+    session = open_session(cfg, f"listen={list(listen)} connect={list(connect)}",
+                           dictionary=(usrpwd or {}).get("dictionary"))
+
+    current = [ep]  # the endpoint of the session being served
 
     def on_frame(sample: zenoh.Sample) -> None:
-        t_rx = ep.clock.now_ns()
+        now = current[0]
+        t_rx = now.clock.now_ns()
         try:
-            ep.on_message_bytes(sample.payload.to_bytes(), t_rx)
+            now.on_message_bytes(sample.payload.to_bytes(), t_rx)
         except TransportError:
             pass  # not started yet, or closing: an ERROR reply cannot go out
 
@@ -221,8 +226,12 @@ def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str =
             entities.append(session.liveliness().declare_token(keys.alive))
         except zenoh.ZError as err:
             raise TransportError(f"zenoh declarations on {keys.h2t!r} failed: {err}") from err
+        where = " and ".join(part for part in (f"listening on {', '.join(listen)}" if listen else "",
+                                               f"connecting to {', '.join(connect)}" if connect else "") if part)
         serve_can(ep, interface=interface, channel=channel, bitrate=bitrate, data_bitrate=data_bitrate,
-                  vehicle_id=vehicle_id, bus=bus, heartbeat_timeout_s=heartbeat_timeout_s)
+                  vehicle_id=vehicle_id, bus=bus, heartbeat_timeout_s=heartbeat_timeout_s, keep_serving=keep_serving,
+                  announce=announce, transport="mixed", frames_from=f"over zenoh {where} on {keys.h2t}",
+                  on_session=lambda e: current.__setitem__(0, e))
     finally:
         entities.clear()
         close_session(session, timeout_s=CLOSE_TIMEOUT_S)  # bounded: the harness may be frozen

@@ -23,11 +23,9 @@ from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
 
-from hil.adapters.messages import (
-                                   Bye, CameraInfo, ClockId, Command, Control, DetectedObject, DrivingState, ErrorMsg, Estimate,
-                                   Frame, Heartbeat, Hello, ImageEncoding, Message, MsgType, ObjectClass, SyncRequest,
-                                   SyncResponse,
-                                   )
+from hil.adapters.messages import (Auth, AuthStep, Bye, CameraInfo, ClockId, Command, Control, DetectedObject,
+                                   DrivingState, ErrorMsg, Estimate, Frame, Heartbeat, Hello, ImageEncoding, Message,
+                                   MsgType, ObjectClass, SyncRequest, SyncResponse)
 from hil.common.errors import ProtocolError
 
 MAGIC = b"HILP"
@@ -41,6 +39,8 @@ MAX_ERROR_LEN = 1024  # bytes of UTF-8
 MAX_REASON_LEN = 256  # bytes of UTF-8
 MAX_COMMAND_LEN = 256  # bytes of UTF-8
 CAP_COMMANDS = 0x0000_0002  # HELLO capability bit 1: the target accepts COMMAND messages
+CAP_AUTH = 0x0000_0004  # HELLO capability bit 2: the target answers an AUTH challenge (section 4.8)
+AUTH_DATA_SIZE = 32  # bytes of an AUTH challenge or proof
 MAX_IMAGE_SIDE = 4096  # pixels
 FLAG_PAYLOAD_CRC = 0x0001
 KNOWN_FLAGS = FLAG_PAYLOAD_CRC
@@ -79,6 +79,7 @@ _OBJECT = struct.Struct("<B3s8f")
 _ERROR = struct.Struct("<HH")
 _BYE = struct.Struct("<H")
 _COMMAND = struct.Struct("<H")
+_AUTH = struct.Struct("<B3s32s")
 _FRAME_FLOATS = ("fx", "fy", "cx", "cy", "mount_height_m", "pitch_rad", "ego_speed_mps")
 _BOX_NAMES = ("x0", "y0", "x1", "y1")
 _POS_NAMES = ("x", "y", "z")
@@ -88,7 +89,7 @@ _SLOTS = {
     MsgType.HELLO: (False, 0), MsgType.FRAME: (True, 3), MsgType.ESTIMATE: (True, 4),
     MsgType.SYNC_REQUEST: (True, 1), MsgType.SYNC_RESPONSE: (True, 3),
     MsgType.HEARTBEAT: (False, 1), MsgType.ERROR: (False, 0), MsgType.BYE: (False, 0),
-    MsgType.COMMAND: (True, 1),
+    MsgType.COMMAND: (True, 1), MsgType.AUTH: (False, 0),
 }
 
 
@@ -255,13 +256,20 @@ def _enc_command(m: Command) -> _Parts:
     return m.vehicle_id, m.seq, (_i64(m.t_sender_ns, "t_sender_ns", 24), 0, 0, 0), [_COMMAND.pack(len(text)), text]
 
 
+def _enc_auth(m: Auth) -> _Parts:
+    step = _enum(AuthStep, m.step, "step", _P)
+    if len(m.data) != AUTH_DATA_SIZE:
+        raise ProtocolError(f"AUTH data is {AUTH_DATA_SIZE} bytes, got {len(m.data)}", offset=_P + 4)
+    return m.vehicle_id, 0, (0, 0, 0, 0), [_AUTH.pack(step, bytes(3), bytes(m.data))]
+
+
 _ENCODERS: dict[type, tuple[MsgType, Callable[[Any], _Parts]]] = {
     Hello: (MsgType.HELLO, _enc_hello), Frame: (MsgType.FRAME, _enc_frame),
     Estimate: (MsgType.ESTIMATE, _enc_estimate),
     SyncRequest: (MsgType.SYNC_REQUEST, _enc_sync_request),
     SyncResponse: (MsgType.SYNC_RESPONSE, _enc_sync_response),
     Heartbeat: (MsgType.HEARTBEAT, _enc_heartbeat), ErrorMsg: (MsgType.ERROR, _enc_error),
-    Bye: (MsgType.BYE, _enc_bye), Command: (MsgType.COMMAND, _enc_command),
+    Bye: (MsgType.BYE, _enc_bye), Command: (MsgType.COMMAND, _enc_command), Auth: (MsgType.AUTH, _enc_auth),
 }
 
 
@@ -514,11 +522,20 @@ def _dec_command(mv: memoryview, h: Header) -> Command:
                    t_sender_ns=h.ts[0])
 
 
+def _dec_auth(mv: memoryview, h: Header) -> Auth:
+    if h.payload_len != _AUTH.size:
+        raise ProtocolError(f"AUTH payload_len must be {_AUTH.size}, got {h.payload_len}", offset=12)
+    step, reserved, data = _AUTH.unpack_from(mv, _P)
+    step = _enum_in(AuthStep, step, "step", _P)
+    _reserved(reserved, _P + 1)
+    return Auth(vehicle_id=h.vehicle_id, step=step, data=bytes(data))
+
+
 _DECODERS: dict[MsgType, Callable[[memoryview, Header], Message]] = {
     MsgType.HELLO: _dec_hello, MsgType.FRAME: _dec_frame, MsgType.ESTIMATE: _dec_estimate,
     MsgType.SYNC_REQUEST: _dec_sync_request, MsgType.SYNC_RESPONSE: _dec_sync_response,
     MsgType.HEARTBEAT: _dec_heartbeat, MsgType.ERROR: _dec_error, MsgType.BYE: _dec_bye,
-    MsgType.COMMAND: _dec_command,
+    MsgType.COMMAND: _dec_command, MsgType.AUTH: _dec_auth,
 }
 
 
@@ -572,8 +589,8 @@ def decode(buf: bytes | bytearray | memoryview, *, header: Header | None = None)
 
 
 __all__ = [
-    "CAP_COMMANDS", "ESTIMATE_FIXED_SIZE", "FLAG_PAYLOAD_CRC", "FRAME_META_SIZE", "HEADER_SIZE",
-    "HELLO_FIXED_SIZE", "KNOWN_FLAGS", "MAGIC", "MAX_ERROR_LEN", "MAX_IMAGE_SIDE",
+    "AUTH_DATA_SIZE", "CAP_AUTH", "CAP_COMMANDS", "ESTIMATE_FIXED_SIZE", "FLAG_PAYLOAD_CRC", "FRAME_META_SIZE",
+    "HEADER_SIZE", "HELLO_FIXED_SIZE", "KNOWN_FLAGS", "MAGIC", "MAX_ERROR_LEN", "MAX_IMAGE_SIDE",
     "MAX_COMMAND_LEN", "MAX_NAME_LEN", "MAX_OBJECTS", "MAX_PAYLOAD", "MAX_REASON_LEN", "OBJECT_SIZE",
     "STREAM_BUFFER_LIMIT", "SUPPORTED_VERSIONS", "VERSION", "ErrorCode", "Header",
     "decode", "decode_header", "encode", "encode_frame",

@@ -22,26 +22,25 @@ Needs only numpy and the chosen transport: no simulator, torch or harness code.
 
 from __future__ import annotations
 
-import argparse
-import os
 import signal
 import socket
-import sys
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import NoReturn
+from typing import NoReturn, TypeVar, cast
 
 import numpy as np
 
 from hil.adapters import protocol, transports
-from hil.adapters.messages import (Bye, ClockId, Command, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
-                                   Inference, Message, SyncRequest, SyncResponse)
+from hil.adapters.messages import (Auth, AuthStep, Bye, ClockId, Command, ErrorMsg, Estimate, Frame, Hello,
+                                   ImageEncoding, Inference, Message, SyncRequest, SyncResponse)
+from hil.adapters.receipt import StreamReader
 from hil.adapters.stream import StreamDecoder
-from hil.common.errors import ProtocolError, TransportError
+from hil.common.errors import ConfigError, ProtocolError, TransportError
 from hil.timing.clock import Clock, MonotonicClock
 
+R = TypeVar("R")
 InferFn = Callable[[Frame], Inference]
 CommandFn = Callable[[str], str]  # a COMMAND's text -> the reply's text
 
@@ -88,10 +87,12 @@ class Endpoint:
 
     def __init__(self, infer: InferFn, *, target_name: str, clock: Clock | None = None,
                  clock_id: ClockId = ClockId.MONOTONIC, clock_resolution_ns: int = 1,
-                 on_command: CommandFn | None = None) -> None:
+                 on_command: CommandFn | None = None, token: bytes | None = None) -> None:
         """``on_command``: handles COMMAND texts (announced in HELLO as
         ``protocol.CAP_COMMANDS``); called on the reader thread, so it must be quick
-        and thread-safe; its return value is the reply's text."""
+        and thread-safe; its return value is the reply's text. ``token``: the shared
+        secret this target proves when challenged (announced as ``protocol.CAP_AUTH``,
+        PROTOCOL.md 4.8; ``hil.adapters.auth``)."""
         self.infer = infer
         self.on_command = on_command
         self.clock = clock or MonotonicClock()
@@ -99,12 +100,14 @@ class Endpoint:
         self.target_name = target_name
         self.clock_id = clock_id
         self.clock_resolution_ns = clock_resolution_ns
+        self.token = token
         self._send_raw: Callable[[bytes], None] | None = None
         self._send_lock = threading.Lock()
         self._cv = threading.Condition()
         self._pending: tuple[Frame, int] | None = None
         self._stopped = threading.Event()
         self.harness_said_bye = False  # the session ended by the harness's BYE
+        self.bye_reason = ""  # the reason it gave
         self._vehicle_id = 0
         self._decoder: StreamDecoder[NoReturn] = StreamDecoder()
         self._worker: threading.Thread | None = None
@@ -120,8 +123,10 @@ class Endpoint:
         self.send(self.hello())
 
     def hello(self) -> Hello:
-        """This endpoint's HELLO (capabilities: ``CAP_COMMANDS`` with ``on_command``)."""
-        caps = protocol.CAP_COMMANDS if self.on_command is not None else 0
+        """This endpoint's HELLO (capabilities: ``CAP_COMMANDS`` with ``on_command``,
+        ``CAP_AUTH`` with a token)."""
+        caps = (protocol.CAP_COMMANDS if self.on_command is not None else 0) | (
+            protocol.CAP_AUTH if self.token else 0)
         return Hello(self.target_name, protocol.VERSION, self.clock_id, self.clock_resolution_ns, caps)
 
     @property
@@ -156,6 +161,15 @@ class Endpoint:
         with self._send_lock:
             self._send_raw(buf)
 
+    def send_stamped(self, make: Callable[[int], Message]) -> None:
+        """Send ``make(now)``, reading the clock after taking the write lock: a stamp
+        of the hand-off to the transport (``t3``, ``t_reply``) must not include the
+        wait for another writer's message (PROTOCOL.md section 3)."""
+        if self._send_raw is None:
+            raise TransportError("endpoint not started")
+        with self._send_lock:
+            self._send_raw(protocol.encode(make(self.clock.now_ns())))
+
     def on_bytes(self, data: bytes | bytearray | memoryview, t_rx: int) -> None:
         """Stream transports: bytes as they arrive, stamped at arrival (target clock)."""
         for item in self._decoder.feed(data):
@@ -180,8 +194,8 @@ class Endpoint:
             self.send(ErrorMsg(self._vehicle_id, code, str(item)[:1000]))
             return
         if isinstance(item, SyncRequest):
-            t3 = self.clock.now_ns()
-            self.send(SyncResponse(item.vehicle_id, item.seq, item.t1_ns, t_rx, t3))
+            self._vehicle_id = item.vehicle_id
+            self.send_stamped(lambda t3: SyncResponse(item.vehicle_id, item.seq, item.t1_ns, t_rx, t3))
             self.stats.sync_answered += 1
         elif isinstance(item, Frame):
             self._vehicle_id = item.vehicle_id
@@ -193,9 +207,25 @@ class Endpoint:
                 self._cv.notify()
         elif isinstance(item, Command):
             self._on_command(item)
+        elif isinstance(item, Auth):
+            self._on_auth(item)
         elif isinstance(item, Bye):
             self.harness_said_bye = True
+            self.bye_reason = item.reason
             self.stop()
+
+    def _on_auth(self, a: Auth) -> None:
+        """Answer a CHALLENGE with the proof of the token (the harness learns that this
+        is the target it started or was told to reach); the challenge's vehicle id is
+        the vehicle this target serves."""
+        if a.step != AuthStep.CHALLENGE or not self.token:
+            why = "this target holds no token" if not self.token else "a target sends the PROOF, never receives it"
+            self.send(ErrorMsg(a.vehicle_id, protocol.ErrorCode.UNEXPECTED, f"AUTH {a.step.name}: {why}"))
+            return
+        from hil.adapters.auth import proof
+
+        self._vehicle_id = a.vehicle_id
+        self.send(Auth(a.vehicle_id, AuthStep.PROOF, proof(self.token, a.data, a.vehicle_id)))
 
     def _on_command(self, cmd: Command) -> None:
         """Run the handler and reply with a COMMAND of the same ``seq``."""
@@ -237,13 +267,55 @@ class Endpoint:
                                    f"infer failed: {type(err).__name__}: {err}"[:1000]))
                 continue
             t_end = self.clock.now_ns()
-            est = Estimate(frame.vehicle_id, frame.frame_id, result.state, result.control,
-                           tuple(result.objects), t_rx, t_start, t_end, self.clock.now_ns())
             try:
-                self.send(est)
+                self.send_stamped(lambda t_reply: Estimate(frame.vehicle_id, frame.frame_id, result.state,
+                                                           result.control, tuple(result.objects), t_rx, t_start,
+                                                           t_end, t_reply))
             except (OSError, TransportError):
                 return
             self.stats.estimates_sent += 1
+
+
+CAPABILITY_NAMES = ((0x0000_0001, "SHM_FRAMES"),  # hil.adapters.shm.SHM_FRAMES (local transport only)
+                    (protocol.CAP_COMMANDS, "COMMANDS"), (protocol.CAP_AUTH, "AUTH"))
+
+
+def announce_line(ep: Endpoint, *, transport: str, where: str, access: str, keep_serving: bool,
+                  keys: str | None = None) -> str:
+    """The one line a target prints when it starts serving: what a person who started
+    it by hand needs to know to point a harness at it."""
+    h = ep.hello()
+    caps = [name for bit, name in CAPABILITY_NAMES if h.capabilities & bit]
+    return (f"{h.target_name}: {transport} target {where}" + (f", keys {keys}" if keys else "")
+            + f", clock {getattr(h.clock_id, 'name', h.clock_id)} ({h.clock_resolution_ns} ns), protocol "
+            f"v{h.protocol_version}, capabilities: {', '.join(caps) or 'none'}, access: {access}; "
+            + ("serving run after run until Ctrl-C/SIGTERM" if keep_serving else "serving one run"))
+
+
+def session_line(ep: Endpoint, n: int, peer: str, ended: str) -> str:
+    """The one line a target prints when a session ends."""
+    st = ep.stats
+    vehicle = f", vehicle {ep.vehicle_id}" if st.frames_received or st.sync_answered else ""
+    return (f"{ep.target_name}: session {n} with {peer}{vehicle}: {st.frames_received} frames, "
+            f"{st.estimates_sent} estimates, {st.sync_answered} clock syncs, {st.protocol_errors} bad messages; "
+            f"ended: {ended}")
+
+
+def add_stats(base: Endpoint, done: Endpoint) -> None:
+    """Add the counters of a finished session's endpoint into ``base``'s (the totals
+    ``serve`` returns); nothing when they are the same endpoint."""
+    if done is not base:
+        for name, value in vars(done.stats).items():
+            if isinstance(value, int) and isinstance(getattr(base.stats, name, None), int):
+                setattr(base.stats, name, getattr(base.stats, name) + value)
+
+
+def fresh_endpoint(base: Endpoint, done: Endpoint) -> Endpoint:
+    """The endpoint for the next harness of a target serving run after run: same AI,
+    clock, command handler and token (``done``'s counters added into ``base``'s)."""
+    add_stats(base, done)
+    return Endpoint(base.infer, target_name=base.target_name, clock=base.clock, clock_id=base.clock_id,
+                    clock_resolution_ns=base.clock_resolution_ns, on_command=base.on_command, token=base.token)
 
 
 @contextmanager
@@ -297,114 +369,62 @@ def serving(ep: Endpoint, *, vehicle_id: int | None = None, harness_gone: thread
             ep.join()
 
 
-def serve_stream(ep: Endpoint, sock: socket.socket, *, send: Callable[[bytes], None],
-                 read: Callable[[], bytes | memoryview], deliver: Callable[[bytes | memoryview, int], None]) -> None:
-    """A stream transport's target loop (tcp, local) inside ``serving``: ``read()`` the
-    next bytes from ``sock``, stamp them, ``deliver(data, t_rx)``, until BYE, end of
-    stream or a broken socket (the harness has left: no BYE back), or SIGTERM, which
-    shuts the socket's reading side to end the blocked read and leaves its writing
-    side open for our BYE. The caller closes ``sock``."""
+def serve_stream(ep: Endpoint, reader: StreamReader[R], *, send: Callable[[bytes], None],
+                 deliver: Callable[[Message | ProtocolError | R, int], None] | None = None,
+                 on_term: Callable[[], None] | None = None) -> str:
+    """A stream transport's target loop (tcp, local) inside ``serving``: the next
+    message from ``reader`` (one message per read, each stamped with its own arrival,
+    ``hil.adapters.receipt``), handed to ``deliver(item, t_rx)`` (default
+    ``ep.on_message``), until BYE, end of stream or a broken socket (the harness has
+    left: no BYE back), or SIGTERM, which shuts the socket's reading side to end the
+    blocked read and leaves its writing side open for our BYE (and calls
+    ``on_term``). The caller closes the socket. Returns how the session ended."""
     gone = threading.Event()
+    sock = reader.sock
+    ended = "stopped (SIGTERM)"
 
     def wake() -> None:
         try:
             sock.shutdown(socket.SHUT_RD)
         except OSError:
             pass
+        if on_term is not None:
+            on_term()
 
+    give = deliver if deliver is not None else cast(Callable[[Message | ProtocolError | R, int], None], ep.on_message)
     with serving(ep, harness_gone=gone, on_term=wake):
         ep.start(send)
         while not ep.stopped:
             try:
-                data = read()
-            except OSError:
+                r = reader.next()
+            except OSError as err:
                 gone.set()
+                ended = f"the connection failed: {err.strerror or err}"
                 break
-            t_rx = ep.clock.now_ns()
-            if not data:
+            if r is None:
                 if not ep.stopped:  # not our own SIGTERM's shutdown
                     gone.set()
+                    ended = "the harness closed the connection"
                 break
-            deliver(data, t_rx)
+            for item in r.items:
+                give(item, r.t_rx_ns)
+    return said_bye(ep) or ended
 
 
-TRANSPORTS = transports.NAMES  # the transport names, from the table in hil.adapters.transports
+def said_bye(ep: Endpoint) -> str:
+    """How a session the harness ended ended, with its reason; '' if it did not."""
+    if not ep.harness_said_bye:
+        return ""
+    return "the harness said BYE" + (f" ({ep.bye_reason})" if ep.bye_reason else "")
 
 
-def add_transport_args(parser: argparse.ArgumentParser) -> None:
-    """Add the transport options every target program shares: ``--transport`` and the
-    options of each transport (ignored by the others)."""
-    g = parser.add_argument_group("transport")
-    g.add_argument("--transport", choices=TRANSPORTS, default="local",
-                   help="local: started by `hil run`; zenoh: network; can: CAN bus; "
-                        "mixed: frames over zenoh, everything else on the CAN bus; "
-                        "tcp: one TCP connection (listen, or connect to the harness)")
-    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                   help="zenoh: endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable); "
-                        "tcp: host:port to listen on for the harness (default 127.0.0.1:7600)")
-    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
-                   help="zenoh: endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable); "
-                        "tcp: host:port of a listening harness")
-    g.add_argument("--mode", choices=("peer", "client"), default="peer", help="zenoh session mode")
-    g.add_argument("--key-prefix", default=os.environ.get("HIL_ZENOH_KEY_PREFIX", "hil"),
-                   help="zenoh: key expression prefix (default: $HIL_ZENOH_KEY_PREFIX, which a harness that "
-                        "starts this target sets to its run's own keys, else 'hil')")
-    g.add_argument("--vehicle", type=int, default=0, help="vehicle id this target serves (zenoh, can, mixed)")
-    g.add_argument("--interface", default="socketcan",
-                   help="can: python-can interface (socketcan, pcan, kvaser, vector, slcan, virtual)")
-    g.add_argument("--channel", default="vcan0", help="can: channel, e.g. vcan0, PCAN_USBBUS1")
-    g.add_argument("--bitrate", type=int, default=500_000, help="can: nominal bitrate (bit/s)")
-    g.add_argument("--data-bitrate", type=int, default=2_000_000, help="can: CAN FD data bitrate (bit/s)")
-    g.add_argument("--tls", action="append", default=[], metavar="KEY=VALUE",
-                   help="zenoh: a transport/link/tls option, e.g. listen_certificate=dev.pem, "
-                        "listen_private_key=dev.key, enable_mtls=true, root_ca_certificate=ca.pem (repeatable)")
-    g.add_argument("--auth-dictionary", default=None, metavar="FILE",
-                   help="zenoh: admit only peers whose user:password is a line of FILE (Zenoh usrpwd)")
-    g.add_argument("--keep-serving", dest="keep_serving", action="store_true", default=None,
-                   help="zenoh: serve harness after harness until Ctrl-C/SIGTERM (the default of `hil target`)")
-    g.add_argument("--once", dest="keep_serving", action="store_false",
-                   help="zenoh: serve one harness, then exit (the default of `python -m hil.targets.NAME`)")
-
-
-def _zenoh_security(args: argparse.Namespace) -> dict[str, object]:
-    """``tls`` and ``usrpwd`` options from ``--tls KEY=VALUE`` and ``--auth-dictionary``."""
-    out: dict[str, object] = {}
-    tls: dict[str, object] = {}
-    for item in getattr(args, "tls", None) or []:
-        from hil.adapters.zenoh_options import tls_key_problem
-
-        key, sep, value = item.partition("=")
-        problem = "KEY=VALUE, e.g. listen_certificate=dev.pem" if not sep or not key else tls_key_problem(key)
-        if problem is not None:
-            print(f"--tls {item!r}: expected {problem}", file=sys.stderr)
-            raise SystemExit(2)  # a user mistake: one line, exit 2
-        tls[key] = {"true": True, "false": False}.get(value.lower(), value)
-    if tls:
-        out["tls"] = tls
-    if getattr(args, "auth_dictionary", None):
-        out["usrpwd"] = {"dictionary_file": args.auth_dictionary}
-    return out
-
-
-def transport_options(args: argparse.Namespace) -> dict[str, object]:
-    """The keyword options ``serve`` passes to ``args.transport``."""
-    if args.transport == "zenoh":
-        return {"listen": list(args.listen), "connect": list(args.connect), "mode": args.mode,
-                "key_prefix": args.key_prefix, "vehicle_id": args.vehicle,
-                "keep_serving": bool(getattr(args, "keep_serving", False)),
-                **_zenoh_security(args)}
-    if args.transport == "can":
-        return {"interface": args.interface, "channel": args.channel, "bitrate": args.bitrate,
-                "data_bitrate": args.data_bitrate, "vehicle_id": args.vehicle}
-    if args.transport == "mixed":  # the zenoh options for frames, the can options for the rest
-        return {"listen": list(args.listen), "connect": list(args.connect), "mode": args.mode,
-                "key_prefix": args.key_prefix, "interface": args.interface, "channel": args.channel,
-                "bitrate": args.bitrate, "data_bitrate": args.data_bitrate, "vehicle_id": args.vehicle,
-                **_zenoh_security(args)}
-    if args.transport == "tcp":  # the last --listen / --connect given
-        return {"listen": args.listen[-1] if args.listen else None,
-                "connect": args.connect[-1] if args.connect else None}
-    return {}
+# The command line of target programs (--transport and its options, one-line
+# errors): hil.adapters.sdk_args, here for the programs that import them from the SDK.
+from hil.adapters.sdk_args import TRANSPORTS as TRANSPORTS  # noqa: E402
+from hil.adapters.sdk_args import TargetArgumentParser as TargetArgumentParser  # noqa: E402
+from hil.adapters.sdk_args import add_transport_args as add_transport_args  # noqa: E402
+from hil.adapters.sdk_args import run_target as run_target  # noqa: E402
+from hil.adapters.sdk_args import transport_options as transport_options  # noqa: E402
 
 
 def serve(infer: InferFn, *, target_name: str, transport: str | transports.Transport = "local",

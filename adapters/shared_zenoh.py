@@ -41,7 +41,8 @@ def serve_shared(scheduler: BatchScheduler, make_endpoint: Callable[[], BatchedE
         raise ConfigError("a zenoh target needs --listen ENDPOINT (e.g. tcp/0.0.0.0:7447) or --connect ENDPOINT")
     cfg = make_config(mode=mode, connect=connect, listen=listen, tls=tls, multicast_scouting=multicast_scouting,
                       lease_ms=lease_ms, usrpwd=usrpwd)
-    session = open_session(cfg, f"listen={list(listen)} connect={list(connect)}")
+    session = open_session(cfg, f"listen={list(listen)} connect={list(connect)}",
+                           dictionary=(usrpwd or {}).get("dictionary"))
     quit_ = threading.Event()
     current: dict[int, BatchedEndpoint] = {}
     lock = threading.Lock()

@@ -63,6 +63,23 @@ class StreamDecoder(Generic[R]):
         """Bytes held that are not yet part of a returned message or error."""
         return len(self._buf) - self._pos
 
+    def wanted(self) -> int:
+        """Bytes to read next so that the read ends at the end of the current unit
+        (header, message, side record) at the latest, never inside the next one: a
+        reader that reads at most this many bytes completes at most one message per
+        read, so each message can carry its own receipt stamp. Always >= 1."""
+        have = self.buffered
+        if self._header is not None:
+            return HEADER_SIZE + self._header.payload_len - have
+        side = self._side
+        if have >= len(MAGIC):  # a unit has begun (the rest was consumed or skipped)
+            is_side = side is not None and self._buf[self._pos:self._pos + 4] == side.magic
+            return (side.size if is_side and side is not None else HEADER_SIZE) - have
+        # Nothing begun, or up to 3 bytes that may begin a magic: a header's worth,
+        # or a side record's where that is shorter. A unit is never shorter than
+        # this, so the read cannot pass its end even after skipped bytes.
+        return (HEADER_SIZE if side is None else min(side.size, HEADER_SIZE)) - have
+
     def feed(self, data: bytes | bytearray | memoryview) -> list[Message | ProtocolError | R]:
         """Add received bytes; return the messages (and errors, and side records) they
         complete. Never raises for any content of ``data``."""

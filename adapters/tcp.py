@@ -7,11 +7,17 @@ target that dials in (``listen="0.0.0.0:7600"``). Addresses are explicit
 ``host:port`` pairs (a ``tcp/`` prefix is accepted); nothing is discovered, and the
 default is loopback (``127.0.0.1:7600``).
 
-Receipt stamps. The harness enables ``SO_TIMESTAMPNS`` and reads with ``recvmsg``,
-so each read carries the kernel's receive time (``CLOCK_REALTIME``); it is mapped to
-the link's clock with a paired read of both clocks at the same instant. ``t0'`` is
-then when the kernel took the bytes, not when the reader thread woke up. A read
-without the stamp falls back to the clock reading after it (counted).
+Only the run's own target is measured. A connection is the run's once its peer has
+said HELLO with the expected name and, where the run has a token, proved it
+(``hil.adapters.tcp_handshake``, PROTOCOL.md 4.8); any other connection is told why,
+closed and counted (``LinkStats.connections_refused``), and the harness keeps
+waiting for its own target: a program already listening on the port, or one that
+dials a listening harness first, never takes the vehicle's place.
+
+Receipt stamps. The harness enables ``SO_TIMESTAMPNS`` and reads one message at a
+time (``hil.adapters.receipt``): each message is stamped with the kernel's arrival of
+its own last byte, mapped to the link's clock, and carries how much earlier the
+arrival may have been when the kernel merged it with later bytes.
 
 Liveness: end of stream or a socket error marks the target gone at once. For a peer
 that vanishes without closing (a powered-off board), both sides set
@@ -19,122 +25,46 @@ that vanishes without closing (a powered-off board), both sides set
 whenever it has sent nothing for 250 ms, so unacknowledged data times out within
 about a second.
 
-Both halves live here: ``TcpLink`` (harness) and ``serve_endpoint`` (the target, used
-by ``hil.adapters.sdk.serve``). Standard library only.
+The harness half is ``TcpLink``; the target half, ``serve_endpoint``, lives in
+``hil.adapters.tcp_target`` (used by ``hil.adapters.sdk.serve``). Standard library only.
 """
 
 from __future__ import annotations
 
 import queue
+import selectors
 import socket
-import struct
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from hil.adapters import protocol
 from hil.adapters.link import Link, Received
 from hil.adapters.messages import Heartbeat, Hello
-from hil.adapters.sdk import serve_stream
+from hil.adapters.receipt import ReaderStats, RealtimeMapper, StreamReader, enable_kernel_stamps, recv_stamped
+from hil.adapters.tcp_handshake import (DEFAULT_ADDRESS, DEFAULT_PORT, HANDSHAKE_S, Candidate, Requirements,
+                                        listening_socket, parse_address, peer_text, tune)
 from hil.common.errors import TargetError, TransportError
 from hil.timing.clock import Clock
 
 if TYPE_CHECKING:
     from hil.adapters.sdk import Endpoint
 
-DEFAULT_PORT = 7600
-DEFAULT_ADDRESS = f"127.0.0.1:{DEFAULT_PORT}"
 HEARTBEAT_IDLE_S = 0.25  # the harness sends a HEARTBEAT after this long without sending
-USER_TIMEOUT_MS = 1000  # unacknowledged data for this long: the connection is dead
-_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux; SCM_TIMESTAMPNS is the same value
-_TIMESPEC = struct.Struct("@qq")  # struct timespec on 64-bit Linux
-_CMSG_SIZE = socket.CMSG_SPACE(_TIMESPEC.size)
-_RECV_BYTES = 1 << 20
-_SOCK_BUF = 4 * 1024 * 1024
-_CONNECT_RETRY_S = 0.05
-
-
-def parse_address(text: str, *, field: str = "address") -> tuple[str, int]:
-    """``"host:port"``, ``"tcp/host:port"`` or ``"[v6]:port"`` -> (host, port).
-
-    Raises:
-        TransportError: not of that form, or the port is outside 1..65535 (the
-            message names ``field`` and the text).
-    """
-    raw = text.strip()
-    if raw.startswith("tcp/"):
-        raw = raw[4:]
-    host, sep, port_text = raw.rpartition(":")
-    if host.startswith("[") and host.endswith("]"):
-        host = host[1:-1]
-    if not sep or not host or not port_text.isdigit() or not 1 <= int(port_text) <= 65535:
-        raise TransportError(f"{field}={text!r}: expected host:port with a port in 1..65535, "
-                             f"e.g. {DEFAULT_ADDRESS}")
-    return host, int(port_text)
-
-
-def _tune(sock: socket.socket) -> None:
-    """No Nagle delay, big buffers, and a dead peer noticed within about a second."""
-    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, _SOCK_BUF)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, _SOCK_BUF)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
-    for opt, value in (("TCP_KEEPIDLE", 1), ("TCP_KEEPINTVL", 1), ("TCP_KEEPCNT", 2),
-                       ("TCP_USER_TIMEOUT", USER_TIMEOUT_MS)):
-        if hasattr(socket, opt):
-            sock.setsockopt(socket.IPPROTO_TCP, getattr(socket, opt), value)
+MAX_CANDIDATES = 16  # connections a listening harness checks at once; more: the oldest is refused
+CONNECT_RETRY_S = 0.05
+REDIAL_S = 0.25  # after a refused peer, before dialling again
 
 
 @dataclass
-class TcpStats:
-    """Counters only this transport has (the shared ones are in ``LinkStats``)."""
+class TcpStats(ReaderStats):
+    """Counters only this transport has (the shared ones are in ``LinkStats``): the
+    receipt stamps' (``ReaderStats``; the kernel turns stamping on a moment after the
+    first socket asks, so a first read may lack it) and the heartbeats sent."""
 
-    kernel_stamps: int = 0  # reads stamped with the kernel's receive time
-    fallback_stamps: int = 0  # reads without it, stamped when the reader woke (the kernel turns
-    # stamping on a moment after the first socket asks, so a first read may lack it)
-    wake_delay_max_ns: int = 0  # longest time from the kernel's receipt to the reader waking
     heartbeats_sent: int = 0
-
-
-class RealtimeMapper:
-    """Maps ``CLOCK_REALTIME`` readings (kernel receive stamps) onto ``clock``.
-
-    Each mapping reads ``clock``, the realtime clock and ``clock`` again, and takes
-    the realtime reading to sit midway (µs-level error); a realtime step between two
-    reads is therefore picked up at the next read.
-    """
-
-    def __init__(self, clock: Clock) -> None:
-        self.clock = clock
-
-    def now_pair(self) -> tuple[int, int]:
-        """(``clock`` now, ``clock`` minus realtime), both ns."""
-        a = self.clock.now_ns()
-        r = time.time_ns()
-        b = self.clock.now_ns()
-        return b, (a + b) // 2 - r
-
-    def map(self, realtime_ns: int) -> tuple[int, int]:
-        """(``realtime_ns`` on ``clock``, ``clock`` now); the mapped time is never
-        later than now."""
-        now, offset = self.now_pair()
-        return min(realtime_ns + offset, now), now
-
-
-def recv_stamped(sock: socket.socket, view: memoryview) -> tuple[int, int | None]:
-    """One ``recvmsg_into``: (bytes read, kernel receive time in ns of
-    ``CLOCK_REALTIME`` or None when the kernel gave none).
-
-    Raises:
-        OSError: the socket failed.
-    """
-    n, ancdata, _flags, _addr = sock.recvmsg_into([view], _CMSG_SIZE)
-    for level, kind, data in ancdata:
-        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(data) >= _TIMESPEC.size:
-            sec, nsec = _TIMESPEC.unpack_from(data)
-            return n, sec * 1_000_000_000 + nsec
-    return n, None
 
 
 class TcpLink(Link):
@@ -146,6 +76,11 @@ class TcpLink(Link):
             (give exactly one of the two; neither: connect to ``127.0.0.1:7600``).
         kernel_stamps: stamp receipt with ``SO_TIMESTAMPNS`` (default on).
         heartbeat_idle_s: send a HEARTBEAT after this long without sending (0: never).
+        token: the shared secret the target must prove (PROTOCOL.md 4.8), or None to
+            accept a target that does not prove one (a version-1 target started by hand).
+        expect_name: accept only a HELLO whose name starts with this.
+        abandon: called while waiting for the target; a text (why, e.g. "the target
+            process exited") stops the wait at once.
 
     Raises:
         TransportError: both or a malformed address.
@@ -155,6 +90,8 @@ class TcpLink(Link):
 
     def __init__(self, *, vehicle_id: int, clock: Clock, connect: str | None = None, listen: str | None = None,
                  kernel_stamps: bool = True, heartbeat_idle_s: float = HEARTBEAT_IDLE_S,
+                 token: bytes | str | None = None, expect_name: str | None = None,
+                 abandon: Callable[[], str | None] | None = None,
                  rx_queue_size: int = 1024, rx_queue: queue.Queue[Received] | None = None) -> None:
         super().__init__(vehicle_id=vehicle_id, clock=clock, rx_queue_size=rx_queue_size, rx_queue=rx_queue)
         self._sock: socket.socket | None = None
@@ -167,8 +104,11 @@ class TcpLink(Link):
         self.address = parse_address(listen or connect or DEFAULT_ADDRESS, field="listen" if listen else "connect")
         self.kernel_stamps = kernel_stamps
         self.heartbeat_idle_s = heartbeat_idle_s
+        raw = token.encode("utf-8") if isinstance(token, str) else token
+        self.need = Requirements(vehicle_id, raw or None, expect_name)
+        self._abandon = abandon
         self.tcp_stats = TcpStats()
-        self._mapper = RealtimeMapper(clock)
+        self.peer: str | None = None  # host:port of the accepted peer
         self._send_lock = threading.Lock()
         self._state_lock = threading.Lock()
         self._connected = threading.Event()
@@ -176,6 +116,9 @@ class TcpLink(Link):
         self._deadline = 0.0
         self._last_send = 0.0
         self._connect_error = ""
+        self._abandoned = ""
+        self._next_dial = 0.0
+        self._listening_ns = 0
 
     @property
     def bound_address(self) -> tuple[str, int] | None:
@@ -183,12 +126,13 @@ class TcpLink(Link):
         return self._listener.getsockname()[:2] if self._listener is not None else None
 
     def open(self, *, hello_timeout_s: float) -> Hello:
-        """Connect (or wait for the target to connect) and wait for its HELLO; both
-        within ``hello_timeout_s``.
+        """Connect (or wait for the target to connect) and wait for its HELLO (and
+        proof of the token); all within ``hello_timeout_s``.
 
         Raises:
-            TransportError: no connection within the timeout, or cannot listen.
-            TargetError: connected, but no HELLO in time.
+            TransportError: no connection was the run's target within the timeout
+                (the message counts and names the refused ones), or cannot listen.
+            TargetError: the accepted target's HELLO is unusable (version).
         """
         self._deadline = time.monotonic() + hello_timeout_s
         try:
@@ -206,27 +150,30 @@ class TcpLink(Link):
             TransportError: cannot listen on the address.
         """
         if self._listener is None:
-            family = socket.AF_INET6 if ":" in self.address[0] else socket.AF_INET
-            ls = socket.socket(family, socket.SOCK_STREAM)
-            try:
-                ls.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-                ls.bind(self.address)
-                ls.listen(1)
-            except OSError as err:
-                ls.close()
-                raise TransportError(f"tcp: cannot listen on {self.address[0]}:{self.address[1]}: {err}") from err
-            if self.kernel_stamps:  # inherited by the accepted connection
-                ls.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
-            ls.settimeout(0.05)
+            self._listening_ns = self.clock.now_ns()
+            ls = listening_socket(self.address, backlog=MAX_CANDIDATES)
+            if self.kernel_stamps:  # inherited by the accepted connections
+                enable_kernel_stamps(ls)
             self._listener = ls
         return self.bound_address  # type: ignore[return-value]
 
     def _no_connection_reason(self, timeout_s: float) -> str:
         host, port = self.bound_address or self.address
+        st = self.stats
         if self.listening:
-            return f"tcp: no target connected to {host}:{port} within {timeout_s:g} s"
-        detail = f" (last error: {self._connect_error})" if self._connect_error else ""
-        return f"tcp: cannot connect to the target at {host}:{port} within {timeout_s:g} s{detail}"
+            text = f"tcp: no target connected to {host}:{port} within {timeout_s:g} s"
+        else:
+            detail = f" (last error: {self._connect_error})" if self._connect_error else ""
+            text = f"tcp: cannot connect to the target at {host}:{port} within {timeout_s:g} s{detail}"
+        if st.connections_refused:
+            what = "no connection proved to be this run's target" if self.need.token else "no target answered"
+            text = f"tcp: {what} {'on' if self.listening else 'at'} {host}:{port} within {timeout_s:g} s"
+        if self._abandoned:
+            text = f"tcp: stopped waiting for the target at {host}:{port}: {self._abandoned}"
+        if st.connections_refused:
+            n = st.connections_refused
+            text += f"; {n} connection{'s' * (n > 1)} refused ({'; '.join(dict.fromkeys(st.refused))})"
+        return text
 
     def _open(self) -> None:
         if self.listening:
@@ -235,88 +182,142 @@ class TcpLink(Link):
         reader.start()
         self._reader = reader  # only a started thread: close() may join it from another thread
 
-    def _establish(self) -> socket.socket | None:
-        """The connection, retried until the open deadline; None when closed or late."""
-        listener = self._listener  # close() may clear the attribute meanwhile
-        while not self._stop.is_set() and time.monotonic() < self._deadline:
-            try:
-                if listener is not None:
-                    try:
-                        sock, _peer = listener.accept()
-                    except TimeoutError:
-                        continue
-                    sock.settimeout(None)
-                else:
-                    sock = self._dial_once()
-            except OSError as err:
-                self._connect_error = str(err)
-                if self._stop.wait(_CONNECT_RETRY_S):
-                    return None
-                continue
-            _tune(sock)
-            return sock
-        return None
+    # -- reaching the run's own target --------------------------------------------
 
-    def _dial_once(self) -> socket.socket:
-        """One connection attempt. Stamping is on before the first byte can arrive,
-        so that the HELLO is stamped by the kernel too."""
+    def _establish(self) -> Candidate | None:
+        """The connection whose peer is the run's target (HELLO, name, proof), every
+        other one refused; None when closed, abandoned or late."""
+        listener = self._listener  # close() may clear the attribute meanwhile
+        sel = selectors.DefaultSelector()
+        pending: list[Candidate] = []
+        self._next_dial = 0.0
+        try:
+            if listener is not None:
+                listener.setblocking(False)
+                sel.register(listener, selectors.EVENT_READ)
+            while not self._stop.is_set() and (now := time.monotonic()) < self._deadline:
+                if self._abandon is not None and (why := self._abandon()):
+                    self._abandoned = why
+                    return None
+                if listener is None and not pending and now >= self._next_dial:
+                    self._next_dial = now + CONNECT_RETRY_S
+                    self._add(pending, sel, self._dial_once())
+                for key, _ in sel.select(timeout=CONNECT_RETRY_S):
+                    if key.fileobj is listener:
+                        self._add(pending, sel, self._accept(listener))
+                        continue
+                    cand: Candidate = key.data
+                    verdict = cand.advance()
+                    if verdict == "":
+                        sel.unregister(cand.sock)
+                        pending.remove(cand)
+                        return cand
+                    if verdict is not None:
+                        self._drop(pending, sel, cand, verdict)
+                now = time.monotonic()
+                for cand in [c for c in pending if c.expired(now)]:
+                    self._drop(pending, sel, cand, cand.late_reason())
+            return None
+        finally:
+            for cand in pending:  # the run's target came (or the wait ended): the rest go
+                cand.close()
+            sel.close()
+
+    def _add(self, pending: list[Candidate], sel: selectors.BaseSelector,
+             conn: tuple[socket.socket, str, int] | None) -> None:
+        if conn is None:
+            return
+        sock, peer, opened_ns = conn
+        tune(sock)
+        # A dialled peer that stalls is left for the next dial; a listening harness
+        # checks every caller at once, so a slow one holds no one up.
+        late = time.monotonic() + HANDSHAKE_S if self.need.any and not self.listening else self._deadline
+        cand = Candidate(sock, peer, self.need, clock=self.clock, deadline=min(late, self._deadline),
+                         opened_ns=opened_ns)
+        if len(pending) >= MAX_CANDIDATES:
+            self._drop(pending, sel, pending[0], "too many connections waiting at once")
+        pending.append(cand)
+        sel.register(sock, selectors.EVENT_READ, cand)
+
+    def _drop(self, pending: list[Candidate], sel: selectors.BaseSelector, cand: Candidate, why: str) -> None:
+        self._next_dial = time.monotonic() + REDIAL_S  # a dialled port that answered wrongly: not at once again
+        pending.remove(cand)
+        sel.unregister(cand.sock)
+        cand.refuse(why)
+        self._refuse(cand.peer, why)
+
+    def _accept(self, listener: socket.socket) -> tuple[socket.socket, str, int] | None:
+        try:
+            sock, addr = listener.accept()
+        except (BlockingIOError, InterruptedError):
+            return None
+        except OSError as err:
+            self._connect_error = str(err)
+            return None
+        return sock, peer_text(addr), self._listening_ns  # no byte came before we listened
+
+    def _dial_once(self) -> tuple[socket.socket, str, int] | None:
+        """One connection attempt (None: failed, the error kept). Stamping is on
+        before the first byte can arrive, so that the HELLO is stamped by the kernel too."""
         left = max(0.05, self._deadline - time.monotonic())
-        info = socket.getaddrinfo(*self.address, type=socket.SOCK_STREAM)[0]
-        sock = socket.socket(info[0], info[1], info[2])
+        opened_ns = self.clock.now_ns()
+        try:
+            info = socket.getaddrinfo(*self.address, type=socket.SOCK_STREAM)[0]
+            sock = socket.socket(info[0], info[1], info[2])
+        except OSError as err:
+            self._connect_error = str(err)
+            return None
         try:
             if self.kernel_stamps:
-                sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+                enable_kernel_stamps(sock)
             sock.settimeout(min(left, 2.0))
             sock.connect(info[4])
             sock.settimeout(None)
-        except OSError:
+        except OSError as err:
             sock.close()
-            raise
-        return sock
+            self._connect_error = str(err)
+            return None
+        return sock, peer_text(info[4]), opened_ns
+
+    # -- the session ------------------------------------------------------------------
 
     def _read_loop(self) -> None:
-        sock = self._establish()
+        cand = self._establish()
         listener = self._listener
         if listener is not None:  # one target per link: stop listening
             listener.close()
-        if sock is None:
-            self._mark_gone(self._connect_error or "no connection")
+        if cand is None:
+            self._mark_gone(self._abandoned or self._connect_error or "no connection")
             return
+        sock = cand.accepted_socket()
         with self._state_lock:
             if self._stop.is_set():  # closed while connecting
                 sock.close()
                 return
             self._sock = sock
+        self.peer = cand.peer
         self._last_send = time.monotonic()
         self._connected.set()
+        assert cand.hello is not None
+        for msg in (cand.hello, *cand.after):
+            self._dispatch(msg, cand.hello_rx_ns)
         if self.heartbeat_idle_s > 0:
             beater = threading.Thread(target=self._beat, name=f"tcp-hb-{self.vehicle_id}", daemon=True)
             beater.start()
             self._beater = beater
-        buf = bytearray(_RECV_BYTES)
-        view = memoryview(buf)
-        st = self.tcp_stats
+        reader = StreamReader(sock, self.clock, decoder=cand.decoder, kernel_stamps=self.kernel_stamps,
+                              stats=self.tcp_stats, not_before_ns=cand.opened_ns)
         while True:
             try:
-                if self.kernel_stamps:
-                    n, kernel_ns = recv_stamped(sock, view)
-                else:
-                    n, kernel_ns = sock.recv_into(view), None
+                r = reader.next()
             except OSError as err:
                 if not self._closed:
                     self._mark_gone(f"tcp: connection failed: {err}")
                 break
-            if n == 0:
+            if r is None:
                 self._mark_gone("tcp: the target closed the connection")
                 break
-            if kernel_ns is not None:
-                t_rx, now = self._mapper.map(kernel_ns)
-                st.kernel_stamps += 1
-                st.wake_delay_max_ns = max(st.wake_delay_max_ns, now - t_rx)
-            else:
-                t_rx = self.clock.now_ns()
-                st.fallback_stamps += 1
-            self._on_bytes(view[:n], t_rx)
+            self._on_receipt(r)
 
     def _beat(self) -> None:
         while not self._stop.wait(self.heartbeat_idle_s / 2):
@@ -359,59 +360,12 @@ class TcpLink(Link):
                 t.join(timeout=2.0)
 
 
-def serve_endpoint(ep: Endpoint, *, listen: str | None = None, connect: str | None = None,
-                   connect_timeout_s: float = 30.0) -> None:
-    """Target side: serve ``ep`` on one TCP connection until BYE or end of stream
-    (SIGTERM: BYE, then leave; ``hil.adapters.sdk.serve_stream``).
+def serve_endpoint(ep: Endpoint, **options: Any) -> None:
+    """Target side (``hil.adapters.tcp_target.serve_endpoint``, imported when used)."""
+    from hil.adapters.tcp_target import serve_endpoint as serve
 
-    Listens on ``listen`` (default ``127.0.0.1:7600``) for one harness, or dials the
-    harness at ``connect`` (retrying for ``connect_timeout_s``).
-
-    Raises:
-        TransportError: both addresses given, a malformed one, cannot listen, or
-            cannot connect in time.
-    """
-    if listen and connect:
-        raise TransportError(f"tcp: give --listen or --connect, not both ({listen!r}, {connect!r})")
-    if connect:
-        sock = _dial(parse_address(connect, field="connect"), connect_timeout_s)
-    else:
-        sock = _accept_one(parse_address(listen or DEFAULT_ADDRESS, field="listen"))
-    _tune(sock)
-    buf = bytearray(_RECV_BYTES)
-    view = memoryview(buf)
-    try:
-        serve_stream(ep, sock, send=sock.sendall, read=lambda: view[:sock.recv_into(view)], deliver=ep.on_bytes)
-    finally:
-        sock.close()
+    serve(ep, **options)
 
 
-def _accept_one(address: tuple[str, int]) -> socket.socket:
-    family = socket.AF_INET6 if ":" in address[0] else socket.AF_INET
-    with socket.socket(family, socket.SOCK_STREAM) as ls:
-        try:
-            ls.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            ls.bind(address)
-            ls.listen(1)
-        except OSError as err:
-            raise TransportError(f"tcp: cannot listen on {address[0]}:{address[1]}: {err}") from err
-        sock, _peer = ls.accept()
-    return sock
-
-
-def _dial(address: tuple[str, int], timeout_s: float) -> socket.socket:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            sock = socket.create_connection(address, timeout=2.0)
-            sock.settimeout(None)
-            return sock
-        except OSError as err:
-            if time.monotonic() >= deadline:
-                raise TransportError(f"tcp: cannot connect to the harness at {address[0]}:{address[1]} "
-                                     f"within {timeout_s:g} s: {err}") from err
-            time.sleep(_CONNECT_RETRY_S)
-
-
-__all__ = ["DEFAULT_ADDRESS", "DEFAULT_PORT", "RealtimeMapper", "TcpLink", "TcpStats", "parse_address",
-           "recv_stamped", "serve_endpoint"]
+__all__ = ["DEFAULT_ADDRESS", "DEFAULT_PORT", "RealtimeMapper", "TcpLink", "TcpStats", "listening_socket",
+           "parse_address", "recv_stamped", "serve_endpoint", "tune"]

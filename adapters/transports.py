@@ -39,6 +39,7 @@ class Transport(str, Enum):
     CAN = "can"  # a CAN FD bus (DBC frames, ISO-TP for the rest)
     MIXED = "mixed"  # frames over zenoh, everything else over CAN
     TCP = "tcp"  # the local transport's stream framing over one TCP connection
+    ROS2 = "ros2"  # ROS 2 topics over Cyclone DDS: an unmodified ROS 2 node is the target
 
 
 @dataclass(frozen=True)
@@ -65,9 +66,10 @@ BACKENDS: dict[Transport, Backend] = {
     Transport.CAN: Backend("hil.adapters.can_transport:CanLink", "hil.adapters.can_transport:serve_endpoint"),
     Transport.MIXED: Backend("hil.adapters.mixed:MixedLink", "hil.adapters.mixed:serve_endpoint"),
     Transport.TCP: Backend("hil.adapters.tcp:TcpLink", "hil.adapters.tcp:serve_endpoint"),
+    Transport.ROS2: Backend("hil.adapters.ros2_transport:Ros2Link", "hil.adapters.ros2_target:serve_endpoint"),
 }
 
-NAMES: tuple[str, ...] = tuple(t.value for t in Transport)  # in table order: local, zenoh, can, mixed, tcp
+NAMES: tuple[str, ...] = tuple(t.value for t in Transport)  # in table order: local, zenoh, can, mixed, tcp, ros2
 
 
 def transport_of(name: str | Transport) -> Transport:

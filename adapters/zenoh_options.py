@@ -7,9 +7,16 @@ session, so a config that can never open a session is refused up front.
 
 from __future__ import annotations
 
+import os
 import re
+from collections.abc import Mapping
 
-__all__ = ["IP_PROTOCOLS", "PROTOCOLS", "TLS_KEYS", "endpoint_problem", "tls_key_problem"]
+from hil.common.errors import ConfigError
+
+__all__ = ["AUTH_ENV", "IP_PROTOCOLS", "PROTOCOLS", "TLS_KEYS", "endpoint_problem", "run_usrpwd", "tls_key_problem",
+           "usrpwd_from_env"]
+
+AUTH_ENV = "HIL_ZENOH_AUTH"  # a run's own user:password, given to the target the harness starts
 
 # Zenoh's link protocols (zenoh 1.10). The IP ones take ``host:port``.
 IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
@@ -63,3 +70,27 @@ def tls_key_problem(key: object) -> str | None:
     close = difflib.get_close_matches(str(key), TLS_KEYS, n=1)
     hint = f" (did you mean {close[0]!r}?)" if close else ""
     return f"a known TLS key{hint}: {', '.join(TLS_KEYS)}"
+
+
+def run_usrpwd(user: str, password: str) -> dict[str, str]:
+    """Zenoh ``usrpwd`` options of a run's own credentials: present them and admit only
+    peers that present them too (``dictionary``: the lines, which
+    ``zenoh_transport.open_session`` writes to a private file while the session opens).
+    Zenoh gives no session to a peer without them, nor to one that asks for other ones."""
+    return {"user": user, "password": password, "dictionary": f"{user}:{password}\n"}
+
+
+def usrpwd_from_env(environ: Mapping[str, str] = os.environ) -> dict[str, str] | None:
+    """``run_usrpwd`` of ``AUTH_ENV`` (``user:password``, set by a harness for the target
+    it starts), or None when it is not set.
+
+    Raises:
+        ConfigError: it is set but not ``user:password``.
+    """
+    text = environ.get(AUTH_ENV)
+    if not text:
+        return None
+    user, sep, password = text.partition(":")
+    if not sep or not user or not password:
+        raise ConfigError(f"{AUTH_ENV} must be user:password")
+    return run_usrpwd(user, password)

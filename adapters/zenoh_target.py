@@ -22,9 +22,8 @@ from typing import TYPE_CHECKING
 
 import zenoh
 
-from hil.adapters import protocol
 from hil.adapters.messages import MsgType
-from hil.adapters.sdk import serving, stop_on_sigterm
+from hil.adapters.sdk import announce_line, fresh_endpoint, serving, stop_on_sigterm
 from hil.adapters.zenoh_transport import (BYE_LINGER_S, CLOSE_TIMEOUT_S, DEFAULT_LEASE_MS, Keys, _is, close_session,
                                           make_config, open_session)
 from hil.common.errors import ConfigError, TransportError
@@ -40,14 +39,10 @@ __all__ = ["serve_endpoint", "startup_line"]
 def startup_line(ep: Endpoint, *, listen: Sequence[str], connect: Sequence[str], keys: Keys,
                  keep_serving: bool, security: str = "none") -> str:
     """What a person starting the target by hand needs to know, in one line."""
-    h = ep.hello()
     where = " and ".join(part for part in (f"listening on {', '.join(listen)}" if listen else "",
                                            f"connecting to {', '.join(connect)}" if connect else "") if part)
-    caps = [name for bit, name in ((protocol.CAP_COMMANDS, "COMMANDS"),) if h.capabilities & bit]
-    return (f"{h.target_name}: zenoh target {where}, keys {keys.h2t.rsplit('/', 1)[0]}/*, clock "
-            f"{getattr(h.clock_id, 'name', h.clock_id)} ({h.clock_resolution_ns} ns), protocol v{h.protocol_version}, "
-            f"capabilities: {', '.join(caps) or 'none'}, access: {security}; "
-            + ("serving run after run until Ctrl-C/SIGTERM" if keep_serving else "serving one run"))
+    return announce_line(ep, transport="zenoh", where=where, keys=f"{keys.h2t.rsplit('/', 1)[0]}/*",
+                         access=security, keep_serving=keep_serving)
 
 
 def _security(listen: Sequence[str], connect: Sequence[str], tls: Mapping[str, object] | None,
@@ -55,16 +50,11 @@ def _security(listen: Sequence[str], connect: Sequence[str], tls: Mapping[str, o
     parts = []
     if any(str(e).startswith(("tls/", "quic/")) for e in (*listen, *connect)):
         parts.append("mutual TLS" if (tls or {}).get("enable_mtls") else "TLS")
-    if (usrpwd or {}).get("dictionary_file"):
+    if (usrpwd or {}).get("dictionary"):
+        parts.append("user/password of this run (from the harness that started it)")
+    elif (usrpwd or {}).get("dictionary_file"):
         parts.append("user/password")
     return " + ".join(parts) or "open (anyone who reaches the endpoint can join; see README, threat model)"
-
-
-def _fresh(ep: Endpoint) -> Endpoint:
-    from hil.adapters.sdk import Endpoint
-
-    return Endpoint(ep.infer, target_name=ep.target_name, clock=ep.clock, clock_id=ep.clock_id,
-                    clock_resolution_ns=ep.clock_resolution_ns, on_command=ep.on_command)
 
 
 def serve_endpoint(ep: Endpoint, *, listen: Sequence[str] = (), connect: Sequence[str] = (), mode: str = "peer",
@@ -90,7 +80,8 @@ def serve_endpoint(ep: Endpoint, *, listen: Sequence[str] = (), connect: Sequenc
     keys = Keys.of(key_prefix, vehicle_id)
     cfg = make_config(mode=mode, connect=connect, listen=listen, tls=tls, multicast_scouting=multicast_scouting,
                       lease_ms=lease_ms, shared_memory=shared_memory, usrpwd=usrpwd)
-    session = open_session(cfg, f"listen={list(listen)} connect={list(connect)}")
+    session = open_session(cfg, f"listen={list(listen)} connect={list(connect)}",
+                           dictionary=(usrpwd or {}).get("dictionary"))
     quit_ = threading.Event()  # SIGTERM or Ctrl-C: no further runs
     current = ep
 
@@ -107,18 +98,9 @@ def serve_endpoint(ep: Endpoint, *, listen: Sequence[str] = (), connect: Sequenc
                 _serve_one(session, current, keys=keys, vehicle_id=vehicle_id, quit_=quit_)
                 if quit_.is_set() or not keep_serving:
                     return
-                _add_stats(ep, current)
-                current = _fresh(ep)
+                current = fresh_endpoint(ep, current)
     finally:
         close_session(session, timeout_s=CLOSE_TIMEOUT_S)  # bounded: the harness may be frozen
-
-
-def _add_stats(into: Endpoint, done: Endpoint) -> None:
-    if into is done:
-        return
-    for name, value in vars(done.stats).items():
-        if isinstance(value, int) and isinstance(getattr(into.stats, name, None), int):
-            setattr(into.stats, name, getattr(into.stats, name) + value)
 
 
 def _serve_one(session: zenoh.Session, ep: Endpoint, *, keys: Keys, vehicle_id: int,

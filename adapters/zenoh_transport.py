@@ -54,7 +54,10 @@ with ``tls/host:port`` endpoints; mutual TLS adds ``enable_mtls: true`` and the
 from __future__ import annotations
 
 import json
+import os
 import queue
+import re
+import tempfile
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -84,6 +87,7 @@ HELLO_POLL_S = 0.1  # harness HEARTBEAT period until HELLO
 BYE_LINGER_S = 1.0  # how long a stopping target waits for the harness to leave after its BYE
 USRPWD_KEYS = ("user", "password", "dictionary_file")
 CLOSE_TIMEOUT_S = 2.0  # how long closing a session may take (s) before it is left to finish alone
+GONE_CLOSE_TIMEOUT_S = 0.5  # the same once the peer is gone: a frozen peer blocks close ~10 s
 _RETRY = MappingProxyType({"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 2})
 _WILDCARD_CHARS = frozenset("*$?#")
 
@@ -145,7 +149,9 @@ def config_entries(*, mode: str = "peer", connect: Sequence[str] = (), listen: S
 
     ``usrpwd``: Zenoh's user/password authentication (``USRPWD_KEYS``): ``user`` and
     ``password`` to present, ``dictionary_file`` (lines ``user:password``) to accept
-    only those peers.
+    only those peers; or ``dictionary``, the lines themselves, which
+    :func:`open_session` writes to a private file only while the session opens (a
+    run's own credentials: ``hil.adapters.zenoh_options.run_usrpwd``, ``AUTH_ENV``).
 
     ``lease_ms`` (ms) is how long a peer may stay silent before this session's lease
     runs out at the other end; ``shared_memory`` None keeps Zenoh's default (on).
@@ -177,6 +183,8 @@ def config_entries(*, mode: str = "peer", connect: Sequence[str] = (), listen: S
         entries["transport/shared_memory/enabled"] = bool(shared_memory)
     value: object  # a usrpwd value (str), then a tls value
     for key, value in (usrpwd or {}).items():
+        if key == "dictionary":
+            continue  # inline lines: open_session writes them (see above)
         if key not in USRPWD_KEYS:
             raise ConfigError(f"zenoh usrpwd key {key!r} is unknown; valid: {', '.join(USRPWD_KEYS)}")
         entries[f"transport/auth/usrpwd/{key}"] = str(value)
@@ -241,11 +249,35 @@ def _tcp_answers(endpoint: str, *, timeout_s: float = 0.5) -> bool:
         return False
 
 
-def open_session(cfg: zenoh.Config, where: str) -> zenoh.Session:
+_RUST_WHERE = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")  # " at /root/.cargo/.../unicast.rs:338."
+
+
+def zenoh_error_text(err: BaseException) -> str:
+    """A Zenoh error for a person: without the Rust source locations it carries."""
+    return _RUST_WHERE.sub("", str(err)).replace("[", "").replace("]", "").strip()
+
+
+def open_session(cfg: zenoh.Config, where: str, *, dictionary: str | None = None) -> zenoh.Session:
+    """Open a session; ``dictionary`` (lines ``user:password``) is written to a file
+    only this user can read, named as ``transport/auth/usrpwd/dictionary_file``, and
+    removed once the session is open (Zenoh reads it at open).
+
+    Raises:
+        TransportError: the session cannot be opened.
+    """
+    path = None
     try:
+        if dictionary is not None:
+            fd, path = tempfile.mkstemp(prefix="hil-zenoh-auth-", suffix=".txt")  # mode 0600
+            with os.fdopen(fd, "w", encoding="utf-8") as f:
+                f.write(dictionary)
+            cfg.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(path))
         return zenoh.open(cfg)
-    except zenoh.ZError as err:
-        raise TransportError(f"cannot open a zenoh session ({where}): {err}") from err
+    except (zenoh.ZError, OSError) as err:
+        raise TransportError(f"cannot open a zenoh session ({where}): {zenoh_error_text(err)}") from err
+    finally:
+        if path is not None:
+            os.unlink(path)
 
 
 def _is(data: bytes, mtype: MsgType) -> bool:
@@ -278,6 +310,7 @@ class ZenohHalf:
         self.congestion_control = congestion_control
         self.connect, self.listen = list(connect), list(listen)
         self.usrpwd = bool(usrpwd)
+        self.dictionary = (usrpwd or {}).get("dictionary")  # the run's own credentials (zenoh_options.run_usrpwd)
         self.config = make_config(mode=mode, connect=connect, listen=listen, tls=tls, usrpwd=usrpwd,
                                   multicast_scouting=multicast_scouting, lease_ms=lease_ms,
                                   shared_memory=shared_memory)
@@ -295,7 +328,8 @@ class ZenohHalf:
         Raises:
             TransportError: the session or a declaration failed.
         """
-        self._session = s = open_session(self.config, f"connect={self.connect} listen={self.listen}")
+        self._session = s = open_session(self.config, f"connect={self.connect} listen={self.listen}",
+                                         dictionary=self.dictionary)
         try:
             self._publisher = s.declare_publisher(self.keys.h2t, congestion_control=CONGESTION[self.congestion_control])
             # Zenoh undeclares an entity when its Python object is dropped: keep them all.
@@ -345,14 +379,25 @@ class ZenohHalf:
                 f"listen={self.listen}): is the target running, e.g. with "
                 f"--transport zenoh --listen tcp/0.0.0.0:7447, and reachable?")
 
-    def close(self, link_stats: LinkStats) -> None:
+    def sender_note(self) -> str:
+        """Who can have sent a BYE in this session, as a clause: Zenoh does not say
+        which peer published a sample, so only the session's admission tells."""
+        if self.dictionary is not None:
+            return "sent by this run's target: only it and this harness hold the run's own credentials"
+        if self.usrpwd:
+            return "sent by a peer holding target.zenoh.auth's credentials (zenoh does not say which)"
+        return ("its sender cannot be told: zenoh does not say which peer published it, and the session admits any "
+                "peer that reaches the endpoint (target.zenoh.per_run_auth closes it)")
+
+    def close(self, link_stats: LinkStats, *, peer_gone: bool = False) -> None:
         """Undeclare everything and close the session, bounded by ``CLOSE_TIMEOUT_S``
-        (a frozen peer made an unbounded close block ~10 s and then raise "close
-        operation timed out", which cost a run its summary). Idempotent; never raises."""
+        (``GONE_CLOSE_TIMEOUT_S`` when the peer is already gone: a frozen peer made
+        an unbounded close block ~10 s and then raise "close operation timed out",
+        which cost a run its summary). Idempotent; never raises."""
         session, self._session = self._session, None
         self._publisher, self._entities = None, []
         if session is not None and not session.is_closed():
-            reason = close_session(session, timeout_s=CLOSE_TIMEOUT_S)
+            reason = close_session(session, timeout_s=GONE_CLOSE_TIMEOUT_S if peer_gone else CLOSE_TIMEOUT_S)
             if reason is not None:
                 self.stats.close_failures += 1
                 link_stats.last_error = reason
@@ -430,6 +475,14 @@ class ZenohLink(Link):
     def _send_bytes(self, data: bytes) -> None:
         self.zenoh.put(data, self.stats)
 
+    def _mark_gone(self, reason: str) -> None:
+        if reason.startswith("target said bye"):  # anyone in the session could have said it
+            reason = f"{reason}; {self.zenoh.sender_note()}"
+        elif not self.zenoh.usrpwd:  # the target may have left on a BYE the harness never sent
+            reason = (f"{reason}; a BYE to the target from any peer on its endpoint ends it the same way, and "
+                      f"its sender cannot be told (target.zenoh.per_run_auth admits only this run's peers)")
+        super()._mark_gone(reason)
+
     def _no_hello_reason(self, timeout_s: float) -> str:
         if self.peer_gone_reason:
             return super()._no_hello_reason(timeout_s)
@@ -450,7 +503,7 @@ class ZenohLink(Link):
             thread.join(timeout=2.0)
         half = getattr(self, "zenoh", None)
         if half is not None:
-            half.close(self.stats)
+            half.close(self.stats, peer_gone=not self.alive)
 
 
 def serve_endpoint(ep: Endpoint, **options: object) -> None:

@@ -27,7 +27,7 @@ import time
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 from hil.adapters.messages import Control, DrivingState, Estimate  # noqa: E402
-from hil.harness.analysis.detector import DetectorConfig  # noqa: E402
+from hil.harness.config.cases import DetectorSettings  # noqa: E402
 from hil.harness.analysis.detector_observer import DetectorObserver  # noqa: E402
 from hil.harness.config.model import CameraConfig  # noqa: E402
 from hil import scenarios  # noqa: E402
@@ -49,7 +49,7 @@ def per_estimate_us(n: int, *, frames: int, own_ego: bool) -> float:
     count = 0
     with Simulation(world, rules=RefStateRules()) as sim:
         egos = list(sim.egos)
-        obs = DetectorObserver(DetectorConfig(), egos, camera=CameraConfig(), recorder=_Null(), timing=None)
+        obs = DetectorObserver(DetectorSettings(), egos, camera=CameraConfig(), recorder=_Null(), timing=None)
 
         def truth_all():  # type: ignore[no-untyped-def]
             return sim.truth_snapshot()

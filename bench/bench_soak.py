@@ -8,6 +8,12 @@ default), sampled every 5 s: the run process (links, recording, analysis) and, a
 second column, the physics and render processes together. Goal (issue 14): run
 process slope <= 0.2 MB/min over a 10-minute run. Floor: the same sampling of an
 idle Python process that imports the harness (what the sampler itself sees move).
+
+Each row is also extrapolated to a day (issue 26): RSS at the run's end plus its
+slope times the minutes left to 24 h. Below the table, from the run folder: the MCAP
+chunks written and the chunk indexes the recorder kept on disk instead of in memory
+(``run.mcap`` metadata ``recorder``), and the per-frame blocks that could not be
+spilled to ``$TMPDIR`` (``summary.json`` ``spill``).
 """
 
 from __future__ import annotations
@@ -89,23 +95,58 @@ def main() -> int:
         if p.returncode not in (0, 1):
             print(err[-2000:], file=sys.stderr)
             return 1
+        kept = run_folder_figures(out)
     print(f"run of {a.minutes:g} min ({a.config}), load before {load}, after "
           f"{open('/proc/loadavg').read().split()[0]}, {os.cpu_count()} cores\n")
-    print("| process | RSS at 1 min MB | RSS at the run's end MB | slope MB/min (1 min .. end) | goal |")
-    print("|---|---:|---:|---:|---|")
+    print("| process | RSS at 1 min MB | RSS at the run's end MB | slope MB/min (1 min .. end) | RSS at 24 h MB "
+          "(extrapolated) | goal |")
+    print("|---|---:|---:|---:|---:|---|")
     # The run's own span: start-up and the first minute out, and the end-of-run work
     # (cutting case windows, the report) after the duration is not part of the slope.
     end_s = a.minutes * 60
     i1 = next((i for i, t in enumerate(ts) if t >= 60), 0)
     ie = max((i for i, t in enumerate(ts) if t <= end_s), default=len(ts) - 1)
     s_run, s_eng = slope(ts, run_mb, to_s=end_s), slope(ts, eng_mb, to_s=end_s)
-    print(f"| run process | {run_mb[i1]:.1f} | {run_mb[ie]:.1f} | {s_run:+.3f} | "
-          f"{'met' if s_run <= 0.2 else 'NOT met'} (<= 0.2) |")
-    print(f"| physics + render | {eng_mb[i1]:.1f} | {eng_mb[ie]:.1f} | {s_eng:+.3f} | - |")
     s_idle = slope(ts, idle_mb, to_s=end_s)
-    print(f"| floor: an idle process importing the harness | {idle_mb[i1]:.1f} | {idle_mb[ie]:.1f} | "
-          f"{s_idle:+.3f} | - |")
+    left_min = 24 * 60 - a.minutes
+    met = "met" if s_run <= 0.2 else "NOT met" if s_run == s_run else "not measured"
+    for name, ys, s, goal in (("run process", run_mb, s_run, f"{met} (<= 0.2 MB/min)"),
+                              ("physics + render", eng_mb, s_eng, "-"),
+                              ("floor: an idle process importing the harness", idle_mb, s_idle, "-")):
+        day = ys[ie] + s * left_min if s == s else float("nan")  # NaN: too few samples
+        print(f"| {name} | {ys[i1]:.1f} | {ys[ie]:.1f} | {s:+.3f} | "
+              f"{'not measured' if day != day else f'{day:.0f}'} | {goal} |")
+    print()
+    for line in kept:
+        print(line)
     return 0
+
+
+def run_folder_figures(out: Path) -> list[str]:
+    """What the run folder says about bounded memory (module docstring), as lines."""
+    import json
+
+    from mcap.reader import make_reader
+
+    lines = []
+    try:
+        with open(out / "run.mcap", "rb") as f:
+            reader = make_reader(f)
+            summary = reader.get_summary()
+            rec = next((m.metadata for m in reader.iter_metadata() if m.name == "recorder"), {})
+        chunks = summary.statistics.chunk_count if summary is not None and summary.statistics else None
+        lines.append(f"MCAP chunks written: {chunks if chunks is not None else 'not measured'}; chunk indexes kept on "
+                     f"disk until close: {rec.get('chunk_indexes_spilled', 'not measured')}")
+    except (OSError, ValueError, StopIteration) as err:
+        lines.append(f"MCAP chunks: not measured ({err})")
+    try:
+        spill = json.loads((out / "summary.json").read_text()).get("spill")
+        lines.append(f"per-frame blocks not spilled to $TMPDIR: "
+                     f"{spill['failures'] if spill is not None else 'not measured'}"
+                     + (f" ({spill.get('error')})" if spill and spill.get("failures") else ""))
+    except (OSError, ValueError) as err:
+        lines.append(f"per-frame spill: not measured ({err})")
+    return lines
 
 
 if __name__ == "__main__":

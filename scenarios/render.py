@@ -33,12 +33,12 @@ class SceneRenderer:
     def __init__(self, model: mujoco.MjModel, *, width: int, height: int, shadows: bool = False,
                  reflections: bool = False, geom_entity: np.ndarray | None = None) -> None:
         """``geom_entity``: entity index of every model geom (-1: none), for ``segment``."""
-        self._gl: object | None = None
+        self._gl: mujoco.GLContext | None = None
         self._ctx: mujoco.MjrContext | None = None
         self.model, self.width, self.height = model, width, height
         try:
             self._gl = mujoco.GLContext(max(width, 1), max(height, 1))
-            self._gl.make_current()  # type: ignore[attr-defined]
+            self._gl.make_current()
             self._ctx = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150.value)
             mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._ctx)
         except Exception as err:  # mujoco raises bare RuntimeError/ImportError here
@@ -73,9 +73,9 @@ class SceneRenderer:
 
     def rgb(self, data: mujoco.MjData, cam_id: int, out: np.ndarray) -> np.ndarray:
         """Draw camera ``cam_id`` into ``out`` (height x width x 3 uint8, top row first)."""
-        if self._ctx is None:
+        if self._ctx is None or self._gl is None:
             raise SimulationError("renderer is closed")
-        self._gl.make_current()  # type: ignore[union-attr]
+        self._gl.make_current()
         mujoco.mjv_updateScene(self.model, data, self._opt, None, self._camera(cam_id),
                                mujoco.mjtCatBit.mjCAT_ALL.value, self._scene)
         mujoco.mjr_render(self._rect, self._scene, self._ctx)
@@ -86,9 +86,9 @@ class SceneRenderer:
     def segment(self, data: mujoco.MjData, cam_id: int, out: np.ndarray) -> np.ndarray:
         """Entity index of every pixel of camera ``cam_id`` into ``out`` (height x width
         int32, top row first; ``BACKGROUND`` where no entity is seen)."""
-        if self._ctx is None:
+        if self._ctx is None or self._gl is None:
             raise SimulationError("renderer is closed")
-        self._gl.make_current()  # type: ignore[union-attr]
+        self._gl.make_current()
         scn = self._seg_scene
         mujoco.mjv_updateScene(self.model, data, self._seg_opt, None, self._camera(cam_id),
                                mujoco.mjtCatBit.mjCAT_ALL.value, scn)
@@ -116,10 +116,10 @@ class SceneRenderer:
         self._ctx = self._gl = None
         if ctx is not None:
             if gl is not None:
-                gl.make_current()  # type: ignore[attr-defined]
+                gl.make_current()
             ctx.free()
         if gl is not None:
-            gl.free()  # type: ignore[attr-defined]
+            gl.free()
 
     def __enter__(self) -> SceneRenderer:
         return self

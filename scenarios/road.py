@@ -120,7 +120,7 @@ def _pieces(path: Path, s_from: float, s_to: float) -> list[tuple[float, float]]
     if s_to - s_from <= 1e-6:
         return []
     knots = path.sample(math.inf, s_from=s_from, s_to=s_to)
-    out = []
+    out: list[tuple[float, float]] = []
     for a, b in itertools.pairwise(knots):
         k = float(path.curvature_at((a + b) / 2))
         m = 1 if abs(k) < 1e-12 else max(1, math.ceil((b - a) / CHORD_M))

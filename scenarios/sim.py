@@ -38,6 +38,10 @@ from hil.scenarios.visibility import pixel_boxes, silhouette_area
 from hil.scenarios.world import VehicleSpec, WorldSpec, build_mjcf, camera_name
 
 
+# (x, y, heading, vx, vy) of every entity: metres, radians, m/s.
+_States = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
 @dataclass(frozen=True)
 class Intrinsics:
     """Pinhole intrinsics of a MuJoCo camera image (pixels)."""
@@ -111,15 +115,15 @@ class Simulation:
         self._half_w = np.array([v.size_m[1] / 2 for v in world.vehicles])
         self._others = [np.array([j for j in range(n) if j != i], int) for i in range(n)]
         self._states_step = -1
-        self._states_cache: tuple[np.ndarray, ...] | None = None
+        self._states_cache: _States | None = None
         self._qvel_before = np.zeros(m.nv)
         self._rgb: dict[str, np.ndarray] = {}
         self._seg: np.ndarray | None = None
         for i, name in enumerate(self.egos):  # start headings and speeds
             yaw = self._specs[name].yaw_rad
             self.data.qpos[self._qyaw[i]] = yaw
-            v = self._specs[name].speed_mps
-            self.data.qvel[self._dx[i]], self.data.qvel[self._dy[i]] = v * math.cos(yaw), v * math.sin(yaw)
+            speed = self._specs[name].speed_mps
+            self.data.qvel[self._dx[i]], self.data.qvel[self._dy[i]] = speed * math.cos(yaw), speed * math.sin(yaw)
         self._place_scripted(0)
         mujoco.mj_forward(m, self.data)
         self._kin_step = 0
@@ -340,7 +344,7 @@ class Simulation:
 
     # -- ground truth --------------------------------------------------------
 
-    def _states(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _states(self) -> _States:
         """(x, y, heading, vx, vy) of every entity at the present step (cached per step)."""
         if self._states_step == self.steps and self._states_cache is not None:
             return self._states_cache
@@ -372,9 +376,9 @@ class Simulation:
         xs, ys, hs, vxs, vys = (a.tolist() for a in self._states())
         ents = tuple(EntityState(v.name, v.cls.label, xs[i], ys[i], vxs[i], vys[i], hs[i], v.size_m, i, t)
                      for i, v in enumerate(self.world.vehicles))
-        egos = tuple(self._ego_truth(name) for name in (self.egos if egos is None else egos))
+        truths = tuple(self._ego_truth(name) for name in (self.egos if egos is None else egos))
         collisions, self._new_collisions = tuple(self._new_collisions), []
-        return GroundTruth(t, ents, egos, collisions)
+        return GroundTruth(t, ents, truths, collisions)
 
     def truth_snapshot(self, *, egos: tuple[str, ...] | None = None) -> GroundTruth:
         """Every entity's state and the truth of ``egos`` (default: every ego) now,
@@ -425,11 +429,12 @@ class Simulation:
                 best = (max(0.0, float(gap[k])), int(others[k]), float(u[k]))
         if best is None:
             return EgoTruth(name, None, None, speed, self.rules.decide(gap_m=None, speed_mps=speed))
-        gap_m, e, u = best
-        closing = speed - max(0.0, u)
+        gap_m, e, obstacle_mps = best
+        closing = speed - max(0.0, obstacle_mps)
         ttc = gap_m / closing if closing > 1e-3 else None
         return EgoTruth(name, gap_m, self.world.vehicles[e].name, speed,
-                        self.rules.decide(gap_m=gap_m, speed_mps=speed, obstacle_speed_mps=u), round(u, 4),
+                        self.rules.decide(gap_m=gap_m, speed_mps=speed, obstacle_speed_mps=obstacle_mps),
+                        round(obstacle_mps, 4),
                         None if ttc is None else round(ttc, 4))
 
     # -- lifetime ------------------------------------------------------------

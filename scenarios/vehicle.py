@@ -165,11 +165,11 @@ class EgoActuators:
                                                dt_s=dt_s)
                 u[ia], u[ia + 1], u[ia + 2] = speed * c, speed * s, yaw_rate
         elif self.n:
-            (_, _, yaw), (vx, vy, _), (ux, uy, uyaw) = self._views
-            c, s = np.cos(yaw), np.sin(yaw)
-            measured = vx * c
-            measured += vy * s
-            speed, yaw_rate = self._bank.step(measured, dt_s)
-            np.multiply(speed, c, out=ux)
-            np.multiply(speed, s, out=uy)
-            uyaw[:] = yaw_rate
+            (_, _, yaws), (vx, vy, _), (ux, uy, uyaw) = self._views
+            cos, sin = np.cos(yaws), np.sin(yaws)
+            measured = vx * cos
+            measured += vy * sin
+            speeds, yaw_rates = self._bank.step(measured, dt_s)
+            np.multiply(speeds, cos, out=ux)
+            np.multiply(speeds, sin, out=uy)
+            uyaw[:] = yaw_rates

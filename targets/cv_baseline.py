@@ -58,9 +58,7 @@ side +- 3.7 m / 2 when the other is missing (a gap in the dashes).
 
 from __future__ import annotations
 
-import argparse
 import math
-import sys
 from collections.abc import Sequence
 
 import cv2
@@ -398,21 +396,15 @@ def _clip01(x: float) -> float:
 def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.targets.cv_baseline") -> int:
     """Serve the baseline through the target SDK; 2 when the transport is unusable
     (for example when started by hand rather than by the harness)."""
-    p = argparse.ArgumentParser(prog=prog,
-                                description="A classical OpenCV driving AI served over the target SDK.")
+    from hil.adapters.sdk import TargetArgumentParser, add_transport_args, run_target, serve, transport_options
+
+    p = TargetArgumentParser(prog=prog, description="A classical OpenCV driving AI served over the target SDK.")
     p.add_argument("--cruise-speed", type=float, default=10.0, help="speed to hold when the lane is clear (m/s)")
     p.add_argument("--name", default="cv-baseline", help="target name reported in HELLO")
-    from hil.adapters.sdk import TransportError, add_transport_args, serve, transport_options
-
     add_transport_args(p)
     a = p.parse_args(argv)
-    try:
-        serve(CvBaseline(cruise_speed_mps=a.cruise_speed).infer, target_name=a.name,
-              transport=a.transport, **transport_options(a))
-    except TransportError as err:
-        print(f"cv_baseline: {err}", file=sys.stderr)
-        return 2
-    return 0
+    return run_target(prog, lambda: serve(CvBaseline(cruise_speed_mps=a.cruise_speed).infer, target_name=a.name,
+                                          transport=a.transport, **transport_options(a)))
 
 
 if __name__ == "__main__":

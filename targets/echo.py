@@ -70,7 +70,9 @@ def _clock(a: argparse.Namespace) -> Clock:
 
 
 def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.targets.echo") -> int:
-    p = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0])
+    from hil.adapters.sdk import TargetArgumentParser, add_transport_args, run_target, serve, transport_options
+
+    p = TargetArgumentParser(prog=prog, description=__doc__.splitlines()[0])
     p.add_argument("--infer-ms", type=float, default=0.0, help="busy time per frame (ms)")
     p.add_argument("--throttle", type=float, default=0.0)
     p.add_argument("--brake", type=float, default=0.0)
@@ -82,13 +84,11 @@ def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.target
     p.add_argument("--clock-skew-ppm", type=float, default=0.0, help="... running this much fast (ppm)")
     p.add_argument("--bad-stamps", choices=("zero", "future", "backwards"), default=None,
                    help="stamp with a broken clock: for tests of absurd timestamps")
-    from hil.adapters.sdk import add_transport_args, serve, transport_options
-
     add_transport_args(p)
     a = p.parse_args(argv)
     echo = Echo(infer_ms=a.infer_ms, throttle=a.throttle, brake=a.brake, exit_after_frames=a.exit_after_frames)
-    serve(echo.infer, target_name=a.name, transport=a.transport, clock=_clock(a), **transport_options(a))
-    return 0
+    return run_target(prog, lambda: serve(echo.infer, target_name=a.name, transport=a.transport, clock=_clock(a),
+                                          **transport_options(a)))
 
 
 if __name__ == "__main__":

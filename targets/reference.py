@@ -320,7 +320,7 @@ def serve_endpoint(ep: Endpoint, transport: str, options: dict[str, object]) -> 
     elif transport == "zenoh":
         from hil.adapters.zenoh_transport import serve_endpoint as serve_zenoh
 
-        serve_zenoh(ep, **options)  # type: ignore[arg-type]
+        serve_zenoh(ep, **options)
     else:
         raise TransportError(f"the reference target serves local or zenoh, not {transport!r}")
 

@@ -35,6 +35,14 @@ class MonotonicClock:
             pass
 
 
+class RealtimeClock:
+    """This host's wall clock, ``time.time_ns()`` (CLOCK_REALTIME: ns since the Unix
+    epoch; it may step). The clock a ROS 2 node stamps with when it does not use sim time."""
+
+    def now_ns(self) -> int:
+        return time.time_ns()
+
+
 class ManualClock:
     """A clock that moves only when told to (tests and lockstep replays)."""
 

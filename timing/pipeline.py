@@ -8,7 +8,9 @@ need the target clock mapped onto the harness clock:
 * ``uplink``   = map(t_rx) − t_tx
 * ``downlink`` = t0' − map(t_reply)
 
-each with its error bound. The value is the signed mapped difference, never
+each with its error bound. Where the receipt stamp ``t0'`` itself is known only to a
+span (``PipelineRecord.t0p_uncertainty_ns``: the estimate waited in the socket), the
+stages that use it carry that span as their bound too. The value is the signed mapped difference, never
 clamped: a split of −0.05 ± 0.2 ms is reported as such (clamping it to 0 would
 hide the mapping error it shows and bias every statistic). Both truths lie in
 ``[0, t0' − t_tx]``, so the bound is the farthest point of that range that lies
@@ -27,6 +29,7 @@ from hil.timing.records import PipelineRecord
 from hil.timing.sync import Mapped, SyncState
 
 CROSS_CLOCK_STAGES: tuple[str, ...] = ("uplink", "downlink")
+T0P_STAGES = frozenset({"end_to_end", "apply_delay", "transport"})  # sync-free stages that end or start at t0'
 
 
 class Mapper(Protocol):
@@ -80,13 +83,15 @@ def _mapped_ends(rec: PipelineRecord, mapper: Mapper | None) -> tuple[Mapped, Ma
 def split_stages(rec: PipelineRecord, sync: Mapper | None) -> dict[str, Split]:
     """Every stage of ``rec`` as a ``Split``.
 
-    Sync-free stages come from ``rec.stages_ns()`` unchanged, uncertainty 0.
+    Sync-free stages come from ``rec.stages_ns()`` unchanged, uncertainty 0 (those
+    using ``t0'``: its own ``t0p_uncertainty_ns``).
     ``uplink``/``downlink`` are added when the record has ``t_rx``, ``t_reply`` and
     ``t0'`` and ``sync`` has a model (a ``SyncState`` with ``samples_used == 0`` or
     ``None`` gives no cross-clock split: a split is never reported without its
     uncertainty). Never raises for a record with missing stamps.
     """
-    out = {name: Split(v, 0) for name, v in rec.stages_ns().items()}
+    rx_u = rec.t0p_uncertainty_ns  # t0' itself is known to [t0' - rx_u, t0']
+    out = {name: Split(v, rx_u if name in T0P_STAGES else 0) for name, v in rec.stages_ns().items()}
     ends = _mapped_ends(rec, sync)
     if ends is None:
         return out
@@ -94,7 +99,7 @@ def split_stages(rec: PipelineRecord, sync: Mapper | None) -> dict[str, Split]:
     assert rec.t0p_ns is not None
     span = max(rec.t0p_ns - rec.t_tx_ns, 0)
     for name, raw, u in (("uplink", rx.value_ns - rec.t_tx_ns, rx.uncertainty_ns),
-                         ("downlink", rec.t0p_ns - reply.value_ns, reply.uncertainty_ns)):
+                         ("downlink", rec.t0p_ns - reply.value_ns, reply.uncertainty_ns + rx_u)):
         out[name] = Split(raw, _bound(raw, u, span))
     return out
 

@@ -59,6 +59,9 @@ class PipelineRecord:
     t_apply_ns: int | None = None
     sim_time_apply_ns: int | None = None
     t_state_ns: int | None = None
+    # How much earlier than t0' the estimate's last byte may have arrived (the reader
+    # found it already waiting, hil.adapters.receipt): the truth is in [t0' - this, t0'].
+    t0p_uncertainty_ns: int = 0
 
     def stages_ns(self) -> dict[str, int]:
         """Stage durations (ns) that this record can give, keyed by ``STAGES`` names."""

@@ -119,7 +119,8 @@ class SpillColumn:
     values in memory, the rest in a :class:`SpillFile`. Append from one thread.
 
     A block that cannot be spilled (``OSError``: a full disk) stays in memory instead,
-    counted in ``spill_failures``: the figures stay exact and in order, memory grows.
+    counted in ``spill_failures`` (the first error in ``spill_error``): the figures
+    stay exact and in order, memory grows.
     """
 
     def __init__(self, block: int = 1024, spill: SpillFile | None = None) -> None:
@@ -130,6 +131,7 @@ class SpillColumn:
         self._spill = spill
         self._blocks: list[int | np.ndarray] = []  # full blocks: an offset in the spill file, or kept here
         self.spill_failures = 0
+        self.spill_error: str | None = None  # the first failure, e.g. "OSError: [Errno 28] No space left on device"
 
     def append(self, value: int) -> None:
         self._buf[self._n] = value
@@ -142,8 +144,10 @@ class SpillColumn:
             self._spill = default_spill()
         try:
             self._blocks.append(self._spill.write(self._buf))
-        except OSError:
+        except OSError as err:
             self.spill_failures += 1
+            if self.spill_error is None:
+                self.spill_error = f"{type(err).__name__}: {err}"
             self._blocks.append(self._buf.copy())
         self._n = 0
 

@@ -47,7 +47,7 @@ import argparse
 import hashlib
 import json
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -154,7 +154,7 @@ def _capture(sim: Simulation, vehicle: str, rng: np.random.Generator, source: st
     if not ok:  # pragma: no cover - OpenCV failing on a valid array
         raise RuntimeError("JPEG encoding failed")
     truth = sim.camera_truth(vehicle)
-    boxes = tuple(LabelBox(b.cls, tuple(int(v) for v in b.box_px), int(b.visible_px), float(b.visible_fraction),
+    boxes = tuple(LabelBox(b.cls, b.box_px, int(b.visible_px), float(b.visible_fraction),
                            bool(b.truncated), float(b.path_s_m), float(b.path_lateral_m)) for b in truth.boxes)
     k = sim.intrinsics()
     cam = sim.world.camera
@@ -192,7 +192,7 @@ def _clear_of_entities(sim: Simulation, x: float, y: float, yaw: float, ego: str
 def _paint(rng: np.random.Generator) -> tuple[float, float, float, float]:
     if rng.random() < 0.5:
         return PAINTS[int(rng.integers(len(PAINTS)))]
-    hsv = np.uint8([[[rng.integers(0, 180), rng.integers(60, 256), rng.integers(70, 256)]]])
+    hsv = np.array([[[rng.integers(0, 180), rng.integers(60, 256), rng.integers(70, 256)]]], np.uint8)
     r, g, b = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, 0] / 255.0
     return (float(r), float(g), float(b), 1.0)
 
@@ -288,7 +288,9 @@ def _composed_samples(rng: np.random.Generator, n: int, camera: CameraSpec) -> I
 
 
 def _scenario_params(name: str, rng: np.random.Generator) -> dict[str, float]:
-    u = lambda lo, hi: float(rng.uniform(lo, hi))  # noqa: E731
+    def u(lo: float, hi: float) -> float:
+        return float(rng.uniform(lo, hi))
+
     if name == "stopped_car":
         return {"gap_m": u(15, 120), "ego_speed_mps": u(4, 12), "lateral_offset_m": u(-1, 1)}
     if name == "curved_road":
@@ -425,12 +427,33 @@ def split_digest(split_dir: Path) -> str:
     return h.hexdigest()
 
 
-def build_dataset(out_dir: Path, *, seed: int, n_train: int, n_val: int) -> dict[str, object]:
-    """Write the train and validation splits and ``meta.json``; returns the meta."""
+def _counted(frames: Iterator[Sample], *, total: int, first: int, log: Callable[[str], None]) -> Iterator[Sample]:
+    """``frames``, saying every tenth of ``total`` how many are rendered and the time left."""
+    import time
+
+    from hil.common.eta import time_left
+
+    t0, step = time.monotonic(), max(1, total // 10)
+    for i, s in enumerate(frames, first + 1):
+        yield s
+        if i % step == 0 or i == total:
+            dt = time.monotonic() - t0
+            log(f"dataset: {i} of {total} frames rendered ({dt:.0f} s, {time_left(i - first, total - first, dt)})")
+
+
+def build_dataset(out_dir: Path, *, seed: int, n_train: int, n_val: int,
+                  log: Callable[[str], None] | None = None) -> dict[str, object]:
+    """Write the train and validation splits and ``meta.json``; returns the meta.
+    ``log``: a line every tenth of the frames, with the time left."""
     out_dir.mkdir(parents=True, exist_ok=True)
     counts, digests = {}, {}
+    done = 0
     for k, (split, n) in enumerate(zip(SPLITS, (n_train, n_val))):
-        counts[split] = write_split(out_dir / split, generate(seed=seed, n_frames=n, split=k))
+        frames: Iterator[Sample] = generate(seed=seed, n_frames=n, split=k)
+        if log is not None:
+            frames = _counted(frames, total=n_train + n_val, first=done, log=log)
+        counts[split] = write_split(out_dir / split, frames)
+        done += n
         digests[split] = split_digest(out_dir / split)
     meta = {"seed": seed, "frames": counts, "sha256": digests, "lookahead_m": LOOKAHEAD_M,
             "composed_share": COMPOSED_SHARE,

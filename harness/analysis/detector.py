@@ -47,7 +47,7 @@ at both instants (``truth_t0``, ``truth_apply``; positions with their tolerance
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 
@@ -58,8 +58,9 @@ from scipy.optimize import linear_sum_assignment
 
 from hil.adapters.messages import DrivingState, Estimate
 from hil.common.classes import ObjectClass
-from hil.harness.analysis.late_reaction import Decision, EgoView, LateReactionJudge
-from hil.timing.anomaly import Severity
+from hil.harness.analysis.late_reaction import Decision, EgoView, LateReaction, LateReactionJudge
+from hil.harness.config.cases import DetectorSettings
+from hil.timing.anomaly import Anomaly, Severity
 
 _INF = 1e9
 _RANK = {Severity.INFO: 0, Severity.WARNING: 1, Severity.CRITICAL: 2}
@@ -105,23 +106,6 @@ class FrameTruth:
     objects: tuple[TruthObject, ...]
     ref_state: DrivingState
     ego: EgoView | None = None
-
-
-@dataclass(frozen=True)
-class DetectorConfig:
-    """Tolerances (m, frames, m/s^2). See the module docstring and
-    ``harness/analysis/late_reaction.py`` (``near_miss_m``, ``avoid_decel_mps2``)."""
-
-    pos_tol_m: float = 1.5
-    pos_tol_rel: float = 0.1
-    ghost_gate_m: float = 4.0
-    max_range_m: float = 50.0
-    min_visible_px: int = 40
-    min_visible_fraction: float = 0.25
-    min_frames: int = 3
-    clear_frames: int = 5
-    near_miss_m: float = 1.0
-    avoid_decel_mps2: float = 4.0
 
 
 @dataclass(frozen=True)
@@ -177,7 +161,7 @@ def nearest_point_in_camera_frame(*, ego_x: float, ego_y: float, ego_yaw: float,
 
 
 def match(est: Sequence[tuple[str, float, float]], truth: Sequence[TruthObject], *,
-          gate: callable) -> list[tuple[int, int]]:  # type: ignore[valid-type]
+          gate: Callable[[float], float]) -> list[tuple[int, int]]:
     """Optimal class-respecting assignment of estimated ``(cls, x, y)`` to truth
     objects; pairs farther apart than ``gate(truth_distance)`` are not matched."""
     if not est or not truth:
@@ -219,9 +203,9 @@ _Key = tuple[MismatchKind, "str | None", Cause]
 class CornerCaseDetector:
     """Judges one vehicle's estimates; returns the mismatches to report."""
 
-    def __init__(self, vehicle: str, config: DetectorConfig | None = None) -> None:
+    def __init__(self, vehicle: str, config: DetectorSettings | None = None) -> None:
         self.vehicle = vehicle
-        self.cfg = config or DetectorConfig()
+        self.cfg = config or DetectorSettings()
         self._episodes: dict[_Key, _Episode] = {}
         self.last_state: DrivingState | None = None
         self.last_state_right_at_t0 = True
@@ -267,7 +251,7 @@ class CornerCaseDetector:
         """Judge the contacts still waiting for later frames (end of the run)."""
         return self._late(self.late.finish(), harness_time_ns)
 
-    def _late(self, verdicts, harness_time_ns: int) -> list[Mismatch]:  # type: ignore[no-untyped-def]
+    def _late(self, verdicts: Iterable[tuple[object, LateReaction | None]], harness_time_ns: int) -> list[Mismatch]:
         out = []
         for c, lr in verdicts:
             if lr is None:
@@ -297,8 +281,9 @@ class CornerCaseDetector:
             return []
         cause = Cause.LATENCY if self.last_state_right_at_t0 else Cause.PERCEPTION
         ev = {**self._last_frame, "collision_sim_time_ns": sim_time_ns, "other": other}
-        fid = self._last_frame.get("frame_id", frame_id)
-        m = Mismatch(MismatchKind.COLLISION_WHILE_SAFE, cause, self.vehicle, (int(fid),), sim_time_ns,  # type: ignore[call-overload]
+        last_fid = self._last_frame.get("frame_id")
+        fid = last_fid if isinstance(last_fid, int) else frame_id
+        m = Mismatch(MismatchKind.COLLISION_WHILE_SAFE, cause, self.vehicle, (fid,), sim_time_ns,
                      harness_time_ns, force_n, 0.0, "N", Severity.CRITICAL, other,
                      f"collided with {other} while the AI believed SAFE", evidence=ev)
         self.counts[m.kind.value] = self.counts.get(m.kind.value, 0) + 1
@@ -306,7 +291,8 @@ class CornerCaseDetector:
 
     # -- checks ------------------------------------------------------------------
 
-    def _objects(self, objs, at_t0: FrameTruth, at_apply: FrameTruth | None, found, frame) -> None:
+    def _objects(self, objs: Sequence[tuple[str, float, float]], at_t0: FrameTruth, at_apply: FrameTruth | None,
+                 found: dict[_Key, _Found], frame: Mapping[str, object]) -> None:
         c = self.cfg
         truth = [t for t in at_t0.objects if t.distance_m <= c.max_range_m * 1.5]
         pairs = match(objs, truth, gate=lambda d: c.ghost_gate_m + c.pos_tol_rel * d)
@@ -348,7 +334,8 @@ class CornerCaseDetector:
                 found[(MismatchKind.GHOST_OBJECT, f"{cls}@{round(d / 5) * 5:g}m", Cause.PERCEPTION)] = _Found(
                     d, 0.0, "m", Severity.WARNING, f"{cls} believed at ({x:.1f}, {y:.1f}) m where there is none", ev)
 
-    def _state(self, state: DrivingState, at_t0: FrameTruth, at_apply: FrameTruth | None, found, frame) -> None:
+    def _state(self, state: DrivingState, at_t0: FrameTruth, at_apply: FrameTruth | None, found: dict[_Key, _Found],
+               frame: Mapping[str, object]) -> None:
         if state != at_t0.ref_state:
             cause, truth = Cause.PERCEPTION, at_t0.ref_state
         elif at_apply is not None and state != at_apply.ref_state:
@@ -390,7 +377,8 @@ class CornerCaseDetector:
             # The newest frame at the lasting severity speaks for the episode.
             fid, _, g = next(x for x in reversed(ep.run) if x[1] == level)
             kind, entity, cause = key
-            t_ns = int(g.evidence.get("sim_time_t0_ns", sim_time_ns))  # type: ignore[call-overload]
+            t0_ns = g.evidence.get("sim_time_t0_ns")
+            t_ns = t0_ns if isinstance(t0_ns, int) else sim_time_ns
             m = Mismatch(kind, cause, self.vehicle, tuple(x[0] for x in ep.run), t_ns, harness_time_ns,
                          round(g.measured, 4), round(g.threshold, 4), g.unit, g.severity, entity, g.detail,
                          evidence=g.evidence)
@@ -403,9 +391,8 @@ def _xy(x: float, y: float) -> dict[str, float]:
     return {"x_m": round(x, 4), "y_m": round(y, 4)}
 
 
-def link_anomalies(m: Mismatch, anomalies: Iterable[object], *, before_frames: int = 3) -> Mismatch:
+def link_anomalies(m: Mismatch, anomalies: Iterable[Anomaly], *, before_frames: int = 3) -> Mismatch:
     """``m`` with the timing anomalies of its frames (and the few before) linked."""
     lo, hi = min(m.frame_ids) - before_frames, max(m.frame_ids)
-    links = tuple(f"{a.kind.value.lower()}@{f}" for a in anomalies  # type: ignore[attr-defined]
-                  for f in a.frame_ids if lo <= f <= hi)  # type: ignore[attr-defined]
+    links = tuple(f"{a.kind.value.lower()}@{f}" for a in anomalies for f in a.frame_ids if lo <= f <= hi)
     return m if not links else Mismatch(**{**m.__dict__, "linked_anomalies": links})

@@ -22,11 +22,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hil.adapters.messages import DrivingState, Estimate
-from hil.harness.analysis.detector import (CornerCaseDetector, DetectorConfig, FrameTruth, Mismatch, TruthObject,
+from hil.harness.analysis.detector import (CornerCaseDetector, FrameTruth, Mismatch, TruthObject,
                                            link_anomalies, nearest_point_in_camera_frame)
 from hil.harness.analysis.events import Event, EventBus
 from hil.harness.analysis.late_reaction import EgoView
 from hil.harness.analysis.timing_observer import TimingObserver
+from hil.harness.config.cases import DetectorSettings
 from hil.harness.config.model import CameraConfig
 from hil.scenarios.ground_truth import CameraTruth, EntityState, GroundTruth
 from hil.timing.records import FrameStatus, PipelineRecord
@@ -48,7 +49,7 @@ class _VehicleJudge:
 
 
 class DetectorObserver:
-    def __init__(self, cfg: DetectorConfig, vehicles: list[str], *, camera: CameraConfig, recorder: Any,
+    def __init__(self, cfg: DetectorSettings, vehicles: list[str], *, camera: CameraConfig, recorder: Any,
                  timing: TimingObserver | None, events: EventBus | None = None, link_delay_s: float = 1.5) -> None:
         """``events``: the run's bus the mismatches go on (default: one that records
         them on ``recorder``'s ``/events``)."""

@@ -71,6 +71,11 @@ class SplitColumns:
     def __len__(self) -> int:
         return len(self._frame)
 
+    @property
+    def columns(self) -> tuple[SpillColumn, SpillColumn, SpillColumn]:
+        """The three columns (frame ids, values, bounds), e.g. for their spill failures."""
+        return self._frame, self._value, self._unc
+
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(frame ids, values, bounds), int64, in order of appending."""
         return self._frame.to_numpy(), self._value.to_numpy(), self._unc.to_numpy()

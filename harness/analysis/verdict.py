@@ -169,6 +169,9 @@ def _deadline(vehicles: Mapping[str, Any], allowed: float) -> Check:
                 worst = (b["fraction"], name, stage, b["budget_ms"])
             if b["over"] and b["fraction"] > allowed:
                 failing.setdefault(name, {})[stage] = b
+    if not any("budgets" in v for v in vehicles.values()):
+        return Check(CheckName.DEADLINE, True, "not measured: this summary has no per-frame budgets (a run made "
+                     "before they were counted)")
     if worst is None:
         return Check(CheckName.DEADLINE, True, "not measured: no frame was answered"
                      + (f" ({', '.join(unmeasured)} unmeasured)" if unmeasured else ""),

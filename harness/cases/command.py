@@ -16,6 +16,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from rich.table import Table
 
@@ -28,7 +29,7 @@ CONFIG_NAME = "config.json"
 REPRODUCE_WINDOW_S = 1.0
 
 
-def add_parsers(sub: argparse._SubParsersAction) -> None:
+def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     c = sub.add_parser("cases", help="list a run's corner cases")
     c.add_argument("run", type=Path, help="a run folder")
     c.add_argument("--window", type=int, action="append", default=None, metavar="ID",
@@ -51,7 +52,7 @@ def _run_dir(path: Path) -> Path:
     return path
 
 
-def _window(r: dict) -> str:
+def _window(r: dict[str, Any]) -> str:
     """Where a case's data is: its own file, or run.mcap and the sim-time range."""
     path = Path(str(r["mcap_path"])).name
     lo, hi = r.get("window_start_ns"), r.get("window_end_ns")
@@ -117,7 +118,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     console.print(f"replaying case {args.case_id} ({case['kind']}, {case['vehicle']}, sim {sim_s:.2f} s) "
                   f"in lockstep with the recorded latencies")
     result = execute(cfg, out_dir=out, gl_backend=select_backend(), notify=console.print)
-    again = []
+    again: list[dict[str, Any]] = []
     try:
         again, _ = read_cases(out)
     except ConfigError:

@@ -212,10 +212,11 @@ class CaseRecorder:
         self._noted = []
         if not self.cases:
             return
+        db = self.run_dir / DB_NAME
         try:
-            con = sqlite3.connect(self.run_dir / DB_NAME)
+            con = sqlite3.connect(db)
         except sqlite3.Error as err:
-            self.errors.append(f"{self.run_dir / DB_NAME}: {err}")
+            self.errors.append(f"{db}: {err}")
             return
         try:
             con.execute(SCHEMA)
@@ -226,8 +227,12 @@ class CaseRecorder:
                     self.cases_written += 1
                 except Exception as err:  # noqa: BLE001 - any failure must reach the summary
                     self.errors.append(f"case {case.id}: {type(err).__name__}: {err}")
+        except (sqlite3.Error, OSError) as err:  # e.g. the disk is full: said in the summary, never raised
+            self.errors.append(f"{db}: {type(err).__name__}: {err}")
         finally:
             con.close()
+        if not self.cases_written:
+            db.unlink(missing_ok=True)  # no half-made (0-byte) database left behind
 
     def _write_row(self, con: sqlite3.Connection, case: Case) -> None:
         first, main = case.first, case.main

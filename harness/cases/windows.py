@@ -60,8 +60,9 @@ def write_case_windows(run_dir: Path, *, case_ids: list[int] | None = None, limi
     have none yet); returns one line per window that could not be written.
 
     Raises:
-        ConfigError: no corner-case database or run.mcap, an unknown case id, or
-            more than ``limit`` cases asked for.
+        ConfigError: no corner-case database or run.mcap, an unknown case id, a
+            case asked for whose row has no window (NULL or not integers), or more
+            than ``limit`` cases asked for.
     """
     db = run_dir / DB_NAME
     mcap = run_dir / RUN_MCAP
@@ -85,11 +86,23 @@ def write_case_windows(run_dir: Path, *, case_ids: list[int] | None = None, limi
             todo = [r for r in rows if r[0] in set(case_ids)]
         else:
             todo = [r for r in rows if r[4] == RUN_MCAP][:limit]
+        errors: list[str] = []
+        usable = []
+        for row in todo:  # a damaged (or tampered) row: one line, not a TypeError
+            cid, start, end = row[0], row[2], row[3]
+            if isinstance(start, int) and isinstance(end, int) and start <= end:
+                usable.append(row)
+                continue
+            line = (f"{db}: case {cid} has no window in {RUN_MCAP} (window_start_ns {start!r}, window_end_ns "
+                    f"{end!r}): the row is damaged; nothing to cut")
+            if case_ids is not None:
+                raise ConfigError(line)
+            errors.append(line)
+        todo = usable
         if not todo:
-            return []
+            return errors
         (run_dir / FOLDER).mkdir(exist_ok=True)
         windows: list[_Window] = []
-        errors: list[str] = []
         try:
             for cid, vehicle, start, end, _ in todo:
                 rel = f"{FOLDER}/case-{cid:04d}.mcap"

@@ -212,7 +212,7 @@ def render(cal: Calibration) -> str:
     return "\n".join(lines)
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("calibrate", help="check the harness's own accuracy against a reference target",
                        description="Run a reference target that injects known truth (clock offset and skew, "
                                    "inference time, spikes, a drop, a reorder, a clock step, malformed "
@@ -225,17 +225,26 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",
                    help="override a config field (repeatable)")
     p.add_argument("--out", type=Path, default=None, help="run folder (default runs/calibrate-<timestamp>/)")
+    from hil.harness.report.ci_outputs import add_ci_args
+
+    add_ci_args(p)
 
 
 def cmd(args: argparse.Namespace) -> int:
     """Run ``hil calibrate``; returns the exit code (ConfigError propagates: exit 2)."""
+    from hil.harness.report.ci_outputs import check_ci_args, write_ci_outputs
     from hil.harness.run.driver import default_out_dir
     from hil.scenarios.gl import select_backend
 
+    check_ci_args(args)
     cfg = load_config(args.config, overrides=args.overrides)
     transport = Transport(args.transport) if args.transport else None
     out = args.out or default_out_dir(cfg)
     cal = calibrate(cfg, out_dir=out, gl_backend=select_backend(), transport=transport)
     print(render(cal))
     print(f"calibration.json: {out / 'calibration.json'}", file=sys.stderr)
-    return 0 if cal.passed else 1
+    code = 0 if cal.passed else 1
+    from hil.harness.report.ci_cases import of_calibrate
+
+    write_ci_outputs(of_calibrate(cal, out=out, exit_code=code), args)
+    return code

@@ -176,16 +176,17 @@ def clock_checks(truth: Truth, run: RunData) -> list[Check]:
         note = ""
         if ref is None and run.clock:
             ref, note = run.clock[-1]["ref_ns"], "summary gives no instant: taken at the last clock state's"
-        t = truth.offset_at(int(ref)) if ref is not None else None
-        err = None if t is None else int(clk["offset_ns"]) - t
+        true_ns = truth.offset_at(int(ref)) if ref is not None else None
+        err_ns = None if true_ns is None else int(clk["offset_ns"]) - true_ns
         b = int(clk.get("uncertainty_ns") or 0) + 1 + RESOLUTION_NS
-        out.append(Check("clock offset, summary", clk["offset_ns"] / 1e6, None if t is None else t / 1e6,
-                         None if err is None else err / 1e6, b / 1e6, err is not None and abs(err) <= b, "ms", note))
+        out.append(Check("clock offset, summary", clk["offset_ns"] / 1e6, None if true_ns is None else true_ns / 1e6,
+                         None if err_ns is None else err_ns / 1e6, b / 1e6, err_ns is not None and abs(err_ns) <= b,
+                         "ms", note))
     skew, su = clk.get("skew_ppm"), clk.get("skew_uncertainty_ppm")
     if skew is not None and su is not None:
-        err = float(skew) - truth.skew_ppm
-        out.append(Check("clock skew, summary", float(skew), truth.skew_ppm, err, float(su) + 0.001,
-                         abs(err) <= float(su) + 0.001, "ppm"))
+        err_ppm = float(skew) - truth.skew_ppm
+        out.append(Check("clock skew, summary", float(skew), truth.skew_ppm, err_ppm, float(su) + 0.001,
+                         abs(err_ppm) <= float(su) + 0.001, "ppm"))
     bad = [s for s in run.clock if s.get("samples_used")
            and abs(float(s["skew_ppm"]) - truth.skew_ppm) > float(s["skew_uncertainty_ppm"]) + 0.001]
     out.append(Check("clock skew, each state", None, truth.skew_ppm, None, None, not bad, "ppm",

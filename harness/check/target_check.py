@@ -9,10 +9,12 @@ ENDPOINT is one of::
     can://INTERFACE/CHANNEL    a CAN FD target (section 10.3), e.g. can://socketcan/vcan0
     local -- COMMAND ARGS...   a program started as a local target (section 10.1)
 
-The session: HELLO; a clock-sync burst; one FRAME of each encoding (RGB8, BGR8,
-JPEG); a HEARTBEAT; malformed messages (bad header CRC, bad version, bad payload
-CRC, bytes without a magic); a COMMAND if the target announces ``CAP_COMMANDS``;
-BYE. Each check prints one row: PASS or FAIL, the PROTOCOL.md section, and what was
+The session: HELLO (over TCP with ``--token-env NAME``: and the AUTH proof of the
+token in that environment variable, PROTOCOL.md 4.8); a clock-sync burst; one FRAME
+of each encoding (RGB8, BGR8, JPEG); a HEARTBEAT; malformed messages (bad header CRC,
+bad version, bad payload CRC, ``payload_crc`` without its flag, bytes without a
+magic, the same garbage split over two writes); a COMMAND if the target announces
+``CAP_COMMANDS``; BYE. Each check prints one row: PASS or FAIL, the PROTOCOL.md section, and what was
 wrong with the byte offsets of the fields concerned. Exit 0 when all pass, 1 when
 any fails, 2 for a bad endpoint or option.
 """
@@ -22,70 +24,27 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-import zlib
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from hil.adapters import protocol
-from hil.adapters.link import Link, Received, open_link
-from hil.adapters.messages import (Bye, CameraInfo, Command, ErrorMsg, Estimate, Frame, Heartbeat, Hello,
-                                   ImageEncoding, SyncRequest)
+from hil.adapters.auth import token_from_env
+from hil.adapters.link import Link, open_link
+from hil.adapters.messages import Bye, Command, ErrorMsg, Estimate, Heartbeat, Hello, ImageEncoding
 from hil.adapters.tcp import parse_address
 from hil.common.errors import HilError, ProtocolError, TransportError
+from hil.harness.check.target_faults import CAM, _still_alive, check_malformed
+from hil.harness.check.target_session import Check, Session
 from hil.timing.clock import MonotonicClock
 
 EXIT_PASS, EXIT_FAIL, EXIT_USAGE = 0, 1, 2
-CAM = CameraInfo(277.0, 277.0, 160.0, 120.0, 1.3)
 W, H = 320, 240
-KNOWN_CAPS = 0x0000_0003  # SHM_FRAMES | CAP_COMMANDS
+KNOWN_CAPS = 0x0000_0007  # SHM_FRAMES | CAP_COMMANDS | CAP_AUTH
 
 
-@dataclass
-class Check:
-    name: str
-    section: str
-    ok: bool
-    detail: str
-
-
-@dataclass
-class Session:
-    """The link under test, what it could not decode, and the rows so far."""
-
-    link: Link
-    timeout_s: float
-    decode_errors: list[str] = field(default_factory=list)
-    rows: list[Check] = field(default_factory=list)
-
-    def add(self, name: str, section: str, problems: list[str], good: str) -> bool:
-        self.rows.append(Check(name, section, not problems, "; ".join(problems) if problems else good))
-        return not problems
-
-    def wait_for(self, want: Callable[[Received], bool], timeout_s: float | None = None) -> Received | None:
-        """The first received message ``want`` accepts; the rest are kept for ``drain``."""
-        deadline = time.monotonic() + (timeout_s if timeout_s is not None else self.timeout_s)
-        while (left := deadline - time.monotonic()) > 0:
-            r = self.link.recv(timeout_s=min(left, 0.05))
-            if r is None:
-                if not self.link.alive:
-                    return None
-                continue
-            if want(r):
-                return r
-            self._seen.append(r)
-        return None
-
-    def drain(self) -> list[Received]:
-        out, self._seen = self._seen, []
-        return out
-
-    def __post_init__(self) -> None:
-        self._seen: list[Received] = []
-
-
-def parse_endpoint(endpoint: str, command: list[str], *, vehicle_id: int, key_prefix: str) -> tuple[str, dict]:
+def parse_endpoint(endpoint: str, command: list[str], *, vehicle_id: int,
+                   key_prefix: str) -> tuple[str, dict[str, Any]]:
     """ENDPOINT (and the command after ``--`` for ``local``) -> (transport, link options).
 
     Raises:
@@ -144,6 +103,21 @@ def check_hello(s: Session, hello: Hello) -> None:
           f"{hello.clock_resolution_ns} ns, capabilities 0x{hello.capabilities:x}")
 
 
+def check_auth(s: Session, hello: Hello, token_env: str | None) -> None:
+    """The AUTH proof (PROTOCOL.md 4.8): over TCP the link has checked it already
+    (a wrong or missing proof refuses the connection: the hello row fails)."""
+    announced = bool(hello.capabilities & protocol.CAP_AUTH)
+    if s.link.transport_name != "tcp":
+        why = "a local target is the harness's own child" if s.link.transport_name == "local" else "tcp only"
+        s.add("auth (token proof)", "4.8", [], f"skipped: the AUTH proof is checked over tcp ({why})")
+    elif token_env:
+        s.add("auth (token proof)", "4.8", [], f"proved the token in ${token_env} (HMAC-SHA256 of a fresh challenge)")
+    else:
+        s.add("auth (token proof)", "4.8", [], "skipped: the target announces CAP_AUTH; give --token-env NAME to "
+              "check its proof" if announced else "skipped: the target announces no CAP_AUTH (a harness that "
+              "requires a token refuses it)")
+
+
 def check_sync(s: Session, n: int = 16) -> tuple[int, int] | None:
     """A burst of ``n`` exchanges; returns (target clock offset, round trip) of the
     tightest one, ns, or None when any check failed."""
@@ -189,78 +163,40 @@ def check_frames(s: Session, sync: tuple[int, int] | None) -> None:
             s.add(name, "4.2, 4.3", [why], "")
             continue
         e = r.msg
+        assert isinstance(e, Estimate)  # what wait_for was asked for
         if e.frame_id != fid:
             p.append(f"frame_id (offset 16) is {e.frame_id}, expected {fid}")
         if e.vehicle_id != s.link.vehicle_id:
             p.append(f"vehicle_id (offset 8) is {e.vehicle_id}, expected {s.link.vehicle_id}")
-        stamps = [("t_rx", 24, e.t_rx_target_ns), ("t_infer_start", 32, e.t_infer_start_target_ns),
-                  ("t_infer_end", 40, e.t_infer_end_target_ns), ("t_reply", 48, e.t_reply_target_ns)]
+        t_rx, t_reply = e.t_rx_target_ns, e.t_reply_target_ns
+        got = [("t_rx", 24, t_rx), ("t_infer_start", 32, e.t_infer_start_target_ns),
+               ("t_infer_end", 40, e.t_infer_end_target_ns), ("t_reply", 48, t_reply)]
+        stamps = [(a, o, v) for a, o, v in got if v is not None]  # the wire always carries all four
+        if t_rx is None or t_reply is None or len(stamps) < len(got):
+            s.add(name, "3, 4.3", ["an ESTIMATE without its four target stamps"], "")
+            continue
         for (a, oa, va), (b, ob, vb) in zip(stamps, stamps[1:]):
             if va > vb:
                 p.append(f"{a} (offset {oa}) is after {b} (offset {ob}) by {va - vb} ns")
         if sync is not None and not p:
             offset, rtt = sync
             slack = rtt + 1_000_000  # the sync's own uncertainty plus 1 ms
-            rx, reply = e.t_rx_target_ns - offset, e.t_reply_target_ns - offset
+            rx, reply = t_rx - offset, t_reply - offset
             if rx < t_tx - slack:
                 p.append(f"t_rx (offset 24) maps to {(t_tx - rx) / 1e6:.3f} ms before the frame was sent")
             if reply > r.t_rx_ns + slack:
                 p.append(f"t_reply (offset 48) maps to {(reply - r.t_rx_ns) / 1e6:.3f} ms after the estimate arrived")
         s.add(name, "3, 4.2, 4.3", p, f"{e.state.name}, steer {e.control.steering_rad:+.3f} rad, throttle "
               f"{e.control.throttle:.2f}, brake {e.control.brake:.2f}, {len(e.objects)} objects; target "
-              f"{(e.t_reply_target_ns - e.t_rx_target_ns) / 1e6:.2f} ms")
-
-
-def _still_alive(s: Session) -> str | None:
-    """None when a SYNC_REQUEST is still answered, else why not."""
-    return None if s.link.sync_exchange(timeout_s=s.timeout_s) else "no SYNC_RESPONSE afterwards"
-
-
-def _expect_error(s: Session, name: str, section: str, raw: bytes, codes: tuple[int, ...], offset: int | None) -> None:
-    s.drain()
-    s.link.send_raw(raw)
-    r = s.wait_for(lambda r: isinstance(r.msg, (ErrorMsg, Estimate)))
-    p: list[str] = []
-    if r is None:
-        p.append(f"no ERROR within {s.timeout_s:g} s")
-    elif isinstance(r.msg, Estimate):
-        p.append(f"answered the bad message with an ESTIMATE (frame {r.msg.frame_id}): it must be dropped")
-    else:
-        m = r.msg
-        if m.code not in codes:
-            p.append(f"ERROR code (offset 64) is {m.code}, expected {' or '.join(map(str, codes))}")
-        if offset is not None and str(offset) not in m.message:
-            p.append(f"ERROR text does not name byte offset {offset}: {m.message!r}")
-    if (gone := _still_alive(s)) is not None:
-        p.append(f"session did not go on: {gone}")
-    s.add(name, section, p, f"ERROR {r.msg.code}: {r.msg.message[:70]!r}" if r is not None and
-          isinstance(r.msg, ErrorMsg) else "")
-
-
-def check_malformed(s: Session) -> None:
-    vid = s.link.vehicle_id
-    good = bytearray(protocol.encode(SyncRequest(vid, 900, s.link.clock.now_ns())))
-    bad_crc = bytearray(good)
-    bad_crc[60] ^= 0xFF
-    _expect_error(s, "bad header CRC", "2, 8", bytes(bad_crc), (protocol.ErrorCode.MALFORMED,), 60)
-    v2 = bytearray(good)
-    v2[4] = 2
-    v2[60:64] = zlib.crc32(bytes(v2[:60])).to_bytes(4, "little")
-    _expect_error(s, "unsupported version", "8, 9", bytes(v2), (protocol.ErrorCode.UNSUPPORTED_VERSION,), 4)
-    frame = bytearray(protocol.encode(Frame(vid, 950, 0, 1, 2, 8, 8, ImageEncoding.RGB8, CAM, 0.0, bytes(192)),
-                                      payload_crc=True))
-    frame[120] ^= 0x01
-    _expect_error(s, "bad payload CRC (frame dropped)", "6, 8", bytes(frame), (protocol.ErrorCode.MALFORMED,), 64)
-    if s.link.transport_name in ("local", "tcp"):  # a stream: bytes before a magic are skipped
-        _expect_error(s, "bytes without a magic", "8", b"\x00junk!" + bytes(protocol.encode(SyncRequest(vid, 901, 5))),
-                      (protocol.ErrorCode.MALFORMED,), 0)
+              f"{(t_reply - t_rx) / 1e6:.2f} ms")
 
 
 def check_heartbeat(s: Session) -> None:
     s.drain()
     s.link.send_raw(protocol.encode(Heartbeat(s.link.vehicle_id, s.link.clock.now_ns())))
-    p = [f"the target answered a HEARTBEAT with ERROR {r.msg.code}: {r.msg.message!r}"
-         for r in [s.wait_for(lambda r: isinstance(r.msg, ErrorMsg), timeout_s=0.3)] if r is not None]
+    err = s.wait_for(lambda r: isinstance(r.msg, ErrorMsg), timeout_s=0.3)
+    p = ([f"the target answered a HEARTBEAT with ERROR {err.msg.code}: {err.msg.message!r}"]
+         if err is not None and isinstance(err.msg, ErrorMsg) else [])
     if (gone := _still_alive(s)) is not None:
         p.append(gone)
     s.add("heartbeat accepted", "4.4", p, "no reply, session goes on")
@@ -278,13 +214,15 @@ def check_command(s: Session) -> None:
         p.append(f"no COMMAND reply within {s.timeout_s:g} s")
     else:
         m = r.msg
+        assert isinstance(m, Command)  # what wait_for was asked for
         if m.seq != cmd.seq:
             p.append(f"reply sequence (offset 16) is {m.seq}, expected {cmd.seq}")
         if m.vehicle_id != s.link.vehicle_id:
             p.append(f"reply vehicle_id (offset 8) is {m.vehicle_id}, expected {s.link.vehicle_id}")
         if not (m.text.startswith("ok") or m.text.startswith("error:")):
             p.append(f"reply text (offset 66) starts with neither 'ok' nor 'error:': {m.text[:40]!r}")
-    s.add("command 'status'", "4.7", p, f"reply {r.msg.text[:60]!r}" if r is not None else "")
+    s.add("command 'status'", "4.7", p, f"reply {r.msg.text[:60]!r}" if r is not None and isinstance(r.msg, Command)
+          else "")
 
 
 def check_bye(s: Session) -> None:
@@ -297,15 +235,15 @@ def check_bye(s: Session) -> None:
     s.add("bye ends the session", "1", p, s.link.peer_gone_reason or "closed")
 
 
-def run_checks(link: Link, *, timeout_s: float) -> list[Check]:
+def run_checks(link: Link, *, timeout_s: float, token_env: str | None = None) -> list[Check]:
     """The scripted session on a built (not opened) link; always closes it."""
     s = Session(link, timeout_s)
     dispatch = link._dispatch  # noqa: SLF001 - record what the target sent that did not decode
 
-    def recording(item: object, t_rx_ns: int) -> None:
+    def recording(item: object, t_rx_ns: int, uncertainty_ns: int = 0) -> None:
         if isinstance(item, ProtocolError):
             s.decode_errors.append(str(item))
-        dispatch(item, t_rx_ns)  # type: ignore[arg-type]
+        dispatch(item, t_rx_ns, uncertainty_ns)  # type: ignore[arg-type]
 
     link._dispatch = recording  # type: ignore[method-assign]  # noqa: SLF001
     try:
@@ -315,6 +253,7 @@ def run_checks(link: Link, *, timeout_s: float) -> list[Check]:
             s.add("hello", "1, 4.1", [str(err)], "")
             return s.rows
         check_hello(s, hello)
+        check_auth(s, hello, token_env)
         sync = check_sync(s)
         check_frames(s, sync)
         check_heartbeat(s)
@@ -349,6 +288,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--vehicle", type=int, default=0, help="vehicle id the target serves (default 0)")
     p.add_argument("--key-prefix", default="hil", help="zenoh key prefix (default hil)")
     p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for each answer (default 5)")
+    p.add_argument("--token-env", default=None, metavar="NAME",
+                   help="tcp: check the target's AUTH proof of the token in this environment variable "
+                        "(PROTOCOL.md 4.8)")
+    from hil.harness.report.ci_outputs import add_ci_args
+
+    add_ci_args(p)
 
 
 def cmd(args: argparse.Namespace) -> int:
@@ -362,16 +307,30 @@ def cmd(args: argparse.Namespace) -> int:
     if args.timeout <= 0 or not 0 <= args.vehicle <= 0xFFFF_FFFF:
         print("hil target-check: error: --timeout must be > 0 and --vehicle in 0..4294967295", file=sys.stderr)
         return EXIT_USAGE
+    from hil.harness.report.ci_outputs import CiCase, CiReport, check_ci_args, write_ci_outputs
+
     try:
+        check_ci_args(args)
         transport, options = parse_endpoint(args.endpoint, command, vehicle_id=args.vehicle,
                                             key_prefix=args.key_prefix)
+        if args.token_env:
+            if transport != "tcp":
+                raise TransportError("--token-env: the AUTH proof is checked over tcp only")
+            options["token"] = token_from_env(args.token_env, field="--token-env", required=True)
         link = open_link(transport, vehicle_id=args.vehicle, clock=MonotonicClock(), **options)
     except HilError as err:
         print(f"hil target-check: error: {err}", file=sys.stderr)
         return EXIT_USAGE
-    rows = run_checks(link, timeout_s=args.timeout)
+    rows = run_checks(link, timeout_s=args.timeout, token_env=args.token_env)
     sys.stdout.write(format_table(rows))
-    return EXIT_PASS if all(r.ok for r in rows) else EXIT_FAIL
+    code = EXIT_PASS if all(r.ok for r in rows) else EXIT_FAIL
+    cases = [CiCase(r.name, r.ok, r.detail, {"section": f"PROTOCOL.md §{r.section}"}, group="protocol") for r in rows]
+    try:
+        write_ci_outputs(CiReport("target-check", args.endpoint, cases, code, {"endpoint": args.endpoint}), args)
+    except HilError as err:
+        print(f"hil target-check: error: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    return code
 
 
 def main(argv: list[str] | None = None) -> int:

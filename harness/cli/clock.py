@@ -18,7 +18,7 @@ from hil.timing.clock import MonotonicClock
 from hil.timing.sync import ClockSync, SyncState
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("clock", help="show the targets' clock offset, skew, delay and uncertainty live")
     p.add_argument("config", help="a hil_configs/*.yaml file (its targets are started or connected)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE")

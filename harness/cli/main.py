@@ -8,10 +8,11 @@ missing file, target that cannot start) with a one-line message and no traceback
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from hil.common.errors import ConfigError, HilError
 from hil.harness import __version__
@@ -20,14 +21,38 @@ EXIT_OK, EXIT_EARLY, EXIT_USAGE = 0, 1, 2
 
 
 class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one line, exit 2, like every user mistake
-        self.exit(EXIT_USAGE, f"hil: error: {message} (see hil {self.prog.split()[-1]} --help)\n")
+    def error(self, message: str) -> NoReturn:  # one line, exit 2, like every user mistake
+        self.exit(EXIT_USAGE, f"hil: error: {message} (see {self.prog} --help)\n")
+
+    def parse_args(self, args: Sequence[str] | None = None,  # type: ignore[override]
+                   namespace: object = None) -> argparse.Namespace:
+        """As argparse's, but an unknown option is reported with the help of the
+        command it was given to (``hil run --bogus``: see ``hil run --help``)."""
+        ns, extra = self.parse_known_args(args, namespace if isinstance(namespace, argparse.Namespace) else None)
+        if extra:
+            command = getattr(ns, "command", None)
+            prog = f"{self.prog} {command}" if command else self.prog
+            self.exit(EXIT_USAGE, f"hil: error: unrecognized arguments: {' '.join(extra)} (see {prog} --help)\n")
+        return ns
+
+
+def _live_address(text: str) -> str:
+    """``--live``'s value: HOST:PORT (checked here, so a mistake is argparse's one line)."""
+    if text:
+        from hil.harness.record.live_front import split_address
+
+        try:
+            split_address(text)
+        except ConfigError as err:
+            raise argparse.ArgumentTypeError(str(err)) from None
+    return text
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="hil", description="Hardware-in-the-loop timing harness for autonomous-driving AI.")
     p.add_argument("--version", action="version", version=f"hil {__version__}")
-    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    sub: argparse._SubParsersAction[argparse.ArgumentParser] = p.add_subparsers(dest="command", required=True,
+                                                                                parser_class=_Parser)
     r = sub.add_parser("run", help="run a configuration and write a run folder")
     r.add_argument("config", help="a hil_configs/*.yaml file")
     r.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",
@@ -38,8 +63,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--fail-on", dest="fail_on", default="", metavar="CHECK,...",
                    help="exit 3 when one of these verdicts fails: realtime, deadline, drop, collision, mismatch, "
                         "anomaly (adds to the config's verdict.fail_on)")
-    r.add_argument("--live", action="store_true",
-                   help="serve the run live to Foxglove on ws://127.0.0.1:PORT (port printed; recording.live)")
+    r.add_argument("--live", nargs="?", const="", default=None, metavar="HOST:PORT", type=_live_address,
+                   help="serve the run live to Foxglove (foxglove.sdk.v1 and foxglove.websocket.v1) on HOST:PORT "
+                        "(default 127.0.0.1 and a free port, printed; recording.live, recording.live_address)")
+    from hil.harness.report.ci_outputs import add_ci_args
+
+    add_ci_args(r)
     sc = sub.add_parser("scenarios", help="list the scenarios with their parameters, ranges and defaults")
     sc.add_argument("name", nargs="?", default=None, help="show only this scenario")
     sc.add_argument("--json", action="store_true", help="machine-readable output")
@@ -74,15 +103,22 @@ def build_parser() -> argparse.ArgumentParser:
     from hil.harness.study import study
 
     study.add_parser(sub)
+    from hil.harness.report import trace
+
+    trace.add_parser(sub)
+    from hil.harness.record import rosbag2
+
+    rosbag2.add_parser(sub)
     return p
 
 
 # Commands whose module has add_parser(sub) and cmd(args), by name.
 COMMANDS = {"report": "hil.harness.report.run_report", "compare": "hil.harness.report.compare",
             "train": "hil.training.train", "calibrate": "hil.harness.check.calibrate",
-            "study": "hil.harness.study.study"}
+            "study": "hil.harness.study.study", "trace": "hil.harness.report.trace",
+            "rosbag": "hil.harness.record.rosbag2"}
 # Example targets by name: module with a main(argv) -> int.
-TARGETS = {"cnn": "hil.targets.cnn.target", "cv": "hil.targets.cv_baseline", "echo": "hil.targets.echo"}
+TARGETS = {"cnn": "hil.targets.cnn.cli", "cv": "hil.targets.cv_baseline", "echo": "hil.targets.echo"}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -148,7 +184,9 @@ def _target_help() -> str:
     names, transports = "|".join(sorted(TARGETS)), "|".join(TRANSPORTS)
     lines = [f"usage: hil target {{{names}}} [--transport {transports}] [options of the target]", "",
              "Serve an example AI target over a transport, e.g. on a remote host or device:",
-             "  hil target cv --transport zenoh --listen tcp/0.0.0.0:7447", "",
+             "  hil target cv --transport zenoh --listen tcp/0.0.0.0:7447",
+             "  hil target cv --transport tcp --listen 0.0.0.0:7600", "",
+             "It serves run after run until Ctrl-C/SIGTERM (--once: one run).", "",
              "targets:"]
     lines += [f"  {name:<6} {_TARGET_SUMMARIES.get(name, '')}" for name in sorted(TARGETS)]
     lines += ["", "Each target's own options: hil target NAME --help (e.g. hil target cv --help)."]
@@ -219,10 +257,16 @@ def _cmd_scenarios(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     from hil.harness.cli.progress import Progress, final_table, make_console
     from hil.harness.config.model import load_config
+    from hil.harness.report.ci_outputs import check_ci_args, write_ci_outputs
     from hil.harness.run.driver import default_out_dir, execute, prepare_out_dir
     from hil.scenarios.gl import select_backend
 
-    overrides = [*args.overrides, "recording.live=true"] if args.live else args.overrides
+    check_ci_args(args)  # --junit / --json writable: checked before anything runs
+    overrides = list(args.overrides)
+    if args.live is not None:  # --live, or --live HOST:PORT (a JSON string: "[::1]:8765" is no YAML list)
+        overrides.append("recording.live=true")
+        if args.live:
+            overrides.append(f"recording.live_address={json.dumps(args.live)}")
     cfg = load_config(args.config, overrides=overrides)
     if args.fail_on:
         from hil.harness.analysis.verdict import parse_fail_on
@@ -251,7 +295,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
             result = execute(cfg, out_dir=out, gl_backend=backend, on_progress=progress.update,
                              notify=console.print)
     except (HilError, KeyboardInterrupt) as err:
-        mark_failed(out, err)
+        reason = mark_failed(out, err)
+        if isinstance(err, KeyboardInterrupt) and (out / "run.mcap").is_file():
+            print(f"hil: {reason}", file=sys.stderr)  # not main's "before the run started"
+            return EXIT_EARLY
         raise
     s = result.summary
     print_verdict(console, s)
@@ -268,7 +315,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if errors:
         console.print(f"[red]{len(errors)} corner case(s) could not be written[/red] "
                       f"(summary.json corner_cases.errors): {errors[0]}", highlight=False)
-    return run_exit_code(s)
+    code = run_exit_code(s)
+    from hil.harness.report.ci_cases import of_run
+
+    write_ci_outputs(of_run(s, run_dir=result.out_dir, exit_code=code), args)
+    return code
 
 
 def print_verdict(console: Any, summary: dict[str, Any]) -> None:
@@ -295,18 +346,26 @@ def print_verdict(console: Any, summary: dict[str, Any]) -> None:
         console.print(f"[bold red]the run fails on: {', '.join(sorted(fails))} (--fail-on): exit 3[/bold red]")
 
 
-def mark_failed(out: Path, err: BaseException) -> None:
+def mark_failed(out: Path, err: BaseException) -> str:
     """Say in the run folder ``out`` that its run never produced a summary, and why
-    (``OUT/FAILED``), so a half-made folder is never taken for a run."""
+    (``OUT/FAILED``), so a half-made folder is never taken for a run; returns the
+    reason. An interruption says whether the recording had begun (``run.mcap``)."""
+    reason = str(err)
+    if isinstance(err, KeyboardInterrupt):
+        mcap = out / "run.mcap"
+        reason = "interrupted before the run started"
+        if mcap.is_file():
+            reason = (f"interrupted after the recording began, before the summary was written: {mcap} "
+                      f"({mcap.stat().st_size:,} bytes) keeps what reached the disk (hil report {out} reads it)")
     if (out / "summary.json").exists():
-        return
-    reason = "interrupted before the run started" if isinstance(err, KeyboardInterrupt) else str(err)
+        return reason
     try:
         from hil.harness.record.out_dir import FAILED_NAME
 
         (out / FAILED_NAME).write_text(f"this run did not start or did not finish: {reason}\n")
     except OSError:
         pass  # the folder itself is the problem; the error line says so
+    return reason
 
 
 def _scenario_switch_hint(overrides: Sequence[str], message: str) -> str:

@@ -17,6 +17,12 @@ in a fresh folder under the test's ``tmp_path`` and returns a :class:`HilRunResu
 cannot start fails the test with the one-line error, no traceback; a run that
 ended early (its target died) fails it unless ``require_complete=False``.
 
+For CI: every run's figures become properties of the test (``hil.N.ego0.end_to_end.p99_ms``,
+``hil.N.verdict.failed``, ``hil.N.run_dir`` ...; N counts the test's runs from 1), which
+pytest writes into ``--junitxml``; ``--hil-keep-runs DIR`` copies each run folder to
+``DIR/<test id>/hil-N-<config>/`` (the test's ``tmp_path`` is not kept), to archive as
+CI artifacts; ``hil.N.run_dir`` then names the copy.
+
 Loading this module is cheap: MuJoCo and the harness are imported on the first run,
 after the GL backend is chosen (``hil.scenarios.gl.select_backend``).
 """
@@ -24,7 +30,9 @@ after the GL backend is chosen (``hil.scenarios.gl.select_backend``).
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping, Sequence
+import re
+import shutil
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -81,8 +89,8 @@ class HilRunResult:
             AssertionError: what, measured, budget, by how much; and the run folder.
         """
         __tracebackhide__ = True  # pytest shows the user's line, not this one
-        budgets = dict(zip(_BUDGET_KEYS, (p50_ms, p90_ms, p99_ms, max_ms, mean_ms, std_ms)))
-        budgets = {k: v for k, v in budgets.items() if v is not None}
+        budgets = {k: v for k, v in zip(_BUDGET_KEYS, (p50_ms, p90_ms, p99_ms, max_ms, mean_ms, std_ms))
+                   if v is not None}
         if not budgets:
             raise TypeError("assert_budget needs at least one budget, e.g. p99_ms=80")
         over = []
@@ -158,6 +166,19 @@ def run_config(config: str | os.PathLike[str] | Mapping[str, Any], *, out_dir: P
         hil.common.errors.HilError: a config mistake, a target that cannot start.
         AssertionError: the run ended early and ``require_complete`` is set.
     """
+    result = _run(config, out_dir=out_dir, overrides=overrides, rootdir=rootdir)
+    _check_complete(result, require_complete)
+    return result
+
+
+def _check_complete(result: HilRunResult, require_complete: bool) -> None:
+    ended = result.summary.get("ended_by")
+    if require_complete and ended != "duration":
+        raise AssertionError(f"hil run ended early: {ended}; run folder {result.run_dir}")
+
+
+def _run(config: str | os.PathLike[str] | Mapping[str, Any], *, out_dir: Path, overrides: Sequence[str],
+         rootdir: Path | None) -> HilRunResult:
     from hil.scenarios.gl import select_backend
 
     backend = select_backend()  # before anything imports mujoco
@@ -175,23 +196,46 @@ def run_config(config: str | os.PathLike[str] | Mapping[str, Any], *, out_dir: P
         result = execute(cfg, out_dir=prepare_out_dir(out_dir), gl_backend=backend, install_signal_handlers=False)
     finally:
         release_out_dir(out_dir)  # a test session runs many runs: give each folder's claim back
-    ended = result.summary.get("ended_by")
     if not (result.out_dir / "report.html").exists():  # hil.harness.run.driver may write it already
         from hil.harness.report.run_report import write_report
 
         write_report(result.out_dir)
-    if require_complete and ended != "duration":
-        raise AssertionError(f"hil run ended early: {ended}; run folder {result.out_dir}")
     return HilRunResult(result.out_dir, result.summary)
+
+
+def run_properties(result: HilRunResult, prefix: str) -> list[tuple[str, object]]:
+    """A run's figures as test properties (names under ``prefix``): its folder, how
+    it ended, the verdict and ``hil.harness.report.ci_cases.run_figures``."""
+    from hil.harness.analysis.verdict import verdict_of
+    from hil.harness.report.ci_cases import run_figures
+
+    v = verdict_of(result.summary)
+    props: dict[str, object] = {"run_dir": str(result.run_dir), "ended_by": result.summary.get("ended_by"),
+                                "verdict.passed": v["passed"], "verdict.failed": ",".join(v["failed"]),
+                                **run_figures(result.summary)}
+    return [(f"{prefix}.{k}", "" if x is None else x) for k, x in props.items()]
+
+
+def keep_run(run_dir: Path, keep_dir: Path, test_id: str) -> Path:
+    """Copy ``run_dir`` to ``keep_dir/<test_id as a folder name>/<its name>`` (an
+    earlier copy of the same test's run is replaced); returns the copy."""
+    dest = keep_dir / re.sub(r"[^A-Za-z0-9_.-]+", "_", test_id).strip("_") / run_dir.name
+    if dest.exists():
+        shutil.rmtree(dest)
+    shutil.copytree(run_dir, dest, ignore=shutil.ignore_patterns(".hil-run.lock"))
+    return dest
 
 
 class HilRunner:
     """The ``hil_run`` fixture's value: call it to run a config (see module docstring)."""
 
-    def __init__(self, base_dir: Path, *, rootdir: Path | None = None) -> None:
+    def __init__(self, base_dir: Path, *, rootdir: Path | None = None,
+                 record: Callable[[tuple[str, object]], None] | None = None, keep_dir: Path | None = None,
+                 test_id: str = "test") -> None:
         self._base = base_dir
         self._rootdir = rootdir
         self._count = 0
+        self._record, self._keep_dir, self._test_id = record, keep_dir, test_id
 
     def __call__(self, config: str | os.PathLike[str] | Mapping[str, Any], *, overrides: Sequence[str] = (),
                  require_complete: bool = True) -> HilRunResult:
@@ -201,19 +245,39 @@ class HilRunner:
         name = "config" if isinstance(config, Mapping) else Path(config).stem
         out = self._base / f"hil-{self._count}-{name}"
         try:
-            return run_config(config, out_dir=out, overrides=overrides, require_complete=require_complete,
-                              rootdir=self._rootdir)
+            result = _run(config, out_dir=out, overrides=overrides, rootdir=self._rootdir)
         except HilError as err:
             pytest.fail(f"hil_run: {err}", pytrace=False)
+        if self._keep_dir is not None:
+            result = HilRunResult(keep_run(result.run_dir, self._keep_dir, self._test_id), result.summary)
+        if self._record is not None:  # before any assertion: a failed test keeps its figures too
+            for prop in run_properties(result, f"hil.{self._count}"):
+                self._record(prop)
+        try:
+            _check_complete(result, require_complete)
         except AssertionError as err:
             pytest.fail(str(err), pytrace=False)
+        return result
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.getgroup("hil").addoption(
+        "--hil-keep-runs", dest="hil_keep_runs", default=None, metavar="DIR",
+        help="copy every hil_run run folder to DIR/<test id>/ (CI artifacts); the test's properties name the copy")
 
 
 @pytest.fixture
 def hil_run(tmp_path: Path, request: pytest.FixtureRequest) -> HilRunner:
     """Run a hil configuration in ``tmp_path`` and get its summary back:
-    ``hil_run("hil_configs/regression.yaml", overrides=["duration_s=5"])``."""
-    return HilRunner(tmp_path, rootdir=Path(request.config.rootpath))
+    ``hil_run("hil_configs/regression.yaml", overrides=["duration_s=5"])``. Each
+    run's figures become the test's properties (``--junitxml``); ``--hil-keep-runs
+    DIR`` keeps its folder."""
+    keep = request.config.getoption("hil_keep_runs", default=None)
+    keep_dir = None if keep is None else Path(keep).resolve()
+    # record_property's list (without its warning under junit_family xunit2, which writes them all the same).
+    return HilRunner(tmp_path, rootdir=Path(request.config.rootpath), record=request.node.user_properties.append,
+                     keep_dir=keep_dir, test_id=request.node.nodeid)
 
 
-__all__ = ["HilRunResult", "HilRunner", "config_search_path", "hil_run", "run_config"]
+__all__ = ["HilRunResult", "HilRunner", "config_search_path", "hil_run", "keep_run", "pytest_addoption", "run_config",
+           "run_properties"]

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 from pydantic import BaseModel, Field, field_validator
 
-from hil.harness.analysis.detector import DetectorConfig
 from hil.harness.config.types import MODEL_CONFIG, Float, Int
 from hil.timing.anomaly import AnomalyKind
 
@@ -22,7 +21,9 @@ ANOMALY_KINDS = tuple(k.value.lower() for k in AnomalyKind)
 
 
 class DetectorSettings(BaseModel):
-    """Tolerances of the corner-case detector (see harness/analysis/detector.py)."""
+    """Tolerances of the corner-case detector (m, frames, m/s^2; see
+    harness/analysis/detector.py and late_reaction.py for ``near_miss_m`` and
+    ``avoid_decel_mps2``): the config section and what the detector takes, one model."""
 
     model_config = MODEL_CONFIG
 
@@ -37,9 +38,6 @@ class DetectorSettings(BaseModel):
     clear_frames: Int = Field(5, ge=1, le=1000)
     near_miss_m: Float = Field(1.0, ge=0, le=100)        # late reaction: a gap under this is a near miss
     avoid_decel_mps2: Float = Field(4.0, gt=0, le=20)    # late reaction: "could still stop" at this decel
-
-    def to_config(self) -> DetectorConfig:
-        return DetectorConfig(**self.model_dump(exclude={"enabled"}))
 
 
 class CornerCaseSettings(BaseModel):

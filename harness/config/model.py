@@ -40,7 +40,7 @@ from hil.adapters.protocol import FRAME_META_SIZE, MAX_PAYLOAD
 from hil.adapters.transports import Transport  # how the harness reaches the AI target: one enum, one table
 from hil.common.errors import ConfigError
 from hil.harness.config.cases import CornerCaseSettings, DetectorSettings
-from hil.harness.config.target import CanTargetConfig, ImpairConfig, TcpTargetConfig, ZenohTargetConfig
+from hil.harness.config.target import CanTargetConfig, ImpairConfig, Ros2TargetConfig, TcpTargetConfig, ZenohTargetConfig
 from hil.harness.config.timing import TimingConfig
 from hil.harness.config.types import MODEL_CONFIG, Float, Int
 
@@ -132,6 +132,7 @@ class TargetConfig(BaseModel):
     zenoh: ZenohTargetConfig = Field(default_factory=ZenohTargetConfig)
     can: CanTargetConfig = Field(default_factory=CanTargetConfig)
     tcp: TcpTargetConfig = Field(default_factory=TcpTargetConfig)
+    ros2: Ros2TargetConfig = Field(default_factory=Ros2TargetConfig)
     impair: ImpairConfig = Field(default_factory=ImpairConfig)  # link faults in real time (config_target.py)
     # Commands for the targets' control software at given sim times, e.g.
     # [{at_s: 5.0, command: "swap detector cv"}] (targets announcing CAP_COMMANDS).
@@ -149,14 +150,21 @@ class TargetConfig(BaseModel):
 
 class RecordingConfig(BaseModel):
     """The recorder: its bounded queue (items), whether images are stored, and
-    whether the run is also served live to Foxglove (``hil run --live``: a WebSocket
-    server on 127.0.0.1, port printed; see harness/record/live.py)."""
+    whether the run is also served live to Foxglove (``hil run --live [HOST:PORT]``: a
+    WebSocket server on ``live_address``, default 127.0.0.1 and a free port, printed;
+    see harness/record/live.py); a CAN run's bus traffic as ``run.blf`` or ``run.asc``
+    beside ``run.mcap`` (``can_log``; see harness/record/can_log.py)."""
 
     model_config = _MODEL_CONFIG
 
     queue_size: Int = Field(4096, ge=16, le=1_000_000)
     images: bool = True
     live: bool = False
+    can_log: Literal["blf", "asc", "none"] = "blf"
+    # Also write rosbag2/ (ROS 2's bag: MCAP, CDR, metadata.yaml) after the run, for
+    # `ros2 bag play` (harness/record/rosbag2.py); run.mcap is unchanged.
+    rosbag2: bool = False
+    live_address: str | None = Field(None, pattern=r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+):[0-9]{1,5}$")
 
 
 class TruthConfig(BaseModel):

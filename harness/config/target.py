@@ -35,6 +35,7 @@ from typing import Annotated, Literal
 from pydantic import AfterValidator, BaseModel, Field
 
 from hil.adapters.can_interfaces import LOCAL_INTERFACES
+from hil.adapters.ros2_options import MAX_DOMAIN_ID, topic_problem
 from hil.adapters.zenoh_options import endpoint_problem, tls_key_problem
 from hil.common.errors import ConfigError
 from hil.harness.config.types import MODEL_CONFIG, Float, Int
@@ -54,10 +55,17 @@ def _tls_key(value: str) -> str:
     return value
 
 
+def _ros_topic(value: str) -> str:
+    if value and (problem := topic_problem(value)) is not None:
+        raise ValueError(problem)
+    return value
+
+
 # Checked here, so that an endpoint Zenoh can never open (``zzz``, a missing port) or
 # an unknown TLS key is refused before the simulator or any target starts.
 ZenohEndpoint = Annotated[str, AfterValidator(_endpoint)]
 TlsKey = Annotated[str, AfterValidator(_tls_key)]
+RosTopic = Annotated[str, AfterValidator(_ros_topic)]  # "" where the topic may be left out
 
 
 class ZenohMode(str, Enum):
@@ -116,6 +124,11 @@ class ZenohTargetConfig(BaseModel):
     # target on the endpoint (a leftover, a foreign one) can answer for it. Off for a
     # started third-party target that keeps the fixed keys of PROTOCOL.md 10.2.
     per_run_keys: bool = True
+    # With per_run_keys and no ``auth``, a started target and the harness also share
+    # user/password credentials made for this run (passed in HIL_ZENOH_AUTH, which the
+    # SDK follows; never written to the run folder): a third peer on the endpoint gets
+    # no session, so it can neither read the run nor end it with a forged BYE.
+    per_run_auth: bool = True
 
 
 class CanTargetConfig(BaseModel):
@@ -137,11 +150,23 @@ class TcpMode(str, Enum):
     LISTEN = "listen"  # the harness listens; the target dials in
 
 
+class TcpAuth(str, Enum):
+    AUTO = "auto"  # a target proves the run's token when there is one (the harness starts it, or token_env)
+    NONE = "none"  # no proof asked: any program on the port (or dialling in first) is measured
+
+
 class TcpTargetConfig(BaseModel):
     """TCP connection of the harness (adapters/tcp.py, PROTOCOL.md section 10.5).
     ``address`` is host:port, ``{port}`` being ``base_port + vehicle_id``; loopback
     unless given otherwise. ``kernel_stamps``: stamp receipt with the kernel's receive
-    time (SO_TIMESTAMPNS) rather than when the reader thread woke."""
+    time (SO_TIMESTAMPNS) rather than when the reader thread woke.
+
+    Which target is measured (PROTOCOL.md 4.8): a target the harness starts
+    (``target.command``) gets a fresh per-run token in ``HIL_SESSION_TOKEN`` and must
+    prove it; a target started by hand must prove the token in the environment
+    variable named by ``token_env`` (set on both sides, never in a file), or, without
+    one, is accepted on its HELLO (and ``target.expect_name``). ``auth: none`` asks no
+    proof even of a started target (a version-1 target that predates AUTH)."""
 
     model_config = MODEL_CONFIG
 
@@ -149,6 +174,76 @@ class TcpTargetConfig(BaseModel):
     address: str = Field("127.0.0.1:{port}", pattern=r"^(tcp/)?(\[[0-9A-Fa-f:.]+\]|[^:\s\[\]]+):(\{port\}|[0-9]{1,5})$")
     base_port: Int = Field(7600, ge=1, le=65535)
     kernel_stamps: bool = True
+    token_env: str | None = Field(None, pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")
+    auth: TcpAuth = TcpAuth.AUTO
+
+
+class Ros2Topics(BaseModel):
+    """The ROS 2 topics of a ``ros2`` target (fully qualified; ``{vehicle_id}`` is
+    filled). ``image``: default ``/camera/image_raw``, or ``/camera/image_raw/compressed``
+    for ``camera.encoding: jpeg`` (image_transport's names). ``speed`` and
+    ``detections`` may be ``""`` (not published / not read)."""
+
+    model_config = MODEL_CONFIG
+
+    image: RosTopic | None = None
+    camera_info: RosTopic = Field("/camera/camera_info", min_length=1)
+    speed: RosTopic = "/vehicle/twist"
+    clock: RosTopic = Field("/clock", min_length=1)
+    control: RosTopic = Field("/control/ackermann_cmd", min_length=1)
+    detections: RosTopic = "/perception/detections"
+
+
+class Ros2Qos(BaseModel):
+    """One direction's ROS 2 QoS (README, "ROS 2")."""
+
+    model_config = MODEL_CONFIG
+
+    reliability: Literal["reliable", "best_effort"] = "reliable"
+    history: Literal["keep_last", "keep_all"] = "keep_last"
+    depth: Int = Field(10, ge=1, le=10_000)
+
+
+class Ros2QosConfig(BaseModel):
+    """QoS of the frames the harness offers (images, camera info, speed: reliable, so
+    both reliable and best-effort subscribers match; a short history, so a slow node
+    costs frames, not memory) and of the answers it asks for."""
+
+    model_config = MODEL_CONFIG
+
+    images: Ros2Qos = Field(default_factory=lambda: Ros2Qos(depth=2))
+    answers: Ros2Qos = Field(default_factory=Ros2Qos)
+
+
+class Ros2TargetConfig(BaseModel):
+    """A ROS 2 node as the target (adapters/ros2_transport.py; README, "ROS 2").
+    Vehicle ``i``'s node is on DDS domain ``domain_id + i``; a node the harness starts
+    (``command``) gets a domain of this run's own instead (``per_run_domain``). Cyclone
+    DDS uses ``interface`` only, ``multicast`` off and unicast discovery to ``peers``.
+    ``clock``: ``sim`` (header stamps are sim time, ``/clock`` published; the node runs
+    with use_sim_time) or ``system`` (stamps are t0 on this host's system clock).
+    The control mapping: ``max_accel_mps2``/``max_decel_mps2`` scale acceleration to
+    throttle/brake, ``speed_gain_per_s`` turns a speed-only command into one, at or
+    below ``stop_speed_mps`` (and not accelerating) the state is STOP."""
+
+    model_config = MODEL_CONFIG
+
+    domain_id: Int = Field(0, ge=0, le=MAX_DOMAIN_ID)
+    per_run_domain: bool = True
+    interface: str = Field("127.0.0.1", min_length=1)
+    peers: list[str] = Field(default_factory=lambda: ["127.0.0.1"])
+    multicast: bool = False
+    lease_ms: Int = Field(1000, ge=100, le=600_000)
+    clock: Literal["sim", "system"] = "sim"
+    topics: Ros2Topics = Field(default_factory=Ros2Topics)
+    base_frame: str = Field("base_link", min_length=1)
+    camera_frame: str = Field("camera_link", min_length=1)
+    optical_frame: str = Field("camera_optical_frame", min_length=1)
+    qos: Ros2QosConfig = Field(default_factory=Ros2QosConfig)
+    max_accel_mps2: Float = Field(3.0, gt=0, le=100)
+    max_decel_mps2: Float = Field(8.0, gt=0, le=100)
+    speed_gain_per_s: Float = Field(1.0, gt=0, le=100)
+    stop_speed_mps: Float = Field(0.05, ge=0, le=10)
 
 
 class LinkFaults(BaseModel):

@@ -22,21 +22,25 @@ from hil.timing.anomaly import Thresholds
 from hil.timing.sync import SyncConfig
 
 
+_SYNC = SyncConfig()  # the one home of the clock-sync defaults (hil.timing.sync)
+
+
 class SyncSettings(BaseModel):
     """Clock-sync exchanges: ``burst`` 4-timestamp exchanges every ``interval_s``;
     samples with a round trip over ``max_delay_ms`` are rejected; an offset jump over
     ``step_threshold_ms`` is a clock step; no good sample for ``lost_after_s`` is sync
-    lost; skew beyond ``skew_limit_ppm`` is flagged."""
+    lost; skew beyond ``skew_limit_ppm`` is flagged. The estimator's own settings
+    default to ``hil.timing.sync.SyncConfig``'s (one home per default)."""
 
     model_config = MODEL_CONFIG
 
     interval_s: Float = Field(1.0, gt=0, le=60)
     burst: Int = Field(4, ge=1, le=64)
-    window_s: Float = Field(30.0, gt=0, le=3600)
-    max_delay_ms: Float = Field(50.0, gt=0, le=10_000)
-    step_threshold_ms: Float = Field(1.0, gt=0, le=10_000)
-    lost_after_s: Float = Field(3.0, gt=0, le=3600)
-    skew_limit_ppm: Float = Field(1000.0, gt=0, le=100_000)
+    window_s: Float = Field(_SYNC.window_s, gt=0, le=3600)
+    max_delay_ms: Float = Field(_SYNC.max_delay_ns / 1e6, gt=0, le=10_000)
+    step_threshold_ms: Float = Field(_SYNC.step_threshold_ns / 1e6, gt=0, le=10_000)
+    lost_after_s: Float = Field(_SYNC.lost_after_s, gt=0, le=3600)
+    skew_limit_ppm: Float = Field(_SYNC.skew_limit_ppm, gt=0, le=100_000)
 
     def to_sync_config(self) -> SyncConfig:
         return SyncConfig(window_s=self.window_s, max_delay_ns=int(self.max_delay_ms * 1e6),

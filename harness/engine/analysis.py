@@ -30,14 +30,17 @@ class AnalysisThread:
         self.errors: list[str] = []
         self.max_depth = 0
         self.cpu_ns = 0  # CPU time the thread used (set when it ends)
+        self._closing = threading.Lock()  # held by close() until the queue is drained
         self._thread = threading.Thread(target=self._run, name="hil-analysis", daemon=True)
         self._thread.start()
         self._closed = False
 
     def post(self, fn: Callable[..., Any], *args: Any) -> None:
-        """Queue ``fn(*args)``; once closed, run it here and now."""
+        """Queue ``fn(*args)``; once closed, run it here and now, after everything
+        queued before (a late input must not overtake what the thread still has)."""
         if self._closed:
-            fn(*args)
+            with self._closing:
+                fn(*args)
             return
         if not self._q.put((fn, args)):
             self.dropped += 1
@@ -76,6 +79,7 @@ class AnalysisThread:
     def close(self, timeout_s: float = 120.0) -> None:
         if self._closed:
             return
-        self._closed = True
-        self._q.put_always(None)
-        self._thread.join(timeout_s)
+        with self._closing:
+            self._closed = True
+            self._q.put_always(None)
+            self._thread.join(timeout_s)

@@ -45,8 +45,8 @@ PIPELINE = _obj("hil.PipelineRecord", {
     "vehicle": {"type": "string"}, "frame_id": _INT, "status": {"enum": ["ok", "dropped", "stale", "pending"]},
     "sim_time_ns": _INT, "t0_ns": _INT, "t_tx_ns": _INT, "t_rx_target_ns": _NINT,
     "t_infer_start_target_ns": _NINT, "t_infer_end_target_ns": _NINT, "t_reply_target_ns": _NINT,
-    "t0p_ns": _NINT, "t_apply_ns": _NINT, "sim_time_apply_ns": _NINT,
-    "stages_ns": {"type": "object", "additionalProperties": _INT},
+    "t0p_ns": _NINT, "t_apply_ns": _NINT, "sim_time_apply_ns": _NINT, "t_state_ns": _NINT,
+    "t0p_uncertainty_ns": _INT, "stages_ns": {"type": "object", "additionalProperties": _INT}, "render_worker": _INT,
 }, ["vehicle", "frame_id", "status", "t0_ns", "t_tx_ns"])
 
 CLOCK_SYNC = _obj("hil.ClockSyncSample", {
@@ -128,10 +128,14 @@ def register_all(rec: Any, vehicles: Iterable[str], *, anchor: TimeAnchor | None
     cfg = _run_config(inner)
     if views:
         views_of(cfg, vehicles, offset_ns=inner.log_time_offset_ns).install(inner)
-    if (cfg.get("recording") or {}).get("live") is True:
-        from hil.harness.record.live import LiveView
+    recording = cfg.get("recording") or {}
+    if recording.get("live") is True:
+        from hil.harness.record.live import DEFAULT_HOST, LiveView
+        from hil.harness.record.live_front import split_address
 
-        live = LiveView()
+        address = recording.get("live_address")
+        host, port = split_address(address) if isinstance(address, str) else (DEFAULT_HOST, 0)
+        live = LiveView(host=host, port=port)
         inner.add_tap("live_view", live)
         print(f"live view: {live.url} (Foxglove: Open connection -> Foxglove WebSocket; "
               "layout hil_configs/foxglove_layout.json)", file=sys.stderr, flush=True)

@@ -18,7 +18,8 @@ producers nothing:
 - ``/<V>/estimate_scene`` ``foxglove.SceneUpdate``: the AI's objects as spheres in
   ``<V>/camera_ground``, beside the true cubes of ``/scene``;
 - ``/<V>/latency`` ``hil.Latency``: stage latencies of each frame in ms (Plot panel);
-- ``/log`` ``foxglove.Log``: every ``/events`` message (level from its severity).
+- ``/log`` ``foxglove.Log``: every ``/events`` message as a line people read
+  (:func:`hil.harness.record.event_text.event_line`; level from its severity).
 
 Foxglove times (``timestamp`` fields) are on the recorder's wall-clock timeline
 (monotonic + ``offset_ns``), as ``log_time`` is.
@@ -26,7 +27,6 @@ Foxglove times (``timestamp`` fields) are on the recorder's wall-clock timeline
 
 from __future__ import annotations
 
-import json
 import math
 from collections import OrderedDict
 from collections.abc import Iterable, Mapping
@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from hil.harness.record import foxglove_schemas as fx
+from hil.harness.record.event_text import event_line
 from hil.scenarios.ground_truth import GroundTruth
 
 # Colours by class (RGBA 0..1); ego vehicles blue as in the render.
@@ -171,11 +172,8 @@ class FoxgloveViews:
     # -- derivations: (message, log_time_ns, publish_time_ns) -> [(topic, msg, log, pub)] ---------
 
     def on_event(self, ev: Mapping[str, Any], log_ns: int, pub_ns: int) -> list[tuple[str, Any, int, int]]:
-        kind = str(ev.get("kind", "event"))
-        detail = {k: v for k, v in ev.items() if k not in ("kind", "vehicle", "severity")}
-        text = f"{kind}: " + ", ".join(f"{k}={_short(v)}" for k, v in detail.items())
         log = {"timestamp": self._ts(log_ns), "level": _LEVEL.get(str(ev.get("severity")), fx.LOG_INFO),
-               "message": text, "name": str(ev.get("vehicle") or "harness"), "file": "", "line": 0}
+               "message": event_line(ev), "name": str(ev.get("vehicle") or "harness"), "file": "", "line": 0}
         return [("/log", log, log_ns, pub_ns)]
 
     def on_ground_truth(self, gt: Mapping[str, Any], log_ns: int, pub_ns: int) -> list[tuple[str, Any, int, int]]:
@@ -288,10 +286,3 @@ def _label(ts: dict[str, int], x: float, y: float, text: str, rgba: tuple[float,
     return {"timestamp": ts, "position": {"x": x, "y": y}, "text": text, "font_size": 12.0,
             "text_color": _rgba(rgba), "background_color": _BACKDROP}
 
-
-def _short(v: Any) -> str:
-    if isinstance(v, float):
-        return f"{v:.4g}"
-    if isinstance(v, (dict, list)):
-        return json.dumps(v, separators=(",", ":"))[:120]
-    return str(v)

@@ -28,6 +28,10 @@ thread for every message of one topic; the messages it returns are written too
 (Foxglove views of the hil.* channels, see :mod:`hil.harness.record.foxglove_out`). Their cost
 stays off the producers.
 
+Bounded memory: the writer's chunk indexes (one per chunk, the only thing of the
+file it would otherwise hold for the whole run) go to an unnamed file beside the
+recording until close (:mod:`hil.harness.record.chunk_index`).
+
 Crash safety: messages are written in chunks. A chunk is written when it holds
 ``chunk_size`` bytes (default 1 MiB), when the newest log time written has moved on by
 ``chunk_duration_ns`` since the chunk began (default 1 s), on :meth:`Recorder.flush`
@@ -92,6 +96,7 @@ from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 from hil.common.errors import ConfigError, RecordingError
 from hil.harness import __version__
 from hil.harness.engine.handoff import Handoff
+from hil.harness.record import chunk_index
 from hil.harness.record import foxglove_schemas as fx
 from hil.harness.record.encoding import dumps
 
@@ -122,8 +127,11 @@ _RAW_ENCODINGS = ("rgb8", "bgr8")
 class RecorderStats:
     """Counters of one recorder (messages unless named otherwise).
 
+    ``written`` is every message in the file, the ``derived`` ones (written on the
+    writer thread by :meth:`Recorder.add_derivation`, e.g. the Foxglove views)
+    included: it equals the MCAP statistics record's ``message_count``.
     ``enqueued + dropped`` is every write attempt; once closed (and barring a write
-    failure, which also counts in ``errors``), ``written + errors == enqueued``.
+    failure, which also counts in ``errors``), ``written - derived + errors == enqueued``.
     """
 
     enqueued: int
@@ -133,6 +141,7 @@ class RecorderStats:
     bytes_written: int
     max_queue_depth: int
     first_error: str | None
+    derived: int = 0
 
 
 @dataclass(frozen=True)
@@ -195,10 +204,13 @@ class _Sink:
         self.position = 0
 
     def write(self, data: bytes | bytearray | memoryview) -> int:
+        raw = self._raw
+        if raw is None:
+            raise OSError("the recording's file is not open")
         view = memoryview(data).cast("B")
         total = len(view)
         while view:
-            n = self._raw.write(view)  # raw writes may be partial
+            n = raw.write(view)  # raw writes may be partial
             view = view[n:]
         self.position += total
         return total
@@ -244,6 +256,7 @@ class Recorder:
         self._stop_sent = False
         self._closing = False
         self._file: BinaryIO | None = None
+        self._chunk_indexes: chunk_index.ChunkIndexSpill | None = None
         self._sink = _Sink(None)
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
@@ -315,6 +328,8 @@ class Recorder:
                 compression=_MCAP_COMPRESSION[self._compression],
             )
             self._writer.start(library=f"hil-harness/{__version__}; {LIBRARY_IDENTIFIER}")
+            # One chunk index per chunk, on disk until close (hil.harness.record.chunk_index).
+            self._chunk_indexes = chunk_index.install(self._writer, path.parent)
         except OSError as err:
             raise ConfigError(f"cannot record to {path}: {err.strerror or err}; choose a writable path") from err
         self._thread = threading.Thread(target=self._run, name="mcap-writer", daemon=False)
@@ -530,6 +545,7 @@ class Recorder:
                 bytes_written=self._sink.position,
                 max_queue_depth=self._max_depth,
                 first_error=self._first_error,
+                derived=self._derived,
             )
 
     def flush(self, *, timeout_s: float = 30.0) -> bool:
@@ -574,6 +590,8 @@ class Recorder:
                     self._file.close()
                 except OSError as err:  # pragma: no cover - close of an unbuffered file
                     self._note_error(err)
+            if self._chunk_indexes is not None:
+                self._chunk_indexes.close()
             self._closed = True
         if self._io_error is not None and not self._io_error_raised:
             self._io_error_raised = True
@@ -692,7 +710,7 @@ class Recorder:
                 width, height, encoding.encode(), 3 * width)
             data = _image_json(pub_ns + self._offset_ns, c, fields, a)
         self._add(topic, data, log_ns, pub_ns, seq)
-        self._written += 1  # only this thread writes it; stats reads an int
+        self._written += 1  # only this thread writes it (derived ones too); stats reads an int
         if op is _Op.JSON and topic in self._derivations:  # (an ENCODED message's producer derived its own)
             self._derive(topic, a, log_ns - self._offset_ns, pub_ns)
 
@@ -710,6 +728,7 @@ class Recorder:
                 with self._lock:
                     seq = self._next_seq[d_topic] = (self._next_seq.get(d_topic, 0) + 1) & _SEQUENCE_MASK
                 self._add(d_topic, dumps(d_obj), d_log + self._offset_ns, d_pub, seq)
+                self._written += 1  # every message in the file: the statistics record's count
                 with self._lock:
                     self._derived += 1
 
@@ -771,6 +790,7 @@ class Recorder:
                 "queue_size": str(self._queue_size),
                 "chunk_size": str(self._chunk_size),
                 "compression": self._compression.value,
+                "chunk_indexes_spilled": str(self._chunk_indexes.count if self._chunk_indexes else 0),
             }
             if self._first_error is not None:
                 counters["first_error"] = self._first_error

@@ -17,6 +17,7 @@ name says (a text file named ``summary.json``, a truncated summary, a file named
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -28,9 +29,11 @@ from pathlib import Path
 from typing import Any
 
 from hil.common.errors import ConfigError
+from hil.timing.records import FrameStatus, PipelineRecord
 
 SUMMARY_NAME = "summary.json"
 MCAP_NAME = "run.mcap"
+CONFIG_NAME = "config.json"
 CORNER_DB_NAME = "corner_cases.sqlite"
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 _VEHICLE_TOPIC = re.compile(r"^/(?P<vehicle>[^/]+)/(?P<what>pipeline|camera|clock_sync|clock)$")
@@ -120,12 +123,14 @@ class RecordedEvent:
 class ClockPoint:
     """One clock-mapping sample of a vehicle's target clock: ``offset_ns`` (target −
     harness), ``uncertainty_ns`` (half the round trip, or the estimator's own),
-    ``skew_ppm`` when the source gives one. ``t_ns``: harness time of the sample."""
+    ``skew_ppm`` and its bound ``skew_uncertainty_ppm`` when the source gives them.
+    ``t_ns``: harness time of the sample."""
 
     t_ns: int
     offset_ns: float
     uncertainty_ns: float
     skew_ppm: float | None
+    skew_uncertainty_ppm: float | None = None
 
 
 @dataclass
@@ -133,7 +138,12 @@ class RunData:
     """What a run folder holds, read back. ``pipeline``: per vehicle, the
     ``/V/pipeline`` records as written (dicts, file order); ``camera_times``: per
     vehicle, the publish times (``t0``) of its camera frames; ``clock`` per vehicle
-    from ``/V/clock`` when present, else from ``/V/clock_sync``."""
+    from ``/V/clock`` when present, else from ``/V/clock_sync``; ``clock_states``:
+    every ``/V/clock`` message as written, as ``(t4, position, message)`` (the harness
+    time of its sync sample; its index among the file's messages);
+    ``pipeline_positions``: the same index of each ``pipeline`` record (the file's
+    order is the order the run's analysis wrote them in); ``sync_exchanges``: every
+    ``/V/clock_sync`` message as written."""
 
     run_dir: Path
     summary: dict[str, Any] | None
@@ -148,6 +158,9 @@ class RunData:
     clock: dict[str, list[ClockPoint]] = field(default_factory=dict)
     clock_source: dict[str, str] = field(default_factory=dict)
     camera_times: dict[str, list[int]] = field(default_factory=dict)
+    clock_states: dict[str, list[tuple[int, int, dict[str, Any]]]] = field(default_factory=dict)
+    pipeline_positions: dict[str, list[int]] = field(default_factory=dict)
+    sync_exchanges: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
     first_ns: int | None = None
     last_ns: int | None = None
 
@@ -160,7 +173,7 @@ class RunData:
     @property
     def t_start_ns(self) -> int:
         """Time zero of plots: the first capture ``t0``, else the first message."""
-        t0s = [r["t0_ns"] for recs in self.pipeline.values() for r in recs[:64] if "t0_ns" in r]
+        t0s: list[int] = [r["t0_ns"] for recs in self.pipeline.values() for r in recs[:64] if "t0_ns" in r]
         if t0s:
             return min(t0s)
         return self.first_ns or 0
@@ -243,6 +256,9 @@ def read_run(path: str | os.PathLike[str]) -> RunData:
     sync: dict[str, list[ClockPoint]] = defaultdict(list)
     clock: dict[str, list[ClockPoint]] = defaultdict(list)
     cams: dict[str, list[int]] = defaultdict(list)
+    states: dict[str, list[tuple[int, int, dict[str, Any]]]] = defaultdict(list)
+    positions: dict[str, list[int]] = defaultdict(list)
+    exchanges: dict[str, list[dict[str, Any]]] = defaultdict(list)
     first = last = None
     n = 0
     offset: int | None = None  # log_time - monotonic (the recorder's time anchor; 0 in old runs)
@@ -271,20 +287,28 @@ def read_run(path: str | os.PathLike[str]) -> RunData:
             continue
         if what == "pipeline":
             pipeline[vehicle].append(d)
-        elif what == "clock_sync" and _num(d, "offset_ns") and _num(d, "delay_ns"):
+            positions[vehicle].append(n - 1)
+            continue
+        if what == "clock_sync":
+            exchanges[vehicle].append(d)
+        else:
+            states[vehicle].append((msg.log_time, n - 1, d))
+        if what == "clock_sync" and _num(d, "offset_ns") and _num(d, "delay_ns"):
             sync[vehicle].append(ClockPoint(msg.log_time, float(d["offset_ns"]), d["delay_ns"] / 2, None))
         elif what == "clock" and _num(d, "offset_ns"):
-            unc = d.get("uncertainty_ns")
-            skew = d.get("skew_ppm")
             clock[vehicle].append(ClockPoint(msg.log_time, float(d["offset_ns"]),
-                                             float(unc) if isinstance(unc, (int, float)) else 0.0,
-                                             float(skew) if isinstance(skew, (int, float)) else None))
+                                             float(d["uncertainty_ns"]) if _num(d, "uncertainty_ns") else 0.0,
+                                             float(d["skew_ppm"]) if _num(d, "skew_ppm") else None,
+                                             float(d["skew_uncertainty_ppm"]) if _num(d, "skew_uncertainty_ppm")
+                                             else None))
     off = offset or 0
     if off:
         first = None if first is None else first - off
         last = None if last is None else last - off
         for points in (*sync.values(), *clock.values()):
             points[:] = [replace(p, t_ns=p.t_ns - off) for p in points]
+        for v, vs in states.items():
+            states[v] = [(t - off, i, d) for t, i, d in vs]
     data.messages, data.first_ns, data.last_ns = n, first, last
     data.truncated = not is_finalized_mcap(mcap_path)
     if n == 0 and data.truncated and data.mcap_bytes < 64 and summary is None:
@@ -292,6 +316,7 @@ def read_run(path: str | os.PathLike[str]) -> RunData:
         raise ConfigError(f"{mcap_path}: truncated MCAP with no complete message ({data.mcap_bytes} bytes)")
     data.pipeline = dict(pipeline)
     data.camera_times = {v: sorted(ts) for v, ts in cams.items()}
+    data.clock_states, data.pipeline_positions, data.sync_exchanges = dict(states), dict(positions), dict(exchanges)
     for v in set(sync) | set(clock):
         if clock.get(v):
             data.clock[v], data.clock_source[v] = clock[v], f"/{v}/clock"
@@ -299,7 +324,32 @@ def read_run(path: str | os.PathLike[str]) -> RunData:
             data.clock[v], data.clock_source[v] = sync[v], f"/{v}/clock_sync"
     if not data.truncated:
         data.meta = _metadata(mcap_path)
+    if not data.meta:
+        data.meta = meta_from_config(run_dir)
     return data
+
+
+def meta_from_config(run_dir: Path) -> dict[str, Any]:
+    """What ran, from ``RUN/config.json`` (written before the run starts, so a killed
+    run has it while its ``run.mcap`` has no metadata): ``name``, ``scenario``,
+    ``scenario_params`` (as configured, defaults not filled in), ``seed`` and
+    ``config_hash`` (the digest ``hil run`` records: sha256 of the canonical JSON),
+    with ``meta_source`` naming the file. Empty when it is missing or not a config."""
+    import hashlib
+
+    try:
+        cfg = json.loads((run_dir / CONFIG_NAME).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(cfg, dict):
+        return {}
+    scenario = cfg.get("scenario")
+    if not isinstance(scenario, dict):
+        scenario = {}
+    out = {"name": cfg.get("name"), "scenario": scenario.get("name"), "scenario_params": scenario.get("params"),
+           "seed": cfg.get("seed"),
+           "config_hash": hashlib.sha256(json.dumps(cfg, sort_keys=True, separators=(",", ":")).encode()).hexdigest()}
+    return {**{k: v for k, v in out.items() if v is not None}, "meta_source": CONFIG_NAME}
 
 
 def camera_images(mcap_path: Path, wanted: Iterable[tuple[str, int]]) -> dict[tuple[str, int], tuple[str, str]]:
@@ -353,6 +403,22 @@ def _as_compressed(d: dict[str, Any]) -> tuple[str, str] | None:
     return ("jpeg", base64.b64encode(buf.tobytes()).decode()) if ok else None
 
 
+_RECORD_FIELDS = {f.name for f in dataclasses.fields(PipelineRecord)}
+
+
+def pipeline_record(d: Any) -> PipelineRecord | None:
+    """A ``/V/pipeline`` message as a :class:`hil.timing.records.PipelineRecord`
+    (fields it does not know are left out); ``None`` when it is not one."""
+    if not isinstance(d, dict):
+        return None
+    try:
+        kw = {k: v for k, v in d.items() if k in _RECORD_FIELDS}
+        kw["status"] = FrameStatus(str(d["status"]))
+        return PipelineRecord(**kw)
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
 def _json(data: bytes) -> Any:
     try:
         return json.loads(data)
@@ -365,5 +431,5 @@ def _num(d: dict[str, Any], key: str) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
-__all__ = ["ClockPoint", "RecordedEvent", "RunData", "camera_images", "is_finalized_mcap", "load_summary",
-           "read_run", "run_dir_of", "summary_path_of"]
+__all__ = ["CONFIG_NAME", "ClockPoint", "RecordedEvent", "RunData", "camera_images", "is_finalized_mcap",
+           "load_summary", "meta_from_config", "pipeline_record", "read_run", "run_dir_of", "summary_path_of"]

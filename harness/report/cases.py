@@ -12,12 +12,16 @@ stands.
 from __future__ import annotations
 
 import bisect
+import json
+import os
 import sqlite3
 from html import escape
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
+from urllib.parse import quote
 
 from hil.harness.cases.recorder import query_cases
+from hil.harness.record import event_text as et
 from hil.harness.record.run_folder import CORNER_DB_NAME, MCAP_NAME, RunData, camera_images
 
 MAX_ROWS = 500
@@ -145,16 +149,36 @@ def thumbnail_for_case(d: RunData, row: dict[str, Any], *, width: int = _THUMB_W
     return "" if img is None else img_tag(img[0], img[1], width=width, alt=alt)
 
 
-def _mcap_link(d: RunData, rel: Any) -> str:
+def _inside(run_dir: Path, rel: str) -> str | None:
+    """Why ``rel`` is not a plain relative path to a file inside ``run_dir`` (a scheme
+    such as ``javascript:``, an absolute path, ``..``, a symlink leading out, nothing
+    there); None when it is."""
+    p = PurePosixPath(rel)
+    if p.is_absolute() or ".." in p.parts or ":" in rel or "\\" in rel or any(ord(c) < 32 for c in rel):
+        return "not a file in the run folder"
+    full = (run_dir / p).resolve()
+    if not full.is_relative_to(run_dir.resolve()):
+        return "not a file in the run folder"
+    return None if full.is_file() else "not written"
+
+
+def _mcap_link(d: RunData, rel: Any, page_dir: Path) -> str:
+    """A case's recording, linked so that it works from a page in ``page_dir``: a link
+    only to a file inside the run folder (the row may have been tampered with);
+    anything else is shown as text."""
     if not isinstance(rel, str) or not rel:
         return "–"
-    exists = (d.run_dir / rel).is_file()
-    return (f'<a href="{escape(rel)}">{escape(rel)}</a>' if exists
-            else f'{escape(rel)} <span class="muted">(not written)</span>')
+    why = _inside(d.run_dir, rel)
+    if why is not None:
+        return f'{escape(rel)} <span class="muted">({why})</span>'
+    href = quote(Path(os.path.relpath((d.run_dir / rel).resolve(), page_dir.resolve())).as_posix())
+    return f'<a href="{escape(href)}">{escape(rel)}</a>'
 
 
-def cases_section(d: RunData) -> str:
-    """HTML of the corner-case section (says so when there are none)."""
+def cases_section(d: RunData, *, page_dir: Path | None = None) -> str:
+    """HTML of the corner-case section (says so when there are none); links relative
+    to ``page_dir``, the folder of the page (default: the run folder)."""
+    page_dir = d.run_dir if page_dir is None else page_dir
     out = ['<h2 id="cases">Corner cases</h2>']
     db = find_db(d.run_dir)
     if db is None:
@@ -180,7 +204,7 @@ def cases_section(d: RunData) -> str:
                      f"{t / 1e9:.3f}" if isinstance(t, (int, float)) else "–",
                      escape(str(r.get("severity") or "–")), escape(str(r.get("cause") or "–")),
                      str(ev) if isinstance(ev, int) else "–", escape(str(r.get("summary") or "–")),
-                     _mcap_link(d, r.get("mcap_path"))])
+                     _mcap_link(d, r.get("mcap_path"), page_dir)])
     h = "".join(f"<th>{escape(c)}</th>" for c in head)
     out.append(f"<table><tr>{h}</tr>" + "".join("<tr>" + "".join(f"<td>{c}</td>" for c in b) + "</tr>"
                                                 for b in body) + "</table>")
@@ -206,7 +230,7 @@ def cases_section(d: RunData) -> str:
             if k == "sim_time_ns":
                 cells.append(("sim time", f"{v / 1e9:.3f} s" if isinstance(v, (int, float)) else "–"))
             elif k == "mcap_path":
-                cells.append(("recording", _mcap_link(d, v)))
+                cells.append(("recording", _mcap_link(d, v, page_dir)))
             else:
                 cells.append((k, "–" if v is None else escape(str(v))))
         for k, v in r.items():
@@ -217,34 +241,36 @@ def cases_section(d: RunData) -> str:
             elif k.endswith("_ns") and isinstance(v, (int, float)):
                 cells.append((k[:-3].replace("_", " ") + " (s)", f"{v / 1e9:.3f}"))
             elif k == "event" and isinstance(v, str):
-                cells.append(("event", _event_cells(v)))
+                cells.append(("event", _event_cells(v, d.t_start_ns)))
             else:
-                cells.append((k, escape(str(v))))
+                cells.append((k, "–" if v is None else escape(str(v))))
         table = "<table>" + "".join(f"<tr><th>{escape(k)}</th><td>{v}</td></tr>" for k, v in cells) + "</table>"
         out.append(f'<div class="case" id="case-{escape(str(r.get("id")))}">{pic}<div><b>case '
                    f'{escape(str(r.get("id", i)))}</b>{table}</div></div>')
     return "".join(out)
 
 
-def _event_cells(text: str) -> str:
-    """A case's event (JSON) as a small key/value list; times in s."""
-    import json
-
+def _event_cells(text: str, t_start_ns: int) -> str:
+    """A case's event (JSON) in words (:mod:`hil.harness.record.event_text`): its value
+    against its threshold, cause, frames and its own fields (a mismatch's evidence) whole;
+    its harness time as seconds since the first frame."""
     try:
         ev = json.loads(text)
     except ValueError:
-        return escape(text[:400])
+        return escape(text)
     if not isinstance(ev, dict):
-        return escape(text[:400])
-    parts = []
-    for k, v in ev.items():
-        if k.endswith("_ns") and isinstance(v, (int, float)):
-            parts.append(f"{escape(k[:-3])} {v / 1e9:.3f} s")
-        elif isinstance(v, float):
-            parts.append(f"{escape(k)} {v:.4g}")
-        elif v not in (None, [], {}):
-            parts.append(f"{escape(k)} {escape(json.dumps(v, default=str)[:120])}")
-    return "; ".join(parts)
+        return escape(text)
+    parts = [p for p in (et.value_vs_threshold(ev), et.cause(ev)) if p != "–"]
+    if et.frames(ev) != "–":
+        parts.append(f"frames {et.frames(ev)}")
+    if isinstance(ev.get("sim_time_ns"), int):
+        parts.append(f"sim time {ev['sim_time_ns'] / 1e9:.3f} s")
+    if isinstance(ev.get("harness_time_ns"), int):
+        parts.append(f"{(ev['harness_time_ns'] - t_start_ns) / 1e9:.3f} s since the first frame")
+    if isinstance(ev.get("links"), list) and ev["links"]:
+        parts.append("linked: " + ", ".join(str(x) for x in ev["links"]))
+    parts += et.extra_fields(ev)
+    return "<br>".join(escape(p) for p in parts)
 
 
 __all__ = ["case_for_event", "cases_section", "find_db", "img_tag", "read_case_rows", "read_cases",

@@ -19,7 +19,9 @@ fails at all, split over its m checks (Bonferroni). A tiny change fails never (i
 within its allowance), however sure; a large one fails only when the samples show it
 beyond the noise. The table gives each change with its 95 % interval and
 ``P(worse)``. A figure that surely fell by more than its allowance is ``better``
-(information).
+(information); one over its limit that the test is not sure of is ``over, not
+significant`` (it passes, with its reason and numbers under the table: never ``ok``).
+An unknown stage, or a ``--stage`` the baseline has no samples of, is bad input.
 
 Where a run has no usable ``run.mcap`` (only a ``summary.json``), its figures are
 compared as points, as the gate did before: ``p50``/``p99``/``std`` fail when they
@@ -34,13 +36,14 @@ noted, not failed.
 from __future__ import annotations
 
 import argparse
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from enum import Enum
 from typing import Any
 
 import numpy as np
 
+from hil.harness.report.compare_render import percent, render
 from hil.harness.report.compare_samples import RunSamples, VehicleSamples, load_run
 from hil.harness.report.compare_tolerances import (
                                                    LATENCY_METRICS,
@@ -66,6 +69,7 @@ class Verdict(str, Enum):
     MISSING = "MISSING"
     NEW = "new"
     NO_DATA = "no data"
+    NOT_SIGNIFICANT = "over, not significant"  # over its limit, but the samples do not make it sure
 
     @property
     def fails(self) -> bool:
@@ -104,7 +108,8 @@ class Check:
     """One compared figure. ``limit``: baseline + allowance (``None`` where no limit
     applies). Judged from samples: ``ci`` (interval of the change at the settings'
     confidence), ``p_worse`` (probability that it grew beyond the allowance) and
-    ``need`` (the ``p_worse`` at which it fails)."""
+    ``need`` (the ``p_worse`` at which it fails). ``reason``: why a figure over its
+    limit did not fail (``Verdict.NOT_SIGNIFICANT``)."""
 
     vehicle: str
     stage: str
@@ -118,6 +123,7 @@ class Check:
     ci: tuple[float, float] | None = None
     p_worse: float | None = None
     need: float | None = None
+    reason: str = ""
 
 
 # --- comparing ---------------------------------------------------------------------------
@@ -159,18 +165,22 @@ class _Pending:
 
 
 def _shift(base: np.ndarray, run: np.ndarray, metric: Metric, tol: Tolerance, noise: Tolerance,
-           settings: GateSettings, rng: np.random.Generator) -> Shift:
+           settings: GateSettings, rng: np.random.Generator, on_judged: Callable[[], None] | None) -> Shift:
     allowed = tol.allowance(metric.of(np.asarray(base, np.float64)))
-    return compare_metric(base, run, metric, allowed=allowed, confidence=settings.confidence,
-                          run_noise_rel=noise.rel, run_noise_abs=noise.abs, resamples=settings.resamples, rng=rng)
+    shift = compare_metric(base, run, metric, allowed=allowed, confidence=settings.confidence,
+                           run_noise_rel=noise.rel, run_noise_abs=noise.abs, resamples=settings.resamples, rng=rng)
+    if on_judged is not None:
+        on_judged()
+    return shift
 
 
 def compare(baseline: Mapping[str, Any], run: Mapping[str, Any], tol: Tolerances | None = None, *,
             base_samples: RunSamples | None = None, run_samples: RunSamples | None = None,
-            settings: GateSettings | None = None) -> list[Check]:
+            settings: GateSettings | None = None, on_judged: Callable[[], None] | None = None) -> list[Check]:
     """Every check of ``run`` against ``baseline`` (two parsed summary.json), judged
     from the per-frame samples where both runs have them for a vehicle, else as
-    points (see the module docstring)."""
+    points (see the module docstring). ``on_judged`` is called after each check
+    judged from samples (a bootstrap each: the long part on long runs)."""
     tol = tol or Tolerances()
     settings = settings or GateSettings()
     rng = np.random.default_rng(settings.seed)
@@ -193,7 +203,7 @@ def compare(baseline: Mapping[str, Any], run: Mapping[str, Any], tol: Tolerances
         xr = run_samples.vehicles.get(vehicle) if run_samples is not None else None
         if xb is not None and xr is not None and xb.dropped.size and xr.dropped.size:
             pending.append(_Pending(len(checks), _shift(xb.dropped, xr.dropped, Metric.MEAN, tol.drop_rate,
-                                                         Tolerance(0.0, 0.0), settings, rng)))
+                                                         Tolerance(0.0, 0.0), settings, rng, on_judged)))
             checks.append(Check(vehicle, "-", "drop_rate", None, None, None, Verdict.OK))
         else:
             checks.append(_judge(vehicle, "-", "drop_rate", _num(b, "drop_rate"), _num(r, "drop_rate"),
@@ -213,7 +223,8 @@ def compare(baseline: Mapping[str, Any], run: Mapping[str, Any], tol: Tolerances
             if sb is not None and sr is not None:
                 for metric in LATENCY_METRICS:
                     pending.append(_Pending(len(checks), _shift(sb, sr, Metric(metric), tol.for_stage(metric, stage),
-                                                                 tol.noise_of(metric, stage), settings, rng)))
+                                                                 tol.noise_of(metric, stage), settings, rng,
+                                                                 on_judged)))
                     checks.append(Check(vehicle, stage, metric, None, None, None, Verdict.OK))
                 continue
             for metric in POINT_METRICS:
@@ -224,10 +235,44 @@ def compare(baseline: Mapping[str, Any], run: Mapping[str, Any], tol: Tolerances
         s = p.shift
         verdict = (Verdict.REGRESSION if s.p_worse >= need else Verdict.BETTER if s.p_better >= need
                    else Verdict.OK)
+        reason = ""
+        if verdict is Verdict.OK and s.run > s.base + s.allowed + 1e-12:
+            # Over its limit, and the test is not sure enough to fail it: never shown as a plain "ok".
+            verdict = Verdict.NOT_SIGNIFICANT
+            reason = f"over the limit but not significant (P(worse) {percent(s.p_worse)} < {percent(need, 2)})"
         checks[p.at] = replace(checks[p.at], baseline=s.base, run=s.run, limit=s.base + s.allowed, verdict=verdict,
                                method=Method.SAMPLES, ci=(s.ci_lo, s.ci_hi), p_worse=s.p_worse, need=need,
-                               note=f"{s.n_base}/{s.n_run} frames")
+                               note=f"{s.n_base}/{s.n_run} frames", reason=reason)
     return checks
+
+
+def check_selection(baseline: Mapping[str, Any], tol: Tolerances) -> None:
+    """Refuse a stage selection (``--stage``, ``only_stages``) that checks nothing: a
+    named stage of which no vehicle of the baseline has samples.
+
+    Raises:
+        ConfigError: names the stage and the stages the baseline has.
+    """
+    have = {stage for v in (baseline.get("vehicles") or {}).values() if isinstance(v, dict)
+            for stage, st in (v.get("latency_ms") or {}).items() if isinstance(st, dict) and st.get("count")}
+    for stage in tol.only_stages:
+        if stage not in have:
+            raise ConfigError(f"--stage {stage}: the baseline has no samples of this stage, so nothing would be "
+                              f"checked (its stages with samples: {', '.join(_stage_order(sorted(have))) or 'none'})")
+
+
+def samples_checks(xb: RunSamples, xr: RunSamples, tol: Tolerances) -> int:
+    """How many checks ``compare`` judges from samples (the drop rate and four per
+    stage of each vehicle both runs have samples of)."""
+    n = 0
+    for v, b in xb.vehicles.items():
+        r = xr.vehicles.get(v)
+        if r is None:
+            continue
+        n += bool(b.dropped.size and r.dropped.size)
+        n += len(LATENCY_METRICS) * sum(1 for s in b.stages_ms if tol.checks_stage(s) and _stage_samples(b, s) is not None
+                                        and _stage_samples(r, s) is not None)
+    return n
 
 
 def _stage_samples(x: VehicleSamples | None, stage: str) -> np.ndarray | None:
@@ -249,62 +294,7 @@ def differences(baseline: Mapping[str, Any], run: Mapping[str, Any]) -> list[str
 # --- the command -------------------------------------------------------------------------
 
 
-def _value(metric: str, v: float | None) -> str:
-    if v is None:
-        return "–"
-    return f"{v * 100:.2f} %" if metric == "drop_rate" else f"{v:.3f} ms"
-
-
-def _change(c: Check) -> str:
-    if c.baseline is None or c.run is None:
-        return c.note
-    d = c.run - c.baseline
-    if c.metric == "drop_rate":
-        return f"{d * 100:+.2f} pp"
-    if not c.baseline:
-        return f"{d:+.3f} ms"
-    ratio = c.run / c.baseline
-    rel = f"×{ratio:.0f}" if abs(ratio) >= 10 else f"{(ratio - 1) * 100:+.1f} %"
-    return f"{d:+.3f} ms ({rel})"
-
-
-def _interval(c: Check) -> str:
-    if c.ci is None:
-        return "point" if c.method is Method.POINT else "–"
-    lo, hi = c.ci
-    if c.metric == "drop_rate":
-        return f"{lo * 100:+.2f} .. {hi * 100:+.2f} pp"
-    return f"{lo:+.3f} .. {hi:+.3f}"
-
-
-def _sure(c: Check) -> str:
-    if c.p_worse is None:
-        return "–"
-    p = c.p_worse * 100
-    return "<0.1 %" if p < 0.1 else ">99.9 %" if p > 99.9 else f"{p:.1f} %"
-
-
-def render(checks: Sequence[Check], *, failures_only: bool = False, confidence: float = 0.95) -> Any:
-    """A rich table of ``checks``."""
-    from rich.table import Table
-
-    style = {Verdict.REGRESSION: "bold red", Verdict.MISSING: "bold red", Verdict.BETTER: "green",
-             Verdict.NEW: "cyan", Verdict.NO_DATA: "dim", Verdict.OK: ""}
-    t = Table(title="latency regression check (RUN against BASELINE)", title_justify="left")
-    for col, just in (("vehicle", "left"), ("stage", "left"), ("metric", "left"), ("baseline", "right"),
-                      ("run", "right"), ("change", "right"), (f"{confidence * 100:g} % interval", "right"),
-                      ("limit", "right"), ("P(worse)", "right"), ("verdict", "left")):
-        t.add_column(col, justify=just)  # type: ignore[arg-type]
-    for c in checks:
-        if failures_only and not c.verdict.fails:
-            continue
-        t.add_row(c.vehicle, c.stage, c.metric, _value(c.metric, c.baseline), _value(c.metric, c.run), _change(c),
-                  _interval(c), "–" if c.limit is None else f"≤ {_value(c.metric, c.limit)}", _sure(c),
-                  f"[{style[c.verdict]}]{c.verdict.value}[/]" if style[c.verdict] else c.verdict.value)
-    return t
-
-
-def add_parser(sub: Any) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Register ``hil compare`` on the CLI's subparsers."""
     p = sub.add_parser("compare", help="fail (exit 1) when RUN's latency regressed against BASELINE",
                        description="Compare two runs' per-frame latencies (from run.mcap) and exit 1 when one "
@@ -322,47 +312,57 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--point", action="store_true",
                    help="compare the summaries' figures as points (no samples, no statistics)")
     p.add_argument("--failures-only", action="store_true", help="list only the failing checks")
+    from hil.harness.report.ci_outputs import add_ci_args
+
+    add_ci_args(p)
 
 
 def cmd(args: argparse.Namespace) -> int:
     """``hil compare``: 0 no regression, 1 regression; ConfigError (exit 2) on bad input."""
     from rich.console import Console
 
+    from hil.harness.cli.progress import WorkProgress
+    from hil.harness.report.ci_outputs import check_ci_args, write_ci_outputs
+    from hil.harness.report.compare_render import judged_lines, outcome_lines, render
+
+    check_ci_args(args)
     tol = tolerances_from_args(args)
     settings = GateSettings(alpha=args.alpha, resamples=args.resamples, seed=args.seed)
     settings.check()
-    baseline, xb = load_run(args.baseline)
-    run, xr = load_run(args.run)
-    if args.point:
-        xb = xr = RunSamples({}, "--point")
-    checks = compare(baseline, run, tol, base_samples=xb, run_samples=xr, settings=settings)
     console = Console()
     if not console.is_terminal:
         console.width = max(console.width, 150)
-    for note in differences(baseline, run):
+    # Long runs: reading both recordings and a bootstrap per check take a while; on a
+    # terminal a bar says how far it got and the time left (nothing in CI logs).
+    with WorkProgress(console, what="reading the runs", total=2, unit="runs", lines=False) as progress:
+        baseline, xb = load_run(args.baseline)
+        progress.advance(note=str(args.baseline))
+        run, xr = load_run(args.run)
+        progress.advance(note=str(args.run))
+    check_selection(baseline, tol)
+    if args.point:
+        xb = xr = RunSamples({}, "--point")
+    with WorkProgress(console, what="judging", total=samples_checks(xb, xr, tol), unit="checks",
+                      lines=False) as progress:
+        checks = compare(baseline, run, tol, base_samples=xb, run_samples=xr, settings=settings,
+                         on_judged=progress.advance)
+    notes = differences(baseline, run)
+    for note in notes:
         console.print(f"[yellow]note: {note}[/yellow]")
     for name, x in (("baseline", xb), ("run", xr)):
         if x.note and not args.point:
             console.print(f"[yellow]note: {name}: {x.note}: its figures are compared as points[/yellow]")
     console.print(render(checks, failures_only=args.failures_only, confidence=settings.confidence))
-    judged = [c for c in checks if c.method is Method.SAMPLES]
-    if judged:
-        need = judged[0].need or 1.0
-        console.print(f"{len(judged)} checks judged from per-frame samples: each fails only when P(worse) ≥ "
-                      f"{need * 100:.2f} % (alpha {settings.alpha:g} over {len(judged)} checks), counting "
-                      "run-to-run noise of " + ", ".join(
-                          f"{m} {tol.noise_of(m).rel * 100:g} % & {tol.noise_of(m).abs:g} ms" for m in LATENCY_METRICS)
-                      + " (own figures for " + ", ".join(sorted(tol.stage_noise)) + ")"
-                      + f"; {settings.resamples} block-bootstrap resamples, seed {settings.seed}")
-    failed = [c for c in checks if c.verdict.fails]
-    if failed:
-        names = ", ".join(f"{c.vehicle} {c.stage} {c.metric}".replace(" - ", " ") for c in failed[:8])
-        console.print(f"[bold red]REGRESSION[/]: {len(failed)} of {len(checks)} checks failed ({names}"
-                      + (", ..." if len(failed) > 8 else "") + ")")
-        return EXIT_REGRESSION
-    console.print(f"[green]ok[/]: all {len(checks)} checks within their limits")
-    return EXIT_OK
+    for line in [*judged_lines(checks, tol, settings), *outcome_lines(checks)]:
+        console.print(line, highlight=False)
+    code = EXIT_REGRESSION if any(c.verdict.fails for c in checks) else EXIT_OK
+    from hil.harness.report.ci_cases import of_compare
+
+    write_ci_outputs(of_compare(checks, baseline=str(args.baseline), run=str(args.run), exit_code=code, notes=notes),
+                     args)
+    return code
 
 
-__all__ = ["Check", "GateSettings", "Method", "Tolerance", "Tolerances", "Verdict", "add_parser", "cmd", "compare",
-           "differences", "load_run", "load_tolerances", "parse_tolerances", "render", "tolerances_from_args"]
+__all__ = ["Check", "GateSettings", "Method", "Tolerance", "Tolerances", "Verdict", "add_parser", "check_selection", "cmd",
+           "compare", "differences", "load_run", "load_tolerances", "parse_tolerances", "percent", "render",
+           "tolerances_from_args"]

@@ -9,7 +9,6 @@ a frame is dropped when its record says ``dropped``.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 from dataclasses import dataclass
@@ -19,11 +18,10 @@ from typing import Any
 import numpy as np
 
 from hil.common.errors import ConfigError
-from hil.harness.record.run_folder import MCAP_NAME, load_summary, run_dir_of
+from hil.harness.record.run_folder import MCAP_NAME, load_summary, pipeline_record, run_dir_of
 from hil.timing.anomaly import is_sane
 from hil.timing.records import FrameStatus, PipelineRecord
 
-_FIELDS = {f.name for f in dataclasses.fields(PipelineRecord)}
 _ACCOUNTED = (FrameStatus.OK, FrameStatus.DROPPED, FrameStatus.STALE)
 
 
@@ -44,17 +42,6 @@ class RunSamples:
     note: str = ""
 
 
-def _record(d: Any) -> PipelineRecord | None:
-    if not isinstance(d, dict):
-        return None
-    try:
-        kw = {k: v for k, v in d.items() if k in _FIELDS}
-        kw["status"] = FrameStatus(str(d["status"]))
-        return PipelineRecord(**kw)
-    except (KeyError, TypeError, ValueError):
-        return None
-
-
 def read_samples(run_dir: Path, vehicles: list[str]) -> RunSamples:
     """The samples of ``vehicles`` from ``run_dir/run.mcap``. Never raises: a missing
     or unreadable recording gives no vehicles and a ``note`` saying why."""
@@ -71,7 +58,7 @@ def read_samples(run_dir: Path, vehicles: list[str]) -> RunSamples:
             if v is None:
                 continue
             try:
-                rec = _record(json.loads(msg.data))
+                rec = pipeline_record(json.loads(msg.data))
             except ValueError:
                 continue
             if rec is not None:

@@ -19,6 +19,9 @@ Defaults (``--tolerances FILE.yaml`` sets any of these, flags win over the file)
     skip_stages: [apply_delay]        # not checked
     only_stages: [end_to_end]         # check these alone (same as --stage, repeatable)
 
+A stage name that is not one of ``summary.json``'s stages (``STAGES``), an unknown
+key or metric, is refused with the valid names: a typo must not switch a check off.
+
 A figure may grow by ``max(rel × baseline, abs)``. ``noise`` is the standard
 deviation of each figure between runs of the same build, ``sqrt((rel × value)² +
 abs²)``: the run-to-run variation that one pair of runs cannot show (the machine's
@@ -46,6 +49,7 @@ from typing import Any
 import yaml
 
 from hil.common.errors import ConfigError
+from hil.timing.records import STAGES
 
 LATENCY_METRICS = ("p1", "p50", "p99", "std")
 _DEFAULTS = {"p1": (0.10, 0.5), "p50": (0.10, 0.5), "p99": (0.20, 2.0), "std": (0.25, 1.0)}
@@ -100,6 +104,23 @@ class Tolerances:
     def checks_stage(self, stage: str) -> bool:
         return stage not in self.skip_stages and (not self.only_stages or stage in self.only_stages)
 
+    def with_metric(self, metric: str, tol: Tolerance) -> Tolerances:
+        """A copy with the tolerance of ``metric`` (one of ``LATENCY_METRICS``) set to ``tol``.
+
+        Raises:
+            ValueError: ``metric`` is not a latency metric.
+        """
+        match metric:
+            case "p1":
+                return dataclasses.replace(self, p1=tol)
+            case "p50":
+                return dataclasses.replace(self, p50=tol)
+            case "p99":
+                return dataclasses.replace(self, p99=tol)
+            case "std":
+                return dataclasses.replace(self, std=tol)
+        raise ValueError(f"not a latency metric: {metric!r}; expected one of {LATENCY_METRICS}")
+
 
 def _tolerance(node: Any, base: Tolerance, where: str, source: str, *, abs_key: str) -> Tolerance:
     if not isinstance(node, dict):
@@ -116,10 +137,22 @@ def _tolerance(node: Any, base: Tolerance, where: str, source: str, *, abs_key: 
     return out
 
 
+def check_stage(name: str, where: str) -> str:
+    """``name`` when it is a stage of ``summary.json`` (``STAGES``).
+
+    Raises:
+        ConfigError: ``where`` (a flag or a key path) names an unknown stage; the
+            message lists the valid ones. A typo must not switch a check off.
+    """
+    if name not in STAGES:
+        raise ConfigError(f"{where}: unknown stage {name!r} (valid: {', '.join(STAGES)})")
+    return name
+
+
 def _stage_list(v: Any, where: str, source: str) -> tuple[str, ...]:
     if not isinstance(v, list) or not all(isinstance(s, str) for s in v):
         raise ConfigError(f"{source}: tolerances error at {where}: got {v!r}; expected a list of stage names")
-    return tuple(v)
+    return tuple(check_stage(s, f"{source}: tolerances error at {where}") for s in v)
 
 
 def _noise(node: Any, base: Mapping[str, Tolerance], source: str, where: str = "noise") -> dict[str, Tolerance]:
@@ -156,13 +189,15 @@ def parse_tolerances(data: Any, *, source: str = "<tolerances>", base: Tolerance
     valid = (*LATENCY_METRICS, "drop_rate", "noise", "stages", "only_stages", "skip_stages")
     for key, node in data.items():
         if key in LATENCY_METRICS:
-            tol = dataclasses.replace(tol, **{key: _tolerance(node, getattr(tol, key), key, source, abs_key="abs_ms")})
+            tol = tol.with_metric(key, _tolerance(node, getattr(tol, key), key, source, abs_key="abs_ms"))
         elif key == "drop_rate":
             tol = dataclasses.replace(tol, drop_rate=_tolerance(node, tol.drop_rate, key, source, abs_key="abs"))
         elif key == "noise":
             tol = dataclasses.replace(tol, noise=_noise(node, tol.noise, source))
-        elif key in ("only_stages", "skip_stages"):
-            tol = dataclasses.replace(tol, **{key: _stage_list(node, key, source)})
+        elif key == "only_stages":
+            tol = dataclasses.replace(tol, only_stages=_stage_list(node, key, source))
+        elif key == "skip_stages":
+            tol = dataclasses.replace(tol, skip_stages=_stage_list(node, key, source))
         elif key == "stages":
             if not isinstance(node, dict):
                 raise ConfigError(f"{source}: tolerances error at stages: got {node!r}; expected a mapping "
@@ -170,6 +205,7 @@ def parse_tolerances(data: Any, *, source: str = "<tolerances>", base: Tolerance
             stages = {k: dict(v) for k, v in tol.stages.items()}
             stage_noise = {k: dict(v) for k, v in tol.stage_noise.items()}
             for stage, per in node.items():
+                check_stage(str(stage), f"{source}: tolerances error at stages")
                 if not isinstance(per, dict):
                     raise ConfigError(f"{source}: tolerances error at stages.{stage}: got {per!r}; expected a "
                                       "mapping of p1/p50/p99/std to {rel, abs_ms}, and noise")
@@ -239,16 +275,15 @@ def tolerances_from_args(args: argparse.Namespace) -> Tolerances:
         for flag, v in ((f"--{metric}-rel", rel), (f"--{metric}-abs-ms", abs_ms)):
             if v is not None and v < 0:
                 raise ConfigError(f"{flag}: got {v:g}; expected a number >= 0")
-        tol = dataclasses.replace(tol, **{metric: Tolerance(t.rel if rel is None else rel,
-                                                            t.abs if abs_ms is None else abs_ms)})
+        tol = tol.with_metric(metric, Tolerance(t.rel if rel is None else rel, t.abs if abs_ms is None else abs_ms))
     if args.drop_rate_abs is not None:
         if args.drop_rate_abs < 0:
             raise ConfigError(f"--drop-rate-abs: got {args.drop_rate_abs:g}; expected a number >= 0")
         tol = dataclasses.replace(tol, drop_rate=Tolerance(tol.drop_rate.rel, args.drop_rate_abs))
     if args.stage:
-        tol = dataclasses.replace(tol, only_stages=tuple(args.stage))
+        tol = dataclasses.replace(tol, only_stages=tuple(check_stage(s, "--stage") for s in args.stage))
     return tol
 
 
 __all__ = ["LATENCY_METRICS", "RUN_NOISE", "STAGE_NOISE", "Tolerance", "Tolerances", "add_tolerance_args",
-           "load_tolerances", "parse_tolerances", "tolerances_from_args"]
+           "check_stage", "load_tolerances", "parse_tolerances", "tolerances_from_args"]

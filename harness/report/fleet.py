@@ -15,6 +15,8 @@ import numpy as np
 
 from hil.harness.record.run_folder import RunData
 from hil.harness.report import plots as rp
+from hil.harness.report.distributions import box_chart
+from hil.harness.report.tables import ms, table
 
 SECTIONS = (("run", "Run"), ("fleet", "Fleet"), ("latency", "Latency per stage"), ("timeline", "Latency over time"),
             ("fps", "Frames per second"), ("clock", "Target clock"), ("events", "Events"), ("cases", "Corner cases"))
@@ -58,19 +60,33 @@ def limits(run_dir: Path, vehicle: str) -> dict[str, float]:
     return out
 
 
-def e2e_rules(run_dir: Path, vehicle: str) -> list[rp.Rule]:
-    """Reference lines for an end-to-end chart: its deadline and the estimate timeout."""
-    lim = limits(run_dir, vehicle)
-    rules = []
-    if "deadline.end_to_end" in lim:
-        rules.append(rp.Rule(f"deadline {lim['deadline.end_to_end']:g} ms", lim["deadline.end_to_end"], "#d62728"))
-    if "timeout" in lim:
-        rules.append(rp.Rule(f"estimate timeout {lim['timeout']:g} ms (dropped beyond)", lim["timeout"], "#7f0000",
-                             stretch=False))
+def e2e_rules(d: RunData, vehicles: list[str]) -> list[rp.Rule]:
+    """Reference lines for an end-to-end chart of ``vehicles``: each end-to-end budget
+    (``summary.json``'s ``budgets``, with how many frames went over it; else the
+    config's deadline) and the estimate timeout (frames are dropped beyond it)."""
+    budgets: dict[float, list[int]] = {}
+    timeouts: set[float] = set()
+    for v in vehicles:
+        b = ((((d.summary or {}).get("vehicles") or {}).get(v) or {}).get("budgets") or {}).get("end_to_end")
+        lim = limits(d.run_dir, v)
+        if isinstance(b, dict) and isinstance(b.get("budget_ms"), (int, float)):
+            counts = budgets.setdefault(float(b["budget_ms"]), [0, 0])
+            counts[0] += int(b.get("over") or 0)
+            counts[1] += int(b.get("frames") or 0)
+        elif "deadline.end_to_end" in lim:
+            budgets.setdefault(lim["deadline.end_to_end"], [])
+        if "timeout" in lim:
+            timeouts.add(lim["timeout"])
+    rules = [rp.Rule(f"deadline {b:g} ms" + (f" ({c[0]} of {c[1]} frames over)" if c else ""), b, "#d62728")
+             for b, c in sorted(budgets.items())]
+    rules += [rp.Rule(f"estimate timeout {t:g} ms (dropped beyond)", t, "#7f0000", stretch=False)
+              for t in sorted(timeouts)]
     return rules
 
 
-def _e2e(d: RunData, vehicle: str) -> tuple[np.ndarray, np.ndarray]:
+def e2e(d: RunData, vehicle: str) -> tuple[np.ndarray, np.ndarray]:
+    """A vehicle's applied frames: capture time (s since the first frame) and
+    end-to-end latency (ms)."""
     t0 = d.t_start_ns
     recs = [r for r in d.pipeline.get(vehicle, []) if r.get("status") == "ok"
             and isinstance((r.get("stages_ns") or {}).get("end_to_end"), int) and isinstance(r.get("t0_ns"), int)]
@@ -88,7 +104,7 @@ def fleet_section(d: RunData, *, left: int = 0) -> str:
     series, boxes, rows = [], [], []
     vs = (d.summary or {}).get("vehicles") or {}
     for v in d.vehicles:
-        x, y = _e2e(d, v)
+        x, y = e2e(d, v)
         series.append(rp.Series(f"{v} end-to-end (ms)", x, y, colours[v], "points"))
         if y.size:
             boxes.append((v, y))
@@ -97,23 +113,21 @@ def fleet_section(d: RunData, *, left: int = 0) -> str:
         p99 = float(np.percentile(y, 99)) if y.size else None
         drop = s.get("drop_rate")
         rows.append([f'<span style="color:{colours[v]}">■</span> <a href="#latency-{escape(v)}">{escape(v)}</a>',
-                     str(y.size), _num(p50, 1), _num(p99, 1), _num(s.get("frames_per_s"), 1),
-                     _num(s.get("estimates_per_s"), 1), "–" if not isinstance(drop, (int, float)) else f"{drop:.1%}"])
-    rules = e2e_rules(d.run_dir, d.vehicles[0])
-    out.append('<p class="muted">End-to-end latency (t0′−t0, ms) of every applied frame of every vehicle; '
-               "dashed lines: the end-to-end deadline and the estimate timeout of the run's config.</p>")
-    end = max((float(s.xs.max()) for s in series if len(s.xs)), default=1.0)  # type: ignore[union-attr]
+                     str(y.size), ms(p50, 1), ms(p99, 1), ms(s.get("frames_per_s"), 1),
+                     ms(s.get("estimates_per_s"), 1), "–" if not isinstance(drop, (int, float)) else f"{drop:.1%}"])
+    rules = e2e_rules(d, d.vehicles)
+    out.append('<p class="muted">End-to-end latency (t0′−t0, ms) of every applied frame of every vehicle, '
+               "on an axis scaled to the data; dashed lines: the end-to-end deadline (with the frames over it) and "
+               "the estimate timeout of the run's config, named above the chart when they lie beyond the data.</p>")
+    end = max((float(np.max(s.xs)) for s in series if len(s.xs)), default=1.0)
     out.append(rp.line_chart(series=series, rules=rules, x_label="time since first frame (s)",
                              y_label="end-to-end (ms)", title="all vehicles", left=left, x_range=(0.0, end)))
     if boxes:
-        out.append(rp.box_chart(boxes, x_label="end-to-end ms", title="end-to-end latency per vehicle",
+        out.append(box_chart(boxes, x_label="end-to-end ms", title="end-to-end latency per vehicle",
                                 colours=colours))
     head = ["vehicle", "applied frames", "p50 (ms)", "p99 (ms)", "frames sent/s", "estimates applied/s",
             "drop rate (%)"]
-    h = "".join(f"<th>{escape(c)}</th>" for c in head)
-    body = "".join("<tr>" + "".join(f'<td{" class=n" if i else ""}>{c}</td>' for i, c in enumerate(r)) + "</tr>"
-                   for r in rows)
-    out.append(f"<table><tr>{h}</tr>{body}</table>")
+    out.append(table(head, rows))
     return "".join(out)
 
 
@@ -125,6 +139,3 @@ def chart_left(d: RunData, strips_of: Any) -> int:
     vehicle's event-strip labels."""
     return max([_LEFT] + [rp.strip_margin(strips_of(d, v)) for v in d.vehicles])
 
-
-def _num(v: Any, digits: int) -> str:
-    return "–" if not isinstance(v, (int, float)) or isinstance(v, bool) else f"{v:.{digits}f}"

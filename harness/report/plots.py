@@ -1,7 +1,8 @@
 """Hand-written SVG charts for the HTML report: no plotting dependency, vector, small.
 
 Each chart function returns one ``<svg>`` element as a string, ready to inline in
-HTML5 (no namespace attribute, so the report holds no address at all). Marks carry
+HTML5 (no namespace attribute, so the report holds no address at all;
+:func:`standalone` adds it for a ``.svg`` file). Marks carry
 a ``<title>``, which a browser shows on hover. Long series are thinned to the
 minimum and maximum per pixel column, so a one-hour run stays a few hundred KB.
 
@@ -84,7 +85,7 @@ def nice_ticks(lo: float, hi: float, n: int = 5) -> list[float]:
     return out
 
 
-def _log_ticks(lo: float, hi: float) -> list[float]:
+def log_ticks(lo: float, hi: float) -> list[float]:
     out = []
     for e in range(math.floor(math.log10(lo)), math.ceil(math.log10(hi)) + 1):
         for m in (1, 2, 5):
@@ -96,13 +97,16 @@ def _log_ticks(lo: float, hi: float) -> list[float]:
 
 @dataclass(frozen=True)
 class Series:
-    """A line (``style="line"``) or dots (``"points"``); NaN in ``ys`` breaks a line."""
+    """A line (``style="line"``) or dots (``"points"``); NaN in ``ys`` breaks a line.
+    ``width``: the line's stroke (px); a wider line drawn first stays visible under a
+    narrower one on the same values."""
 
     label: str
     xs: Sequence[float] | np.ndarray
     ys: Sequence[float] | np.ndarray
     colour: str
     style: str = "line"
+    width: float = 1.4
 
 
 @dataclass(frozen=True)
@@ -135,16 +139,27 @@ class Strip:
 
 @dataclass(frozen=True)
 class Rule:
-    """A horizontal reference line at ``y`` (a deadline, a threshold), dashed, labelled
-    at its right end."""
+    """A horizontal reference line at ``y`` (a deadline, a budget, a floor), dashed, and
+    named in the chart's legend. ``stretch``: the y axis may widen to show it as long
+    as the data keeps at least :data:`DATA_SHARE` of the height; otherwise (and always
+    when ``False``) a rule beyond the data's range is named in the legend as above or
+    below the chart, never drawn over the data."""
 
     label: str
     y: float
     colour: str = "#d62728"
-    stretch: bool = True  # False: never widens the y axis; off the chart it is named in a note
+    stretch: bool = True
 
 
-class _Scale:
+#: A stretching rule may widen the y axis only while the data keeps this share of it.
+DATA_SHARE = 2 / 3
+CHAR_W = 6.4  # px per character of 11 px system-ui text, a little generous (checked in Chromium)
+_ROW_H = 15
+
+
+class Scale:
+    """A linear (or log) map from values to pixels."""
+
     def __init__(self, lo: float, hi: float, p0: float, p1: float, *, log: bool = False) -> None:
         if hi <= lo:
             lo, hi = lo - 0.5, hi + 0.5
@@ -186,61 +201,127 @@ def _path(xs: np.ndarray, ys: np.ndarray, *, points: bool) -> str:
     return "".join(parts)
 
 
-def _svg(width: float, height: float, body: list[str], label: str) -> str:
+def svg_element(width: float, height: float, body: list[str], label: str) -> str:
+    """The ``<svg>`` element around ``body`` (inline HTML5: no namespace)."""
     return (f'<svg viewBox="0 0 {width:.0f} {height:.0f}" width="{width:.0f}" height="{height:.0f}" '
             f'role="img" aria-label="{escape(label)}" {_FONT}>' + "".join(body) + "</svg>")
+
+
+def standalone(svg: str) -> str:
+    """``svg`` as a file of its own (``.svg``, an ``<img src>``, a Markdown image): with
+    the SVG namespace, without which a browser shows an XML tree or a broken image."""
+    return svg.replace("<svg ", '<svg xmlns="http://www.w3.org/2000/svg" ', 1)
+
+
+def _header(title: str, keys: Sequence[tuple[str, str, bool]], *, x0: float, x1: float) -> tuple[list[str], int]:
+    """The title, then a legend entry per ``(label, colour, dashed)``, left to right from
+    ``x0`` and wrapped before ``x1``: nothing is drawn over anything else. Returns the
+    SVG and the height it takes (px)."""
+    body: list[str] = []
+    x, row = x0, 0
+    if title:
+        body.append(f'<text x="{x0:.0f}" y="15" font-weight="bold">{escape(title)}</text>')
+        x = x0 + 7.2 * len(title) + 18
+    for label, colour, dashed in keys:
+        w = 18 + CHAR_W * len(label)
+        if x + w > x1 and x > x0:
+            row, x = row + 1, x0
+        y = 6 + row * _ROW_H
+        if dashed:
+            body.append(f'<line x1="{x:.1f}" x2="{x + 12:.1f}" y1="{y + 5}" y2="{y + 5}" stroke="{colour}" '
+                        f'stroke-width="1.5" stroke-dasharray="4 2"/>')
+        else:
+            body.append(f'<rect x="{x:.1f}" y="{y}" width="10" height="10" fill="{colour}"/>')
+        body.append(f'<text x="{x + 16:.1f}" y="{y + 9}">{escape(label)}</text>')
+        x += w + 10
+    return body, 8 + (row + 1) * _ROW_H
+
+
+def _y_range(data: np.ndarray, rules: Sequence[Rule], *, y_zero: bool,
+             headroom: float = 0.05) -> tuple[float, float]:
+    """The y axis: the data's range (with 0 when ``y_zero``), widened for stretching
+    rules only as far as the data keeps :data:`DATA_SHARE` of the height."""
+    if data.size == 0:
+        data = np.array([0.0, 1.0])
+    lo, hi = float(data.min()), float(data.max())
+    if y_zero:
+        lo, hi = min(lo, 0.0), max(hi, 0.0)
+    span = max(hi - lo, abs(hi) * 1e-3, 1e-9)
+    for r in sorted((r for r in rules if r.stretch and math.isfinite(r.y)), key=lambda r: abs(r.y - (lo + hi) / 2)):
+        new_lo, new_hi = min(lo, r.y), max(hi, r.y)
+        if span / (new_hi - new_lo) >= DATA_SHARE - 1e-9:
+            lo, hi = new_lo, new_hi
+    pad = (hi - lo) * 0.05 or 1.0
+    return (lo - pad if (not y_zero or lo < 0) else lo), hi + ((hi - lo) * headroom or pad)
+
+
+def _integers(ticks: list[float], lo: float, hi: float) -> list[float]:
+    """The whole numbers among ``ticks``, or every whole number in ``[lo, hi]`` when
+    fewer than two of them are."""
+    whole = [t for t in ticks if float(t).is_integer()]
+    return whole if len(whole) >= 2 else [float(v) for v in range(math.ceil(lo), math.floor(hi) + 1)]
 
 
 def line_chart(*, series: Sequence[Series], bands: Sequence[Band] = (), strips: Sequence[Strip] = (),
                rules: Sequence[Rule] = (), x_label: str, y_label: str, width: int = 1000, height: int = 220,
                y_zero: bool = True, title: str = "", left: int = 0,
-               x_range: tuple[float, float] | None = None) -> str:
+               x_range: tuple[float, float] | None = None, x_ticks: Sequence[float] | None = None,
+               y_integer: bool = False, headroom: float = 0.05) -> str:
     """Lines and dots over a shared x axis, optional shaded bands, horizontal rules
     (deadlines, thresholds), and event strips under the axis (one row each).
-    ``height`` is the chart without its strips. ``left``: at least this left margin
-    (px), so charts drawn with the same value line up; ``x_range``: the x axis span
-    (charts of several vehicles on one time axis)."""
+    The y axis is scaled to the data (see :class:`Rule`); the title and a legend of
+    every series, band and rule sit above the plot, wrapped onto more rows when
+    needed, so no text covers the data or other text. ``height``: the plot area and
+    its axes (the legend's rows and the strips come on top). ``left``: at least this
+    left margin (px), so charts drawn with the same value line up; ``x_range``: the x
+    axis span (charts of several vehicles on one time axis); ``x_ticks``: the x tick
+    values (e.g. the numbers of vehicles a study ran), instead of round ones;
+    ``y_integer``: y ticks at whole numbers only (counts); ``headroom``: the share of the
+    y span left free above the highest value."""
     left = max(64, left, strip_margin(strips))
-    right, top, bottom = 14, 22, 40
+    right, bottom = 14, 40
     strip_h = 14 * len(strips) + (6 if strips else 0)
-    pw, ph = width - left - right, height - top - bottom
     xs_all = [np.asarray(s.xs, float) for s in series] + [np.asarray(b.xs, float) for b in bands]
     xs_all += [np.asarray([m.x for m in st.marks], float) for st in strips]
     ys_all = [np.asarray(s.ys, float) for s in series]
     ys_all += [np.asarray(b.lo, float) for b in bands] + [np.asarray(b.hi, float) for b in bands]
-    ys_all += [np.asarray([r.y for r in rules if r.stretch], float)]
     if x_range is not None:
         xs_all.append(np.asarray(x_range, float))
+    if x_ticks is not None:
+        xs_all.append(np.asarray(x_ticks, float))
     xcat = np.concatenate([a[np.isfinite(a)] for a in xs_all] or [np.zeros(0)])
     ycat = np.concatenate([a[np.isfinite(a)] for a in ys_all] or [np.zeros(0)])
     if xcat.size == 0:
         xcat = np.array([0.0, 1.0])
-    if ycat.size == 0:
-        ycat = np.array([0.0, 1.0])
     x_lo, x_hi = float(xcat.min()), float(xcat.max())
     if 0 < x_lo < 0.02 * (x_hi - x_lo):  # a time axis that starts a hair after zero: show 0
         x_lo = 0.0
-    y_lo, y_hi = float(ycat.min()), float(ycat.max())
-    if y_zero:
-        y_lo, y_hi = min(y_lo, 0.0), max(y_hi, 0.0)
-    pad = (y_hi - y_lo) * 0.05 or 1.0
-    y_hi += pad
-    if not y_zero or y_lo < 0:
-        y_lo -= pad
-    sx = _Scale(x_lo, x_hi, left, left + pw)
-    sy = _Scale(y_lo, y_hi, top + ph, top)
+    y_lo, y_hi = _y_range(ycat, rules, y_zero=y_zero, headroom=headroom)
+    pw = width - left - right
+    shown = [r for r in rules if y_lo <= r.y <= y_hi]
+    keys = [(s.label, s.colour, False) for s in series] + [(b.label, b.colour, False) for b in bands]
+    keys += [(r.label if r in shown else f"{r.label}: {'above' if r.y > y_hi else 'below'} the chart", r.colour,
+              True) for r in rules]
+    head, top = _header(title, keys, x0=left, x1=left + pw)
+    ph = height - 22 - bottom
+    sx = Scale(x_lo, x_hi, left, left + pw)
+    sy = Scale(y_lo, y_hi, top + ph, top)
     body = [f'<rect x="{left}" y="{top}" width="{pw}" height="{ph}" fill="#fafafa" stroke="#ccc"/>']
-    for t in nice_ticks(sy.lo, sy.hi):
+    for t in _integers(nice_ticks(sy.lo, sy.hi), sy.lo, sy.hi) if y_integer else nice_ticks(sy.lo, sy.hi):
         y = sy(t)
         body.append(f'<line x1="{left}" x2="{left + pw}" y1="{y:.1f}" y2="{y:.1f}" stroke="#e4e4e4"/>'
                     f'<text x="{left - 4}" y="{y + 4:.1f}" text-anchor="end">{fmt(t)}</text>')
-    for t in nice_ticks(sx.lo, sx.hi, 8):
+    for t in (x_ticks if x_ticks is not None else nice_ticks(sx.lo, sx.hi, 8)):
         x = sx(t)
         body.append(f'<line x1="{x:.1f}" x2="{x:.1f}" y1="{top}" y2="{top + ph}" stroke="#eee"/>'
                     f'<text x="{x:.1f}" y="{top + ph + 14}" text-anchor="middle">{fmt(t)}</text>')
     body.append(f'<text x="{left + pw / 2:.0f}" y="{top + ph + 30}" text-anchor="middle">{escape(x_label)}</text>'
                 f'<text transform="translate(13 {top + ph / 2:.0f}) rotate(-90)" text-anchor="middle">'
                 f'{escape(y_label)}</text>')
+    for r in shown:  # under the data: a series on its rule stays visible
+        y = float(sy(r.y))
+        body.append(f'<line x1="{left}" x2="{left + pw}" y1="{y:.1f}" y2="{y:.1f}" stroke="{r.colour}" '
+                    f'stroke-width="1.3" stroke-dasharray="6 4"><title>{escape(r.label)}</title></line>')
     for b in bands:
         x = np.asarray(b.xs, float)
         if x.size == 0:
@@ -261,34 +342,9 @@ def line_chart(*, series: Sequence[Series], bands: Sequence[Band] = (), strips: 
             body.append(f'<path d="{d}" stroke="{s.colour}" stroke-width="3" stroke-linecap="round" '
                         f'fill="none"><title>{escape(s.label)}</title></path>')
         else:
-            body.append(f'<path d="{d}" stroke="{s.colour}" stroke-width="1.4" fill="none" '
+            body.append(f'<path d="{d}" stroke="{s.colour}" stroke-width="{s.width:g}" fill="none" '
                         f'stroke-linejoin="round"><title>{escape(s.label)}</title></path>')
-    placed: list[float] = []
-    off = [r for r in rules if not sy.lo <= r.y <= sy.hi]
-    if off:
-        body.append(f'<text x="{left + pw - 4}" y="{top + ph - 5}" text-anchor="end" fill="{off[0].colour}" '
-                    f'paint-order="stroke" stroke="#fafafa" stroke-width="3">'
-                    + escape("; ".join(f"{r.label}: off the chart" for r in off)) + "</text>")
-    for r in rules:
-        if r in off:
-            continue
-        y = float(sy(r.y))
-        ly = y - 4
-        while any(abs(ly - p) < 12 for p in placed):  # rules close together: stack their labels
-            ly += 13
-        placed.append(ly)
-        body.append(f'<line x1="{left}" x2="{left + pw}" y1="{y:.1f}" y2="{y:.1f}" stroke="{r.colour}" '
-                    f'stroke-width="1.3" stroke-dasharray="6 4"><title>{escape(r.label)}</title></line>'
-                    f'<text x="{left + pw - 4}" y="{ly:.1f}" text-anchor="end" fill="{r.colour}" '
-                    f'paint-order="stroke" stroke="#fafafa" stroke-width="3">{escape(r.label)}</text>')
-    # legend
-    lx = left + 4
-    for item in [*series, *bands]:
-        body.append(f'<rect x="{lx}" y="6" width="10" height="10" fill="{item.colour}"/>'
-                    f'<text x="{lx + 14}" y="15">{escape(item.label)}</text>')
-        lx += 24 + 6.2 * len(item.label)
-    if title:
-        body.append(f'<text x="{left + pw}" y="15" text-anchor="end" font-weight="bold">{escape(title)}</text>')
+    body += head
     y0 = top + ph + 42
     for i, st in enumerate(strips):
         y = y0 + 14 * i
@@ -303,7 +359,7 @@ def line_chart(*, series: Sequence[Series], bands: Sequence[Band] = (), strips: 
             seen.add(key)
             body.append(f'<line x1="{x:.1f}" x2="{x:.1f}" y1="{y}" y2="{y + 10}" stroke="{m.colour}" '
                         f'stroke-width="2"><title>{escape(m.title)}</title></line>')
-    return _svg(width, height + strip_h, body, title or y_label)
+    return svg_element(width, top - 22 + height + strip_h, body, title or y_label)
 
 
 def strip_margin(strips: Sequence[Strip]) -> int:
@@ -311,108 +367,22 @@ def strip_margin(strips: Sequence[Strip]) -> int:
     return 10 + int(6.2 * max((len(st.label) for st in strips), default=0))
 
 
-def box_chart(rows: Sequence[tuple[str, np.ndarray]], *, x_label: str, width: int = 1000,
-              title: str = "", colours: dict[str, str] | None = None) -> str:
-    """One horizontal box per row: box p25–p75, bar p50, whiskers p1–p99, circle max.
-    Log axis when the values span more than two decades."""
-    rows = [(label, np.asarray(v, float)) for label, v in rows if np.asarray(v).size]
-    left, right, top, row_h = 110, 14, 22, 22
-    height = top + row_h * max(len(rows), 1) + 44
-    pw = width - left - right
-    if not rows:
-        return _svg(width, height, [f'<text x="{left}" y="{top + 14}">no latency samples</text>'], title)
-    allv = np.concatenate([v for _, v in rows])
-    pos = allv[allv > 0]
-    lo, hi = (float(pos.min()), float(allv.max())) if pos.size else (0.0, 1.0)
-    log = pos.size > 0 and hi / lo > 100
-    if log:
-        sx = _Scale(10 ** math.floor(math.log10(lo)), 10 ** math.ceil(math.log10(hi)), left, left + pw, log=True)
-        ticks = _log_ticks(sx.lo, sx.hi)
-    else:
-        sx = _Scale(min(0.0, float(allv.min())), hi * 1.05 or 1.0, left, left + pw)
-        ticks = nice_ticks(sx.lo, sx.hi, 8)
-    bottom = top + row_h * len(rows)
-    body = [f'<rect x="{left}" y="{top}" width="{pw}" height="{bottom - top}" fill="#fafafa" stroke="#ccc"/>']
-    for t in ticks:
-        x = sx(t)
-        body.append(f'<line x1="{x:.1f}" x2="{x:.1f}" y1="{top}" y2="{bottom}" stroke="#e4e4e4"/>'
-                    f'<text x="{x:.1f}" y="{bottom + 14}" text-anchor="middle">{fmt(t)}</text>')
-    for i, (label, v) in enumerate(rows):
-        p1, p25, p50, p75, p99 = np.percentile(v, (1, 25, 50, 75, 99))
-        mx = float(v.max())
-        yc = top + row_h * i + row_h / 2
-        c = (colours or {}).get(label) or colour_for(label)
-        tip = escape(f"{label}: n={v.size}, p1 {p1:.3f}, p25 {p25:.3f}, p50 {p50:.3f}, p75 {p75:.3f}, "
-                     f"p99 {p99:.3f}, max {mx:.3f} ms")
-        x1, x25, x50, x75, x99, xm = (float(sx(q)) for q in (p1, p25, p50, p75, p99, mx))
-        body.append(f'<g><title>{tip}</title>'
-                    f'<line x1="{x1:.1f}" x2="{x99:.1f}" y1="{yc:.1f}" y2="{yc:.1f}" stroke="#555"/>'
-                    f'<line x1="{x1:.1f}" x2="{x1:.1f}" y1="{yc - 4:.1f}" y2="{yc + 4:.1f}" stroke="#555"/>'
-                    f'<line x1="{x99:.1f}" x2="{x99:.1f}" y1="{yc - 4:.1f}" y2="{yc + 4:.1f}" stroke="#555"/>'
-                    f'<rect x="{x25:.1f}" y="{yc - 7:.1f}" width="{max(x75 - x25, 1):.1f}" height="14" '
-                    f'fill="{c}" fill-opacity="0.55" stroke="{c}"/>'
-                    f'<line x1="{x50:.1f}" x2="{x50:.1f}" y1="{yc - 7:.1f}" y2="{yc + 7:.1f}" stroke="#000" '
-                    f'stroke-width="2"/>'
-                    f'<circle cx="{xm:.1f}" cy="{yc:.1f}" r="3" fill="none" stroke="#d62728"/></g>'
-                    f'<text x="{left - 6}" y="{yc + 4:.1f}" text-anchor="end">{escape(label)}</text>')
-    scale = "log scale" if log else "linear"
-    body.append(f'<text x="{left + pw / 2:.0f}" y="{bottom + 30}" text-anchor="middle">{escape(x_label)} '
-                f'({scale}; box p25–p75, bar p50, whiskers p1–p99, circle max)</text>')
-    if title:
-        body.append(f'<text x="{left}" y="15" font-weight="bold">{escape(title)}</text>')
-    return _svg(width, height, body, title or x_label)
-
-
-def histogram(values: np.ndarray, *, label: str, colour: str, width: int = 250, height: int = 130,
-              bins: int = 40) -> str:
-    """A small histogram of ``values`` (ms) with p50 and p99 marked. The range ends
-    just past p99.9 so one outlier cannot squash the shape; values beyond it are
-    counted in the label."""
-    v = np.asarray(values, float)
-    left, right, top, bottom = 34, 16, 18, 30
-    pw, ph = width - left - right, height - top - bottom
-    body = [f'<text x="{left}" y="12" font-weight="bold">{escape(label)}</text>']
-    if v.size == 0:
-        body.append(f'<text x="{left}" y="{top + 20}">no samples</text>')
-        return _svg(width, height, body, label)
-    lo, hi = float(v.min()), float(np.percentile(v, 99.9))
-    if hi <= lo:
-        hi = lo + max(abs(lo) * 0.01, 1e-3)
-    over = int((v > hi).sum())
-    counts, edges = np.histogram(v[v <= hi], bins=bins, range=(lo, hi))
-    sx = _Scale(lo, hi, left, left + pw)
-    sy = _Scale(0, float(counts.max()) * 1.1 or 1.0, top + ph, top)
-    body.append(f'<rect x="{left}" y="{top}" width="{pw}" height="{ph}" fill="#fafafa" stroke="#ccc"/>')
-    for c, a, b in zip(counts.tolist(), edges[:-1].tolist(), edges[1:].tolist()):
-        if c:
-            x0, x1, y = sx(a), sx(b), sy(c)
-            body.append(f'<rect x="{x0:.1f}" y="{y:.1f}" width="{max(x1 - x0 - 0.5, 0.5):.1f}" '
-                        f'height="{top + ph - y:.1f}" fill="{colour}"><title>{a:.3f}–{b:.3f} ms: {c}</title></rect>')
-    for q, dash in ((50, "3 2"), (99, "1 2")):
-        x = float(sx(np.percentile(v, q)))
-        body.append(f'<line x1="{x:.1f}" x2="{x:.1f}" y1="{top}" y2="{top + ph}" stroke="#000" '
-                    f'stroke-dasharray="{dash}"><title>p{q}</title></line>')
-    for t in nice_ticks(lo, hi, 4):
-        body.append(f'<text x="{sx(t):.1f}" y="{top + ph + 12}" text-anchor="middle" font-size="9">{fmt(t)}</text>')
-    body.append(f'<text x="{left + pw / 2:.0f}" y="{height - 3}" text-anchor="middle" font-size="9">ms '
-                f'(dashed p50, dotted p99{f"; {over} beyond p99.9" if over else ""})</text>'
-                f'<text x="{left - 3}" y="{top + 8}" text-anchor="end" font-size="9">{int(counts.max())}</text>')
-    return _svg(width, height, body, label)
-
-
 __all__ = [
+    "DATA_SHARE",
     "PALETTE",
     "Band",
     "Mark",
     "Rule",
+    "Scale",
     "Series",
     "Strip",
-    "box_chart",
     "colour_for",
     "fmt",
-    "histogram",
     "line_chart",
+    "log_ticks",
     "nice_ticks",
     "severity_colour",
+    "standalone",
     "strip_margin",
+    "svg_element",
 ]

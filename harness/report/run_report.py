@@ -11,15 +11,18 @@ nothing from anywhere. Sections:
   box plots and histograms;
 * end-to-end latency over time per vehicle, with every ``/events`` kind marked
   under it (coloured by ``severity`` when the event has one);
-* frames sent and estimates applied per second over time;
+* frames sent and estimates applied per second over time, in bins of whole camera
+  periods (these three: :mod:`hil.harness.report.timeseries`);
 * the target clock's offset and its uncertainty over time (``/V/clock`` when the run
-  has it, else the raw ``/V/clock_sync`` samples: uncertainty = round trip / 2);
-* the events, counted and listed;
+  has it, else the raw ``/V/clock_sync`` samples: uncertainty = round trip / 2), and
+  its skew ± bound;
+* the events, counted and listed in words (:mod:`hil.harness.record.event_text`);
 * corner cases from ``RUN/corner_cases.sqlite`` (table ``cases``), each with the
   camera frame nearest to its simulated time.
 
 A truncated ``run.mcap`` (a killed run) is reported from its complete chunks, with a
-note saying so. :func:`write_report` is what ``hil.harness.run.driver`` calls after a run.
+note saying so, and what ran from ``RUN/config.json``. A page written elsewhere
+(``--out``) links the run's files relative to its own folder. :func:`write_report` is what ``hil.harness.run.driver`` calls after a run.
 
 Raises: :class:`hil.common.errors.ConfigError` (one line, exit 2 from the CLI) for a
 path that is not a run, a foreign ``summary.json`` or ``run.mcap``, or a report
@@ -29,7 +32,6 @@ file that cannot be written.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from html import escape
 from pathlib import Path
@@ -40,10 +42,13 @@ import numpy as np
 from hil.common.errors import ConfigError
 from hil.harness import __version__
 from hil.harness.analysis.verdict import verdict_of
-from hil.harness.record.run_folder import ClockPoint, RecordedEvent, RunData, read_run
+from hil.harness.record import event_text as et
+from hil.harness.record.run_folder import RecordedEvent, RunData, read_run
+from hil.harness.report import fleet, timeseries
 from hil.harness.report import plots as rp
-from hil.harness.report import fleet
 from hil.harness.report.cases import case_for_event, cases_section, read_case_rows
+from hil.harness.report.distributions import box_chart, histogram
+from hil.harness.report.tables import kv_table, ms, table
 from hil.timing.records import STAGES
 from hil.timing.stats import summarize_ns
 
@@ -62,21 +67,6 @@ td.n{text-align:right;font-variant-numeric:tabular-nums}.note{padding:8px 12px;m
 .case img{flex:none;width:320px;height:auto;border:1px solid #ccc}
 svg{max-width:100%;height:auto}:target{background:#fff8d0}
 """  + fleet.NAV_CSS
-
-
-def _ms(v: Any, digits: int = 3) -> str:
-    return "–" if not isinstance(v, (int, float)) else f"{v:.{digits}f}"
-
-
-def _kv_table(rows: list[tuple[str, str]]) -> str:
-    return "<table>" + "".join(f"<tr><th>{escape(k)}</th><td>{v}</td></tr>" for k, v in rows) + "</table>"
-
-
-def _table(head: list[str], rows: list[list[str]], numeric_from: int = 1) -> str:
-    h = "".join(f"<th>{escape(c)}</th>" for c in head)
-    body = "".join("<tr>" + "".join(f'<td{" class=n" if i >= numeric_from else ""}>{c}</td>'
-                                    for i, c in enumerate(r)) + "</tr>" for r in rows)
-    return f"<table><tr>{h}</tr>{body}</table>"
 
 
 # --- the run -------------------------------------------------------------------------
@@ -103,6 +93,25 @@ def _notes(d: RunData) -> list[str]:
     return [f'<div class="note {c}">{escape(t)}</div>' for c, t in notes]
 
 
+def _recorder_text(rec: dict[str, Any], in_file: int | None) -> str:
+    """The recorder's counters in words: every message written (the Foxglove views among
+    them), drops, bytes; ``in_file``: the messages of the complete ``run.mcap``, when
+    they differ (a harness before the count included the views)."""
+    if "written" not in rec:
+        return ", ".join(f"{k} {v}" for k, v in rec.items()) or "–"
+    if "derived" not in rec and in_file is not None and in_file != rec["written"]:
+        return (f"{rec['written']} messages counted, {rec.get('dropped', '?')} dropped; run.mcap holds {in_file}: "
+                "the harness that wrote it did not count the Foxglove views derived from the hil channels")
+    parts = [f"{rec['written']} messages written"
+             + (f" ({rec['derived']} of them Foxglove views derived from the hil channels)" if rec.get("derived")
+                else "")]
+    if "dropped" in rec:
+        parts.append(f"{rec['dropped']} dropped (queue full)")
+    if isinstance(rec.get("bytes_written"), (int, float)):
+        parts.append(f"{rec['bytes_written'] / 1e6:.2f} MB")
+    return ", ".join(parts)
+
+
 def _run_section(d: RunData) -> str:
     s = d.summary or {}
     meta = {**d.meta, **s}
@@ -117,6 +126,9 @@ def _run_section(d: RunData) -> str:
             ("parameters", escape(params_text)), ("seed", escape(str(get("seed")))),
             ("config hash", f"<code>{escape(str(get('config_hash')))}</code>"),
             ("ended by", escape(str(s.get("ended_by", "unknown (no summary.json)"))))]
+    if d.meta.get("meta_source") and not s:
+        rows.insert(0, ("read from", escape(f"{d.meta['meta_source']} (run.mcap holds no run metadata: the run "
+                                            "did not finish)")))
     if s:
         rt = s.get("realtime") or {}
         kept = rt.get("kept_realtime")
@@ -124,7 +136,7 @@ def _run_section(d: RunData) -> str:
         badge = ('<span class="ok">kept</span>' if kept else '<span class="nok">NOT kept</span>'
                  + (f" ({escape(', '.join(lagging))} lagged)" if lagging else ""))
         cam = rt.get("camera") or {}
-        rows += [("simulated / wall time", f"{_ms(s.get('sim_time_s'), 2)} s / {_ms(s.get('wall_time_s'), 2)} s"),
+        rows += [("simulated / wall time", f"{ms(s.get('sim_time_s'), 2)} s / {ms(s.get('wall_time_s'), 2)} s"),
                  ("mode", escape(str(rt.get("mode")))),
                  ("real-time health", (f"{badge}: physics factor {rt.get('achieved_factor')} of "
                                        f"{rt.get('requested_factor')}, late steps {rt.get('late_steps')}, "
@@ -135,8 +147,8 @@ def _run_section(d: RunData) -> str:
         lat = rt.get("lateness_ms") or {}
         if lat:
             rows.append(("physics-step lateness", escape(
-                f"p50 {_ms(lat.get('p50'))} ms, p99 {_ms(lat.get('p99'))} ms, p99.9 {_ms(lat.get('p999'))} ms, "
-                f"max {_ms(rt.get('max_lateness_ms'))} ms; {rt.get('late_steps')} steps over "
+                f"p50 {ms(lat.get('p50'))} ms, p99 {ms(lat.get('p99'))} ms, p99.9 {ms(lat.get('p999'))} ms, "
+                f"max {ms(rt.get('max_lateness_ms'))} ms; {rt.get('late_steps')} steps over "
                 f"{rt.get('late_tolerance_ms')} ms, {rt.get('steps_over_10ms')} over 10 ms")))
             rows.append(("processes", escape(
                 f"physics: {rt.get('physics_scheduling', '?')}; render workers: {rt.get('render_workers', '?')}")))
@@ -146,8 +158,8 @@ def _run_section(d: RunData) -> str:
                 f"loop thread {cost.get('loop_thread_us_per_frame')} µs, analysis thread "
                 f"{cost.get('analysis_thread_us_per_frame')} µs (CPU), analysis tasks dropped "
                 f"{cost.get('analysis_tasks_dropped')}")))
-        rec = s.get("recorder") or {}
-        rows.append(("recorder", escape(", ".join(f"{k} {v}" for k, v in rec.items()))))
+        rows.append(("recorder", escape(_recorder_text(s.get("recorder") or {},
+                                                       None if d.truncated or not d.mcap_present else d.messages))))
         rows.append(("collisions", str(len(s.get("collisions") or []))))
     rows.append(("run.mcap", f"{d.mcap_bytes / 1e6:.2f} MB, {d.messages} messages"
                              + (' <span class="nok">(truncated)</span>' if d.truncated else "")))
@@ -155,7 +167,7 @@ def _run_section(d: RunData) -> str:
     vers = get("versions")
     if isinstance(vers, dict):
         rows.append(("versions", escape(", ".join(f"{k} {v}" for k, v in vers.items()))))
-    out = ['<h2 id="run">Run</h2>', _kv_table(rows)]
+    out = ['<h2 id="run">Run</h2>', kv_table(rows)]
     vs = s.get("vehicles") or {}
     if vs:
         head = ["vehicle", "frames sent", "applied", "dropped", "stale", "late", "drop rate (%)", "frames/s",
@@ -169,11 +181,11 @@ def _run_section(d: RunData) -> str:
             rows2.append([escape(name)] + [escape(str(v.get(k, "–"))) for k in
                                            ("frames_sent", "estimates_applied", "dropped", "stale",
                                             "late_estimates")]
-                         + ["–" if not isinstance(drop, (int, float)) else f"{drop:.1%}", _ms(fps, 1),
+                         + ["–" if not isinstance(drop, (int, float)) else f"{drop:.1%}", ms(fps, 1),
                             escape(str(v.get("order_violations", "–")))]
-                         + [escape(f"{t.get('name', '?')} ({t.get('clock', '?')})"), _ms(o.get("min_gap_m"), 2),
-                            _ms(o.get("final_speed_mps"), 2), escape(str(o.get("collisions", "–")))])
-        out += ["<h3>Vehicles</h3>", _table(head, rows2)]
+                         + [escape(f"{t.get('name', '?')} ({t.get('clock', '?')})"), ms(o.get("min_gap_m"), 2),
+                            ms(o.get("final_speed_mps"), 2), escape(str(o.get("collisions", "–")))])
+        out += ["<h3>Vehicles</h3>", table(head, rows2)]
     return "".join(out)
 
 
@@ -210,199 +222,15 @@ def _latency_section(d: RunData) -> str:
             stats = {k: summarize_ns(v.tolist()) for k, v in values.items()}
         else:  # no records (no run.mcap): the summary's figures
             stats = ((d.summary or {}).get("vehicles", {}).get(vehicle, {}) or {}).get("latency_ms", {})
-        rows = [[escape(stage)] + [str(st.get("count", 0)) if k == "count" else _ms(st.get(k)) for k in keys]
+        rows = [[escape(stage)] + [str(st.get("count", 0)) if k == "count" else ms(st.get(k)) for k in keys]
                 for stage, st in stats.items()]
-        out.append(_table(head, rows) if rows else "<p>no latency samples</p>")
+        out.append(table(head, rows) if rows else "<p>no latency samples</p>")
         if values:
-            ms = {k: v / 1e6 for k, v in values.items()}
-            out.append(rp.box_chart(list(ms.items()), x_label="ms", title=f"{vehicle}: latency per stage"))
+            in_ms = {k: v / 1e6 for k, v in values.items()}
+            out.append(box_chart(list(in_ms.items()), x_label="ms", title=f"{vehicle}: latency per stage"))
             out.append('<div class="grid">' + "".join(
-                rp.histogram(v, label=k, colour=rp.colour_for(k)) for k, v in ms.items()) + "</div>")
+                histogram(v, label=k, colour=rp.colour_for(k)) for k, v in in_ms.items()) + "</div>")
     return "".join(out)
-
-
-# --- over time ------------------------------------------------------------------------
-
-
-def _event_title(e: RecordedEvent, t_s: float) -> str:
-    sim = e.data.get("sim_time_ns")
-    parts = [f"{e.kind} at {t_s:.3f} s"]
-    if isinstance(sim, int):
-        parts.append(f"sim {sim / 1e9:.3f} s")
-    if e.vehicles:
-        parts.append(", ".join(e.vehicles))
-    frames = _frames(e.data)
-    if frames != "–":
-        parts.append(f"frame {frames}")
-    vt = _value_vs_threshold(e.data)
-    if vt != "–":
-        parts.append(vt)
-    cause = _cause(e.data)
-    if cause != "–":
-        parts.append(cause)
-    return ": ".join(parts[:1]) + (" — " + "; ".join(parts[1:]) if parts[1:] else "")[:300]
-
-
-def _strips(d: RunData, vehicle: str | None) -> list[rp.Strip]:
-    t0 = d.t_start_ns
-    rows: dict[str, list[rp.Mark]] = {}
-    for e in d.events:
-        if vehicle is not None and e.vehicles and vehicle not in e.vehicles:
-            continue
-        t = (e.t_ns - t0) / 1e9
-        rows.setdefault(e.kind, []).append(rp.Mark(t, rp.severity_colour(e.severity, e.kind), _event_title(e, t)))
-    return [rp.Strip(k, rows[k]) for k in sorted(rows)]
-
-
-def _timeline_section(d: RunData) -> str:
-    out = ['<h2 id="timeline">End-to-end latency over time</h2>',
-           ('<p class="muted">t0′−t0 of each frame at its capture time; dashed: the end-to-end deadline and '
-            "the estimate timeout; under each chart one row per event kind (hover a tick for details; coloured "
-            "by severity where the event has one). All vehicles share one time axis.</p>")]
-    t0 = d.t_start_ns
-    left = fleet.chart_left(d, _strips)
-    span = _time_span(d)
-    for vehicle in d.vehicles:
-        recs = [r for r in d.pipeline.get(vehicle, []) if r.get("status") == "ok"
-                and isinstance((r.get("stages_ns") or {}).get("end_to_end"), int)]
-        x = np.array([(r["t0_ns"] - t0) / 1e9 for r in recs])
-        y = np.array([r["stages_ns"]["end_to_end"] / 1e6 for r in recs])
-        series = [rp.Series(f"{vehicle} end-to-end (ms)", x, y, fleet.vehicle_colours(d.vehicles)[vehicle], "points")]
-        out.append(rp.line_chart(series=series, strips=_strips(d, vehicle), x_label="time since first frame (s)",
-                                 y_label="end-to-end (ms)", title=vehicle, rules=fleet.e2e_rules(d.run_dir, vehicle),
-                                 left=left, x_range=span))
-    if not d.vehicles and d.events:
-        out.append(rp.line_chart(series=[], strips=_strips(d, None), x_label="time (s)", y_label="", title="events"))
-    return "".join(out)
-
-
-def _time_span(d: RunData) -> tuple[float, float]:
-    """0 to the last capture of any vehicle (s since the first frame)."""
-    t0 = d.t_start_ns
-    ends = [(r["t0_ns"] - t0) / 1e9 for recs in d.pipeline.values() for r in recs if isinstance(r.get("t0_ns"), int)]
-    return (0.0, max(ends, default=1.0))
-
-
-def _bin_s(end_s: float) -> float:
-    """Rate bin width: 1 s, narrower for runs shorter than 20 s (at least 0.25 s)."""
-    return 1.0 if end_s >= 20 else max(0.25, round(end_s / 20, 2))
-
-
-def _rate(times_s: np.ndarray, end_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Counts per second in bins of :func:`_bin_s` from 0 to ``end_s`` (a last
-    partial bin of at least half the width is scaled to a rate)."""
-    width = _bin_s(end_s)
-    edges = np.arange(0.0, end_s + 1e-9, width)
-    if edges.size == 0 or end_s - edges[-1] >= width / 2:
-        edges = np.r_[edges, end_s]
-    if edges.size < 2:
-        return np.zeros(0), np.zeros(0)
-    counts, _ = np.histogram(times_s, bins=edges)
-    return (edges[:-1] + edges[1:]) / 2, counts / np.diff(edges)
-
-
-def _fps_section(d: RunData) -> str:
-    out = ['<h2 id="fps">Frames per second over time</h2>',
-           ('<p class="muted">Frames sent (by capture time t0) and estimates applied (by t_apply) per '
-            "second, counted in bins of harness time (width in each chart's title).</p>")]
-    t0 = d.t_start_ns
-    for vehicle in d.vehicles:
-        recs = d.pipeline.get(vehicle, [])
-        sent = np.array([(r["t0_ns"] - t0) / 1e9 for r in recs if isinstance(r.get("t0_ns"), int)])
-        applied = np.array([(r["t_apply_ns"] - t0) / 1e9 for r in recs
-                            if r.get("status") == "ok" and isinstance(r.get("t_apply_ns"), int)])
-        if sent.size == 0:
-            out.append(f"<p>{escape(vehicle)}: no frames recorded</p>")
-            continue
-        end = float(max(sent.max(), applied.max() if applied.size else 0.0))
-        xs, ys = _rate(sent, end)
-        xa, ya = _rate(applied, end)
-        floor = fleet.limits(d.run_dir, vehicle).get("fps_floor")
-        rules = [] if floor is None else [rp.Rule(f"frame-rate floor {floor:g}/s", floor, "#d62728")]
-        out.append(rp.line_chart(series=[rp.Series("frames sent/s", xs, ys, "#4c78a8"),
-                                         rp.Series("estimates applied/s", xa, ya, "#f58518")], rules=rules,
-                                 x_label="time since first frame (s)", y_label="per second",
-                                 title=f"{vehicle} ({_bin_s(end):g} s bins)", height=200,
-                                 left=fleet.chart_left(d, _strips), x_range=_time_span(d)))
-    return "".join(out)
-
-
-def _skew_ppm(points: list[ClockPoint]) -> float | None:
-    """Skew fitted over the samples whose uncertainty is within twice the smallest
-    (a minimum-delay filter), in ppm; or the source's own when it gives one."""
-    given = [p.skew_ppm for p in points if p.skew_ppm is not None]
-    if given:
-        return given[-1]
-    if len(points) < 3:
-        return None
-    u = np.array([p.uncertainty_ns for p in points])
-    good = [p for p, ui in zip(points, u) if ui <= 2 * max(u.min(), 1.0)]
-    t = np.array([p.t_ns for p in good], float)
-    if len(good) < 3 or t.max() - t.min() < 1e9:
-        return None
-    off = np.array([p.offset_ns for p in good])
-    slope = np.polyfit(t - t.mean(), off - off.mean(), 1)[0]
-    return float(slope * 1e6)
-
-
-def _clock_section(d: RunData) -> str:
-    out = ['<h2 id="clock">Target clock: offset and uncertainty</h2>',
-           ('<p class="muted">Offset of each target clock from the harness clock (target − harness), '
-            "plotted relative to its median; the band is ± the uncertainty (half the round trip of "
-            "each sample, or the estimator's own).</p>")]
-    if not d.clock:
-        return "".join(out) + "<p>no clock samples recorded</p>"
-    t0 = d.t_start_ns
-    rows = []
-    for vehicle in d.vehicles + sorted(v for v in d.clock if v not in d.vehicles):
-        pts = d.clock.get(vehicle)
-        if not pts:
-            continue
-        med = float(np.median([p.offset_ns for p in pts]))
-        x = np.array([(p.t_ns - t0) / 1e9 for p in pts])
-        y = np.array([(p.offset_ns - med) / 1e3 for p in pts])
-        u = np.array([p.uncertainty_ns / 1e3 for p in pts])
-        c = rp.colour_for(vehicle)
-        out.append(rp.line_chart(series=[rp.Series("offset − median (µs)", x, y, c, "line"),
-                                         rp.Series("samples", x, y, c, "points")],
-                                 bands=[rp.Band("± uncertainty", x, y - u, y + u, c)],
-                                 x_label="time since first frame (s)", y_label="µs", y_zero=False,
-                                 title=f"{vehicle} ({d.clock_source.get(vehicle, '?')})", height=200,
-                                 left=fleet.chart_left(d, _strips), x_range=_time_span(d)))
-        skew = _skew_ppm(pts)
-        rows.append([escape(vehicle), escape(d.clock_source.get(vehicle, "?")), str(len(pts)),
-                     f"{med / 1e6:.3f}", _ms(float(u.min()), 1), _ms(float(np.median(u)), 1),
-                     _ms(float(np.ptp(y)), 1), "–" if skew is None else f"{skew:+.2f}"])
-    out.append(_table(["vehicle", "source", "samples", "median offset (ms)", "min uncertainty (µs)",
-                       "median uncertainty (µs)", "offset spread (µs)", "skew (ppm)"], rows, numeric_from=2))
-    return "".join(out)
-
-
-def _value_vs_threshold(data: dict[str, Any]) -> str:
-    """``measured`` against ``threshold`` with their unit, e.g. ``61.2 ms > 50 ms``."""
-    m, th, unit = data.get("measured"), data.get("threshold"), data.get("unit")
-    if not isinstance(m, (int, float)) or isinstance(m, bool):
-        return "–"
-    u = f" {unit}" if isinstance(unit, str) and unit else ""
-    if not isinstance(th, (int, float)) or isinstance(th, bool):
-        return f"{m:.4g}{u}"
-    return f"{m:.4g}{u} {'>' if m > th else '≤'} {th:.4g}{u}"
-
-
-def _cause(data: dict[str, Any]) -> str:
-    parts = [str(data[k]) for k in ("cause", "stage", "entity") if isinstance(data.get(k), str) and data[k]]
-    detail = data.get("detail")
-    if isinstance(detail, str) and detail:
-        parts.append(detail)
-    return "; ".join(parts) or "–"
-
-
-def _frames(data: dict[str, Any]) -> str:
-    ids = data.get("frame_ids")
-    if isinstance(ids, list) and ids:
-        return ", ".join(str(i) for i in ids[:3]) + (f" (+{len(ids) - 3})" if len(ids) > 3 else "")
-    fid = data.get("frame_id")
-    return str(fid) if isinstance(fid, int) else "–"
 
 
 def _events_section(d: RunData) -> str:
@@ -417,7 +245,7 @@ def _events_section(d: RunData) -> str:
     rows = [[f'<span style="color:{rp.severity_colour(g[0].severity, k)}">■</span> {escape(k)}', escape(sev or "–"),
              escape(who), str(len(g)), f"{(g[0].t_ns - t0) / 1e9:.3f}", f"{(g[-1].t_ns - t0) / 1e9:.3f}"]
             for (k, sev, who), g in sorted(groups.items())]
-    out.append(_table(["kind", "severity", "vehicle", "events", "first (s)", "last (s)"], rows, numeric_from=3))
+    out.append(table(["kind", "severity", "vehicle", "events", "first (s)", "last (s)"], rows, numeric_from=3))
     cases = read_case_rows(d.run_dir)
     listed = sorted(d.events, key=lambda e: e.t_ns)[:_MAX_EVENTS_LISTED]
     more = len(d.events) - len(listed)
@@ -429,12 +257,12 @@ def _events_section(d: RunData) -> str:
         items.append([f"{(e.t_ns - t0) / 1e9:.3f}",
                       "–" if not isinstance(sim, int) else f"{sim / 1e9:.3f}",
                       f'<span style="color:{rp.severity_colour(e.severity, e.kind)}">■</span> {escape(e.kind)}',
-                      escape(", ".join(e.vehicles) or "–"), escape(_frames(e.data)),
+                      escape(", ".join(e.vehicles) or "–"), escape(et.frames(e.data)),
                       escape("–" if e.severity is None else str(e.severity)),
-                      escape(_value_vs_threshold(e.data)), escape(_cause(e.data)[:300]), link])
+                      escape(et.value_vs_threshold(e.data)), escape(et.cause(e.data)), link])
     out.append(f"<details open><summary>{len(listed)} event{'s' if len(listed) != 1 else ''}"
                + (f" (the first {len(listed)}; {more} more in run.mcap)" if more else "") + "</summary>"
-               + _table(["time (s)", "sim time (s)", "kind", "vehicle", "frame", "severity", "value vs threshold",
+               + table(["time (s)", "sim time (s)", "kind", "vehicle", "frame", "severity", "value vs threshold",
                          "cause / detail", "case"], items, numeric_from=99)
                + "</details>")
     return "".join(out)
@@ -461,20 +289,23 @@ def _verdict_section(d: RunData) -> str:
                 '<span class="nok">FAILED (fails the run)</span>' if c["name"] in fails else
                 '<span class="nok">missed</span>')
         rows.append([escape(c["name"]), mark, escape(c["headline"])])
-    out.append(_table(["check", "verdict", "what the figures say"], rows, numeric_from=99))
+    out.append(table(["check", "verdict", "what the figures say"], rows, numeric_from=99))
     return "".join(out)
 
 
 # --- the page ---------------------------------------------------------------------------
 
 
-def build_report(d: RunData) -> str:
-    """The whole HTML page for ``d``."""
+def build_report(d: RunData, *, page_dir: Path | None = None) -> str:
+    """The whole HTML page for ``d``; its links to the run's files (the corner cases'
+    recordings) are relative to ``page_dir``, the folder the page is written to
+    (default: the run folder)."""
     name = (d.summary or {}).get("name") or d.meta.get("name") or d.run_dir.name
-    parts = [_run_section(d), fleet.fleet_section(d, left=fleet.chart_left(d, _strips)), _latency_section(d)]
+    parts = [_run_section(d), fleet.fleet_section(d, left=fleet.chart_left(d, timeseries.strips)), _latency_section(d)]
     if d.mcap_present:
-        parts += [_timeline_section(d), _fps_section(d), _clock_section(d), _events_section(d)]
-    parts.append(cases_section(d))
+        parts += [timeseries.timeline_section(d), timeseries.fps_section(d), timeseries.clock_section(d),
+                  _events_section(d)]
+    parts.append(cases_section(d, page_dir=page_dir))
     return ("<!DOCTYPE html><html lang=en><head><meta charset=utf-8>"
             f"<title>hil report: {escape(str(name))}</title><style>{_CSS}</style></head><body>"
             f"{fleet.nav(d.vehicles)}<h1>hil report: {escape(str(name))}</h1>"
@@ -495,7 +326,7 @@ def write_report(run_dir: Path, *, out: Path | None = None) -> Path:
 
 def _write(d: RunData, out: Path | None) -> Path:
     path = out if out is not None else d.run_dir / REPORT_NAME
-    html = build_report(d)
+    html = build_report(d, page_dir=path.parent)
     try:
         path.write_text(html, encoding="utf-8")
     except OSError as err:
@@ -503,7 +334,7 @@ def _write(d: RunData, out: Path | None) -> Path:
     return path
 
 
-def add_parser(sub: Any) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Register ``hil report`` on the CLI's subparsers."""
     p = sub.add_parser("report", help="write RUN/report.html: one self-contained HTML page about a run")
     p.add_argument("run", help="a run folder (or its run.mcap / summary.json)")

@@ -23,7 +23,7 @@ def local_loop(cfg: RunConfig, sim: Any, vehicles: list[Any], *, engine: Any, ph
     cam = cfg.camera
     camera_info = CameraInfo(intr.fx, intr.fy, intr.cx, intr.cy, cam.mount_height_m, math.radians(cam.pitch_deg))
     cache = TruthCache()  # the world's truth of an instant serves the detector's at t_apply (lockstep)
-    tasks = VehicleTasks(sim, rec, clock, cache=cache)
+    tasks = VehicleTasks(sim, rec, clock, cache=cache, render_worker=engine.assign)
     box: list[Any] = []  # the loop, once built (the shard's callbacks reach it)
     shard = VehicleShard(cfg, vehicles, egos=sim.egos, step_ns=sim.step_ns, camera_info=camera_info, tasks=tasks,
                          analysis=analysis, events=bus, clock=clock, frame_bytes=engine.frame_bytes,

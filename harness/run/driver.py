@@ -21,7 +21,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from hil.common.errors import ConfigError, HilError, RecordingError, TargetError
+from hil.common.errors import ConfigError, HilError, RecordingError, TargetError, TransportError
 from hil.harness import __version__
 from hil.harness.config.model import RunConfig, Transport, config_hash, dump_config
 from hil.harness.engine.heap import fix_mmap_threshold
@@ -192,7 +192,11 @@ def _sigterm_interrupts() -> Callable[[], None] | None:
         raise KeyboardInterrupt
 
     prev = signal.signal(signal.SIGTERM, on_term)
-    return lambda: signal.signal(signal.SIGTERM, prev)
+
+    def restore() -> None:
+        signal.signal(signal.SIGTERM, prev)
+
+    return restore
 
 
 def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Callable[..., None] | None,
@@ -205,8 +209,9 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     from hil.harness.config.model import LatencyKind
     from hil.harness.engine.pool import Engine, auto_workers
     from hil.harness.engine.procs import keep_off_core, restore_affinity
+    from hil.harness.record.can_log import open_can_log
     from hil.harness.record.channels import register_all
-    from hil.harness.record.recorder import Recorder
+    from hil.harness.record.recorder import Recorder, TimeAnchor
     from hil.harness.report.run_report import write_report
     from hil.harness.run.latency import LatencyProfile
     from hil.harness.run import capacity
@@ -257,6 +262,11 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
         engine: Engine | None = None
         reserve: Path | None = None
         affinity: set[int] | None = None
+        # One wall-clock anchor for run.mcap's log_time and the CAN log's timestamps.
+        anchor = TimeAnchor.capture()
+        can_log = open_can_log(cfg, out_dir, offset_ns=anchor.offset_ns, now_ns=clock.now_ns())
+        if isinstance(fleet, LocalFleet) and can_log is not None:
+            fleet.can_tap = can_log.tap  # CAN keeps every vehicle in this process
         try:
             # Physics and render processes start first: their start-up (MuJoCo, EGL,
             # shaders) overlaps the targets'.
@@ -278,7 +288,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 cc = cfg.corner_cases
                 rec = CaseRecorder(main_rec, out_dir, run_meta=meta, history_s=cc.history_s, after_s=cc.after_s,
                                    trigger_kinds=set(cc.on_anomalies)) if cc.enabled else main_rec
-                register_all(rec, list(sim.egos))
+                register_all(rec, list(sim.egos), anchor=anchor)
                 # The run's one event bus: recorded on /events first, then the corner cases.
                 bus = EventBus.recording_to(rec)
                 if isinstance(rec, CaseRecorder):
@@ -296,8 +306,12 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 finally:
                     if restore is not None:
                         restore()
+                if main_rec.failure is not None:  # the disk filled: the reserve is for the case rows,
+                    reserve.unlink(missing_ok=True)  # the summary and the report, from now on
                 wall_s = wall_seconds(stats)
-                vehicles, camera, shard_cpu = fleet.finish(loop, wall_s=wall_s)
+                vehicles, camera, shard_cpu, spill = fleet.finish(loop, wall_s=wall_s)
+                if can_log is not None:
+                    can_log.close()
                 if isinstance(rec, CaseRecorder):
                     rec.close()  # writes the cases still open with what was recorded
                 main_rec.flush()
@@ -306,6 +320,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 summary = build_summary(loop=loop, stats=stats, recorder_stats={
                     "written": rec_stats.written, "dropped": rec_stats.dropped, "enqueued": rec_stats.enqueued},
                     meta=meta, vehicles=vehicles, camera=camera)
+                summary["spill"] = spill  # per-frame columns that stayed in memory
                 summary["realtime"]["shards"] = n_shards
                 # Start-up (targets, workers, shards) and the end-of-run work up to this
                 # summary (the report follows it; corner-case windows are cut after).
@@ -314,6 +329,8 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 if isinstance(rec, CaseRecorder):
                     summary["corner_cases"] = {"written": rec.cases_written, "errors": list(rec.errors),
                                                "triggers_dropped": rec.triggers_dropped}
+                if can_log is not None:
+                    summary["can_log"] = can_log.summary(out_dir)
                 vc = cfg.verdict
                 summary["verdict"] = verdict_json(summary, fail_on=parse_fail_on(vc.fail_on),
                                                   deadline_miss_fraction=vc.deadline_miss_fraction,
@@ -326,9 +343,13 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 summary["recorder_error"] = guard.error
                 if summary.get("ended_by") == "duration":
                     summary["ended_by"] = f"the recording failed: {guard.error}"
-            summary["recorder"] = {"written": final.written, "dropped": final.dropped,
+            summary["recorder"] = {"written": final.written, "derived": final.derived, "dropped": final.dropped,
                                    "enqueued": final.enqueued, "bytes_written": final.bytes_written}
-            if isinstance(rec, CaseRecorder) and rec.cases_written:
+            if isinstance(rec, CaseRecorder) and rec.cases_written and guard.error is not None:
+                summary["corner_cases"]["errors"].append(
+                    "case windows not cut: the recording failed (is the disk full?); once there is room: "
+                    f"hil cases {out_dir} --window ID")  # the space left is the summary's and the report's
+            elif isinstance(rec, CaseRecorder) and rec.cases_written:
                 # Windows are cut from the finalized run.mcap, after the run (nothing
                 # of a case's history is held during it).
                 from hil.harness.cases.windows import write_case_windows
@@ -337,8 +358,12 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                     summary["corner_cases"]["errors"] += write_case_windows(out_dir, limit=cc.windows)
                 except HilError as err:
                     summary["corner_cases"]["errors"].append(str(err))
+            if cfg.recording.rosbag2:  # ROS 2's bag beside run.mcap, cut from it (harness/record/rosbag2.py)
+                summary["rosbag2"] = _write_rosbag2(mcap_path, out_dir)
         finally:
             fleet.close()
+            if can_log is not None:
+                can_log.close()
             if engine is not None:
                 engine.close()
             restore_affinity(affinity)
@@ -350,6 +375,16 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     summary_path.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
     write_report(out_dir)
     return RunResult(out_dir, mcap_path, summary_path, summary)
+
+
+def _write_rosbag2(mcap_path: Path, out_dir: Path) -> dict[str, Any]:
+    """``rosbag2/`` from the finished ``run.mcap``: what it holds, or why it could not be written."""
+    from hil.harness.record.rosbag2 import export
+
+    try:
+        return export(mcap_path, out_dir / "rosbag2").to_json()
+    except (HilError, OSError, ValueError, KeyError) as err:
+        return {"error": f"rosbag2 not written: {type(err).__name__}: {err}"}
 
 
 def _install_stop_handlers(loop: Any) -> Callable[[], None]:

@@ -64,6 +64,7 @@ class LocalFleet:
         self.warmup: dict[str, list[Any]] = {}
         self.timing: Any = None
         self.detector: Any = None
+        self.can_tap: Any = None  # the run's CAN bus log (CAN and mixed keep every vehicle here)
 
     def start(self, engine: Engine) -> None:
         """Start every target at once and wait for their HELLOs; warm up clock sync.
@@ -77,7 +78,7 @@ class LocalFleet:
         opening = []
         for i, name in enumerate(self.egos):
             link, proc = make_link(self.cfg, vehicle_id=i, vehicle=name, clock=self.clock, out_dir=self.out_dir,
-                                   session=self.session)
+                                   session=self.session, can_tap=self.can_tap)
             if proc is not None:
                 self.procs.append(proc)
             self.vehicles.append(VehicleRun(name, i, link))
@@ -99,7 +100,7 @@ class LocalFleet:
         for v in self.vehicles:  # link faults in real time: each impaired message on /<vehicle>/impairment
             record_on(v.link.impairment, rec, f"/{v.name}/impairment")
         self.timing = TimingObserver(cfg.timing, names, recorder=rec, events=bus)
-        self.detector = (DetectorObserver(cfg.detector.to_config(), names, camera=cfg.camera, recorder=rec,
+        self.detector = (DetectorObserver(cfg.detector, names, camera=cfg.camera, recorder=rec,
                                           timing=self.timing, events=bus) if cfg.detector.enabled else None)
         for name, samples in self.warmup.items():
             for s in samples:
@@ -116,9 +117,11 @@ class LocalFleet:
     def progress_rows(self, now_ns: int) -> list[ProgressRow]:
         return [v.progress_row(now_ns, self.timing.anomaly_count(v.name)) for v in self.vehicles]
 
-    def finish(self, loop: SimLoop, *, wall_s: float) -> tuple[dict[str, Any], dict[str, Any], int]:
+    def finish(self, loop: SimLoop, *, wall_s: float) -> tuple[dict[str, Any], dict[str, Any], int, dict[str, Any]]:
         """After the loop: every vehicle summed up (``vehicle_summary``, camera
-        figures), and the CPU time spent outside this process (none here)."""
+        figures), the CPU time spent outside this process (none here), and the
+        per-frame columns' spill (``summary.json``'s ``spill``)."""
+        from hil.harness.analysis.spill import spill_summary
         from hil.harness.analysis.summary import CameraFigures, vehicle_summary
         from hil.harness.run.target_launch import close_links
 
@@ -129,7 +132,8 @@ class LocalFleet:
             self.detector.finish()
         vehicles = {v.name: vehicle_summary(v, wall_s=wall_s, timing=self.timing, detector=self.detector)
                     for v in self.vehicles}
-        return vehicles, {v.name: CameraFigures.of(v) for v in self.vehicles}, 0
+        return (vehicles, {v.name: CameraFigures.of(v) for v in self.vehicles}, 0,
+                spill_summary(self.vehicles, self.timing))
 
     def close(self) -> None:
         from hil.harness.run.target_launch import close_links
@@ -161,7 +165,8 @@ class ShardedFleet:
         for k in range(max(self.shard_of) + 1):
             mine = tuple((i, n) for i, n in enumerate(self.egos) if self.shard_of[i] == k)
             self.shards.append(RemoteShard(ShardSpec(k, self.cfg, self.world, self.rules, mine, str(self.out_dir),
-                                                     self.session, self.latency, engine.shard_io(k))))
+                                                     self.session, self.latency, engine.shard_io(k),
+                                                     {n: engine.assign[n] for _i, n in mine})))
         engine.release_shard_io()
         timeout = self.cfg.target.startup_timeout_s + 60.0  # its own start-up (imports, MuJoCo) on top
         for sh in self.shards:
@@ -193,11 +198,12 @@ class ShardedFleet:
     def progress_rows(self, now_ns: int) -> list[ProgressRow]:
         return [r for sh in self.shards for r in sh.rows]
 
-    def finish(self, loop: SimLoop, *, wall_s: float) -> tuple[dict[str, Any], dict[str, Any], int]:
+    def finish(self, loop: SimLoop, *, wall_s: float) -> tuple[dict[str, Any], dict[str, Any], int, dict[str, Any]]:
         from hil.harness.analysis.summary import CameraFigures
 
         vehicles: dict[str, Any] = {}
         camera: dict[str, Any] = {}
+        spill: dict[str, Any] = {"failures": 0}
         cpu = 0
         for sh in self.shards:
             done = sh.finish(wall_s)
@@ -207,13 +213,22 @@ class ShardedFleet:
             camera.update({n: CameraFigures(*c) for n, c in done.camera.items()})
             cpu += done.cpu_ns
             loop.stats.analysis_dropped += done.analysis_dropped
+            spill = _merge_spill(spill, done.spill)
         order = {n: i for i, n in enumerate(self.egos)}
         return (dict(sorted(vehicles.items(), key=lambda kv: order[kv[0]])),
-                dict(sorted(camera.items(), key=lambda kv: order[kv[0]])), cpu)
+                dict(sorted(camera.items(), key=lambda kv: order[kv[0]])), cpu, spill)
 
     def close(self) -> None:
         for sh in self.shards:
             sh.close()
+
+
+def _merge_spill(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    """Two shards' ``spill`` as one (``hil.harness.analysis.spill``)."""
+    out = {**b, **a, "failures": a.get("failures", 0) + b.get("failures", 0)}
+    if "columns" in a or "columns" in b:
+        out["columns"] = {**a.get("columns", {}), **b.get("columns", {})}
+    return out
 
 
 __all__ = ["LocalFleet", "ShardedFleet", "assign", "shard_count"]

@@ -91,6 +91,12 @@ class FrameLedger:
             self._n_in_flight -= 1
         return fl
 
+    def receipt_uncertainty(self, vi: int, frame_id: int, ns: int) -> None:
+        """The answer to an in-flight frame was stamped to within ``ns`` (a span)."""
+        fl = self._in_flight.get(vi, {}).get(frame_id)
+        if fl is not None:
+            fl.t0p_uncertainty_ns = ns
+
     def in_flight(self, vi: int | None = None) -> bool:
         """Any frame in flight (of ``vi``, or of any vehicle)."""
         if vi is not None:

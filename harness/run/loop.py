@@ -279,7 +279,7 @@ class SimLoop:
             return self.stop_reason is not None or (
                 self._state_seen >= step and not any(sh.busy() for sh in self.shards))
 
-        while not idle():
+        while self.stop_reason is None and not all(sh.ready_at(step) for sh in self.shards):
             self._wait(idle)
             gone = next((v for sh in self.shards if (v := sh.gone()) is not None), None)
             if gone is not None:
@@ -304,8 +304,8 @@ class SimLoop:
         controls answered meanwhile in lockstep still go to the physics."""
         deadline = self.clock.now_ns() + int(self.cfg.target.estimate_timeout_s * 1e9) + DRAIN_EXTRA_NS
 
-        def settled() -> bool:
-            return not any(sh.busy() for sh in self.shards)
+        def settled() -> bool:  # every answer, and every camera truth (rendered after its frame)
+            return not any(sh.busy() or sh.truth_pending() for sh in self.shards)
 
         for sh in self.shards:
             sh.begin_drain(deadline)

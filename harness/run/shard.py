@@ -154,6 +154,16 @@ class VehicleShard:
     def state_seen(self) -> int:
         return self._state_seen
 
+    def truth_pending(self) -> int:
+        """Frames sent whose camera truth (rendered after them) has not come yet."""
+        return len(self._frame_of) + len(self._camtruth_early)
+
+    def ready_at(self, step: int) -> bool:
+        """Lockstep: the world state of ``step`` is in and nothing renders or flies,
+        checked under the lock (``busy`` alone, read unlocked, is a hint)."""
+        with self.lock:
+            return self._state_seen >= step and not self.ledger.busy()
+
     def next_deadline_ns(self) -> int | None:
         """When the oldest frame in flight times out (None: none in flight)."""
         if not self.ledger.in_flight():
@@ -230,7 +240,14 @@ class VehicleShard:
 
     def _on_frame(self, f: FrameReady) -> None:
         v = self.by_name[f.vehicle]
-        self.ledger.rendered(v.vehicle_id, f.steps)
+        try:
+            self._send(v, f)
+        finally:
+            # Rendering ends once the frame is in flight (or not sent): the shard is
+            # never seen idle in between, by a loop that reads ``busy`` unlocked.
+            self.ledger.rendered(v.vehicle_id, f.steps)
+
+    def _send(self, v: VehicleRun, f: FrameReady) -> None:
         if self.stopping:
             return
         data = self._frame_bytes(f.vehicle, f.slot, f.nbytes)
@@ -306,6 +323,8 @@ class VehicleShard:
         m = r.msg
         match m:
             case Estimate():
+                if r.rx_uncertainty_ns:  # its receipt stamp is known only to a span
+                    self.ledger.receipt_uncertainty(v.vehicle_id, m.frame_id, r.rx_uncertainty_ns)
                 self._on_estimate(v, m, r.t_rx_ns)
             case ProtocolFault():
                 self._on_protocol_fault(v, m, r.t_rx_ns)

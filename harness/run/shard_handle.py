@@ -168,6 +168,11 @@ class RemoteShard:
             return self._drained is None
         return bool(self.spec.cfg.mode.value == "lockstep" and (self._idle is None or self._idle.step < self._awaited))
 
+    def ready_at(self, step: int) -> bool:
+        """Lockstep: the shard said every answer of the stop at ``step`` is in."""
+        idle = self._idle
+        return (idle is not None and idle.step >= step) or self.done is not None or not self.proc.is_alive()
+
     def lockstep_stop(self, step: int) -> tuple[list[ApplyControl], int | None]:
         idle = self._idle
         if idle is None or idle.step != step:
@@ -188,6 +193,10 @@ class RemoteShard:
 
     def next_deadline_ns(self) -> int | None:
         return None
+
+    def truth_pending(self) -> int:
+        """The shard waits for its own camera truths when it drains."""
+        return 0
 
     def expire(self, now_ns: int) -> None:
         """The shard keeps its own time."""

@@ -127,7 +127,7 @@ class ShardHost:
         for v in self.vehicles:
             record_on(v.link.impairment, enc, f"/{v.name}/impairment")
         self.timing = TimingObserver(cfg.timing, names, recorder=enc, events=bus)
-        self.detector = (DetectorObserver(cfg.detector.to_config(), names, camera=cfg.camera, recorder=enc,
+        self.detector = (DetectorObserver(cfg.detector, names, camera=cfg.camera, recorder=enc,
                                           timing=self.timing, events=bus) if cfg.detector.enabled else None)
         for name, samples in warmup.items():
             for s in samples:
@@ -135,7 +135,7 @@ class ShardHost:
                                publish_time_ns=s.t1_ns)
                 self.timing.on_sync(name, s)
         self.sim = Simulation(self.spec.world, rules=self.spec.rules)  # a mirror: the detector's truth
-        self.tasks = VehicleTasks(self.sim, enc, self.clock)
+        self.tasks = VehicleTasks(self.sim, enc, self.clock, render_worker=self.spec.render_worker)
         self.tasks.observers.append(self.timing)
         if self.detector is not None:
             self.tasks.observers.append(self.detector)
@@ -226,7 +226,7 @@ class ShardHost:
                                                   for v in self.vehicles)))
             if shard.lockstep:
                 seen = shard.state_seen()
-                if seen > reported and not shard.busy():
+                if seen > reported and shard.ready_at(seen):
                     ctls, due = shard.lockstep_stop(seen)
                     self.out.send(ShardIdle(seen, tuple(ctls), due))
                     reported = seen
@@ -237,7 +237,8 @@ class ShardHost:
 
     def _drain(self, deadline_ns: int) -> None:
         shard = self.shard
-        while shard.busy() and self.clock.now_ns() <= deadline_ns and shard.gone() is None:
+        while (shard.busy() or shard.truth_pending()) and self.clock.now_ns() <= deadline_ns \
+                and shard.gone() is None:
             ready = wait([self.bell.fileno()], 0.05)
             if ready:
                 self.bell.clear()
@@ -247,6 +248,7 @@ class ShardHost:
         self.out.send(ShardDrained(tuple(ctls)))
 
     def _finish(self, wall_s: float) -> None:
+        from hil.harness.analysis.spill import spill_summary
         from hil.harness.analysis.summary import vehicle_summary
 
         self.physics_done.wait(PHYSICS_DONE_TIMEOUT_S)  # its last answers are in the ring before it
@@ -264,7 +266,7 @@ class ShardHost:
         camera = {v.name: (v.next_frame_id, v.late_frames, v.worst_frame_lag_ns) for v in self.vehicles}
         self.encoder.flush()
         self.out.send(ShardDone(vehicles, camera, time.process_time_ns() - self._cpu0, self.analysis.dropped,
-                                self.encoder.enqueued, self.encoder.errors))
+                                self.encoder.enqueued, self.encoder.errors, spill_summary(self.vehicles, self.timing)))
 
     # -- lifetime -------------------------------------------------------------------------------
 

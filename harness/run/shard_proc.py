@@ -49,6 +49,7 @@ class ShardSpec:
     session: str
     latency: Any                      # hil.harness.run.latency.LatencyProfile | None
     io: ShardIO
+    render_worker: dict[str, int]     # vehicle -> the render worker drawing its camera
 
 
 # -- shard -> run -----------------------------------------------------------------------------
@@ -96,6 +97,7 @@ class ShardDone(NamedTuple):
     analysis_dropped: int
     recorded: int
     record_errors: int
+    spill: dict[str, Any]             # hil.harness.analysis.spill.spill_summary of its vehicles
 
 
 # -- run -> shard -----------------------------------------------------------------------------

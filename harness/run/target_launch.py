@@ -1,6 +1,6 @@
 """Starting and reaching a run's targets: one link per vehicle, built from the
 ``target:`` config, plus the locally started target process where the transport
-does not start one itself (zenoh, can and mixed with a ``command``)."""
+does not start one itself (zenoh, can, mixed, tcp and ros2 with a ``command``)."""
 
 from __future__ import annotations
 
@@ -8,15 +8,18 @@ import os
 import queue
 import subprocess
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from hil.adapters.link import Link, Received, open_link
 from hil.adapters.process import die_with_parent, end_process
-from hil.common.errors import TargetError
+from hil.adapters.zenoh_options import AUTH_ENV
+from hil.common.errors import TargetError, TransportError
 from hil.harness.config.model import RunConfig, Transport
-from hil.harness.config.target import substitute
-from hil.harness.run.link_options import can_options, impair, run_key_prefix, target_command, zenoh_options
+from hil.adapters.auth import ENV_TOKEN
+from hil.harness.run.link_options import (can_options, impair, ros2_node_env, ros2_options, run_credentials,
+                                         run_key_prefix, target_command, tcp_options, tcp_token, zenoh_options)
 from hil.timing.clock import Clock
 
 SYNC_WARMUP_SAMPLES = 8  # clock-sync exchanges each link makes before the run
@@ -66,18 +69,32 @@ class TargetProcess:
 
     def close(self) -> None:
         proc, self.proc = getattr(self, "proc", None), None
+        if proc is not None and proc.poll() is None and _stopped(proc.pid):
+            proc.kill()  # frozen (SIGSTOP): it can neither leave on BYE nor act on SIGTERM
+            proc.wait()
         end_process(proc, term_s=3.0)  # it got BYE; let it leave on its own first
         log = getattr(self, "_log", None)
         if log is not None and not log.closed:
             log.close()
 
 
+def _stopped(pid: int) -> bool:
+    """True when process ``pid`` is stopped (state T or t in ``/proc/PID/stat``)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    fields = stat.rpartition(")")[2].split()
+    return bool(fields) and fields[0] in ("T", "t")
+
+
 def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, out_dir: Path,
-              rx: queue.Queue[Received] | None = None,
-              session: str | None = None) -> tuple[Link, TargetProcess | None]:
+              rx: queue.Queue[Received] | None = None, session: str | None = None,
+              can_tap: Callable[[Any, int, bool], None] | None = None) -> tuple[Link, TargetProcess | None]:
     """Build (not open) the link of one vehicle, starting its local target process
     first where a network transport has a ``command``. A ``mixed`` target takes
-    frames over ``target.zenoh`` and answers over ``target.can``.
+    frames over ``target.zenoh`` and answers over ``target.can``; ``can_tap`` sees
+    every CAN frame of a ``can`` or ``mixed`` link (the run's bus log).
 
     Raises:
         TargetError: the command cannot be started.
@@ -95,23 +112,34 @@ def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, ou
         impair(cfg, link, vehicle_id=vehicle_id, clock=clock)
         return link, None
     env = {"HIL_SESSION": session} if session else {}
+    creds = None
     if t.transport in (Transport.ZENOH, Transport.MIXED):
         env["HIL_ZENOH_KEY_PREFIX"] = run_key_prefix(cfg, session)
+        creds = run_credentials(cfg, session, vehicle_id)  # a third peer gets no session
+        if creds is not None:
+            env[AUTH_ENV] = ":".join(creds)
+    elif t.transport == Transport.ROS2:  # its own domain, Cyclone on loopback, the run's topics
+        env.update(ros2_node_env(cfg, vehicle_id, session))
+    token = tcp_token(cfg) if t.transport == Transport.TCP else None
+    if token is not None:  # the target proves it holds this (PROTOCOL.md 4.8); never recorded
+        env[ENV_TOKEN] = token
     proc = TargetProcess(target_command(cfg, vehicle_id=vehicle_id), log_path=log, env=env) if t.command else None
     try:
         if t.transport == Transport.ZENOH:
             link = open_link("zenoh", vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
-                             **zenoh_options(cfg, vehicle_id, session))
-        elif t.transport == Transport.TCP:  # target.tcp: {mode: address}, as hil.adapters.tcp.TcpLink takes it
-            tc = t.tcp
-            link = open_link("tcp", vehicle_id=vehicle_id, clock=clock, rx_queue=rx, kernel_stamps=tc.kernel_stamps,
-                             **{tc.mode.value: substitute(tc.address, vehicle_id=vehicle_id, base_port=tc.base_port)})
+                             **zenoh_options(cfg, vehicle_id, session, creds))
+        elif t.transport == Transport.TCP:  # only the target that proves the token (or names itself as expected)
+            link = open_link("tcp", vehicle_id=vehicle_id, clock=clock, rx_queue=rx, abandon=_exited(proc),
+                             **tcp_options(cfg, vehicle_id, token))
+        elif t.transport == Transport.ROS2:  # target.ros2: a ROS 2 node over Cyclone DDS
+            link = open_link("ros2", vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
+                             **ros2_options(cfg, vehicle_id, session))
         elif t.transport == Transport.MIXED:  # frames over target.zenoh, the rest over target.can
-            link = open_link("mixed", vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
-                             **zenoh_options(cfg, vehicle_id, session), **can_options(cfg, vehicle_id))
+            link = open_link("mixed", vehicle_id=vehicle_id, clock=clock, rx_queue=rx, tap=can_tap,
+                             **zenoh_options(cfg, vehicle_id, session, creds), **can_options(cfg, vehicle_id))
         else:
             link = open_link("can", vehicle_id=vehicle_id, clock=clock, camera_over=t.can.camera_over, rx_queue=rx,
-                             **can_options(cfg, vehicle_id))
+                             tap=can_tap, **can_options(cfg, vehicle_id))
     except BaseException:
         if proc is not None:
             proc.close()
@@ -145,7 +173,7 @@ def open_links(links: list[tuple[str, Link, TargetProcess | None]], *, timeout_s
         name, link, proc = links[k]
         try:
             link.open(hello_timeout_s=timeout_s)
-        except TargetError as err:
+        except (TargetError, TransportError) as err:
             errors[k] = TargetError(f"{name}: {err}{exit_note(proc)}")
         except Exception as err:  # noqa: BLE001 - raised below, in vehicle order
             errors[k] = err
@@ -201,6 +229,14 @@ def check_identity(cfg: RunConfig, vehicles: list[Any], procs: list[Any]) -> Non
         if want is not None and not got.startswith(want):
             raise TargetError(f"{v.name}: the target that answered says it is {got!r}, not {want!r} "
                               "(target.expect_name) — refusing to measure it")
+
+
+def _exited(proc: TargetProcess | None) -> Callable[[], str | None] | None:
+    """For a link that waits for a target this run started: why to stop waiting (its
+    process has exited, so whatever answers now is not it), else None."""
+    if proc is None:
+        return None
+    return lambda: "the target process this run started exited" if proc.exited() is not None else None
 
 
 def can_preflight(cfg: RunConfig, *, frame_bytes: int) -> str:

@@ -36,7 +36,7 @@ def pipeline_record(v: VehicleRun, fl: InFlight, status: FrameStatus, m: Estimat
                               t_state_ns=fl.t_state_ns)
     return PipelineRecord(v.name, fl.frame_id, fl.sim_time_ns, fl.t0_ns, fl.t_tx_ns, status,
                           m.t_rx_target_ns, m.t_infer_start_target_ns, m.t_infer_end_target_ns,
-                          m.t_reply_target_ns, t0p, t_apply, sim_apply, fl.t_state_ns)
+                          m.t_reply_target_ns, t0p, t_apply, sim_apply, fl.t_state_ns, fl.t0p_uncertainty_ns)
 
 
 def estimate_json(m: Estimate) -> dict[str, Any]:
@@ -135,10 +135,12 @@ class VehicleTasks:
     hooks (timing analysis, detector). ``sim``: a mirror of the world for the truth at
     ``t_apply`` (and, in a shard's own process, at its egos' camera instants)."""
 
-    def __init__(self, sim: Simulation, rec: Any, clock: Clock, *, cache: TruthCache | None = None) -> None:
+    def __init__(self, sim: Simulation, rec: Any, clock: Clock, *, cache: TruthCache | None = None,
+                 render_worker: dict[str, int] | None = None) -> None:
         self.sim, self.rec, self.clock = sim, rec, clock
         self.observers: list[RunObserver] = []
         self.cache = cache if cache is not None else TruthCache()
+        self.render_worker = render_worker or {}  # vehicle -> the render worker that draws its camera
 
     def truth(self, steps: int, qpos: np.ndarray, qvel: np.ndarray, collisions: tuple[Any, ...],
               names: tuple[str, ...]) -> None:
@@ -182,7 +184,7 @@ class VehicleTasks:
         v, m = a.v, a.m
         self.record(v, pipeline_record(v, a.fl, status, m, a.t0p_ns, t_apply, sim_apply), m)
         self.rec.write_json(f"/{v.name}/estimate", estimate_json(m), log_time_ns=a.t0p_ns,
-                            publish_time_ns=m.t_reply_target_ns)
+                            publish_time_ns=a.t0p_ns if m.t_reply_target_ns is None else m.t_reply_target_ns)
 
     def record(self, v: VehicleRun, rec: PipelineRecord, estimate: Estimate | None = None) -> None:
         v.add(rec)
@@ -191,7 +193,9 @@ class VehicleTasks:
         if rec.t0p_ns is not None and rec.status == FrameStatus.OK:
             v.e2e_window.add(rec.t0p_ns - rec.t0_ns)
         t = rec.t0p_ns or self.clock.now_ns()
-        self.rec.write_json(f"/{v.name}/pipeline", rec.to_json(), log_time_ns=t, publish_time_ns=rec.t0_ns)
+        d = rec.to_json()
+        d["render_worker"] = self.render_worker.get(v.name)  # which render process drew it (hil trace)
+        self.rec.write_json(f"/{v.name}/pipeline", d, log_time_ns=t, publish_time_ns=rec.t0_ns)
 
     def sync(self, name: str, s: Any) -> None:
         for ob in self.observers:

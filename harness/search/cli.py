@@ -22,19 +22,23 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from hil.common.errors import HilError
+
+if TYPE_CHECKING:
+    from rich.console import Console
 
 EXIT_OK, EXIT_INCOMPLETE, EXIT_USAGE = 0, 1, 2
 SUBCOMMANDS = ("merge", "cases", "report")
 
 
 class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one line, exit 2, like every user mistake
+    def error(self, message: str) -> NoReturn:  # one line, exit 2, like every user mistake
         self.exit(EXIT_USAGE, f"hil: error: {message} (see {self.prog} --help)\n")
 
 
-def add_parser(sub: argparse._SubParsersAction) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """List ``hil search`` in ``hil --help`` (``main`` parses its arguments)."""
     sub.add_parser("search", help="search for corner cases: many episodes with drawn parameters "
                                   "(hil search --help)", add_help=False)
@@ -64,6 +68,9 @@ def run_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",
                    help="override a field of the episodes' run config, e.g. --set duration_s=3 (repeatable)")
     p.add_argument("--no-progress", action="store_true", help="a line per episode instead of the live bar")
+    from hil.harness.report.ci_outputs import add_ci_args
+
+    add_ci_args(p)
     return p
 
 
@@ -109,8 +116,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from hil.harness.search.progress import CampaignProgress
     from hil.harness.search.shard import Shard, parse_shard
     from hil.harness.search.spec import load_spec
+    from hil.harness.report.ci_outputs import check_ci_args
     from hil.scenarios.gl import select_backend
 
+    check_ci_args(args)
     shard = parse_shard(args.shard) if args.shard is not None else Shard()
     workers = args.workers if args.workers is not None else (os.cpu_count() or 1)
     if workers < 1:
@@ -140,23 +149,28 @@ def _cmd_run(args: argparse.Namespace) -> int:
         oc = run_campaign(c, out=out, gl_backend=backend, shard=shard, workers=workers, resume=args.resume,
                           reporter=reporter)
     _print_summary(console, oc.summary, out)
+    code = EXIT_OK
     if oc.stopped:
         console.print(f"[red]stopped[/red]: {len(oc.ran)} episodes ran this time; continue with --resume --out {out}")
-        return EXIT_INCOMPLETE
-    if not oc.complete:
+        code = EXIT_INCOMPLETE
+    elif not oc.complete:
         console.print("[yellow]some episodes did not finish (see summary.json errors); --resume runs them again"
                       "[/yellow]")
-        return EXIT_INCOMPLETE
-    return EXIT_OK
+        code = EXIT_INCOMPLETE
+    from hil.harness.report.ci_cases import of_search
+    from hil.harness.report.ci_outputs import write_ci_outputs
+
+    write_ci_outputs(of_search(oc, exit_code=code), args)
+    return code
 
 
-def _console():
+def _console() -> Console:
     from hil.harness.cli.progress import make_console
 
     return make_console()
 
 
-def _print_summary(console, s: dict, folder: Path) -> None:
+def _print_summary(console: Console, s: dict[str, Any], folder: Path) -> None:
     from rich.table import Table
 
     e, k = s["episodes"], s["cases"]

@@ -91,7 +91,7 @@ class CampaignDB:
         con = getattr(self, "con", None)
         if con is not None:
             con.close()
-            self.con = None  # type: ignore[assignment]
+            self.con = None  # type: ignore[assignment]  # closed: a later use fails at once
 
     # -- campaign ----------------------------------------------------------------------
 

@@ -12,14 +12,22 @@ episodes and corner cases on either (an episode depends only on its draw).
   processes that runs on two cores, and futures that plug into that loop (a stopped
   campaign can tell a running episode, left to finish, from a queued one, dropped). ``--scheduler ADDRESS`` connects to a running
   cluster (``dask scheduler`` / ``dask worker`` on other hosts); without it a
-  ``LocalCluster`` of ``workers`` processes (one thread each, no dashboard, bound to
-  127.0.0.1) is started and closed with the campaign. A worker may be on another host
-  with no shared disk: it runs the episode in a folder of its own and ships the
-  episode folder back as a tar archive, which this process unpacks into the campaign
-  folder (``tarfile``'s ``data`` filter: no absolute paths, links or devices).
+  ``LocalCluster`` of ``workers`` processes (one thread each, bound to 127.0.0.1) is
+  started and closed with the campaign. A worker may be on another host with no
+  shared disk: it runs the episode in a folder of its own and ships the episode
+  folder back as a tar archive, which this process unpacks into that episode's
+  folder and nowhere else (``unpack_episode``: regular files and folders only, no
+  ``..``, no links).
 
-Dask moves tasks and results with pickle: a scheduler must only be reachable by
-trusted hosts (a private network, or ``tls://`` with ``distributed.security``).
+Dask moves tasks and results with pickle, so whoever can talk to a scheduler runs
+code in the campaign's workers (and, through results, in this process). The local
+cluster is therefore closed to every other process: mutual TLS with a certificate
+made for the campaign (``distributed.security.Security.temporary()``, kept in
+memory; a client without it is refused), and no dashboard: the scheduler's HTTP
+server, which Dask always starts (on 8787 by default), serves no routes on a free
+loopback port, and the workers' likewise. A ``--scheduler`` cluster is as safe as
+its network: use ``tls://`` with Dask's TLS settings (``distributed.comm.tls``),
+which the client reads from Dask's configuration.
 """
 
 from __future__ import annotations
@@ -101,6 +109,29 @@ def shipped_episode(c: Campaign, d: Draw, *, shard: str, gl_backend: str) -> tup
         return json.dumps(r.as_dict()), buf.getvalue(), time.perf_counter_ns() - t0
 
 
+# Dask starts an HTTP server on every scheduler, worker and nanny whatever the
+# dashboard setting: with these, they answer nothing (404) about the campaign.
+_NO_HTTP_ROUTES: dict[str, list[str]] = {f"distributed.{role}.http.routes": []
+                                          for role in ("scheduler", "worker", "nanny")}
+
+
+def _campaign_security() -> Any:
+    """Mutual TLS for a local cluster: a self-signed key and certificate made now, in
+    memory, for this campaign only (every process of the cluster gets them from
+    here; a client without them is refused).
+
+    Raises:
+        ConfigError: ``cryptography`` (which makes the certificate) is not installed.
+    """
+    from distributed.security import Security
+
+    try:
+        return Security.temporary()
+    except ImportError as err:
+        raise ConfigError("--engine dask: the local cluster's TLS certificate needs the 'cryptography' package; "
+                          "pip install cryptography (or pip install \".[cluster]\")") from err
+
+
 def _is_daemon() -> bool:
     """On a worker: whether its process is daemonic (and so may not have children)."""
     return bool(multiprocessing.current_process().daemon)
@@ -159,11 +190,15 @@ class DaskEngine:
         try:
             if scheduler is None:
                 os.environ["MUJOCO_GL"] = gl_backend  # the worker processes inherit it
+                security = _campaign_security()
                 # Workers start the simulator's own processes: they must not be daemonic.
-                with dask.config.set({"distributed.worker.daemon": False}):
+                with dask.config.set({"distributed.worker.daemon": False, **_NO_HTTP_ROUTES}):
                     self._cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                                 host="127.0.0.1", dashboard_address=None, silence_logs=40)
-                self.client = Client(self._cluster, timeout=timeout_s)
+                                                 host="127.0.0.1", dashboard_address=None, silence_logs=40,
+                                                 security=security, protocol="tls://",
+                                                 scheduler_kwargs={"dashboard": False,
+                                                                   "dashboard_address": "127.0.0.1:0"})
+                self.client = Client(self._cluster, security=security, timeout=timeout_s)
             else:
                 self.client = Client(scheduler, timeout=timeout_s)
         except (OSError, TimeoutError, RuntimeError) as err:
@@ -195,6 +230,10 @@ class DaskEngine:
                 unpack_episode(archive, out / "episodes", name=episode_dirname(d.index))
                 self.overhead_ns.append(pack_ns + time.perf_counter_ns() - t0)
                 result: EpisodeResult | BaseException = EpisodeResult(**json.loads(text))
+                if isinstance(result, EpisodeResult) and (result.index, result.dir) != (
+                        d.index, f"episodes/{episode_dirname(d.index)}"):  # it names only its own folder
+                    result = ValueError(f"episode {d.index}'s result names episode {result.index} "
+                                        f"in {result.dir!r}")
             except BaseException as e:  # noqa: BLE001 - recorded as the episode's error
                 result = e
             try:
@@ -235,24 +274,45 @@ class DaskEngine:
 
 
 def unpack_episode(archive: bytes, episodes_dir: Path, *, name: str) -> None:
-    """Unpack a shipped episode folder ``name`` into ``episodes_dir`` (replacing a
-    stale one). Only that folder is accepted, and only regular files and folders
-    inside it (``tarfile``'s ``data`` filter).
+    """Unpack a shipped episode folder ``name`` into ``episodes_dir/name`` (replacing
+    a stale one). An episode writes only its own folder: every member must be
+    ``name`` or ``name/...`` with no ``.``, ``..`` or empty part, and a regular file
+    or a folder (no links, devices or FIFOs). It is unpacked into a fresh staging
+    folder first (``tarfile``'s ``data`` filter bounding it there) and moved into
+    place whole, so a refused archive leaves the episode's previous folder alone.
 
     Raises:
-        tarfile.TarError: the archive is damaged, or holds anything but ``name/...``
-            (another episode's folder, an absolute path, ``..``, a link outside).
+        tarfile.TarError: the archive is damaged, or holds anything else (another
+            episode's folder, an absolute path, ``..``, a link).
     """
     with tarfile.open(fileobj=io.BytesIO(archive), mode="r") as tar:
         members = tar.getmembers()
-        strays = [m.name for m in members if m.name != name and not m.name.startswith(name + "/")]
+        strays = [m.name for m in members if not _own(m, name)]
         if strays or not members:
             raise tarfile.TarError(f"an archive for episode folder {name} holds "
-                                   f"{', '.join(strays[:3]) if strays else 'nothing'}")
-        target = episodes_dir / name
-        if target.exists():
-            shutil.rmtree(target)
-        tar.extractall(episodes_dir, members=members, filter="data")
+                                   f"{', '.join(strays[:3]) if strays else 'nothing'} (only regular files and "
+                                   f"folders under {name}/ are accepted)")
+        episodes_dir.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{name}-", dir=episodes_dir))
+        try:
+            tar.extractall(staging, members=members, filter="data")
+            target = episodes_dir / name
+            if target.is_symlink() or target.is_file():
+                target.unlink()
+            elif target.exists():
+                shutil.rmtree(target)
+            (staging / name).rename(target)
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+
+
+def _own(member: tarfile.TarInfo, name: str) -> bool:
+    """``member`` is ``name`` itself or a plain path under it, and a file or a folder."""
+    parts = member.name.split("/")
+    if parts and parts[-1] == "" and member.isdir():
+        parts = parts[:-1]  # "e00001/sub/" as some tar writers name folders
+    return (parts[0] == name and not any(p in ("", ".", "..") for p in parts)
+            and (member.isfile() or member.isdir()))
 
 
 __all__ = ["DaskEngine", "EngineKind", "ProcessEngine", "shipped_episode", "unpack_episode"]

@@ -10,6 +10,7 @@ from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
     Progress,
+    TaskID,
     TextColumn,
     TimeElapsedColumn,
     TimeRemainingColumn,
@@ -26,7 +27,7 @@ class CampaignProgress:
         self.console = console
         self.live = live and console.is_terminal
         self._bar: Progress | None = None
-        self._task = None
+        self._task: TaskID | None = None
         self.total = self.done = self.ran = self.cases = 0
         self.km = 0.0
         self._t0 = time.perf_counter()

@@ -165,10 +165,10 @@ def _scatter(dx: dict[str, Any], dy: dict[str, Any], points: list[tuple[dict[str
     pw, ph = width - left - right, height - top - bottom
 
     def sx(v: float) -> float:
-        return left + (v - dx["lo"]) / ((dx["hi"] - dx["lo"]) or 1.0) * pw
+        return float(left + (v - dx["lo"]) / ((dx["hi"] - dx["lo"]) or 1.0) * pw)
 
     def sy(v: float) -> float:
-        return top + ph - (v - dy["lo"]) / ((dy["hi"] - dy["lo"]) or 1.0) * ph
+        return float(top + ph - (v - dy["lo"]) / ((dy["hi"] - dy["lo"]) or 1.0) * ph)
 
     body = [f'<rect x="{left}" y="{top}" width="{pw}" height="{ph}" fill="#fafafa" stroke="#ccc"/>']
     for t in rp.nice_ticks(dx["lo"], dx["hi"], 5):

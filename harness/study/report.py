@@ -1,6 +1,10 @@
 """The study folder of ``hil study`` (harness/study/study.py): metrics per point, the table
-(``results.csv``, ``results.json``), SVG plots like the paper's figures 7-13, and
-``report.md`` opening with a one-paragraph reading of the results.
+(``results.csv``, ``results.json``), six SVG charts against the number of vehicles
+(total frames/s; per-vehicle frames/s, mean and minimum, with the floor; end-to-end
+and inference latency p50/p99/std; physics-step lateness p99; physics steps over
+10 ms late), ``report.md`` opening with a one-paragraph reading of the results, and
+``report.html``, the same as one self-contained page with each point's run report
+linked.
 
 Definitions (per point, one run):
 
@@ -16,19 +20,23 @@ Definitions (per point, one run):
 
 A point *holds* when its minimum per-vehicle frames/s ≥ the floor and it kept real
 time; the study states the largest N that holds (and the largest N that keeps the
-floor alone, since on a loaded machine a few late physics steps are common).
+floor alone, since on a loaded machine a few late physics steps are common), or
+that every N tried held: a larger one was not tried.
 """
 
 from __future__ import annotations
 
 import csv
 import json
+import os
+from html import escape
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 import numpy as np
 
-from hil.harness.report.plots import PALETTE, Series, line_chart
+from hil.harness.report.plots import PALETTE, Rule, Series, line_chart, standalone
 
 _COLUMNS = ("placement", "vehicles", "fps", "status", "total_fps", "fps_per_vehicle_mean", "fps_per_vehicle_min",
             "e2e_p50_ms", "e2e_p99_ms", "e2e_std_ms", "inference_p50_ms", "inference_p99_ms", "inference_std_ms",
@@ -126,6 +134,7 @@ def _reading(rows: list[dict[str, Any]], holds: dict[str, int | None], floor: di
         return "No point of this study ran; see the table for each point's reason."
     parts = []
     for g in holds:
+        tried = max(r["vehicles"] for r in rows if f"{r['placement']} @ {r['fps']:g} fps" == g)
         rs = sorted((r for r in ok if f"{r['placement']} @ {r['fps']:g} fps" == g), key=lambda r: r["vehicles"])
         if not rs:
             continue
@@ -137,8 +146,8 @@ def _reading(rows: list[dict[str, Any]], holds: dict[str, int | None], floor: di
             f"end-to-end latency p50 {lo['e2e_p50_ms']} → {hi['e2e_p50_ms']} ms and p99 {lo['e2e_p99_ms']} → "
             f"{hi['e2e_p99_ms']} ms (std {lo['e2e_std_ms']} → {hi['e2e_std_ms']} ms), inference p50 "
             f"{lo['inference_p50_ms']} → {hi['inference_p50_ms']} ms. The largest N keeping ≥ {floor_fps:g} fps per "
-            f"vehicle with real time kept is {_n(holds[g])}; keeping the fps floor alone (ignoring late physics "
-            f"steps), {_n(floor[g])}.")
+            f"vehicle with real time kept: {_n(holds[g], tried)}; keeping the fps floor alone (ignoring late "
+            f"physics steps): {_n(floor[g], tried)}.")
     late = [r for r in ok if not r["kept_realtime"]]
     if late:
         parts.append(f"{len(late)} of {len(ok)} points did not keep real time (achieved real-time factor down to "
@@ -149,11 +158,17 @@ def _reading(rows: list[dict[str, Any]], holds: dict[str, int | None], floor: di
     return " ".join(parts)
 
 
-def _n(v: int | None) -> str:
-    return "none (the smallest N already misses it)" if v is None else f"N = {v}"
+def _n(v: int | None, tried: int) -> str:
+    if v is None:
+        return "none (the smallest N already misses it)"
+    if v == tried:
+        return f"held at every N tried (up to N = {v}; no larger N was tried)"
+    return f"N = {v}"
 
 
-def _plots(out: Path, rows: list[dict[str, Any]], floor_fps: float) -> list[str]:
+def _charts(rows: list[dict[str, Any]], floor_fps: float) -> dict[str, str]:
+    """The study's charts (SVG elements, no namespace) by file name: one quantity and
+    one unit per chart, the numbers of vehicles tried as the x ticks."""
     groups: dict[str, list[dict[str, Any]]] = {}
     for r in rows:
         if r["status"] == "ok":
@@ -167,23 +182,25 @@ def _plots(out: Path, rows: list[dict[str, Any]], floor_fps: float) -> list[str]
                        [np.nan if r[key] is None else r[key] for r in rs], PALETTE[(i * 3 + k) % len(PALETTE)])
                 for i, (g, rs) in enumerate(groups.items())]
 
-    figs = {
-        "fig_total_fps.svg": ([*series("total_fps", "")], "total frames/s", "Total rendering throughput"),
-        "fig_fps_per_vehicle.svg": ([*series("fps_per_vehicle_mean", "mean"), *series("fps_per_vehicle_min", "min", 1),
-                                     Series(f"{floor_fps:g} fps floor", [ns[0], ns[-1]], [floor_fps, floor_fps],
-                                            "#d62728")], "frames/s per vehicle", "Per-vehicle frames/s"),
+    floor = [Rule(f"{floor_fps:g} fps floor", floor_fps, "#d62728")]
+    counts = {"fig_late_steps.svg"}
+    figs: dict[str, tuple[list[Series], list[Rule], str, str]] = {
+        "fig_total_fps.svg": (series("total_fps", ""), [], "total frames/s", "Total rendering throughput"),
+        "fig_fps_per_vehicle.svg": ([*series("fps_per_vehicle_mean", "mean"), *series("fps_per_vehicle_min", "min", 1)],
+                                    floor, "frames/s per vehicle", "Per-vehicle frames/s"),
         "fig_e2e_latency.svg": ([*series("e2e_p50_ms", "p50"), *series("e2e_p99_ms", "p99", 1),
-                                 *series("e2e_std_ms", "std", 2)], "end-to-end latency (ms)", "End-to-end latency"),
+                                 *series("e2e_std_ms", "std", 2)], [], "end-to-end latency (ms)", "End-to-end latency"),
         "fig_inference_latency.svg": ([*series("inference_p50_ms", "p50"), *series("inference_p99_ms", "p99", 1),
-                                       *series("inference_std_ms", "std", 2)], "inference (ms)", "Inference latency"),
-        "fig_realtime.svg": ([*series("lateness_p99_ms", "lateness p99 (ms)"),
-                              *series("steps_over_10ms", "steps > 10 ms late", 1)], "ms / steps",
-                             "Real-time health"),
+                                       *series("inference_std_ms", "std", 2)], [], "inference (ms)",
+                                      "Inference latency"),
+        "fig_lateness.svg": (series("lateness_p99_ms", "p99"), [], "physics-step lateness (ms)",
+                             "Real-time health: physics-step lateness"),
+        "fig_late_steps.svg": (series("steps_over_10ms", "steps > 10 ms late"), [], "physics steps",
+                               "Real-time health: physics steps over 10 ms late"),
     }
-    for name, (ss, ylabel, title) in figs.items():
-        (out / name).write_text(line_chart(series=ss, x_label="vehicles (N)", y_label=ylabel, title=title,
-                                           width=760, height=260) + "\n")
-    return list(figs)
+    return {name: line_chart(series=ss, rules=rules, x_label="vehicles (N)", y_label=ylabel, title=title,
+                             width=760, height=260, x_ticks=ns, y_integer=name in counts)
+            for name, (ss, rules, ylabel, title) in figs.items()}
 
 
 def write_study(out: Path, results: list[Any], *, config: str, floor_fps: float, study_wall_s: float,
@@ -199,25 +216,78 @@ def write_study(out: Path, results: list[Any], *, config: str, floor_fps: float,
     doc = {"config": config, "floor_fps": floor_fps, "study_wall_s": round(study_wall_s, 1), "loadavg": loadavg,
            "largest_n_holding": holds, "largest_n_floor_only": floor, "points": rows}
     (out / "results.json").write_text(json.dumps(doc, indent=2) + "\n")
-    figs = _plots(out, rows, floor_fps)
-    cols = ("placement", "vehicles", "fps", "status", "total_fps", "fps_per_vehicle_min", "e2e_p50_ms",
-            "e2e_p99_ms", "e2e_std_ms", "inference_p50_ms", "inference_p99_ms", "uplink_p50_ms", "late_steps",
-            "lateness_p99_ms",
-            "kept_realtime", "holds", "wall_s")
-    lines = ["# Study: throughput and latency versus the number of vehicles", "",
-             _reading(rows, holds, floor, floor_fps, study_wall_s), "",
-             f"Config `{config}`; {len(rows)} points; load average at the end `{loadavg}`. Definitions: "
-             f"harness/study/report.py. Per-point run folders under `points/`.", "",
-             "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    charts = _charts(rows, floor_fps)
+    for name, svg in charts.items():
+        (out / name).write_text(standalone(svg) + "\n")
+    reading = _reading(rows, holds, floor, floor_fps, study_wall_s)
+    about = (f"Config `{config}`; {len(rows)} points; load average at the end `{loadavg}`. Definitions: "
+             f"harness/study/report.py. Per-point run folders under `points/`.")
+    lines = ["# Study: throughput and latency versus the number of vehicles", "", reading, "", about, "",
+             "| " + " | ".join(_TABLE) + " |", "|" + "---|" * len(_TABLE)]
     for r in rows:
-        lines.append("| " + " | ".join("" if r.get(c) is None else str(r.get(c)) for c in cols) + " |")
+        lines.append("| " + " | ".join("" if r.get(c) is None else str(r.get(c)) for c in _TABLE) + " |")
     skipped = [r for r in rows if r["status"] != "ok"]
     if skipped:
         lines += ["", "Points not run or failed:"] + [f"- {r['placement']} N={r['vehicles']}: {r['status']}, "
                                                        f"{r['reason']}" for r in skipped]
-    lines += ["", "Largest N keeping the floor with real time kept: " +
-              ", ".join(f"{g}: {v if v is not None else 'none'}" for g, v in holds.items()), ""]
-    lines += [f"![{f}]({f})" for f in figs]
+    lines += ["", "Largest N keeping the floor with real time kept: " + _largest_text(rows, holds), ""]
+    lines += [f"![{f}]({f})" for f in charts]
     report = out / "report.md"
     report.write_text("\n".join(lines) + "\n")
+    (out / "report.html").write_text(_html(out, rows, charts, reading=reading, about=about,
+                                           largest=_largest_text(rows, holds)), encoding="utf-8")
     return report
+
+
+_TABLE = ("placement", "vehicles", "fps", "status", "total_fps", "fps_per_vehicle_min", "e2e_p50_ms", "e2e_p99_ms",
+          "e2e_std_ms", "inference_p50_ms", "inference_p99_ms", "uplink_p50_ms", "late_steps", "lateness_p99_ms",
+          "kept_realtime", "holds", "wall_s")
+
+
+def _largest_text(rows: list[dict[str, Any]], holds: dict[str, int | None]) -> str:
+    out = []
+    for g, v in holds.items():
+        tried = max(r["vehicles"] for r in rows if f"{r['placement']} @ {r['fps']:g} fps" == g)
+        out.append(f"{g}: " + ("none" if v is None else f"{v} (every N tried)" if v == tried else str(v)))
+    return ", ".join(out)
+
+
+_CSS = """
+body{font:14px/1.45 system-ui,sans-serif;margin:24px auto;max-width:1100px;color:#222;padding:0 16px}
+h1{font-size:22px}h2{font-size:18px;border-bottom:1px solid #ddd;padding-bottom:3px;margin-top:30px}
+table{border-collapse:collapse;margin:6px 0 12px;font-size:13px}
+th,td{border:1px solid #ddd;padding:3px 6px;text-align:left}th{background:#f4f4f4}
+td.n{text-align:right;font-variant-numeric:tabular-nums}.muted{color:#777}code{font-size:12px}
+.grid{display:flex;flex-wrap:wrap;gap:10px}svg{max-width:100%;height:auto}.wide{overflow-x:auto}
+"""
+
+
+def _html(out: Path, rows: list[dict[str, Any]], charts: dict[str, str], *, reading: str, about: str,
+          largest: str) -> str:
+    """``report.html``: one self-contained page (inline SVG, no script, nothing loaded):
+    the reading, the charts, the table with each point's run report linked."""
+    head = "".join(f"<th>{escape(c)}</th>" for c in _TABLE)
+    body = []
+    for r in rows:
+        cells = []
+        for c in _TABLE:
+            v = r.get(c)
+            text = "" if v is None else escape(str(v))
+            if c == "vehicles" and r.get("run_dir") and (Path(r["run_dir"]) / "report.html").is_file():
+                href = quote(Path(os.path.relpath(Path(r["run_dir"]).resolve() / "report.html",
+                                                  out.resolve())).as_posix())
+                text = f'<a href="{escape(href)}">{text}</a>'
+            num = isinstance(v, (int, float)) and not isinstance(v, bool)
+            cells.append(f'<td{" class=n" if num else ""}>{text}</td>')
+        body.append("<tr>" + "".join(cells) + "</tr>")
+    skipped = [r for r in rows if r["status"] != "ok"]
+    notes = ("<h2>Points not run or failed</h2><ul>" + "".join(
+        f"<li>{escape(r['placement'])} N={r['vehicles']}: {escape(str(r['status']))}, {escape(str(r['reason']))}</li>"
+        for r in skipped) + "</ul>") if skipped else ""
+    return ("<!DOCTYPE html><html lang=en><head><meta charset=utf-8><title>hil study</title>"
+            f"<style>{_CSS}</style></head><body><h1>Study: throughput and latency versus the number of vehicles</h1>"
+            f"<p>{escape(reading)}</p><p class=muted>{escape(about.replace('`', ''))}</p>"
+            f"<p>Largest N keeping the floor with real time kept: {escape(largest)}</p>"
+            f'<h2>Charts</h2><div class="grid">{"".join(charts.values())}</div>'
+            f"<h2>Points</h2><p class=muted>A point's number of vehicles links to its run report.</p>"
+            f'<div class="wide"><table><tr>{head}</tr>{"".join(body)}</table></div>{notes}</body></html>\n')

@@ -2,10 +2,10 @@
 
 Sweeps the number of vehicles (and camera fps) of a multi-vehicle configuration, in
 one or both placements, runs each point as a short ``hil run`` of its own, and writes
-a study folder (``harness/study/report.py``): ``report.md`` opening with a reading of
-the results, ``results.csv``/``results.json``, and SVG plots like the paper's figures
-7-13 (total and per-vehicle frames/s with the 10 fps floor, end-to-end and inference
-latency p50/p99/std vs N, real-time health vs N)::
+a study folder (``harness/study/report.py``): ``report.md`` and ``report.html``
+opening with a reading of the results, ``results.csv``/``results.json``, and six SVG
+charts against N (total and per-vehicle frames/s with the 10 fps floor, end-to-end
+and inference latency p50/p99/std, physics-step lateness, late physics steps)::
 
     hil study hil_configs/study.yaml --vehicles 1 2 4 8 --placement replicated distributed
 
@@ -74,11 +74,11 @@ class PointResult:
     metrics: dict[str, Any] = field(default_factory=dict)
 
 
-def add_parser(sub: Any) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("study", help="sweep the number of vehicles (and fps) and write a study report",
                        description="Sweep N vehicles (and camera fps) in replicated and/or distributed "
-                                   "placement; each point is a short run; writes report.md, results.csv/json "
-                                   "and plots like the paper's figures 7-13.")
+                                   "placement; each point is a short run; writes report.md, report.html, "
+                                   "results.csv/json and SVG charts against N.")
     p.add_argument("config", help="a multi-vehicle hil_configs/*.yaml (e.g. hil_configs/study.yaml)")
     p.add_argument("--vehicles", type=int, nargs="+", default=[1, 2, 4, 8], metavar="N",
                    help="numbers of vehicles to run (default 1 2 4 8)")
@@ -96,6 +96,9 @@ def add_parser(sub: Any) -> None:
                    help="distributed: impair the veth pair with the kernel's tc netem, both directions, e.g. "
                         "'delay 20ms 2ms loss 1%%' (kernels without sch_netem: the points are skipped with the "
                         "reason; target.impair works on any kernel)")
+    from hil.harness.report.ci_outputs import add_ci_args
+
+    add_ci_args(p)
 
 
 MAX_VEHICLES = 64  # multi_vehicle's own limit; beyond 16, real time is measured first (_check_capacity)
@@ -103,6 +106,9 @@ MAX_VEHICLES = 64  # multi_vehicle's own limit; beyond 16, real time is measured
 
 def cmd(args: argparse.Namespace) -> int:
     """Run the study. Raises ConfigError (exit 2, one line) for bad input, before any run."""
+    from hil.harness.report.ci_outputs import check_ci_args, write_ci_outputs
+
+    check_ci_args(args)
     placements = [Placement(p) for p in dict.fromkeys(args.placement)]
     vehicles = sorted(set(args.vehicles))
     if vehicles[0] < 1 or vehicles[-1] > MAX_VEHICLES:
@@ -120,22 +126,31 @@ def cmd(args: argparse.Namespace) -> int:
     (out / "points").mkdir(exist_ok=True)
     results: list[PointResult] = []
     t_start = time.monotonic()
-    for pl in placements:
-        pts = [pt for pt in points if pt.placement is pl]
-        with _placement_host(pl, netem=args.netem) as (ns, why):
-            for pt in pts:
-                if why is not None:
-                    results.append(PointResult(pt, "skipped", why))
-                    print(f"study: {pt.name}: skipped ({why})", flush=True)
-                    continue
-                results.append(_run_point(args, pt, ns=ns, out=out))
+    from hil.harness.cli.progress import WorkProgress, make_console
+
+    # Points cost about their simulated time: the time left is estimated from the pace so far.
+    with WorkProgress(make_console(), what="study", total=len(points), unit="points", live=False) as progress:
+        for pl in placements:
+            pts = [pt for pt in points if pt.placement is pl]
+            with _placement_host(pl, netem=args.netem) as (ns, why):
+                for pt in pts:
+                    if why is not None:
+                        results.append(PointResult(pt, "skipped", why))
+                        print(f"study: {pt.name}: skipped ({why})", flush=True)
+                    else:
+                        results.append(_run_point(args, pt, ns=ns, out=out))
+                    progress.advance(note=pt.name)
     study_wall_s = time.monotonic() - t_start
     from hil.harness.study.report import write_study
 
     report = write_study(out, results, config=str(args.config), floor_fps=args.floor_fps,
                          study_wall_s=study_wall_s, loadavg=_loadavg())
-    print(f"study: {report}", flush=True)
-    return 0 if all(r.status == "ok" for r in results) else 1
+    print(f"study: {report} ({report.with_suffix('.html').name} beside it)", flush=True)
+    code = 0 if all(r.status == "ok" for r in results) else 1
+    from hil.harness.report.ci_cases import of_study
+
+    write_ci_outputs(of_study(results, out=out, exit_code=code, wall_s=study_wall_s), args)
+    return code
 
 
 def _check_capacity(args: argparse.Namespace, points: list[Point]) -> None:

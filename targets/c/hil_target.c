@@ -11,16 +11,23 @@
  * darkness (a dark, featureless picture compresses to few bytes per pixel). Use raw
  * frames (camera.encoding: raw) to exercise the real rule.
  *
+ * Over TCP it serves harness after harness until SIGTERM or Ctrl-C (--once: one), with
+ * one start-up line and one line per session on stderr; started by a harness (which
+ * sets HIL_SESSION) it serves that one run. Each read stops at the end of the current
+ * message, so every message is stamped with the arrival of its own last byte. With a
+ * token in the environment (--token-env, default HIL_SESSION_TOKEN, which a harness
+ * that starts the target sets) it announces CAP_AUTH and answers the harness's AUTH
+ * challenge (PROTOCOL.md 4.8), so the harness knows this is its target.
+ *
  *   hil_target [--transport local|tcp] [--listen HOST:PORT | --connect HOST:PORT]
- *              [--name NAME] [--clock monotonic|realtime] [--dark LUMA] [--verbose]
+ *              [--name NAME] [--clock monotonic|realtime] [--dark LUMA] [--token-env NAME]
+ *              [--once | --keep-serving] [--verbose]
  */
 #define _POSIX_C_SOURCE 200809L
 #include "hilp.h"
+#include "net.h"
 
 #include <errno.h>
-#include <netdb.h>
-#include <netinet/in.h>
-#include <netinet/tcp.h>
 #include <poll.h>
 #include <signal.h>
 #include <stdio.h>
@@ -38,6 +45,13 @@
 #define BUF_START (256u * 1024u)
 #define HEARTBEAT_IDLE_NS 1000000000LL /* send a HEARTBEAT after 1 s without sending */
 
+static volatile sig_atomic_t g_term; /* SIGTERM or SIGINT: say BYE, serve no further run */
+
+static void on_term(int sig) {
+    (void)sig;
+    g_term = 1;
+}
+
 typedef struct {
     int fd;
     clockid_t clock;
@@ -45,8 +59,12 @@ typedef struct {
     const char *name;
     unsigned dark_luma;
     int verbose;
-    uint32_t vehicle_id; /* of the last FRAME or SYNC_REQUEST; 0 before */
+    const uint8_t *token; /* the shared secret proven to the harness (AUTH), or NULL */
+    size_t token_len;
+    uint32_t vehicle_id; /* of the last FRAME, SYNC_REQUEST or AUTH challenge; 0 before */
     int stop;
+    int harness_bye; /* the session ended by the harness's BYE, whose reason is below */
+    char bye_reason[HILP_MAX_REASON + 1];
     int64_t last_send_ns;
     /* receive buffer: bytes [0, len) held, decoding from 0 */
     uint8_t *buf;
@@ -116,7 +134,7 @@ static void send_hello(session *s) {
     p[1] = 0;
     hilp_put16(p + 2, (uint16_t)n);
     hilp_put32(p + 4, (uint32_t)(res.tv_sec * 1000000000L + res.tv_nsec));
-    hilp_put32(p + 8, HILP_CAP_COMMANDS);
+    hilp_put32(p + 8, HILP_CAP_COMMANDS | (s->token ? HILP_CAP_AUTH : 0u));
     memcpy(p + 12, s->name, n);
     h.payload_len = (uint32_t)(12 + n);
     send_msg(s, &h);
@@ -189,6 +207,24 @@ static void on_command(session *s, const uint8_t *m, const hilp_header *ch) {
     send_msg(s, &h);
 }
 
+/* An AUTH challenge: prove the token (PROTOCOL.md 4.8); its vehicle is the one served. */
+static void on_auth(session *s, const uint8_t *m, const hilp_header *ah) {
+    if (m[64] != HILP_AUTH_CHALLENGE || !s->token) {
+        send_error(s, HILP_E_UNEXPECTED, m[64] != HILP_AUTH_CHALLENGE ? "AUTH PROOF: a target never receives one"
+                                                                     : "AUTH CHALLENGE: this target holds no token");
+        return;
+    }
+    s->vehicle_id = ah->vehicle_id;
+    hilp_header h;
+    header_init(&h, HILP_AUTH, ah->vehicle_id);
+    uint8_t *p = s->out + HILP_HEADER;
+    memset(p, 0, 4);
+    p[0] = HILP_AUTH_PROOF;
+    hilp_auth_proof(s->token, s->token_len, m + 68, ah->vehicle_id, p + 4);
+    h.payload_len = HILP_AUTH_LEN;
+    send_msg(s, &h);
+}
+
 /* One whole message that passed the header checks: m holds 64 + payload_len bytes. */
 static void on_message(session *s, const uint8_t *m, const hilp_header *h, int64_t t_rx) {
     hilp_err e;
@@ -217,8 +253,16 @@ static void on_message(session *s, const uint8_t *m, const hilp_header *h, int64
         if (s->verbose) fprintf(stderr, "hil_target: harness error %u: %.*s\n", (unsigned)hilp_get16(m + 64),
                                 (int)hilp_get16(m + 66), (const char *)(m + 68));
         break;
-    case HILP_BYE: s->stop = 1; break;
+    case HILP_BYE: {
+        size_t n = hilp_get16(m + 64);
+        memcpy(s->bye_reason, m + 66, n);
+        s->bye_reason[n] = '\0';
+        s->harness_bye = 1;
+        s->stop = 1;
+        break;
+    }
     case HILP_COMMAND: on_command(s, m, h); break;
+    case HILP_AUTH: on_auth(s, m, h); break;
     default: { /* HELLO, ESTIMATE, SYNC_RESPONSE: well formed, but not for a target */
         char text[96];
         snprintf(text, sizeof text, "message type %u is not sent to a target (at byte offset 5)", (unsigned)h->type);
@@ -291,11 +335,12 @@ static void drain(session *s, int64_t t_rx) {
     s->len -= pos;
 }
 
-/* Reads into the buffer; *t_rx is when the bytes arrived on this target's clock:
- * the kernel's receive time (SO_TIMESTAMPNS, CLOCK_REALTIME) mapped with a paired
- * reading of both clocks where the socket gives one, else the clock after the read. */
-static ssize_t read_stamped(session *s, int64_t *t_rx) {
-    struct iovec iov = {s->buf + s->len, s->cap - s->len};
+/* Reads at most `want` bytes into the buffer; *t_rx is when the bytes arrived on this
+ * target's clock: the kernel's receive time (SO_TIMESTAMPNS, CLOCK_REALTIME) mapped
+ * with a paired reading of both clocks where the socket gives one, else the clock
+ * after the read. */
+static ssize_t read_stamped(session *s, size_t want, int64_t *t_rx) {
+    struct iovec iov = {s->buf + s->len, want < s->cap - s->len ? want : s->cap - s->len};
     union {
         char buf[CMSG_SPACE(sizeof(struct timespec))];
         struct cmsghdr align;
@@ -328,9 +373,32 @@ static ssize_t read_stamped(session *s, int64_t *t_rx) {
     return n;
 }
 
-static void serve(session *s) {
+/* Bytes to read next: up to the end of the current message (its header, then its
+ * payload) and never into the next one, so the read that completes a message is
+ * its own and its stamp is the arrival of its own last byte. drain() leaves fewer
+ * than a whole message, starting at a magic (or up to 3 bytes that may begin one),
+ * and grows the buffer to the size a header announces. */
+static size_t wanted(const session *s) {
+    if (s->len >= HILP_HEADER && memcmp(s->buf, "HILP", 4) == 0) {
+        size_t total = HILP_HEADER + (size_t)hilp_get32(s->buf + 12);
+        return total > s->len ? total - s->len : 1;
+    }
+    return s->len < HILP_HEADER ? HILP_HEADER - s->len : 1;
+}
+
+/* One session on s->fd until BYE, end of stream or SIGTERM; how it ended, in `ended`. */
+static void serve(session *s, char *ended, size_t ended_size) {
+    snprintf(ended, ended_size, "the harness closed the connection");
     send_hello(s);
     while (!s->stop) {
+        if (g_term) {
+            hilp_header h;
+            header_init(&h, HILP_BYE, s->vehicle_id);
+            h.payload_len = (uint32_t)put_text(s->out + HILP_HEADER, 0, "target stopping", HILP_MAX_REASON);
+            send_msg(s, &h);
+            snprintf(ended, ended_size, "stopped (SIGTERM)");
+            return;
+        }
         struct pollfd pfd = {s->fd, POLLIN, 0};
         int r = poll(&pfd, 1, 250);
         if (r < 0 && errno == EINTR) continue;
@@ -344,90 +412,67 @@ static void serve(session *s) {
             }
             continue;
         }
-        /* drain() leaves less than one whole message (and grows the buffer to the
-         * size a header announces), so there is always room to read into. */
         int64_t t_rx; /* the read that completes a message stamps it */
-        ssize_t n = read_stamped(s, &t_rx);
+        ssize_t n = read_stamped(s, wanted(s), &t_rx);
         if (n < 0 && errno == EINTR) continue;
-        if (n <= 0) break; /* end of stream: the harness has gone */
+        if (n < 0) {
+            snprintf(ended, ended_size, "the connection failed: %s", strerror(errno));
+            break;
+        }
+        if (n == 0) break; /* end of stream: the harness has gone */
         s->len += (size_t)n;
         drain(s, t_rx);
     }
-}
-
-static int split_address(const char *text, char *host, size_t host_size, const char **port) {
-    if (strncmp(text, "tcp/", 4) == 0) text += 4;
-    const char *colon = strrchr(text, ':');
-    if (!colon || colon == text || (size_t)(colon - text) >= host_size || !colon[1]) return -1;
-    memcpy(host, text, (size_t)(colon - text));
-    host[colon - text] = '\0';
-    if (host[0] == '[' && host[strlen(host) - 1] == ']') {
-        memmove(host, host + 1, strlen(host));
-        host[strlen(host) - 1] = '\0';
-    }
-    *port = colon + 1;
-    return 0;
-}
-
-/* A connected TCP socket: accept one harness on `listen_at`, or dial `connect_to`
- * (retrying for 30 s). -1 with a message on stderr on failure. */
-static int tcp_open(const char *listen_at, const char *connect_to) {
-    char host[256];
-    const char *port;
-    const char *addr = connect_to ? connect_to : listen_at;
-    if (split_address(addr, host, sizeof host, &port) != 0) {
-        fprintf(stderr, "hil_target: bad address %s: expected host:port, e.g. 127.0.0.1:7600\n", addr);
-        return -1;
-    }
-    struct addrinfo hints, *ai = NULL;
-    memset(&hints, 0, sizeof hints);
-    hints.ai_socktype = SOCK_STREAM;
-    hints.ai_flags = connect_to ? 0 : AI_PASSIVE;
-    int rc = getaddrinfo(host, port, &hints, &ai);
-    if (rc != 0) {
-        fprintf(stderr, "hil_target: cannot resolve %s: %s\n", addr, gai_strerror(rc));
-        return -1;
-    }
-    int fd = -1, one = 1;
-    if (connect_to) {
-        for (int attempt = 0; attempt < 600 && fd < 0; attempt++) {
-            fd = socket(ai->ai_family, ai->ai_socktype, ai->ai_protocol);
-            if (fd >= 0 && connect(fd, ai->ai_addr, ai->ai_addrlen) != 0) {
-                close(fd);
-                fd = -1;
-                struct timespec pause = {0, 50000000L};
-                nanosleep(&pause, NULL);
-            }
-        }
-        if (fd < 0) fprintf(stderr, "hil_target: cannot connect to %s: %s\n", addr, strerror(errno));
-    } else {
-        int ls = socket(ai->ai_family, ai->ai_socktype, ai->ai_protocol);
-        if (ls >= 0) setsockopt(ls, SOL_SOCKET, SO_REUSEADDR, &one, sizeof one);
-        if (ls < 0 || bind(ls, ai->ai_addr, ai->ai_addrlen) != 0 || listen(ls, 1) != 0) {
-            fprintf(stderr, "hil_target: cannot listen on %s: %s\n", addr, strerror(errno));
-        } else {
-            fprintf(stderr, "hil_target: listening on %s\n", addr);
-            fd = accept(ls, NULL, NULL);
-        }
-        if (ls >= 0) close(ls);
-    }
-    freeaddrinfo(ai);
-    if (fd >= 0) setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
-#ifdef SO_TIMESTAMPNS
-    if (fd >= 0) setsockopt(fd, SOL_SOCKET, SO_TIMESTAMPNS, &one, sizeof one);
-#endif
-    return fd;
+    if (s->harness_bye)
+        snprintf(ended, ended_size, "the harness said BYE%s%s%s", s->bye_reason[0] ? " (" : "", s->bye_reason,
+                 s->bye_reason[0] ? ")" : "");
 }
 
 static int usage(const char *why) {
     fprintf(stderr, "hil_target: %s\nusage: hil_target [--transport local|tcp] [--listen HOST:PORT | "
-                    "--connect HOST:PORT] [--name NAME] [--clock monotonic|realtime] [--dark LUMA] [--verbose]\n",
+                    "--connect HOST:PORT] [--name NAME] [--clock monotonic|realtime] [--dark LUMA] "
+                    "[--token-env NAME] [--once | --keep-serving] [--verbose]\n",
             why);
     return 2;
 }
 
+typedef struct {
+    unsigned long frames, estimates, dark, syncs, heartbeats, bad, errors_sent, errors_received, commands, kernel_stamps;
+} totals;
+
+static void add_totals(totals *t, const session *s) {
+    t->frames += s->frames;
+    t->estimates += s->estimates;
+    t->dark += s->dark;
+    t->syncs += s->syncs;
+    t->heartbeats += s->heartbeats;
+    t->bad += s->bad;
+    t->errors_sent += s->errors_sent;
+    t->errors_received += s->errors_received;
+    t->commands += s->commands;
+    t->kernel_stamps += s->kernel_stamps;
+}
+
+/* Back to a fresh session on `fd` (same name, clock, AI setting, token, buffer). */
+static void reset(session *s, int fd) {
+    session keep = *s;
+    memset(s, 0, sizeof *s);
+    s->fd = fd;
+    s->clock = keep.clock;
+    s->clock_id = keep.clock_id;
+    s->name = keep.name;
+    s->dark_luma = keep.dark_luma;
+    s->verbose = keep.verbose;
+    s->token = keep.token;
+    s->token_len = keep.token_len;
+    s->buf = keep.buf;
+    s->cap = keep.cap;
+    s->last_send_ns = now_ns(s);
+}
+
 int main(int argc, char **argv) {
-    const char *transport = "local", *listen_at = "127.0.0.1:7600", *connect_to = NULL;
+    const char *transport = "local", *listen_at = "127.0.0.1:7600", *connect_to = NULL, *token_env = "HIL_SESSION_TOKEN";
+    int keep = -1; /* -1: keep serving unless a harness started this target (it sets HIL_SESSION) */
     session s;
     memset(&s, 0, sizeof s);
     s.clock = CLOCK_MONOTONIC;
@@ -437,12 +482,15 @@ int main(int argc, char **argv) {
     for (int i = 1; i < argc; i++) {
         const char *a = argv[i], *v = i + 1 < argc ? argv[i + 1] : NULL;
         if (strcmp(a, "--verbose") == 0) { s.verbose = 1; continue; }
+        if (strcmp(a, "--once") == 0) { keep = 0; continue; }
+        if (strcmp(a, "--keep-serving") == 0) { keep = 1; continue; }
         if (!v) return usage("an option is missing its value");
         i++;
         if (strcmp(a, "--transport") == 0) transport = v;
         else if (strcmp(a, "--listen") == 0) listen_at = v;
         else if (strcmp(a, "--connect") == 0) connect_to = v;
         else if (strcmp(a, "--name") == 0) s.name = v;
+        else if (strcmp(a, "--token-env") == 0) token_env = v;
         else if (strcmp(a, "--dark") == 0) s.dark_luma = (unsigned)strtoul(v, NULL, 10);
         else if (strcmp(a, "--clock") == 0) {
             if (strcmp(v, "monotonic") == 0) { s.clock = CLOCK_MONOTONIC; s.clock_id = HILP_CLOCK_MONOTONIC; }
@@ -450,29 +498,79 @@ int main(int argc, char **argv) {
             else return usage("--clock takes monotonic or realtime");
         } else return usage("unknown option");
     }
+    const char *token = getenv(token_env);
+    if (token && *token) {
+        s.token = (const uint8_t *)token;
+        s.token_len = strlen(token);
+        if (s.token_len < HILP_MIN_TOKEN) {
+            fprintf(stderr, "hil_target: the token in $%s is %lu bytes; use at least %u (e.g. openssl rand -hex 32)\n",
+                    token_env, (unsigned long)s.token_len, HILP_MIN_TOKEN);
+            return 2;
+        }
+    }
+    if (keep < 0) keep = getenv("HIL_SESSION") == NULL;
     signal(SIGPIPE, SIG_IGN);
+    struct sigaction sa;
+    memset(&sa, 0, sizeof sa);
+    sa.sa_handler = on_term; /* no SA_RESTART: a blocked poll, accept or read returns EINTR */
+    sigaction(SIGTERM, &sa, NULL);
+    sigaction(SIGINT, &sa, NULL);
+    int tcp = strcmp(transport, "tcp") == 0, ls = -1;
+    char where[300];
     if (strcmp(transport, "local") == 0) {
         const char *fd_text = getenv("HIL_LOCAL_FD");
         if (!fd_text || !*fd_text) {
-            fprintf(stderr, "hil_target: HIL_LOCAL_FD is not set: a local target is started by the harness\n");
+            fprintf(stderr, "hil_target: HIL_LOCAL_FD is not set: a local target is started by the harness (hil run); "
+                            "to serve by hand, give --transport tcp\n");
             return 2;
         }
         s.fd = atoi(fd_text);
-    } else if (strcmp(transport, "tcp") == 0) {
-        s.fd = tcp_open(listen_at, connect_to);
-        if (s.fd < 0) return 1;
+        keep = 0; /* the harness's socket carries one run */
+        snprintf(where, sizeof where, "on the harness's socket (HIL_LOCAL_FD)");
+    } else if (tcp) {
+        if (!connect_to && (ls = net_listen(listen_at)) < 0) return 2;
+        snprintf(where, sizeof where, connect_to ? "dialling the harness at %s" : "listening on %s",
+                 connect_to ? connect_to : listen_at);
     } else
         return usage("--transport takes local or tcp");
     s.cap = BUF_START;
     s.buf = malloc(s.cap);
     if (!s.buf) return 1;
-    s.last_send_ns = now_ns(&s);
-    serve(&s);
+    struct timespec res;
+    clock_getres(s.clock, &res);
+    fprintf(stderr, "%s: %s target %s, clock %s (%ld ns), protocol v%d, capabilities: COMMANDS%s, access: %s%s; %s\n",
+            s.name, tcp ? "tcp" : "local", where, s.clock_id == HILP_CLOCK_MONOTONIC ? "MONOTONIC" : "REALTIME",
+            (long)(res.tv_sec * 1000000000L + res.tv_nsec), HILP_VERSION, s.token ? ", AUTH" : "",
+            s.token ? "proves the token in $" : "no token: a harness that requires one refuses this target",
+            s.token ? token_env : "", keep ? "serving run after run until Ctrl-C/SIGTERM" : "serving one run");
+    totals t;
+    memset(&t, 0, sizeof t);
+    int rc = 0;
+    for (unsigned long n = 1; !g_term; n++) {
+        char peer[300] = "the harness", ended[HILP_MAX_REASON + 64];
+        if (tcp) {
+            int fd = connect_to ? net_dial(connect_to, keep, &g_term) : net_accept(ls, peer, sizeof peer, &g_term);
+            if (fd < 0) {
+                rc = g_term ? 0 : 2;
+                break;
+            }
+            if (connect_to) snprintf(peer, sizeof peer, "%s", connect_to);
+            reset(&s, fd);
+        } else
+            reset(&s, s.fd);
+        serve(&s, ended, sizeof ended);
+        add_totals(&t, &s);
+        fprintf(stderr, "%s: session %lu with %s, vehicle %lu: %lu frames, %lu estimates, %lu clock syncs, "
+                        "%lu bad messages; ended: %s\n",
+                s.name, n, peer, (unsigned long)s.vehicle_id, s.frames, s.estimates, s.syncs, s.bad, ended);
+        close(s.fd);
+        if (!keep) break;
+    }
+    if (ls >= 0) close(ls);
     fprintf(stderr, "hil_target: frames=%lu estimates=%lu dark=%lu syncs=%lu heartbeats=%lu bad=%lu "
                     "errors_sent=%lu errors_received=%lu commands=%lu kernel_stamps=%lu\n",
-            s.frames, s.estimates, s.dark, s.syncs, s.heartbeats, s.bad, s.errors_sent, s.errors_received,
-            s.commands, s.kernel_stamps);
+            t.frames, t.estimates, t.dark, t.syncs, t.heartbeats, t.bad, t.errors_sent, t.errors_received,
+            t.commands, t.kernel_stamps);
     free(s.buf);
-    close(s.fd);
-    return 0;
+    return rc;
 }

@@ -59,7 +59,7 @@ int hilp_decode_header(const uint8_t *p, hilp_header *h, hilp_err *e) {
                     "unsupported protocol version %u; this target speaks version %u", (unsigned)h->version,
                     (unsigned)HILP_VERSION);
     h->type = p[5];
-    if (h->type < HILP_HELLO || h->type > HILP_COMMAND)
+    if (h->type < HILP_HELLO || h->type > HILP_AUTH)
         return fail(e, HILP_E_MALFORMED, 5, "unknown message type %u", (unsigned)h->type);
     h->flags = hilp_get16(p + 6);
     if (h->flags & ~HILP_FLAG_PAYLOAD_CRC)
@@ -143,8 +143,8 @@ static int check_len(const hilp_header *h, const uint8_t *m, uint32_t at, uint32
 }
 
 /* Per type: does it use frame_id, and how many leading ts slots (section 3). */
-static const uint8_t uses_fid[10] = {0, 0, 1, 1, 1, 1, 0, 0, 0, 1};
-static const uint8_t n_ts[10] = {0, 0, 3, 4, 1, 3, 1, 0, 0, 1};
+static const uint8_t uses_fid[11] = {0, 0, 1, 1, 1, 1, 0, 0, 0, 1, 0};
+static const uint8_t n_ts[11] = {0, 0, 3, 4, 1, 3, 1, 0, 0, 1, 0};
 
 static int check_frame(const uint8_t *m, const hilp_header *h, hilp_err *e) {
     static const char *const names[7] = {"fx", "fy", "cx", "cy", "mount_height_m", "pitch_rad", "ego_speed_mps"};
@@ -223,6 +223,13 @@ int hilp_check_message(const uint8_t *m, const hilp_header *h, hilp_err *e) {
     case HILP_ERROR: return check_len(h, m, 66, 4, HILP_MAX_ERROR, "ERROR", "msg_len", e);
     case HILP_BYE: return check_len(h, m, 64, 2, HILP_MAX_REASON, "BYE", "reason_len", e);
     case HILP_COMMAND: return check_len(h, m, 64, 2, HILP_MAX_COMMAND, "COMMAND", "text_len", e);
+    case HILP_AUTH:
+        if (h->payload_len != HILP_AUTH_LEN)
+            return fail(e, HILP_E_MALFORMED, 12, "AUTH payload_len must be %u, got %lu", HILP_AUTH_LEN,
+                        (unsigned long)h->payload_len);
+        if (m[64] != HILP_AUTH_CHALLENGE && m[64] != HILP_AUTH_PROOF)
+            return fail(e, HILP_E_MALFORMED, 64, "unknown AUTH step %u", (unsigned)m[64]);
+        return check_reserved(m, 65, 3, e);
     default: return fail(e, HILP_E_MALFORMED, 5, "unknown message type %u", (unsigned)h->type);
     }
 }

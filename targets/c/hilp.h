@@ -13,6 +13,9 @@
 #define HILP_FLAG_PAYLOAD_CRC 0x0001u
 #define HILP_CAP_SHM_FRAMES 0x00000001u
 #define HILP_CAP_COMMANDS 0x00000002u
+#define HILP_CAP_AUTH 0x00000004u
+#define HILP_AUTH_LEN 36u /* AUTH payload: step, 3 reserved bytes, 32 bytes of challenge or proof */
+#define HILP_MIN_TOKEN 16u
 #define HILP_MAX_NAME 64u
 #define HILP_MAX_ERROR 1024u
 #define HILP_MAX_REASON 256u
@@ -22,8 +25,9 @@
 
 enum hilp_type {
     HILP_HELLO = 1, HILP_FRAME = 2, HILP_ESTIMATE = 3, HILP_SYNC_REQUEST = 4, HILP_SYNC_RESPONSE = 5,
-    HILP_HEARTBEAT = 6, HILP_ERROR = 7, HILP_BYE = 8, HILP_COMMAND = 9
+    HILP_HEARTBEAT = 6, HILP_ERROR = 7, HILP_BYE = 8, HILP_COMMAND = 9, HILP_AUTH = 10
 };
+enum hilp_auth_step { HILP_AUTH_CHALLENGE = 1, HILP_AUTH_PROOF = 2 };
 enum hilp_error_code {
     HILP_E_UNSPECIFIED = 0, HILP_E_MALFORMED = 1, HILP_E_UNSUPPORTED_VERSION = 2, HILP_E_UNEXPECTED = 3,
     HILP_E_TARGET_FAILURE = 4
@@ -87,6 +91,14 @@ void hilp_frame_view(const uint8_t *p, hilp_frame *f);
  * h->payload_len bytes (payload CRC filled when h->flags asks for it). Returns the
  * message length. */
 size_t hilp_finish(uint8_t *out, const hilp_header *h);
+
+/* HMAC-SHA256 (RFC 2104) of msg under key (hmac.c). */
+void hilp_hmac_sha256(const uint8_t *key, size_t key_len, const uint8_t *msg, size_t msg_len, uint8_t out[32]);
+
+/* The AUTH proof of PROTOCOL.md section 4.8: HMAC-SHA256(token, "HIL-AUTH-1" ||
+ * challenge || vehicle_id as u32 little-endian). */
+void hilp_auth_proof(const uint8_t *token, size_t token_len, const uint8_t challenge[32], uint32_t vehicle_id,
+                     uint8_t out[32]);
 
 /* 1 when the n bytes at p are well-formed UTF-8 (as Python decodes it); else 0 and
  * *bad is the index of the first bad byte. */

@@ -58,6 +58,8 @@ class Detector(nn.Module):
     """Input: N x 3 x 120 x 160 RGB, 0-255 floats. Output: N x 7 x 30 x 40 raw maps
     (3 heatmap logits, log w, log h, offset x, offset y)."""
 
+    rows: torch.Tensor  # a buffer (register_buffer): nn.Module's attribute lookup types it Tensor | Module
+
     def __init__(self, widths: tuple[int, ...] = DET_WIDTHS) -> None:
         super().__init__()
         c1, c2, c3, c4, c5 = widths
@@ -74,8 +76,10 @@ class Detector(nn.Module):
         self.merge8 = _cbr(c3 + c4, c3)
         self.merge4 = _cbr(c2 + c3, 32)
         self.head = nn.Conv2d(32, len(CLASSES) + 4, 1)
+        head_bias = self.head.bias
+        assert head_bias is not None  # a Conv2d made with its bias
         with torch.no_grad():  # CenterNet's prior: heatmaps start near 0.1 % so the loss starts sane
-            self.head.bias[: len(CLASSES)].fill_(-6.9)
+            head_bias[: len(CLASSES)].fill_(-6.9)
 
     @staticmethod
     def _up(x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
@@ -90,7 +94,8 @@ class Detector(nn.Module):
         c = self.merge16(torch.cat([c, self._up(d, c)], 1))
         b = self.merge8(torch.cat([b, self._up(c, b)], 1))
         a = self.merge4(torch.cat([a, self._up(b, a)], 1))
-        return self.head(a)
+        out: torch.Tensor = self.head(a)  # nn.Module.__call__ is typed Any
+        return out
 
 
 class SteeringNet(nn.Module):
@@ -111,7 +116,8 @@ class SteeringNet(nn.Module):
                                 nn.Linear(50, 10), nn.ReLU(inplace=True), nn.Linear(10, 2))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.fc(self.features(x * (1 / 127.5) - 1.0))
+        out: torch.Tensor = self.fc(self.features(x * (1 / 127.5) - 1.0))  # nn.Module.__call__ is typed Any
+        return out
 
 
 @dataclass(frozen=True)
@@ -126,25 +132,42 @@ class Detection:
 
 def decode(out: torch.Tensor, *, threshold: float, top_k: int = 32) -> list[Detection]:
     """Detections of one output (7 x 30 x 40, or 1 x 7 x 30 x 40), best first."""
-    if out.dim() == 4:
-        out = out[0]
-    nc = len(CLASSES)
-    heat = torch.sigmoid(out[:nc])
-    peaks = heat * (F.max_pool2d(heat[None], 3, 1, 1)[0] == heat)
+    return decode_batch(out if out.dim() == 4 else out[None], threshold=threshold, top_k=top_k)[0]
+
+
+def decode_batch(out: torch.Tensor, *, threshold: float, top_k: int = 32) -> list[list[Detection]]:
+    """Detections of each output of a batch (N x 7 x 30 x 40, any dtype, on any
+    device), best first: heatmap peaks (3x3 local maxima) at or above ``threshold``
+    among the ``top_k`` best, their boxes, then ``nms``. One set of tensor operations
+    for the whole batch and one copy to the CPU; per frame only the kept peaks are
+    Python objects."""
+    out = out.float()
+    n, nc = out.shape[0], len(CLASSES)
+    heat = torch.sigmoid(out[:, :nc])
+    peaks = heat * (_max3x3(heat) == heat)
     gh, gw = heat.shape[-2:]
-    scores, idx = peaks.reshape(-1).topk(min(top_k, peaks.numel()))
-    keep = scores >= threshold
-    scores, idx = scores[keep].tolist(), idx[keep]
-    cls = (idx // (gh * gw)).tolist()
-    cell = idx % (gh * gw)
-    ys, xs = (cell // gw), (cell % gw)
-    reg = out[nc:, ys, xs]  # 4 x k
-    w, h = torch.exp(reg[0]).tolist(), torch.exp(reg[1]).tolist()
-    cx = ((xs.float() + reg[2]) * STRIDE).tolist()
-    cy = ((ys.float() + reg[3]) * STRIDE).tolist()
-    dets = [Detection(c, s, (x - ww / 2, y - hh / 2, x + ww / 2, y + hh / 2))
-            for c, s, x, y, ww, hh in zip(cls, scores, cx, cy, w, h)]
-    return nms(dets, NMS_IOU)
+    cells = gh * gw
+    scores, idx = peaks.reshape(n, -1).topk(min(top_k, nc * cells), dim=1)
+    cell = idx % cells
+    ys, xs = cell // gw, cell % gw
+    reg = out[:, nc:].reshape(n, 4, cells).gather(2, cell[:, None, :].expand(n, 4, cell.shape[1]))  # n x 4 x k
+    table = torch.stack([(scores >= threshold).float(), scores, (idx // cells).float(), (xs.float() + reg[:, 2]) * STRIDE,
+                         (ys.float() + reg[:, 3]) * STRIDE, torch.exp(reg[:, 0]), torch.exp(reg[:, 1])], 2)
+    result = []
+    for rows in table.cpu().tolist():
+        dets = [Detection(int(c), s, (x - ww / 2, y - hh / 2, x + ww / 2, y + hh / 2))
+                for keep, s, c, x, y, ww, hh in rows if keep]
+        result.append(nms(dets, NMS_IOU))
+    return result
+
+
+def _max3x3(x: torch.Tensor) -> torch.Tensor:
+    """``F.max_pool2d(x, 3, 1, 1)``, exactly (a maximum is a maximum), as two passes of
+    three shifted views: torch 2.13's stride-1 max pooling on the CPU was the slowest
+    step of post-processing a batch (``bench/README.md``, bench_shared.py)."""
+    p = F.pad(x, (1, 1, 1, 1), value=float("-inf"))
+    r = torch.maximum(torch.maximum(p[..., :, :-2], p[..., :, 1:-1]), p[..., :, 2:])
+    return torch.maximum(torch.maximum(r[..., :-2, :], r[..., 1:-1, :]), r[..., 2:, :])
 
 
 def _iou(a: tuple[float, ...], b: tuple[float, ...]) -> float:
@@ -167,11 +190,13 @@ def nms(dets: list[Detection], iou: float) -> list[Detection]:
 
 def fold_batchnorm(model: nn.Module) -> nn.Module:
     """Fold every Conv2d + BatchNorm2d pair of ``model`` (in eval mode) into the
-    convolution, in place; returns the model. Same outputs, fewer operations."""
+    convolution, in place; returns the model. Same outputs, fewer operations. A
+    BatchNorm2d without running statistics (it normalizes by each batch's) stays."""
     for mod in model.modules():
         kids = list(mod.named_children())
         for (_, a), (name_b, b) in zip(kids, kids[1:]):
-            if isinstance(a, nn.Conv2d) and isinstance(b, nn.BatchNorm2d):
+            if (isinstance(a, nn.Conv2d) and isinstance(b, nn.BatchNorm2d)
+                    and b.running_mean is not None and b.running_var is not None):
                 scale = b.weight.detach() / torch.sqrt(b.running_var + b.eps)
                 bias = b.bias.detach() - b.running_mean * scale
                 if a.bias is not None:
@@ -182,11 +207,11 @@ def fold_batchnorm(model: nn.Module) -> nn.Module:
     return model
 
 
-def save(model: nn.Module, path: Path, meta: dict[str, Any]) -> None:
+def save(model: Detector | SteeringNet, path: Path, meta: dict[str, Any]) -> None:
     """Write ``model``'s weights, its widths and ``meta`` (plain data) to ``path``."""
     path.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().clone().contiguous() for k, v in model.state_dict().items()}
-    torch.save({"widths": list(model.widths), "state": state, "meta": meta}, path)  # type: ignore[arg-type]
+    torch.save({"widths": list(model.widths), "state": state, "meta": meta}, path)
 
 
 def load(kind: str, path: Path | None = None) -> tuple[nn.Module, dict[str, Any]]:

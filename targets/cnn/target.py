@@ -4,31 +4,37 @@ rules, served through the target SDK like any user's AI.
     python -m hil.targets.cnn [--detector cnn|cv] [--steering cnn|cv] [--transport ...]
     hil target cnn --transport zenoh --listen tcp/0.0.0.0:7447
 
-Per frame (``CnnTarget.infer``; it sees only what the wire carries):
+Per batch of frames (``CnnTarget.infer_batch``; ``infer`` is a batch of one; it
+sees only what the wire carries), in three parts, each timed:
 
-1. decode the image (``hil.adapters.sdk.decode_image``);
-2. steering: the steering CNN on the road crop, or the OpenCV baseline's lane
-   keeping (``--steering cv``); a CNN output whose own error estimate is too high
-   falls back to the baseline for that frame and slows the car down;
-3. detection: the CNN detector (class, confidence, box), each box ranged with the
-   pinhole model and the class's size priors (``hil.targets.cnn.geometry``), or the
-   baseline's colour-blob vehicles (``--detector cv``); uncertain CNN detections in
-   the path make the baseline look too;
-4. decision and control (``hil.targets.cnn.decision``): SAFE/SLOW/STOP on the nearest
-   object in the driven path with the baseline's thresholds.
+1. **decode**: the images decoded (``hil.adapters.sdk.decode_image``) and the nets'
+   inputs made (``hil.targets.cnn.preprocess``), in this process or on decode
+   workers (``--decode-workers``, ``hil.targets.cnn.frontend``), or on the device
+   (``--preprocess device``, ``hil.targets.cnn.devprep``);
+2. **nets**: the steering CNN on the road crops and the CNN detector on the frames,
+   each once per batch (``hil.targets.cnn.accel``: device, precision, CUDA graphs);
+3. **post**: detections from the heatmaps (``models.decode_batch``), each box ranged
+   with the pinhole model and the class's size priors (``hil.targets.cnn.geometry``);
+   a steering output whose own error estimate is too high falls back to the OpenCV
+   baseline's lane keeping for that frame and slows the car down; uncertain
+   detections in the path make the baseline look too; with ``cv`` in a slot the
+   baseline answers for it; then decision and control
+   (``hil.targets.cnn.decision``): SAFE/SLOW/STOP on the nearest object in the driven
+   path with the baseline's thresholds.
 
-Models are chosen by the command line (the run config's ``target.args``) and can be
-swapped during a run by a COMMAND over the transport (``hil.targets.cnn.commands``).
-Weights come from the package (``targets/weights``); nothing is downloaded.
-Inference runs on ``--threads`` torch threads (default 1: one core). The SDK stamps
-``t_infer_start``/``t_infer_end`` around ``infer`` (the run's ``inference`` stage);
-the target also times its own stages (decode, steering, detector, decision), which
-``status`` reports and the target's log prints at exit.
+Models are chosen by the command line (the run config's ``target.args``,
+``hil.targets.cnn.cli``) and can be swapped during a run by a COMMAND over the
+transport (``hil.targets.cnn.commands``). Weights come from the package
+(``targets/weights``); nothing is downloaded. The nets run on ``--threads`` torch
+threads (default 1: one core). The SDK (or a shared target's scheduler) stamps
+``t_infer_start``/``t_infer_end`` around the whole batch (the run's ``inference``
+stage), so all three parts lie inside it; ``last_parts_ns`` holds the last batch's
+parts for a shared target's batch log, and ``status`` (printed at exit) their
+p50/p99.
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import threading
@@ -37,20 +43,42 @@ from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from hil.adapters.messages import Control, DetectedObject, Frame, Inference
-from hil.adapters.sdk import decode_image
+from hil.adapters.messages import Control, DetectedObject, Frame, ImageEncoding, Inference
 from hil.common.classes import DETECTABLE
 from hil.targets.cnn import commands
 from hil.targets.cnn.decision import Policy, decide, in_path, nearest_in_path
 from hil.targets.cnn.geometry import estimate_position
-from hil.targets.cnn.preprocess import DET_H, DET_W, detector_input, steering_input
+from hil.targets.cnn.preprocess import DET_H, DET_W
 from hil.targets.cv_baseline import MAX_STEER_RAD, CvBaseline
 
 _CLASS = dict(enumerate(DETECTABLE))  # heatmap channel -> class
-STAGES = ("decode", "steering", "detector", "decision", "total")
+PARTS = ("decode", "nets", "post")  # a batch's parts, in a shared target's batch log as <part>_ns
+STAGES = (*PARTS, "total")
+PREPROCESS = ("cpu", "device")
+
+
+@dataclass(frozen=True)
+class Serving:
+    """How the target runs a batch (``hil.targets.cnn.cli`` names the options).
+
+    ``decode_workers``: 0 decodes in process, N on N workers of ``decode_pool``
+    (``process`` or ``thread``), None is ``auto`` (measured at start, and only
+    when ``batched``: a shared target's batches). ``max_batch``: the most frames a
+    batch holds (the pool's slots, the CUDA graphs' largest bucket). ``precision``
+    and ``cuda_graphs``: ``hil.targets.cnn.accel``. ``preprocess``: ``cpu``
+    (OpenCV) or ``device`` (``hil.targets.cnn.devprep``)."""
+
+    decode_workers: int | None = 0
+    decode_pool: str = "process"
+    max_batch: int = 16
+    precision: str = "auto"
+    preprocess: str = "cpu"
+    cuda_graphs: bool = True
+    batched: bool = False
 
 
 @dataclass
@@ -81,11 +109,25 @@ class CnnTarget:
     """
 
     def __init__(self, *, detector: str = "cnn", steering: str = "cnn", policy: Policy | None = None,
-                 cruise_speed_mps: float = 10.0, weights_dir: Path | None = None, device: str = "cpu") -> None:
+                 cruise_speed_mps: float = 10.0, weights_dir: Path | None = None, device: str = "cpu",
+                 serving: Serving | None = None) -> None:
         """``device``: ``cpu``, ``cuda``, ``cuda:N`` or ``auto`` (``hil.targets.cnn.device``);
-        the weights are loaded there and the nets run there."""
+        the weights are loaded there and the nets run there. ``serving``: decode
+        workers, precision, preprocessing (default: all in this process, fp32 on the
+        CPU). Decode worker processes run until ``close``.
+
+        Raises (besides those above): PoolError: a decode worker did not start."""
         from hil.targets.cnn import models
+        from hil.targets.cnn.accel import Nets, parse_precision
         from hil.targets.cnn.device import device_name, parse_device
+        from hil.targets.cnn.devprep import DevicePrep, gpu_jpeg_decoder
+        from hil.targets.cnn.frontend import Frontend, auto_frontend
+
+        sv = self.serving = serving or Serving()
+        if sv.preprocess not in PREPROCESS:
+            raise ValueError(f"--preprocess {sv.preprocess!r}: expected {' or '.join(PREPROCESS)}")
+        if sv.max_batch < 1:
+            raise ValueError(f"--max-batch {sv.max_batch}: expected >= 1")
 
         for slot, name in (("detector", detector), ("steering", steering)):
             if name not in commands.MODELS:
@@ -98,14 +140,43 @@ class CnnTarget:
         self.steer_net, self.steer_meta = models.load("steering", steer_path)
         self.device = parse_device(device)
         self.device_name = device_name(self.device)
-        self.det_net.to(self.device)
-        self.steer_net.to(self.device)
-        self._torch = models.torch
-        self._decode = models.decode
+        self.dtype = parse_precision(sv.precision, self.device)
+        self.nets = Nets(self.det_net, self.steer_net, device=self.device, dtype=self.dtype,
+                         max_batch=sv.max_batch, graphs=sv.cuda_graphs)
+        self._decode_batch = models.decode_batch
         self._lock = threading.Lock()
         self._active = {"detector": detector, "steering": steering}
         self._last_frame_id: int | None = None
         self.stats = CnnStats()
+        self.last_parts_ns: tuple[int, ...] = (0,) * len(PARTS)
+        self.device_prep = DevicePrep(self.device) if sv.preprocess == "device" else None
+        self.gpu_decode = gpu_jpeg_decoder(self.device) if sv.preprocess == "device" else None
+        if sv.decode_workers is None:
+            self.frontend = (auto_frontend(slots=sv.max_batch, kind=sv.decode_pool) if sv.batched
+                             else Frontend(0, slots=sv.max_batch))
+        else:
+            self.frontend = Frontend(sv.decode_workers, kind=sv.decode_pool, slots=sv.max_batch)
+
+    def close(self) -> None:
+        """End the decode workers (idempotent); ``infer`` decodes in process afterwards."""
+        from hil.targets.cnn.frontend import Frontend
+
+        self.frontend.close()
+        self.frontend = Frontend(0, slots=self.serving.max_batch)
+
+    def __enter__(self) -> CnnTarget:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def speed(self) -> dict[str, str]:
+        """How batches run: decode placement, preprocessing, precision, CUDA graphs."""
+        from hil.targets.cnn.accel import precision_name
+
+        return {"decode": self.frontend.describe(),
+                "preprocess": "device" + (" (nvJPEG)" if self.gpu_decode else "") if self.device_prep else "cpu",
+                "precision": precision_name(self.dtype), "cuda_graphs": ",".join(self.nets.graphed) or "none"}
 
     # -- models ----------------------------------------------------------------
 
@@ -153,7 +224,8 @@ class CnnTarget:
         return (f"detector={act['detector']} steering={act['steering']} frames={s.frames} "
                 f"detector_uncertain={s.detector_uncertain} detector_confirmed_by_cv={s.detector_confirmed_by_cv} "
                 f"steering_low_confidence={s.steering_low_confidence} baseline_runs={s.baseline_runs} "
-                f"swaps={s.swaps} device={self.device} {times}").strip()
+                f"swaps={s.swaps} device={self.device} "
+                + "".join(f"{k}={v.replace(' ', '_')} " for k, v in self.speed().items()) + times).strip()
 
     # -- the SDK entry point ---------------------------------------------------------
 
@@ -168,7 +240,8 @@ class CnnTarget:
     def infer_batch(self, frames: Sequence[Frame]) -> list[Inference]:
         """Steer, detect, range, decide for each of ``frames`` (any vehicles), each net
         run once on the whole batch on ``self.device``; one ``Inference`` per frame, in
-        order. The stage timings of ``stats`` are those of the batch (per call).
+        order. The stage timings of ``stats`` and ``last_parts_ns`` are those of the
+        batch (per call). Not to be called from two threads at once.
 
         Raises:
             ProtocolError, ValueError: an image does not decode (the whole batch fails).
@@ -179,7 +252,46 @@ class CnnTarget:
         with self._lock:
             det_name, steer_name = self._active["detector"], self._active["steering"]
             self._last_frame_id = frames[-1].frame_id
-        bgrs = [decode_image(f) for f in frames]
+        want = [k for k, m in (("det", det_name), ("steer", steer_name)) if m == "cnn"]
+        det_in, steer_in = self._inputs(frames, want) if want else (None, None)
+        self.nets.sync()
+        t1 = time.perf_counter_ns()
+        steer_out = self.nets.steering(steer_in).tolist() if steer_in is not None else None
+        maps = self.nets.detector(det_in) if det_in is not None else None
+        self.nets.sync()
+        t2 = time.perf_counter_ns()
+        results = self._post(frames, steer_out, maps)
+        t3 = time.perf_counter_ns()
+        self.last_parts_ns = (t1 - t0, t2 - t1, t3 - t2)
+        s = self.stats
+        with self._lock:
+            s.frames += len(frames)
+            for name, dt in zip(STAGES, (*self.last_parts_ns, t3 - t0)):
+                s.timings_ns[name].append(dt)
+        return results
+
+    def _inputs(self, frames: Sequence[Frame], want: list[str]) -> tuple[Any, Any]:
+        """The nets' inputs ``want`` (``det``, ``steer``): uint8 N x H x W x 3 arrays
+        made on the CPU, or float tensors made on the device."""
+        from hil.targets.cnn.devprep import crop_rows
+        from hil.targets.cnn.pool import frame_layout
+
+        sizes = {(f.width, f.height) for f in frames}
+        if self.device_prep is None or len(sizes) != 1:  # mixed sizes: whole frames do not stack
+            views = self.frontend.prepare(frames, want)
+            return views.get("det"), views.get("steer")
+        if self.gpu_decode is not None and all(f.encoding == ImageEncoding.JPEG for f in frames):
+            full, order = self.gpu_decode(frames), "rgb"
+        else:
+            width, height = sizes.pop()
+            arr = self.frontend.prepare(frames, ("frame",), frame_layout(width, height))["frame"]
+            full, order = self.nets.to_device("frame", arr), "bgr"
+        prep = self.device_prep
+        return (prep.detector(full, order) if "det" in want else None,
+                prep.steering(full, crop_rows(frames), order) if "steer" in want else None)
+
+    def _post(self, frames: Sequence[Frame], steer_out: list[list[float]] | None, maps: Any) -> list[Inference]:
+        """Detections, overrides, decisions and control of each frame."""
         n = len(frames)
         cv_results: list[Inference | None] = [None] * n
 
@@ -190,13 +302,10 @@ class CnnTarget:
                 self.stats.baseline_runs += 1
             return got
 
-        t1 = time.perf_counter_ns()
         steers: list[float] = []
         low_steer = [False] * n
-        if steer_name == "cnn":
-            out = self._run(self.steer_net, [steering_input(b, f.camera.cy, f.camera.fy, f.camera.pitch_rad)
-                                             for b, f in zip(bgrs, frames)])
-            for i, (s_out, log_err) in enumerate(out.tolist()):
+        if steer_out is not None:
+            for i, (s_out, log_err) in enumerate(steer_out):
                 steer = float(s_out)
                 if math.exp(float(log_err)) > self.policy.steer_error_max_rad:
                     low_steer[i] = True
@@ -206,13 +315,11 @@ class CnnTarget:
         else:
             steers = [baseline(i).control.steering_rad for i in range(n)]
         steers = [max(-MAX_STEER_RAD, min(MAX_STEER_RAD, s)) for s in steers]
-        t2 = time.perf_counter_ns()
         all_objects: list[list[DetectedObject]] = []
         uncertain_ms: list[float | None] = [None] * n
-        if det_name == "cnn":
-            maps = self._run(self.det_net, [detector_input(b) for b in bgrs])
-            for i, frame in enumerate(frames):
-                objects, uncertain = self._boxes(maps[i], frame)
+        if maps is not None:
+            for i, (frame, dets) in enumerate(zip(frames, self._decode_batch(maps, threshold=self.policy.det_uncertain))):
+                objects, uncertain = self._boxes(dets, frame)
                 steer = steers[i]
                 uncertain_m = uncertain_ms[i] = nearest_in_path(uncertain, steer, self.policy)
                 sure_m = nearest_in_path(objects, steer, self.policy)
@@ -226,7 +333,6 @@ class CnnTarget:
                 all_objects.append(objects)
         else:
             all_objects = [list(baseline(i).objects) for i in range(n)]
-        t3 = time.perf_counter_ns()
         results: list[Inference] = []
         for i, frame in enumerate(frames):
             objects = all_objects[i]
@@ -235,30 +341,15 @@ class CnnTarget:
                        speed_mps=frame.ego_speed_mps, steering_low_confidence=low_steer[i])
             objects.sort(key=lambda o: o.position_m[0])
             results.append(Inference(d.state, Control(steers[i], d.throttle, d.brake), tuple(objects)))
-        t4 = time.perf_counter_ns()
-        s = self.stats
-        with self._lock:
-            s.frames += n
-            for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t4 - t0)):
-                s.timings_ns[name].append(dt)
         return results
 
-    def _run(self, net: object, images: list[np.ndarray]) -> object:
-        """``net`` on HxWx3 uint8 ``images`` as one N x 3 x H x W batch: uint8 to the
-        device (a quarter of the bytes of floats), floats made there; output on the CPU."""
-        torch = self._torch
-        x = torch.from_numpy(np.ascontiguousarray(np.stack(images).transpose(0, 3, 1, 2)))
-        x = x.to(self.device, non_blocking=True).float()
-        with torch.inference_mode():
-            return net(x).cpu()  # type: ignore[operator]
-
-    def _boxes(self, out: object, frame: Frame) -> tuple[list[DetectedObject], list[DetectedObject]]:
-        """(confident, uncertain) detections of one detector output, boxes in frame
-        pixels, ranged."""
+    def _boxes(self, dets: Sequence[Any], frame: Frame) -> tuple[list[DetectedObject], list[DetectedObject]]:
+        """(confident, uncertain) detections of one frame (``models.Detection``s in
+        detector pixels), boxes in frame pixels, ranged."""
         sx, sy = frame.width / DET_W, frame.height / DET_H
         sure: list[DetectedObject] = []
         unsure: list[DetectedObject] = []
-        for det in self._decode(out, threshold=self.policy.det_uncertain):
+        for det in dets:
             x0, y0, x1, y1 = det.box
             box = (max(0.0, x0 * sx), max(0.0, y0 * sy), min(float(frame.width), x1 * sx),
                    min(float(frame.height), y1 * sy))
@@ -277,91 +368,3 @@ def _iou(a: Sequence[float], b: Sequence[float]) -> float:
     inter = ix * iy
     union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
     return inter / union if union > 0 else 0.0
-
-
-def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.targets.cnn") -> int:
-    """Serve the CNN target through the target SDK; 2 when the transport is unusable
-    (started by hand rather than by the harness) or the weights are missing."""
-    p = argparse.ArgumentParser(prog=prog,
-                                description="The two-CNN driving AI served over the target SDK.")
-    p.add_argument("--detector", choices=commands.MODELS, default="cnn", help="object detector to start with")
-    p.add_argument("--steering", choices=commands.MODELS, default="cnn", help="steering model to start with")
-    p.add_argument("--cruise-speed", type=float, default=10.0, help="speed to hold when the lane is clear (m/s)")
-    p.add_argument("--det-confidence", type=float, default=Policy.det_confidence,
-                   help="report and act on detections at or above this confidence")
-    p.add_argument("--det-uncertain", type=float, default=Policy.det_uncertain,
-                   help="detections from here up to --det-confidence are uncertain (baseline consulted)")
-    p.add_argument("--steer-error-max", type=float, default=None,
-                   help="steering CNN's own error estimate (rad) above which it is overridden "
-                        "(default: calibrated at training, in the weights' metadata)")
-    p.add_argument("--weights", type=Path, default=None, help="folder with detector.pt and steering.pt "
-                   "(default: the shipped weights)")
-    p.add_argument("--threads", type=int, default=1, help="torch threads (1: one core)")
-    p.add_argument("--name", default="cnn", help="target name reported in HELLO (with @device (its name) added)")
-    p.add_argument("--device", default="cpu", help="torch device: cpu, cuda, cuda:N or auto (CUDA when available)")
-    g = p.add_argument_group("shared target (one process serves many vehicles, frames batched)")
-    g.add_argument("--shared", action="store_true",
-                   help="zenoh: serve the keys of each of --vehicles on one session (local: implied when the "
-                        "harness starts the target with target.shared: true, ignored otherwise)")
-    g.add_argument("--vehicles", default="1", help="zenoh: a count N (vehicles 0..N-1) or ids, e.g. 0,2,3")
-    g.add_argument("--batch-window-ms", type=float, default=2.0,
-                   help="longest a frame waits for other vehicles' frames before its batch runs (ms)")
-    g.add_argument("--max-batch", type=int, default=16, help="most frames per batch")
-    g.add_argument("--batch-log", default=None,
-                   help="CSV of every frame's batch (default: $HIL_BATCH_LOG, set by the harness)")
-    from hil.adapters.sdk import TransportError, add_transport_args, serve, transport_options
-
-    add_transport_args(p)
-    a = p.parse_args(argv)
-    try:
-        import torch
-
-        torch.set_num_threads(max(1, a.threads))
-        target = CnnTarget(detector=a.detector, steering=a.steering, cruise_speed_mps=a.cruise_speed,
-                           weights_dir=a.weights, policy=Policy(det_confidence=a.det_confidence,
-                                                                det_uncertain=a.det_uncertain),
-                           device=a.device)
-        steer_max = a.steer_error_max or float(target.steer_meta.get("steer_error_max_rad", Policy.steer_error_max_rad))
-        target.policy = Policy(det_confidence=a.det_confidence, det_uncertain=a.det_uncertain,
-                               steer_error_max_rad=steer_max)
-    except (FileNotFoundError, ValueError, ImportError) as err:
-        print(f"cnn: {err}", file=sys.stderr)
-        return 2
-    from hil.targets.cnn.device import hello_name
-
-    name = hello_name(a.name, target.device, detail=target.device_name)
-    print(f"cnn: device {target.device} ({target.device_name}), torch threads {torch.get_num_threads()}",
-          file=sys.stderr, flush=True)
-    from hil.adapters.batching import started_shared
-
-    try:
-        # local: shared exactly when the harness started it so (target.shared), whatever
-        # --shared says, so one config's args serve both placements; zenoh: --shared.
-        if started_shared() if a.transport == "local" else a.shared:
-            from hil.adapters.batching import ConfigError, parse_vehicles, serve_batched
-
-            try:
-                vehicles = parse_vehicles(a.vehicles)
-                if a.batch_window_ms < 0 or a.max_batch < 1:
-                    raise ValueError(f"--batch-window-ms {a.batch_window_ms:g} / --max-batch {a.max_batch}: "
-                                     "expected a window >= 0 and batches of >= 1")
-            except ValueError as err:
-                print(f"cnn: {err}", file=sys.stderr)
-                return 2
-            opts = transport_options(a)
-            try:
-                serve_batched(target.infer_batch, target_name=name, transport=a.transport, on_command=target.command,
-                              window_ns=int(a.batch_window_ms * 1e6), max_batch=a.max_batch, vehicles=vehicles,
-                              batch_log=a.batch_log, **opts)
-            except ConfigError as err:
-                print(f"cnn: {err}", file=sys.stderr)
-                return 2
-        else:
-            serve(target.infer, target_name=name, transport=a.transport, on_command=target.command,
-                  **transport_options(a))
-    except TransportError as err:
-        print(f"cnn: {err}", file=sys.stderr)
-        return 2
-    finally:
-        print(f"cnn: {target.status()}", file=sys.stderr, flush=True)
-    return 0

@@ -20,14 +20,15 @@ SKIP_REASON: str | None = None
 
 @contextlib.contextmanager
 def tcp_echo(log_path: Path, args: Sequence[str] = (), *, listen: str | None = None,
-             connect: str | None = None) -> Iterator[subprocess.Popen[bytes]]:
-    """``python -m hil.targets.echo --transport tcp (--listen|--connect) ADDRESS *args``,
-    ended by PID on exit (it normally leaves by itself on the harness's BYE)."""
+             connect: str | None = None, env: dict[str, str] | None = None) -> Iterator[subprocess.Popen[bytes]]:
+    """``python -m hil.targets.echo --transport tcp (--listen|--connect) ADDRESS *args``
+    (environment ``env``, default this one), ended by PID on exit (it normally leaves by
+    itself on the harness's BYE)."""
     where = ["--listen", listen] if listen else ["--connect", str(connect)]
     with open(log_path, "ab") as log:
         proc = subprocess.Popen([sys.executable, "-m", "hil.targets.echo", "--transport", "tcp", *where, *args],
-                                cwd=ROOT, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdin=subprocess.DEVNULL,
-                                stdout=log, stderr=log)
+                                cwd=ROOT, env=dict(os.environ if env is None else env, PYTHONUNBUFFERED="1"),
+                                stdin=subprocess.DEVNULL, stdout=log, stderr=log)
         try:
             yield proc
         finally:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import queue
 import threading
+import time
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -333,3 +334,53 @@ def test_check_says_what_to_change_when_fps_is_too_high():
     assert bus_capacity(bitrate=500_000, data_bitrate=0, fd=False, frame_bytes=12_000, fps=1).max_fps < 2
     assert bus_capacity(bitrate=500_000, data_bitrate=2_000_000, fd=True, frame_bytes=12_000, fps=20,
                         camera_over="none").load < 0.05
+
+
+def test_a_late_reader_keeps_each_frames_interface_arrival():
+    """A CAN message's receipt stamp is its (last) frame's interface time, not when a
+    held-up reader got to it: an estimate sent while the harness's reader thread waits
+    50 ms for the interpreter lock is stamped at its sending (virtual bus: the
+    interface time is the send), not 50 ms later."""
+    import sys
+
+    from hil.adapters import protocol
+    from hil.adapters.can_transport import CanLink
+    from hil.adapters.messages import Hello, SyncResponse
+
+    channel = f"late-reader-{uuid.uuid4().hex}"
+    device = can.Bus(interface="virtual", channel=channel, fd=True, ignore_config=True)
+    clock = MonotonicClock()
+    link = CanLink(vehicle_id=0, clock=clock, interface="virtual", channel=channel)
+    try:
+        from hil.adapters.can_dbc import HilCan, Role
+
+        codec = HilCan(role=Role.TARGET, vehicle_id=0)
+
+        def say(msg: object) -> None:
+            for f in codec.encode(msg) or []:
+                device.send(can.Message(arbitration_id=f.arbitration_id, data=f.data, is_extended_id=True,
+                                        is_fd=True, bitrate_switch=True))
+
+        opener = threading.Thread(target=lambda: link.open(hello_timeout_s=5))
+        opener.start()
+        say(Hello("dev", protocol.VERSION, ClockId.MONOTONIC, 1))
+        opener.join(5)
+        link.sync_samples()
+        old = sys.getswitchinterval()
+        sys.setswitchinterval(1.0)  # the reader waits for the interpreter lock while this thread spins
+        try:
+            before = clock.now_ns()
+            say(SyncResponse(0, 7, 1, 2, 3))
+            after = clock.now_ns()
+            end = time.monotonic_ns() + 50_000_000
+            while time.monotonic_ns() < end:
+                pass
+        finally:
+            sys.setswitchinterval(old)
+        r = link._sync_rx.get(timeout=5)  # noqa: SLF001 - the SYNC_RESPONSE with its receipt stamp
+        assert r.msg.seq == 7
+        assert before - 200_000 <= r.t_rx_ns <= after + 2_000_000, (r.t_rx_ns - before) / 1e6
+        assert link.can_stats.interface_stamps >= 1  # type: ignore[attr-defined]
+    finally:
+        link.close()
+        device.shutdown()

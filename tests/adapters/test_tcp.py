@@ -79,15 +79,21 @@ def test_kernel_stamp_is_the_arrival_not_the_late_read():
         with a, b:
             b.setsockopt(socket.SOL_SOCKET, 35, 1)  # SO_TIMESTAMPNS
             buf = bytearray(1000)
-            for _ in range(1000):  # the kernel turns stamping on a moment later (deferred work)
-                a.sendall(b"w")
-                if recv_stamped(b, memoryview(buf))[1] is not None:
+            # The kernel turns stamping on (and, when other tests' sockets close, off and
+            # on again) a moment later, in deferred work: a read may lack the stamp.
+            # Measure until one has it.
+            for _ in range(20):
+                for _ in range(1000):
+                    a.sendall(b"w")
+                    if recv_stamped(b, memoryview(buf))[1] is not None:
+                        break
+                t_send = clock.now_ns()
+                a.sendall(b"x" * 100)
+                time.sleep(0.05)  # the late reader under test, not a wait for an event
+                n, kernel_ns = recv_stamped(b, memoryview(buf))
+                t_read = clock.now_ns()
+                if kernel_ns is not None:
                     break
-            t_send = clock.now_ns()
-            a.sendall(b"x" * 100)
-            time.sleep(0.05)  # the late reader under test, not a wait for an event
-            n, kernel_ns = recv_stamped(b, memoryview(buf))
-            t_read = clock.now_ns()
     assert n == 100 and kernel_ns is not None
     t_rx, _now = RealtimeMapper(clock).map(kernel_ns)
     where = f"send->kernel {(t_rx - t_send) / 1e6:.3f} ms, kernel->read {(t_read - t_rx) / 1e6:.3f} ms"
@@ -217,3 +223,68 @@ def test_config_address_is_checked_before_the_run():
     assert cfg.target.transport.value == "tcp" and cfg.target.tcp.mode.value == "listen"
     with pytest.raises(ConfigError, match=r"target\.tcp\.address: got 'nohost'"):
         load_config(root / "hil_configs" / "tcp.yaml", overrides=["target.tcp.address=nohost"])
+
+
+TOKEN = "a-run-token-0123456789abcdef"
+
+
+def _env(token: str | None) -> dict[str, str]:
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k not in ("HIL_SESSION_TOKEN", "HIL_SESSION")}
+    return env if token is None else dict(env, HIL_SESSION_TOKEN=token)
+
+
+@pytest.mark.parametrize("target_token, refused", [
+    (TOKEN, None), ("another-token-0123456789", "wrong proof"), (None, "does not announce CAP_AUTH"),
+])
+def test_a_link_with_a_token_measures_only_the_target_that_proves_it(target_token, refused, tmp_path):
+    address = f"127.0.0.1:{free_port()}"
+    with tcp_echo(tmp_path / "t.log", ["--name", "candidate"], listen=address, env=_env(target_token)):
+        link = TcpLink(vehicle_id=2, clock=MonotonicClock(), connect=address, token=TOKEN)
+        try:
+            if refused is None:
+                hello = link.open(hello_timeout_s=20)
+                assert hello.capabilities & protocol.CAP_AUTH and link.stats.connections_refused == 0
+                send_frame(link, 9)
+                est, _ = next_estimate(link)
+                assert est.frame_id == 9 and est.vehicle_id == 2
+            else:
+                with pytest.raises(TransportError) as err:
+                    link.open(hello_timeout_s=3)
+                text = str(err.value)
+                assert "no connection proved to be this run's target" in text and refused in text, text
+                assert "'candidate'" in text and link.stats.connections_refused >= 1
+        finally:
+            link.close()
+    if refused is not None:  # the target heard why
+        assert "not this run's target" in (tmp_path / "t.log").read_text()
+
+
+def test_expect_name_refuses_a_connection_not_the_run(tmp_path):
+    address = f"127.0.0.1:{free_port()}"
+    with tcp_echo(tmp_path / "t.log", [], listen=address, env=_env(None)):
+        link = TcpLink(vehicle_id=0, clock=MonotonicClock(), connect=address, expect_name="cv")
+        with pytest.raises(TransportError, match=r"says it is 'echo', not 'cv' \(target.expect_name\)"):
+            link.open(hello_timeout_s=2)
+        link.close()
+
+
+def test_a_silent_caller_does_not_hold_up_a_listening_harness(tmp_path):
+    """A stranger connects first and says nothing; the run's own target dials in after
+    it and is accepted at once (callers are checked side by side, not in turn)."""
+    address = f"127.0.0.1:{free_port()}"
+    link = TcpLink(vehicle_id=0, clock=MonotonicClock(), listen=address, token=TOKEN)
+    host, port = link.start_listening()
+    with socket.create_connection((host, port)) as silent:
+        with tcp_echo(tmp_path / "t.log", [], connect=address, env=_env(TOKEN)):
+            try:
+                t = time.monotonic()
+                assert link.open(hello_timeout_s=20).target_name == "echo"
+                assert time.monotonic() - t < 10
+                send_frame(link, 1)
+                assert next_estimate(link)[0].frame_id == 1
+            finally:
+                link.close()
+        silent.settimeout(2)
+        assert silent.recv(100) == b""  # closed once the run's target was there

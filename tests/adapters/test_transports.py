@@ -12,7 +12,7 @@ from hil.common.errors import TransportError
 
 
 def test_every_transport_has_a_row_and_its_halves_resolve() -> None:
-    assert set(BACKENDS) == set(Transport) and NAMES == TRANSPORTS == ("local", "zenoh", "can", "mixed", "tcp")
+    assert set(BACKENDS) == set(Transport) and NAMES == TRANSPORTS == ("local", "zenoh", "can", "mixed", "tcp", "ros2")
     for kind in Transport:
         cls = transports.link_class(kind)
         assert issubclass(cls, Link) and cls.transport_name == kind.value
@@ -32,7 +32,7 @@ def test_the_config_takes_the_same_enum() -> None:
 
 
 def test_unknown_transport_is_one_error_listing_the_valid_ones() -> None:
-    with pytest.raises(TransportError, match=r"unknown transport 'pigeon'; valid: local, zenoh, can, mixed, tcp"):
+    with pytest.raises(TransportError, match=r"unknown transport 'pigeon'; valid: local, zenoh, can, mixed, tcp, ros2"):
         open_link("pigeon")
     from hil.adapters.sdk import serve
 

@@ -87,7 +87,9 @@ def test_a_run_whose_zenoh_target_freezes_keeps_its_outputs(tmp_path: Path):
         assert frozen, "the harness started no target"
         for pid in frozen:
             os.kill(pid, signal.SIGSTOP)
+        frozen_at = time.time()
         stdout, stderr = proc.communicate(timeout=60)
+        exited_at = time.time()
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -99,3 +101,8 @@ def test_a_run_whose_zenoh_target_freezes_keeps_its_outputs(tmp_path: Path):
     summary = json.loads((out / "summary.json").read_text())
     assert "liveliness" in summary["ended_by"], summary["ended_by"]
     assert (out / "report.html").exists()
+    # The run ends, summary written, within 4 s of the freeze (it took 8.3 s: the
+    # summary waited for the frozen session's close and a 2 s + 3 s SIGTERM grace).
+    summary_after_s = (out / "summary.json").stat().st_mtime - frozen_at
+    print(f"summary {summary_after_s:.2f} s, exit {exited_at - frozen_at:.2f} s after the freeze")
+    assert summary_after_s <= 4.0, (summary_after_s, exited_at - frozen_at)

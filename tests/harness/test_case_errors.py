@@ -30,3 +30,15 @@ def test_case_errors_make_the_run_exit_1():
     summary["corner_cases"]["errors"] = ["case 2: OverflowError: Python int too large to convert to SQLite INTEGER"]
     assert run_exit_code(summary) == EXIT_EARLY
     assert run_exit_code({"ended_by": "stopped by SIGTERM"}) == EXIT_EARLY
+
+
+def test_a_case_row_without_a_window_is_one_line(tmp_path: Path):
+    # A row whose window columns are NULL (damaged or tampered): `hil cases --window`
+    # ended in a TypeError traceback (issue 26, item 7); now one line, exit 2, no file cut.
+    from tests.harness.test_cli import assert_one_line_error, hil
+    from tests.harness.test_replay_trust import foreign_run
+
+    run = foreign_run(tmp_path / "r", [])
+    p = hil("cases", str(run), "--window", "1")
+    assert_one_line_error(p, "case 1 has no window", "window_start_ns None")
+    assert not (run / "corner_cases").exists()

@@ -6,6 +6,7 @@ are overridable, and bad inputs give one line with exit code 2."""
 from __future__ import annotations
 
 import copy
+import os
 import json
 import re
 import shutil
@@ -259,10 +260,68 @@ def test_load_that_moves_p50_and_p99_of_an_unchanged_build_does_not_fail() -> No
     assert point["p50"].verdict == Verdict.REGRESSION  # what the gate said before: a false alarm
     checks = compare(sb, sr, base_samples=xb, run_samples=xr)
     v = _by_metric(checks)
-    assert v["p50"].run - v["p50"].baseline > 1.0 and v["p50"].verdict == Verdict.OK
     assert all(c.method is Method.SAMPLES and not c.verdict.fails for c in checks), \
         [(c.metric, c.verdict, c.p_worse) for c in checks]
     assert abs(v["p1"].run - v["p1"].baseline) < 0.3
+    # p50 is over its limit and does not fail: it says so, and why, never a plain "ok".
+    p50 = v["p50"]
+    assert p50.run - p50.baseline > 1.0 and p50.run > p50.limit
+    assert p50.verdict == Verdict.NOT_SIGNIFICANT and not p50.verdict.fails
+    assert p50.reason == (f"over the limit but not significant (P(worse) {p50.p_worse * 100:.1f} % < "
+                          f"{p50.need * 100:.2f} %)")
+
+
+def test_a_row_over_its_limit_is_never_printed_ok(capsys: pytest.CaptureFixture[str]) -> None:
+    from rich.console import Console
+
+    from hil.harness.report.compare_render import outcome_lines, render
+
+    sb, xb, sr, xr = _pair(_frames(1, 160), _frames(2, 160, disturbed=0.7, load_ms=3.0))
+    checks = compare(sb, sr, base_samples=xb, run_samples=xr)
+    over = [c for c in checks if c.run is not None and c.limit is not None and c.run > c.limit]
+    assert over and not any(c.verdict.fails for c in checks)
+    console = Console(width=250, no_color=True)
+    console.print(render(checks))
+    for line in outcome_lines(checks):
+        console.print(line)
+    out = capsys.readouterr().out
+    for c in over:
+        row = next(ln for ln in out.splitlines() if re.search(rf"│ {c.stage}\s+│ {c.metric}\s+│", ln))
+        assert "over, not significant" in row and not re.search(r"│ ok\s+│", row), row
+        # The reason with the numbers: values, change, limit, P(worse) against what it needs.
+        assert (f"ego0 end_to_end {c.metric} {c.baseline:.3f} → {c.run:.3f} ms, " in out
+                and f"limit ≤ {c.limit:.3f} ms: over the limit but not "
+                    f"significant (P(worse) {c.p_worse * 100:.1f} % < {c.need * 100:.2f} %)" in out), out
+    assert "all " not in out.splitlines()[-1] and f"{len(over)} over" in out.splitlines()[-1]
+
+
+@pytest.mark.parametrize(("argv", "tol_yaml", "needle"), [
+    (["--stage", "nosuch"], None, "--stage: unknown stage 'nosuch' (valid: render, capture_to_send, transport"),
+    (["--stage", "end_to_end", "--stage", "end-to-end"], None, "unknown stage 'end-to-end'"),
+    ([], "stages:\n  nosuch: {p99: {abs_ms: 5}}\n", "tolerances error at stages: unknown stage 'nosuch'"),
+    ([], "skip_stages: [transprot]\n", "tolerances error at skip_stages: unknown stage 'transprot' (valid:"),
+    ([], "only_stages: [nosuch]\n", "only_stages: unknown stage 'nosuch'"),
+    ([], "p99: {rel: 0.2}\np95: {rel: 0.1}\n", "unknown key 'p95' (valid keys: p1, p50, p99, std, drop_rate"),
+])
+def test_a_typo_never_switches_the_gate_off(runs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                            argv: list[str], tol_yaml: str | None, needle: str) -> None:
+    # Before: `--stage nosuch` checked the drop rate alone and printed "ok: all 1 checks".
+    if tol_yaml is not None:
+        (tmp_path / "tol.yaml").write_text(tol_yaml)
+        argv = [*argv, "--tolerances", str(tmp_path / "tol.yaml")]
+    _one_line_error(["compare", str(runs["base"]), str(runs["slow"]), *argv], capsys, needle)
+
+
+def test_a_stage_the_baseline_never_measured_is_refused() -> None:
+    from hil.common.errors import ConfigError
+    from hil.harness.report.compare import check_selection
+
+    base = _summary(ego0={"stages": {"end_to_end": 10.0, "inference": 5.0}})
+    base["vehicles"]["ego0"]["latency_ms"]["transport"] = {"count": 0}
+    check_selection(base, Tolerances(only_stages=("end_to_end", "inference")))
+    with pytest.raises(ConfigError, match=r"--stage transport: the baseline has no samples of this stage, so "
+                                          r"nothing would be checked \(its stages with samples: inference, end_to_end\)"):
+        check_selection(base, Tolerances(only_stages=("end_to_end", "transport")))
 
 
 def test_every_frame_2ms_slower_fails_with_near_certainty() -> None:
@@ -310,3 +369,87 @@ def test_run_to_run_noise_comes_from_the_tolerances(tmp_path: Path) -> None:
     assert _by_metric(compare(sb, sr, t, base_samples=xb, run_samples=xr))["p50"].verdict == Verdict.REGRESSION
     with pytest.raises(ConfigError, match=r"stages\.render\.noise\.p1: got 'x'"):
         parse_tolerances({"stages": {"render": {"noise": {"p1": "x"}}}})
+
+
+# --- the README's example is what the command prints ----------------------------------
+
+
+def _readme_example() -> list[str]:
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    block = next(b for b in readme.split("```")[1::2] if b.lstrip().startswith("$ hil compare"))
+    return block.strip("\n").splitlines()
+
+
+def _cell_shape(cell: str) -> str:
+    """A table cell or line with its numbers (and their sign, ratio or inequality form) blurred."""
+    s = re.sub(r"[<>]?[+-]?\d+(\.\d+)?", "9", cell.strip())
+    return s.replace("(×9)", "(9 %)")
+
+
+def _shape(lines: list[str]) -> dict[str, Any]:
+    head = next(ln for ln in lines if ln.startswith("┃"))
+    rows = [[c.strip() for c in ln.strip("│").split("│")] for ln in lines if ln.startswith("│")]
+    return {"title": next(ln.strip() for ln in lines if ln.startswith("latency regression check")),
+            "header": [c.strip() for c in head.strip("┃").split("┃")],
+            "rows": {tuple(r[:3]): [_cell_shape(c) for c in r[3:9]] for r in rows},
+            "verdicts": {r[9] for r in rows},
+            "judged": [_cell_shape(ln) for ln in lines if "checks judged" in ln or "run-to-run noise" in ln],
+            "over": [ln.partition(": ") for ln in lines if "over the limit but not significant" in ln],
+            "last": _cell_shape(lines[-1])}
+
+
+def test_the_readme_compare_example_is_what_the_command_prints(runs: dict[str, Path]) -> None:
+    example = _readme_example()
+    argv = example[0].removeprefix("$ hil ").split()
+    assert argv[:3] == ["compare", "runs/base", "runs/slow"]
+    p = subprocess.run([sys.executable, "-m", "hil.harness.cli.main", "compare", str(runs["base"]), str(runs["slow"]),
+                        *argv[3:]], cwd=ROOT, capture_output=True, text=True, timeout=120, check=False,
+                       env={**os.environ, "COLUMNS": "400"})
+    assert p.returncode == 1 and not p.stderr, p.stderr
+    printed = [ln.rstrip() for ln in p.stdout.splitlines() if not ln.startswith("note: ")]
+    want, got = _shape(example[1:]), _shape(printed)
+    assert got["title"] == want["title"] and got["header"] == want["header"]
+    assert got["rows"].keys() == want["rows"].keys()  # the same checks, in the README as printed
+    for key, cells in want["rows"].items():
+        # Figures with units, changes, intervals, limits, P(worse): the same form (the numbers are this machine's).
+        assert got["rows"][key] == cells, (key, got["rows"][key])
+    from hil.harness.report.compare import Verdict
+
+    assert want["verdicts"] <= {v.value for v in Verdict} and got["verdicts"] <= {v.value for v in Verdict}
+    assert got["judged"] == want["judged"]
+    # The lines under the table: the check with its numbers, then the reason, in the same form.
+    numbers = re.compile(r"ego\d+ (\w+ )?\w+ [\d.]+ → [\d.]+ (ms|%), [+-][\d.]+ (ms \(([+-][\d.]+ %|×\d+)\)|pp), "
+                         r"limit ≤ [\d.]+ (ms|%)")
+    assert want["over"] and {_cell_shape(r) for _, _, r in got["over"]} <= {_cell_shape(r) for _, _, r in want["over"]}
+    for head, _, _ in want["over"] + got["over"]:
+        assert numbers.fullmatch(head), head
+    assert re.sub(r"\(.*\)", "", got["last"]) == re.sub(r"\(.*\)", "", want["last"])
+    # Every row over its limit that did not fail has its line with the numbers under the table.
+    rows = [ln for ln in printed if ln.startswith("│") and "over, not significant" in ln]
+    assert len(rows) == sum("over the limit but not significant" in ln for ln in printed)
+
+
+def test_junit_and_json_have_one_case_per_check(runs: dict[str, Path], tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    from tests.harness.junit_check import read_junit
+
+    junit, js = tmp_path / "c.xml", tmp_path / "c.json"
+    code = hil_main(["compare", str(runs["base"]), str(runs["slow"]), "--stage", "inference", "--stage", "transport",
+                     "--junit", str(junit), "--json", str(js)])
+    assert code == 1
+    (sb, xb), (sr, xr) = load_run(runs["base"]), load_run(runs["slow"])
+    from hil.harness.report.compare_tolerances import Tolerances as Tol
+
+    checks = compare(sb, sr, Tol(only_stages=("inference", "transport")), base_samples=xb, run_samples=xr)
+    (suite,) = read_junit(junit)
+    doc = json.loads(js.read_text())
+    assert doc["exit_code"] == 1 and not doc["passed"] and suite.properties["exit_code"] == "1"
+    assert len(suite.cases) == len(checks) == len(doc["checks"])
+    for c in checks:
+        case = suite.cases[f"{c.vehicle} {c.stage} {c.metric}".replace(" - ", " ")]
+        assert case.failed == c.verdict.fails and case.properties["verdict"] == c.verdict.value
+        assert case.properties["limit"] == str(c.limit) and case.properties["p_worse"] == str(c.p_worse)
+        if c.verdict.fails:
+            assert case.message.endswith(": REGRESSION") and f"limit ≤ {c.limit:.3f} ms" in case.message
+        if c.verdict is Verdict.NOT_SIGNIFICANT:  # passes, and says why
+            assert not case.failed and "over the limit but not significant (P(worse)" in (case.system_out or "")

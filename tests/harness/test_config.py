@@ -255,3 +255,18 @@ def test_config_is_frozen() -> None:
         cfg.seed = 3  # type: ignore[misc]
     with pytest.raises(pydantic.ValidationError):
         cfg.camera.fps = 10  # type: ignore[misc]
+
+
+def test_each_default_has_one_home() -> None:
+    # The config's sections take their defaults from the models that use them (issue 27 item 4).
+    from hil.harness.config.cases import DetectorSettings
+    from hil.harness.config.timing import SyncSettings, ThresholdsConfig
+    from hil.timing.anomaly import Thresholds
+    from hil.timing.sync import SyncConfig
+
+    assert SyncSettings().to_sync_config() == SyncConfig()
+    assert ThresholdsConfig().apply(Thresholds()) == Thresholds()
+    import hil.harness.analysis.detector as detector
+
+    assert not hasattr(detector, "DetectorConfig")  # the detector takes the config's model itself
+    assert detector.CornerCaseDetector("ego0").cfg == DetectorSettings()

@@ -8,7 +8,8 @@ import math
 import pytest
 
 from hil.adapters.messages import Control, DetectedObject, DrivingState, Estimate, ObjectClass
-from hil.harness.analysis.detector import (Cause, CornerCaseDetector, DetectorConfig, FrameTruth, MismatchKind,
+from hil.harness.config.cases import DetectorSettings
+from hil.harness.analysis.detector import (Cause, CornerCaseDetector, FrameTruth, MismatchKind,
                                            TruthObject, link_anomalies, match, nearest_point_in_camera_frame)
 from hil.timing.anomaly import Anomaly, AnomalyKind, Severity
 
@@ -42,7 +43,7 @@ def test_right_belief_is_no_corner_case():
 
 
 def test_missed_object_is_perception_after_persistence():
-    det = CornerCaseDetector("ego0", DetectorConfig(min_frames=3))
+    det = CornerCaseDetector("ego0", DetectorSettings(min_frames=3))
     frames = [((S, []), truth(S, [CAR]), truth(S, [CAR]))] * 10
     out = run(det, frames)
     assert [(m.kind, m.cause, m.entity) for m in out] == [(MismatchKind.MISSED_OBJECT, Cause.PERCEPTION, "car1")]
@@ -90,10 +91,10 @@ def test_state_right_at_t0_wrong_at_apply_is_latency():
 
 
 def test_flicker_is_not_reported_and_episodes_report_once():
-    det = CornerCaseDetector("ego0", DetectorConfig(min_frames=3, clear_frames=5))
+    det = CornerCaseDetector("ego0", DetectorSettings(min_frames=3, clear_frames=5))
     flicker = [((S, []), truth(P), None), ((P, []), truth(P), None)] * 10
     assert run(det, flicker) == []
-    det = CornerCaseDetector("ego0", DetectorConfig(min_frames=3, clear_frames=5))
+    det = CornerCaseDetector("ego0", DetectorSettings(min_frames=3, clear_frames=5))
     bad, good = ((S, []), truth(P), None), ((P, []), truth(P), None)
     out = run(det, [bad] * 6 + [good] * 2 + [bad] * 6 + [good] * 6 + [bad] * 3)
     assert len(out) == 2  # a short clean spell continues the episode; a long one ends it

@@ -6,7 +6,8 @@ from __future__ import annotations
 import math
 
 from hil.adapters.messages import Control, DetectedObject, DrivingState, Estimate, ObjectClass
-from hil.harness.analysis.detector import Cause, CornerCaseDetector, DetectorConfig, FrameTruth, Mismatch, MismatchKind, TruthObject
+from hil.harness.config.cases import DetectorSettings
+from hil.harness.analysis.detector import Cause, CornerCaseDetector, FrameTruth, Mismatch, MismatchKind, TruthObject
 from hil.harness.analysis.late_reaction import EgoView
 from hil.timing.anomaly import Severity
 
@@ -87,7 +88,7 @@ def test_an_episode_is_never_relabelled_by_a_later_frame():
 
 
 def test_an_escalation_lasts_min_frames_too():
-    det = CornerCaseDetector("ego0", DetectorConfig(min_frames=3, clear_frames=5))
+    det = CornerCaseDetector("ego0", DetectorSettings(min_frames=3, clear_frames=5))
     # SAFE against SLOW (warning) 3 frames, one clean frame, one against STOP: the
     # critical frame alone is no escalation.
     out = feed(det, [(S, W, W)] * 3 + [(S, S, S)] + [(S, P, P)])
@@ -181,7 +182,7 @@ def test_no_late_reaction_without_latency_or_without_a_timely_belief():
 
 
 def test_near_miss_is_a_late_reaction_too():
-    det = CornerCaseDetector("ego0", DetectorConfig(near_miss_m=1.0))
+    det = CornerCaseDetector("ego0", DetectorSettings(near_miss_m=1.0))
     # Applied 2 s after capture, at 2.5 s: the gap (5 m) is under the 12.5 m needed.
     out = [m for m in drive(det, latency_ms=2000, stop_from=10, collide_at_ms=None, frames=70)
            if m.kind == MismatchKind.LATE_REACTION]

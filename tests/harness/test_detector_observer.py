@@ -7,7 +7,8 @@ from __future__ import annotations
 import pytest
 
 from hil.adapters.messages import Control, DrivingState, Estimate
-from hil.harness.analysis.detector import DetectorConfig, MismatchKind
+from hil.harness.analysis.detector import MismatchKind
+from hil.harness.config.cases import DetectorSettings
 from hil.harness.analysis.detector_observer import DetectorObserver
 from hil.harness.config.model import CameraConfig
 from hil import scenarios
@@ -43,7 +44,7 @@ def blind(frame_id: int) -> Estimate:
 
 def test_camera_truth_after_the_estimate_is_judged_in_frame_order(sim):
     rec = Events()
-    obs = DetectorObserver(DetectorConfig(), ["ego0"], camera=CameraConfig(), recorder=rec, timing=None,
+    obs = DetectorObserver(DetectorSettings(), ["ego0"], camera=CameraConfig(), recorder=rec, timing=None,
                            link_delay_s=0.0)
     snapshots: list[tuple[str, ...] | None] = []
     late: list[tuple[int, CameraTruth]] = []

@@ -100,3 +100,17 @@ def test_a_run_with_faults_writes_only_schema_events(tmp_path):
     for d in events:
         assert PROMISED <= d.keys()
         assert Event.from_json(d).to_json() == d
+
+
+def test_the_bus_counts_events_of_vehicles_and_of_the_run_apart() -> None:
+    # A collision names no vehicle: counting it beside vehicle names must not compare None with a name.
+    from hil.harness.analysis.events import Event, EventBus, EventKind
+
+    bus = EventBus()
+    bus.publish(Event.of(EventKind.COLLISION, 1))
+    bus.publish(Event.of(EventKind.LATENCY_SPIKE, 2, vehicle="ego1"))
+    bus.publish(Event.of(EventKind.DROPPED_FRAME, 3, vehicle="ego0"))
+    bus.publish(Event.of(EventKind.DEADLINE_MISS, 4, vehicle="ego0"))
+    assert bus.counts(None) == {"collision": 1}
+    assert bus.counts("ego0") == {"deadline_miss": 1, "dropped_frame": 1}
+    assert bus.counts("ego1") == {"latency_spike": 1} and bus.published == 4

@@ -175,6 +175,31 @@ def test_views_overlay_truth_and_ai_on_the_frame_and_log_events(tmp_path: Path) 
     assert scene["entities"][0]["frame_id"] == "ego0/camera_ground"
 
 
+def test_log_lines_read_as_words_not_python_reprs(tmp_path: Path) -> None:
+    # A state mismatch as the detector publishes it: states as numbers, evidence nested,
+    # an unknown entity as None (the /log text once read "entity=None, evidence={...cut").
+    from hil.harness.analysis.events import Event, EventKind, Severity
+
+    evidence = {"frame_id": 48, "sim_time_t0_ns": 4_800_000_000, "sim_time_apply_ns": 4_814_000_000,
+                "latency_sim_ns": 14_000_000, "latency_ns": 4_368_142, "belief": {"state": "STOP"},
+                "truth_t0": {"state": "SLOW"}, "truth_apply": {"state": "SLOW"}}
+    ev = Event(EventKind("mismatch.state_mismatch"), 1_004_749_682_789, "ego0", (46, 47, 48), 4_800_000_000, 2.0, 1.0,
+               "state", Severity.INFO, "perception", (), "AI said STOP where truth says SLOW",
+               {"entity": None, "evidence": evidence})
+    path = tmp_path / "log.mcap"
+    with Recorder(path) as rec:
+        register_all(rec, ["ego0"], anchor=ANCHOR)
+        rec.write_json("/events", ev.to_json(), log_time_ns=3_000_000_000, publish_time_ns=3_000_000_000)
+    (line,) = [d["message"] for topic, _n, _m, d in _messages(path) if topic == "/log"]
+    for repr_bit in ("None", "=[", "={", "'", "2 state", "harness_time"):
+        assert repr_bit not in line, (repr_bit, line)
+    assert line.startswith("mismatch.state_mismatch ego0, frames 46, 47, 48, sim 4.800 s: AI STOP, truth SLOW")
+    # the evidence whole, each time in seconds and each duration in ms
+    for part in ("frame id 48", "sim time t0 4.800 s", "sim time apply 4.814 s", "latency sim 14 ms",
+                 "latency 4.368 ms", "belief (state STOP)", "truth apply (state SLOW))"):
+        assert part in line, (part, line)
+
+
 def test_optical_frame_looks_forward_and_down() -> None:
     q = foxglove_out.optical_quaternion(math.radians(10))
     x, y, z, w = q

@@ -3,6 +3,7 @@ an over-budget assertion says what, measured, budget, by how much."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -14,6 +15,7 @@ import pytest
 
 from hil.harness.cli.pytest_plugin import HilRunner, HilRunResult
 from tests.conftest import GL_BACKEND
+from tests.harness.junit_check import read_junit
 
 USER_TEST = '''
 import sys
@@ -53,7 +55,8 @@ def test_fixture_in_a_users_test_session(tmp_path: Path) -> None:
     plugin = [] if registered else ["-p", "hil.harness.cli.pytest_plugin"]  # installed: the entry point loads it
     env = dict(os.environ, MUJOCO_GL=GL_BACKEND)
     p = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *plugin,
-                        "--rootdir", str(tmp_path), str(tmp_path / "test_user.py")],
+                        "--rootdir", str(tmp_path), str(tmp_path / "test_user.py"),
+                        "--junitxml", str(tmp_path / "junit.xml"), "--hil-keep-runs", str(tmp_path / "artifacts")],
                        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120, check=False)
     out = p.stdout + p.stderr
     assert p.returncode == 1, out
@@ -61,6 +64,24 @@ def test_fixture_in_a_users_test_session(tmp_path: Path) -> None:
     assert "latency budget exceeded:" in out, out
     assert "ego0 inference p50 = " in out and "> budget 1.000 ms (over by" in out, out
     assert "run folder: " in out, out
+    assert "PytestWarning" not in out and "incompatible with junit_family" not in out, out
+    # Each run's figures are properties of its test in pytest's JUnit file, failed test
+    # included; each run folder is kept under --hil-keep-runs for CI artifacts.
+    (suite,) = read_junit(tmp_path / "junit.xml")
+    for test, name in (("test_within_budget", "hil-1-cfg"), ("test_over_budget", "hil-1-config")):
+        case = suite.cases[test]
+        assert case.failed == (test == "test_over_budget")
+        kept = tmp_path / "artifacts" / f"test_user.py_{test}" / name
+        assert case.properties["hil.1.run_dir"] == str(kept)
+        assert (kept / "run.mcap").is_file() and (kept / "report.html").is_file()
+        s = json.loads((kept / "summary.json").read_text())
+        for stage in ("end_to_end", "inference"):
+            for k in ("count", "p50_ms", "p99_ms", "max_ms"):
+                assert case.properties[f"hil.1.ego0.{stage}.{k}"] == str(s["vehicles"]["ego0"]["latency_ms"][stage][k])
+        assert case.properties["hil.1.ego0.dropped"] == str(s["vehicles"]["ego0"]["dropped"])
+        assert case.properties["hil.1.verdict.passed"] == str(s["verdict"]["passed"])
+        assert case.properties["hil.1.ended_by"] == "duration"
+    assert f"run folder: {tmp_path / 'artifacts'}" in out  # the failure names the kept copy
 
 
 def _result(e2e: dict[str, Any], *, dropped: int = 0) -> HilRunResult:

@@ -85,3 +85,69 @@ def test_statements_that_were_untrue_stay_fixed():
     assert "world → every car, egos and scripted ones" in README
     assert "hil-1-config" not in README
     assert "--trust-config" in README and "a run folder received\nfrom someone else is code" in README
+
+
+# --- issue 25, item 8: what a first contact checked and found false ------------------
+
+SDK_README = (ROOT / "sdk" / "README.md").read_text(encoding="utf-8")
+
+
+def _choices(usage: str) -> list[str]:
+    """The subcommands argparse lists in a usage line (``{run,scenarios,...}``)."""
+    return re.search(r"\{([a-z,-]+)\}", usage).group(1).split(",")
+
+
+def test_the_synopsis_lists_every_command_and_search_subcommand():
+    listed = {tuple(words) for ln in _command_block() if (words := _subcommand(ln))}
+    for cmd in _choices(hil("--help").stdout):
+        assert any(words[0] == cmd for words in listed), f"hil {cmd} is missing from the command list"
+    search = hil("search", "--help").stdout
+    for sub in re.findall(r"hil search (\w+) ", search):
+        assert ("search", sub) in listed, f"hil search {sub} is missing from the command list"
+
+
+def test_target_transport_is_shown_as_an_option_with_every_choice():
+    line = next(ln for ln in _command_block() if ln.startswith("hil target "))
+    shown = re.search(r"\[--transport ([a-z0-9|]+)\]", line)
+    assert shown, line  # optional: a started target gets its transport from hil run
+    offered = re.search(r"--transport \{([a-z0-9,]+)\}", hil("target", "cv", "--help").stdout).group(1)
+    assert set(shown.group(1).split("|")) == set(offered.split(","))
+
+
+def test_quoted_line_counts_hold():
+    m = re.search(r"about (\d+) lines", SDK_README)
+    assert m
+    lines = sum(len(p.read_text().splitlines()) for p in (ROOT / "targets" / "c").glob("*.[ch]"))
+    assert abs(lines - int(m.group(1))) <= 0.1 * lines, (m.group(1), lines)
+
+
+def test_the_sdk_is_installed_from_the_wheel_the_build_writes():
+    import tomllib
+
+    assert "pip install hil-target-sdk" not in SDK_README  # on no package index
+    version = tomllib.loads((ROOT / "sdk" / "pyproject.toml").read_text())["project"]["version"]
+    wheel = f"dist/hil_target_sdk-{version}-py3-none-any.whl"
+    assert f"python sdk/build_wheel.py                 # writes {wheel}" in SDK_README
+    assert f'pip install "{wheel}[zenoh]"' in SDK_README
+
+
+def test_the_gate_and_study_sentences_say_what_the_code_does():
+    from hil.harness.report.compare_tolerances import Tolerances
+
+    assert "may grow by (default)" not in README  # the allowance is not a hard limit
+    tol = Tolerances()
+    assert f"| `p50` | max({tol.p50.rel:.0%}, {tol.p50.abs:g} ms) |".replace("%", " %") in README
+    noise = tol.noise_of("p50")
+    assert f"default p50: {noise.rel:.0%} and {noise.abs:g} ms".replace("%", " %") in README
+    assert "figures 7-13" not in README and "figures 7–13" not in README
+    study = README.split("## Studies")[1].split("\n## ")[0]
+    assert "six SVG charts" in study and "report.html" in study
+
+
+def test_foxglove_steps_use_the_apps_words():
+    # docs.foxglove.dev (getting started, Python): "Open connection" from the dashboard or
+    # left-hand menu, then "Foxglove WebSocket" in the "Open a new connection" dialog.
+    flat = " ".join(README.split())
+    assert ('"Open connection" (dashboard or left-hand menu), then "Foxglove WebSocket" in the "Open a new '
+            'connection" dialog') in flat
+    assert "Open connection →" not in flat

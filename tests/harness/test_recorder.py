@@ -104,6 +104,26 @@ def test_round_trip_json_and_jpeg(tmp_path: Path) -> None:
     assert summary.statistics.message_count == 65
 
 
+def test_written_counts_every_message_in_the_file_derived_ones_too(tmp_path: Path) -> None:
+    # Derived messages (the Foxglove views) are written on the writer thread; the
+    # count must still equal the file's own statistics record (issue 25: a report
+    # said "written 2538" of a run.mcap holding 4,340 messages).
+    path = tmp_path / "run.mcap"
+    with Recorder(path) as rec:
+        rec.register_json_channel("/events", "hil.Event", {"type": "object"})
+        rec.register_json_channel("/log", "hil.Text", {"type": "object"})
+        rec.add_derivation("/events", lambda ev, lt, pt: [("/log", {"text": ev["kind"]}, lt, pt)] * ev["n"])
+        for i in range(30):
+            rec.write_json("/events", {"kind": "k", "n": i % 3}, log_time_ns=10**9 + i, publish_time_ns=10**9 + i)
+    stats = rec.stats
+    _, metadata, summary = _read_all(path)
+    derived = sum(i % 3 for i in range(30))
+    assert summary.statistics.message_count == 30 + derived
+    assert (stats.enqueued, stats.written, stats.derived) == (30, 30 + derived, derived)
+    assert metadata["recorder"]["written"] == str(stats.written)
+    assert metadata["recorder"]["derived"] == str(derived)
+
+
 def test_raw_image_is_copied_at_the_call(tmp_path: Path) -> None:
     path = tmp_path / "raw.mcap"
     pixels = np.arange(4 * 6 * 3, dtype=np.uint8).reshape(4, 6, 3)

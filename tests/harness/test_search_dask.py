@@ -158,6 +158,113 @@ def _tar(entries: dict[str, bytes]) -> bytes:
     return buf.getvalue()
 
 
+def _tar_with(members: list[tuple[str, bytes, str]]) -> bytes:
+    """A tar of (name, data, kind): kind "file", "dir", "symlink" (data: its target) or "hardlink"."""
+    import io
+    import tarfile
+
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as tar:
+        for name, data, kind in members:
+            info = tarfile.TarInfo(name)
+            if kind == "file":
+                info.size = len(data)
+                tar.addfile(info, io.BytesIO(data))
+                continue
+            info.type = {"dir": tarfile.DIRTYPE, "symlink": tarfile.SYMTYPE, "hardlink": tarfile.LNKTYPE}[kind]
+            info.linkname = data.decode()
+            tar.addfile(info)
+    return buf.getvalue()
+
+
+def test_an_episode_cannot_write_a_sibling_episode(tmp_path):
+    # `e00001/../e00000/...` and a symlink to the sibling both stayed inside the episodes
+    # folder, so tarfile's data filter let them overwrite another episode (issue 26, item 4).
+    import tarfile
+
+    from hil.harness.search.engine import unpack_episode
+
+    eps = tmp_path / "episodes"
+    (eps / "e00000").mkdir(parents=True)
+    (eps / "e00000" / "summary.json").write_text("episode 0's own")
+    (eps / "e00001").mkdir()
+    (eps / "e00001" / "run.mcap").write_text("episode 1, first attempt")
+    attacks = {
+        "traversal": [("e00001/run.mcap", b"x", "file"), ("e00001/../e00000/summary.json", b"forged", "file")],
+        "symlink": [("e00001/sib", b"../e00000", "symlink"), ("e00001/sib/summary.json", b"forged", "file")],
+        "symlink alone": [("e00001/sib", b"../e00000/summary.json", "symlink")],
+        "hardlink": [("e00001/h", b"e00000/summary.json", "hardlink")],
+        "dot": [("e00001/./run.mcap", b"x", "file")],
+        "empty part": [("e00001//run.mcap", b"x", "file")],
+    }
+    for what, members in attacks.items():
+        with pytest.raises(tarfile.TarError, match="only regular files and folders under e00001/"):
+            unpack_episode(_tar_with(members), eps, name="e00001")
+        assert (eps / "e00000" / "summary.json").read_text() == "episode 0's own", what
+        assert (eps / "e00001" / "run.mcap").read_text() == "episode 1, first attempt", what  # left whole
+    assert sorted(p.name for p in eps.iterdir()) == ["e00000", "e00001"]  # no staging folder left
+    unpack_episode(_tar_with([("e00001", b"", "dir"), ("e00001/sub/", b"", "dir"), ("e00001/sub/a", b"a", "file"),
+                              ("e00001/run.mcap", b"new", "file")]), eps, name="e00001")
+    assert (eps / "e00001" / "run.mcap").read_text() == "new" and (eps / "e00001" / "sub" / "a").is_file()
+
+
+def _listening_ports(pids: set[int]) -> set[tuple[str, int]]:
+    """(address, port) of every TCP socket in LISTEN state owned by ``pids`` (from /proc)."""
+    inodes: set[str] = set()
+    for pid in pids:
+        for fd in Path(f"/proc/{pid}/fd").iterdir():
+            try:
+                link = os.readlink(fd)
+            except OSError:
+                continue
+            if link.startswith("socket:["):
+                inodes.add(link[8:-1])
+    out = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            f = line.split()
+            if f[3] == "0A" and f[9] in inodes:  # 0A: LISTEN
+                addr, port = f[1].rsplit(":", 1)
+                host = ".".join(str(int(addr[i:i + 2], 16)) for i in (6, 4, 2, 0)) if len(addr) == 8 else addr
+                out.add((host, int(port, 16)))
+    return out
+
+
+def test_a_foreign_client_is_refused_and_nothing_serves_8787():
+    # Any local process could connect a distributed.Client to the campaign's scheduler
+    # and run code in it, and an HTTP server answered on 127.0.0.1:8787 (issue 26, item 4).
+    from distributed.security import Security
+
+    from hil.harness.search.engine import DaskEngine
+
+    with DaskEngine(gl_backend=GL_BACKEND, workers=1) as eng:
+        addr = eng._cluster.scheduler_address
+        assert addr.startswith("tls://127.0.0.1:")
+        assert eng.client.submit(lambda x: x + 1, 1).result() == 2  # the campaign's own client works
+        plain = "tcp://" + addr.removeprefix("tls://")
+        for target, security in ((plain, None), (addr, Security.temporary()), (addr, None)):
+            with pytest.raises((OSError, TypeError, distributed.comm.core.CommClosedError)):
+                distributed.Client(target, security=security, timeout=3)
+        # The scheduler and the nannies live in this process (beside any other cluster a
+        # test of this module started): their own sockets; the workers are processes.
+        from distributed.comm.utils import get_tcp_server_addresses
+
+        sched = eng._cluster.scheduler
+        ports = {tuple(a) for a in get_tcp_server_addresses(sched.http_server)}
+        workers = set(eng.client.run(os.getpid).values()) - {os.getpid()}
+        ports |= _listening_ports(workers)
+        assert workers and ports and all(host == "127.0.0.1" for host, _ in ports), ports
+        assert 8787 not in {port for _, port in ports}, ports
+        http = sched.http_server.port
+        import urllib.error
+        import urllib.request
+
+        for route in ("/status", "/info/main/workers.html", "/health", "/metrics", "/json/identity.json"):
+            with pytest.raises(urllib.error.HTTPError) as no:
+                urllib.request.urlopen(f"http://127.0.0.1:{http}{route}", timeout=3)
+            assert no.value.code == 404, route
+
+
 def test_a_shipped_episode_unpacks_only_into_its_own_folder(tmp_path):
     import tarfile
 
@@ -183,9 +290,9 @@ def test_the_local_cluster_is_worker_processes_on_loopback_only():
 
     with DaskEngine(gl_backend=GL_BACKEND, workers=2) as eng:
         sched = eng._cluster.scheduler
-        assert sched.address.startswith("tcp://127.0.0.1:") and sched.http_server.address == "127.0.0.1"
+        assert sched.address.startswith("tls://127.0.0.1:")
         info = eng.client.scheduler_info()
-        assert all(w.startswith("tcp://127.0.0.1:") for w in info["workers"]), info["workers"]
+        assert all(w.startswith("tls://127.0.0.1:") for w in info["workers"]), info["workers"]
         assert sorted(eng.client.nthreads().values()) == [1, 1] and eng.workers == 2
         pids = eng.client.run(os.getpid)
         assert len(set(pids.values())) == 2 and os.getpid() not in pids.values()

@@ -13,7 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from hil.harness.study.report import largest_holding
+from hil.harness.study.report import largest_holding, write_study
+from hil.harness.study.study import Placement, Point, PointResult
+from tests.harness.browser import assert_charts_legible, needs_chromium, probe
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -85,5 +87,72 @@ def test_a_tiny_study_in_both_placements(tmp_path, gl_backend):
     assert "largest N keeping" in report[2] and "frames/s" in report[2]  # the reading comes first
     fps_svg = (out / "fig_fps_per_vehicle.svg").read_text()
     assert fps_svg.startswith("<svg") and "10 fps floor" in fps_svg
-    for name in ("fig_total_fps.svg", "fig_e2e_latency.svg", "fig_inference_latency.svg", "fig_realtime.svg"):
-        assert (out / name).read_text().startswith("<svg")
+    for name in ("fig_total_fps.svg", "fig_e2e_latency.svg", "fig_inference_latency.svg", "fig_lateness.svg",
+                 "fig_late_steps.svg"):
+        assert (out / name).read_text().startswith('<svg xmlns="http://www.w3.org/2000/svg"')
+    assert (out / "report.html").is_file()
+
+
+# --- the study's pictures (issue 25, item 7) ------------------------------------------
+
+def _metrics(n: int) -> dict:
+    return {"total_fps": 19.8 * n, "fps_per_vehicle_mean": 19.8 - 0.3 * n, "fps_per_vehicle_min": 19.7 - 0.4 * n,
+            "e2e_p50_ms": 4.0 + n, "e2e_p99_ms": 9.0 + 2 * n, "e2e_std_ms": 1.1 * n, "inference_p50_ms": 2.0,
+            "inference_p99_ms": 3.1, "inference_std_ms": 0.4, "uplink_p50_ms": 0.3, "late_steps": 3 * n,
+            "steps_over_10ms": n, "lateness_p99_ms": 0.4 * n, "achieved_factor": 1.0, "kept_realtime": True,
+            "floor_kept": True, "holds": True}
+
+
+@pytest.fixture
+def study_dir(tmp_path):
+    """A study folder written from known points: N = 1, 2 (both hold), distributed skipped."""
+    results = [PointResult(Point(Placement.REPLICATED, n, 20.0), "ok", None, None, 12.0, _metrics(n)) for n in (1, 2)]
+    results += [PointResult(Point(Placement.DISTRIBUTED, n, 20.0), "skipped", "needs root") for n in (1, 2)]
+    write_study(tmp_path, results, config="hil_configs/study.yaml", floor_fps=10.0, study_wall_s=60.0,
+                loadavg="1.0 1.0 1.0")
+    return tmp_path
+
+
+def test_study_charts_are_svg_files_with_whole_vehicle_ticks_and_one_unit_each(study_dir):
+    import xml.etree.ElementTree as ET
+
+    svgs = sorted(study_dir.glob("fig_*.svg"))
+    assert len(svgs) == 6
+    for path in svgs:
+        text = path.read_text()
+        root = ET.fromstring(text)
+        assert root.tag == "{http://www.w3.org/2000/svg}svg", path.name  # a file a browser shows as a picture
+        ticks = [t.text for t in root.iter("{http://www.w3.org/2000/svg}text")
+                 if t.get("text-anchor") == "middle" and t.text and t.text.replace(".", "").isdigit()]
+        assert ticks == ["1", "2"], (path.name, ticks)  # the numbers of vehicles tried, nothing between
+        ylabel = [t.text for t in root.iter("{http://www.w3.org/2000/svg}text") if t.get("transform")][0]
+        assert not ("ms" in ylabel and "steps" in ylabel), ylabel
+    steps = ET.fromstring((study_dir / "fig_late_steps.svg").read_text())
+    yticks = [t.text for t in steps.iter("{http://www.w3.org/2000/svg}text") if t.get("text-anchor") == "end"]
+    assert yticks and all(t.isdigit() for t in yticks), yticks  # counts: whole numbers
+
+
+def test_study_says_when_every_n_tried_held(study_dir):
+    report = (study_dir / "report.md").read_text()
+    assert "held at every N tried (up to N = 2" in report and "is N = 2" not in report
+    assert "replicated @ 20 fps: 2 (every N tried)" in report
+    rows = [{"placement": "replicated", "fps": 20.0, "vehicles": n, "status": "ok", "holds": n < 4}
+            for n in (1, 2, 4)]
+    assert largest_holding(rows) == {"replicated @ 20 fps": 2}  # 4 was tried and failed: N = 2 is the answer
+
+
+@pytest.mark.slow
+@needs_chromium
+def test_study_report_in_a_real_browser(study_dir, tmp_path):
+    page = study_dir / "report.html"
+    assert "<script" not in page.read_text() and "http" not in page.read_text()
+    got = probe(page, tmp_path)
+    assert_charts_legible(got, at_least=6)
+    # each SVG file as report.md shows it: an image that loads, at its size
+    gallery = study_dir / "gallery.html"
+    gallery.write_text("<!DOCTYPE html><html><head><meta charset=utf-8></head><body>" + "".join(
+        f'<img src="{p.name}">' for p in sorted(study_dir.glob("fig_*.svg"))) + "</body></html>")
+    imgs = probe(gallery, tmp_path)["imgs"]
+    assert len(imgs) == 6
+    for img in imgs:
+        assert img["complete"] and img["natural"][0] >= 700 and img["natural"][1] > 200, img

@@ -37,23 +37,38 @@ def test_c_target_passes_over_local(clock, capsys, monkeypatch):
     out = capsys.readouterr().out
     assert code == 0, out
     rows = _rows(out)
-    assert len(rows) == 13 and set(rows.values()) == {"PASS"}, out
-    assert "command 'status'" in rows and "13 of 13 checks passed" in out
+    assert len(rows) == 16 and set(rows.values()) == {"PASS"}, out
+    assert "command 'status'" in rows and "16 of 16 checks passed" in out
+    assert {"payload_crc without its flag", "garbage reported once"} <= set(rows)  # PROTOCOL.md 2 and 8
     assert f"clock {clock.upper()}" in out  # its own clock: the frame checks map it through clock sync
 
 
 @needs_cc
-def test_c_target_passes_over_tcp(capsys, tmp_path):
+@pytest.mark.parametrize("checker_token", ["the-same-token-0123456789", "another-token-0123456789", None])
+def test_c_target_passes_over_tcp_and_proves_its_token(checker_token, capsys, tmp_path, monkeypatch):
+    """The C target holds a token: a checker given the same one sees it proved (AUTH,
+    PROTOCOL.md 4.8); given another, the connection is refused and named; given none,
+    the proof is skipped and everything else passes."""
     address = f"127.0.0.1:{free_port()}"
     log = tmp_path / "c.log"
+    env = dict(os.environ, **c_build.SAN_ENV, HIL_SESSION_TOKEN="the-same-token-0123456789")
     with open(log, "ab") as f:
-        proc = subprocess.Popen([str(c_build.build().asan), "--transport", "tcp", "--listen", address],
-                                stdout=f, stderr=f, env=dict(os.environ, **c_build.SAN_ENV))
+        proc = subprocess.Popen([str(c_build.build().asan), "--transport", "tcp", "--listen", address, "--once"],
+                                stdout=f, stderr=f, env=env)
     try:
-        code = target_check.main([f"tcp://{address}"])
+        args = [f"tcp://{address}", "--timeout", "3"]
+        if checker_token is not None:
+            monkeypatch.setenv("CHECK_TOKEN", checker_token)
+            args += ["--token-env", "CHECK_TOKEN"]
+        code = target_check.main(args)
         out = capsys.readouterr().out
-        assert code == 0, out
-        assert proc.wait(timeout=10) == 0  # it left on the checker's BYE
+        rows = _rows(out)
+        if checker_token == "another-token-0123456789":
+            assert code == 1 and rows["hello"] == "FAIL" and "wrong proof" in out, out
+        else:
+            assert code == 0, out
+            assert ("proved the token in $CHECK_TOKEN" if checker_token else "give --token-env NAME") in out, out
+            assert proc.wait(timeout=10) == 0  # it left on the checker's BYE
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -145,3 +145,10 @@ def test_a_run_over_budget_says_so_first_and_fails_on_request(tmp_path: Path) ->
     assert bad.stderr.strip().splitlines() == [
         "hil: error: --fail-on: unknown verdict 'deadlines'; valid: realtime, deadline, drop, collision, "
         "mismatch, anomaly"]
+
+
+def test_an_old_summary_says_what_it_cannot_judge() -> None:
+    s = _summary()
+    del s["vehicles"]["ego0"]["budgets"]
+    c = checks(s)[1]
+    assert c.ok and c.headline.startswith("not measured: this summary has no per-frame budgets")

@@ -47,7 +47,7 @@ def c_link(transport: str, tmp_path: Path, *, extra: tuple[str, ...] = ()) -> It
     if transport == "tcp":
         address = f"127.0.0.1:{_free_port()}"
         with open(log, "ab") as f:
-            proc = subprocess.Popen([exe, "--transport", "tcp", "--listen", address, "--verbose", *extra],
+            proc = subprocess.Popen([exe, "--transport", "tcp", "--listen", address, "--once", "--verbose", *extra],
                                     stdout=f, stderr=f, stdin=subprocess.DEVNULL, env=env)
         link: Link = TcpLink(vehicle_id=4, clock=MonotonicClock(), connect=address)
     else:
@@ -182,7 +182,7 @@ def test_bye_ends_the_target_cleanly(tmp_path):
     address = f"127.0.0.1:{_free_port()}"
     log = tmp_path / "bye.log"
     with open(log, "ab") as f:
-        proc = subprocess.Popen([exe, "--transport", "tcp", "--listen", address], stdout=f, stderr=f,
+        proc = subprocess.Popen([exe, "--transport", "tcp", "--listen", address, "--once"], stdout=f, stderr=f,
                                 env=dict(os.environ, **c_build.SAN_ENV))
     try:
         link = TcpLink(vehicle_id=0, clock=MonotonicClock(), connect=address, heartbeat_idle_s=0)

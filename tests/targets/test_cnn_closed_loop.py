@@ -37,7 +37,8 @@ class Drive:
     status: str
 
 
-def drive(name: str, params: dict[str, float], seed: int, duration_s: float) -> Drive:
+def drive(name: str, params: dict[str, float], seed: int, duration_s: float, *, serving: object = None) -> Drive:
+    """``serving``: the target's ``Serving`` (precision, preprocessing; bench_precision.py)."""
     from hil.scenarios import get
     from hil.scenarios.sim import Simulation
     from hil.scenarios.world import CameraSpec
@@ -45,7 +46,7 @@ def drive(name: str, params: dict[str, float], seed: int, duration_s: float) -> 
     from hil.training.dataset import lane_pose_error
 
     torch.set_num_threads(1)
-    ai = CnnTarget()
+    ai = CnnTarget(serving=serving)  # type: ignore[arg-type]
     world = get(name).build(params=params, seed=seed, camera=CameraSpec(), physics_step_s=0.002)
     states, collisions, max_lat = [], 0, 0.0
     with Simulation(world) as sim:
@@ -80,15 +81,20 @@ def test_keeps_its_lane_for_60_s_on_the_curved_road():
     assert d.final_speed_mps > 5.0  # it drove the bends, not crawled them
 
 
+def stopped_car(seed: int, *, serving: object = None) -> tuple[bool, dict[str, float], Drive]:
+    """One ``stopped_car`` drive of the seed's parameters: (stopped as it should, params, drive)."""
+    rng = np.random.default_rng(seed)
+    params = {"gap_m": float(rng.uniform(25, 80)), "ego_speed_mps": float(rng.uniform(6, 10)),
+              "lateral_offset_m": float(rng.uniform(-0.5, 0.5))}
+    d = drive("stopped_car", params, seed=seed, duration_s=15.0, serving=serving)
+    return d.collisions == 0 and d.final_speed_mps < 0.3 and 0.5 <= d.final_gap_m <= 12.0, params, d
+
+
 @pytest.mark.slow
 def test_stops_before_a_stopped_car_in_nine_of_ten_seeds():
     results = []
     for seed in range(10):
-        rng = np.random.default_rng(seed)
-        params = {"gap_m": float(rng.uniform(25, 80)), "ego_speed_mps": float(rng.uniform(6, 10)),
-                  "lateral_offset_m": float(rng.uniform(-0.5, 0.5))}
-        d = drive("stopped_car", params, seed=seed, duration_s=15.0)
-        ok = d.collisions == 0 and d.final_speed_mps < 0.3 and 0.5 <= d.final_gap_m <= 12.0
+        ok, params, d = stopped_car(seed)
         results.append(ok)
         print(f"seed {seed} {params}: stopped {ok}, gap {d.final_gap_m:.2f} m, speed {d.final_speed_mps:.2f} m/s, "
               f"collisions {d.collisions}, last state {d.states[-1].name}")

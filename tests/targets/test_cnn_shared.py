@@ -59,7 +59,7 @@ def test_target_loads_its_weights_on_the_device_and_names_it():
 
 
 def test_bad_device_is_one_line_and_exit_2(capsys):
-    from hil.targets.cnn.target import main
+    from hil.targets.cnn.cli import main
 
     assert main(["--device", "gpu"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -319,6 +319,9 @@ def test_four_vehicles_one_shared_cnn_target(hil_run):
             checked += 1
     assert checked == len(rows)
     assert max(int(r["batch_size"]) for r in rows) >= 2  # aligned cameras: frames of several vehicles batched
+    for r in rows:  # each batch's parts, all inside its inference
+        parts = [int(r[f"{p}_ns"]) for p in ("decode", "nets", "post")]
+        assert min(parts) > 0 and sum(parts) <= int(r["t_infer_end_ns"]) - int(r["t_infer_start_ns"])
     tb = s["target_batches"]  # the summary counts the batches by size
     assert tb["batches"] == len({r["batch"] for r in rows})
     assert sum(int(k) * n for k, n in tb["by_size"].items()) == len(rows)

@@ -104,3 +104,18 @@ def test_hil_train_refuses_bad_counts(capsys):
                            steer_epochs=1)
     assert train.cmd(args) == 2
     assert "--train-frames must be at least 1" in capsys.readouterr().err
+
+
+def test_training_and_rendering_say_how_long_is_left(frames, tmp_path):
+    # hil train runs for minutes: each epoch line and every tenth of the dataset says
+    # what is done and the time left at the pace so far.
+    data = train.prepare(frames[:16])
+    lines: list[str] = []
+    train.train_detector(data, epochs=3, batch=16, seed=0, log=lines.append)
+    assert [ln.split(" loss ")[0] for ln in lines] == [f"detector: epoch {i}/3" for i in (1, 2, 3)]
+    assert all(" left)" in ln for ln in lines[:2]) and lines[2].endswith(", done)"), lines
+    lines.clear()
+    dataset.build_dataset(tmp_path / "d", seed=1, n_train=10, n_val=5, log=lines.append)
+    assert lines[0].startswith("dataset: 1 of 15 frames rendered (") and "left)" in lines[0]
+    assert lines[-1].startswith("dataset: 15 of 15 frames rendered (") and lines[-1].endswith(", done)")
+

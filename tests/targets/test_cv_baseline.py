@@ -283,7 +283,8 @@ def test_main_serves_the_baseline(tmp_path: Path) -> None:
 def test_main_started_by_hand_says_why(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
     monkeypatch.delenv("HIL_LOCAL_FD", raising=False)
     assert cv_baseline.main([]) == 2
-    assert capsys.readouterr().err.startswith("cv_baseline: ")
+    err = capsys.readouterr().err
+    assert err.startswith("python -m hil.targets.cv_baseline: HIL_LOCAL_FD is not set") and err.count("\n") == 1, err
 
 
 # -- closed loop -----------------------------------------------------------------
