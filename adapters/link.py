@@ -23,13 +23,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import NoReturn
 
-from hil.adapters import protocol, transports
+from hil.adapters import transports
 from hil.adapters.impair import LinkImpairment
-from hil.adapters.receipt import Receipt
-from hil.adapters.messages import (Bye, CameraInfo, Command, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
-                                   Message, SyncRequest,
-                                   SyncResponse)
-from hil.adapters.stream import StreamDecoder
+from hil.adapters.wire import protocol
+from hil.adapters.wire.messages import (Bye, CameraInfo, Command, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
+                                        Message, SyncRequest, SyncResponse)
+from hil.adapters.wire.receipt import Receipt
+from hil.adapters.wire.stream import StreamDecoder
 from hil.common.errors import ProtocolError, TargetError, TransportError
 from hil.timing.clock import Clock
 from hil.timing.sync import SyncSample
@@ -39,7 +39,7 @@ from hil.timing.sync import SyncSample
 class Received:
     """A message, the harness-clock instant (ns) its last byte arrived, the vehicle id
     of the link it came through, and how much earlier the arrival may have been: the
-    truth lies in ``[t_rx_ns - rx_uncertainty_ns, t_rx_ns]`` (``hil.adapters.receipt``)."""
+    truth lies in ``[t_rx_ns - rx_uncertainty_ns, t_rx_ns]`` (``hil.adapters.wire.receipt``)."""
 
     msg: Message
     t_rx_ns: int
@@ -298,7 +298,7 @@ class Link(ABC):
 
     def _on_receipt(self, r: Receipt[NoReturn]) -> None:
         """Reader-thread entry for stream transports read one message at a time
-        (``hil.adapters.receipt.StreamReader``): each item with the read's own stamp."""
+        (``hil.adapters.wire.receipt.StreamReader``): each item with the read's own stamp."""
         self.stats.bytes_received += r.nbytes
         for item in r.items:
             self._dispatch(item, r.t_rx_ns, r.uncertainty_ns)

@@ -63,7 +63,7 @@ def _zenoh_security(args: argparse.Namespace) -> dict[str, object]:
     out: dict[str, object] = {}
     tls: dict[str, object] = {}
     for item in getattr(args, "tls", None) or []:
-        from hil.adapters.zenoh_options import tls_key_problem
+        from hil.adapters.zenoh.options import tls_key_problem
 
         key, sep, value = item.partition("=")
         problem = "KEY=VALUE, e.g. listen_certificate=dev.pem" if not sep or not key else tls_key_problem(key)
@@ -76,7 +76,7 @@ def _zenoh_security(args: argparse.Namespace) -> dict[str, object]:
     if getattr(args, "auth_dictionary", None):
         out["usrpwd"] = {"dictionary_file": args.auth_dictionary}
     else:  # started by a harness: the run's own credentials, from the environment
-        from hil.adapters.zenoh_options import usrpwd_from_env
+        from hil.adapters.zenoh.options import usrpwd_from_env
 
         try:
             creds = usrpwd_from_env()

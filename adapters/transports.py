@@ -59,14 +59,14 @@ class Backend:
 
 
 BACKENDS: dict[Transport, Backend] = {
-    Transport.LOCAL: Backend("hil.adapters.local:LocalLink", "hil.adapters.local:serve_endpoint",
-                             shared="hil.adapters.shared_local:serve_shared"),
-    Transport.ZENOH: Backend("hil.adapters.zenoh_transport:ZenohLink", "hil.adapters.zenoh_target:serve_endpoint",
-                             shared="hil.adapters.shared_zenoh:serve_shared"),
-    Transport.CAN: Backend("hil.adapters.can_transport:CanLink", "hil.adapters.can_transport:serve_endpoint"),
-    Transport.MIXED: Backend("hil.adapters.mixed:MixedLink", "hil.adapters.mixed:serve_endpoint"),
-    Transport.TCP: Backend("hil.adapters.tcp:TcpLink", "hil.adapters.tcp:serve_endpoint"),
-    Transport.ROS2: Backend("hil.adapters.ros2_transport:Ros2Link", "hil.adapters.ros2_target:serve_endpoint"),
+    Transport.LOCAL: Backend("hil.adapters.local.link:LocalLink", "hil.adapters.local.target:serve_endpoint",
+                             shared="hil.adapters.local.shared_target:serve_shared"),
+    Transport.ZENOH: Backend("hil.adapters.zenoh.link:ZenohLink", "hil.adapters.zenoh.target:serve_endpoint",
+                             shared="hil.adapters.zenoh.shared_target:serve_shared"),
+    Transport.CAN: Backend("hil.adapters.can.link:CanLink", "hil.adapters.can.target:serve_endpoint"),
+    Transport.MIXED: Backend("hil.adapters.mixed.link:MixedLink", "hil.adapters.mixed.target:serve_endpoint"),
+    Transport.TCP: Backend("hil.adapters.tcp.link:TcpLink", "hil.adapters.tcp.target:serve_endpoint"),
+    Transport.ROS2: Backend("hil.adapters.ros2.link:Ros2Link", "hil.adapters.ros2.target:serve_endpoint"),
 }
 
 NAMES: tuple[str, ...] = tuple(t.value for t in Transport)  # in table order: local, zenoh, can, mixed, tcp, ros2

@@ -58,9 +58,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from hil.adapters import protocol  # noqa: E402
 from hil.adapters.link import Link, open_link  # noqa: E402
-from hil.adapters.messages import CameraInfo, Control, DrivingState, Estimate, Frame, ImageEncoding  # noqa: E402
+from hil.adapters.wire import protocol  # noqa: E402
+from hil.adapters.wire.messages import CameraInfo, Control, DrivingState, Estimate, Frame, ImageEncoding  # noqa: E402
 from hil.timing.clock import MonotonicClock  # noqa: E402
 
 CAM = CameraInfo(277.0, 277.0, 160.0, 120.0, 1.3)
@@ -122,7 +122,7 @@ def child_main(kind: str, args: list[str]) -> None:
     elif kind == "zenoh":
         import zenoh
 
-        from hil.adapters.zenoh_transport import make_config
+        from hil.adapters.zenoh.session import make_config
         session = zenoh.open(make_config(listen=[args[0]]))
         pub = session.declare_publisher(ZKEY_PONG, congestion_control=zenoh.CongestionControl.BLOCK)
         # Zenoh undeclares an entity when its Python object is dropped: keep it.
@@ -263,7 +263,7 @@ def raw_handoff() -> Iterator[RoundTrip]:
 def raw_zenoh(payload: bytes) -> Iterator[RoundTrip]:
     import zenoh
 
-    from hil.adapters.zenoh_transport import make_config
+    from hil.adapters.zenoh.session import make_config
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     proc = spawn_child("zenoh", endpoint, stdin=subprocess.PIPE)
     session = zenoh.open(make_config(connect=[endpoint]))
@@ -410,7 +410,7 @@ def device_thread(serve: Callable[..., None], **options: object) -> Iterator[obj
 
 @contextlib.contextmanager
 def can_link() -> Iterator[Link]:
-    from hil.adapters.can_transport import serve_endpoint
+    from hil.adapters.can.target import serve_endpoint
     channel = f"bench-{uuid.uuid4().hex}"
     with device_thread(serve_endpoint, channel=channel), \
             opened(open_link("can", vehicle_id=0, clock=MonotonicClock(), interface="virtual",
@@ -420,7 +420,7 @@ def can_link() -> Iterator[Link]:
 
 @contextlib.contextmanager
 def mixed_link() -> Iterator[Link]:
-    from hil.adapters.mixed import serve_endpoint
+    from hil.adapters.mixed.target import serve_endpoint
     channel, port = f"bench-{uuid.uuid4().hex}", free_port()
     with device_thread(serve_endpoint, channel=channel, listen=[f"tcp/127.0.0.1:{port}"]), \
             opened(open_link("mixed", vehicle_id=0, clock=MonotonicClock(), interface="virtual", channel=channel,
@@ -454,7 +454,7 @@ def can_rates(n: int = 3000) -> tuple[float, float]:
     """(estimates/s a CanLink receives, raw virtual-bus CAN FD frames/s between two threads)."""
     import can
 
-    from hil.adapters.can_transport import serve_endpoint
+    from hil.adapters.can.target import serve_endpoint
     channel = f"bench-{uuid.uuid4().hex}"
     with device_thread(serve_endpoint, channel=channel) as ep, \
             opened(open_link("can", vehicle_id=0, clock=MonotonicClock(), interface="virtual",
@@ -487,8 +487,8 @@ def protocol_cpu_us(raw_img: bytes, n: int = 2000) -> float:
     """Median µs of the protocol work of one local round trip through the ring, in one
     thread with no I/O: build and encode the FRAME, write its slot, decode the notice,
     read and decode the slot, encode the ESTIMATE and stream-decode it."""
-    from hil.adapters.shm import NOTICES, ShmReader, ShmRing
-    from hil.adapters.stream import StreamDecoder
+    from hil.adapters.local.shm import NOTICES, ShmReader, ShmRing
+    from hil.adapters.wire.stream import StreamDecoder
 
     est = Estimate(0, 1, DrivingState.SAFE, Control(0.0, 0.1, 0.0), (), 1, 2, 3, 4)
     times = []

@@ -30,9 +30,9 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from hil.adapters.messages import Estimate
-from hil.harness.config.timing import TimingConfig
+from hil.adapters.wire.messages import Estimate
 from hil.harness.analysis.events import Event, EventBus
+from hil.harness.config.timing import TimingConfig
 from hil.harness.record.recorder import Recorder
 from hil.scenarios.ground_truth import GroundTruth
 from hil.timing.anomaly import Anomaly, AnomalyDetector

@@ -28,11 +28,11 @@ from typing import Any
 
 import numpy as np
 
-from hil.adapters import protocol
-from hil.adapters.auth import token_from_env
 from hil.adapters.link import Link, open_link
-from hil.adapters.messages import Bye, Command, ErrorMsg, Estimate, Heartbeat, Hello, ImageEncoding
-from hil.adapters.tcp import parse_address
+from hil.adapters.tcp.handshake import parse_address
+from hil.adapters.wire import protocol
+from hil.adapters.wire.auth import token_from_env
+from hil.adapters.wire.messages import Bye, Command, ErrorMsg, Estimate, Heartbeat, Hello, ImageEncoding
 from hil.common.errors import HilError, ProtocolError, TransportError
 from hil.harness.check.target_faults import CAM, _still_alive, check_malformed
 from hil.harness.check.target_session import Check, Session

@@ -34,9 +34,9 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, BaseModel, Field
 
-from hil.adapters.can_interfaces import LOCAL_INTERFACES
-from hil.adapters.ros2_options import MAX_DOMAIN_ID, topic_problem
-from hil.adapters.zenoh_options import endpoint_problem, tls_key_problem
+from hil.adapters.can.options import LOCAL_INTERFACES
+from hil.adapters.ros2.options import MAX_DOMAIN_ID, topic_problem
+from hil.adapters.zenoh.options import endpoint_problem, tls_key_problem
 from hil.common.errors import ConfigError
 from hil.harness.config.types import MODEL_CONFIG, Float, Int
 
@@ -105,7 +105,7 @@ class ZenohAuthConfig(BaseModel):
 
 class ZenohTargetConfig(BaseModel):
     """Zenoh session of the harness. Multicast scouting stays off unless turned on;
-    ``tls`` keys pass through to ``transport/link/tls`` (see adapters/zenoh_transport)."""
+    ``tls`` keys pass through to ``transport/link/tls`` (see adapters/zenoh/link.py)."""
 
     model_config = MODEL_CONFIG
 
@@ -156,7 +156,7 @@ class TcpAuth(str, Enum):
 
 
 class TcpTargetConfig(BaseModel):
-    """TCP connection of the harness (adapters/tcp.py, PROTOCOL.md section 10.5).
+    """TCP connection of the harness (adapters/tcp/link.py, PROTOCOL.md section 10.5).
     ``address`` is host:port, ``{port}`` being ``base_port + vehicle_id``; loopback
     unless given otherwise. ``kernel_stamps``: stamp receipt with the kernel's receive
     time (SO_TIMESTAMPNS) rather than when the reader thread woke.
@@ -216,7 +216,7 @@ class Ros2QosConfig(BaseModel):
 
 
 class Ros2TargetConfig(BaseModel):
-    """A ROS 2 node as the target (adapters/ros2_transport.py; README, "ROS 2").
+    """A ROS 2 node as the target (adapters/ros2/link.py; README, "ROS 2").
     Vehicle ``i``'s node is on DDS domain ``domain_id + i``; a node the harness starts
     (``command``) gets a domain of this run's own instead (``per_run_domain``). Cyclone
     DDS uses ``interface`` only, ``multicast`` off and unicast discovery to ``peers``.

@@ -43,7 +43,7 @@ def zenoh_options(cfg: RunConfig, vehicle_id: int, session: str | None = None,
                   credentials: tuple[str, str] | None = None) -> dict[str, object]:
     """Keyword options of the Zenoh link of one vehicle (``target.zenoh``);
     ``credentials``: the run's own (``run_credentials``)."""
-    from hil.adapters.zenoh_options import run_usrpwd
+    from hil.adapters.zenoh.options import run_usrpwd
 
     z = cfg.target.zenoh
     auth = run_usrpwd(*credentials) if credentials else z.auth.usrpwd() if z.auth else None
@@ -61,7 +61,7 @@ def ros2_domain(cfg: RunConfig, vehicle_id: int, session: str | None = None) -> 
     Raises:
         ConfigError: the domain is past 232.
     """
-    from hil.adapters.ros2_options import check_domain, per_run_domain
+    from hil.adapters.ros2.options import check_domain, per_run_domain
 
     r = cfg.target.ros2
     if session and cfg.target.command and r.per_run_domain:
@@ -90,8 +90,8 @@ def ros2_options(cfg: RunConfig, vehicle_id: int, session: str | None = None) ->
     """Keyword options of the ROS 2 link of one vehicle (``target.ros2``)."""
     import math
 
-    from hil.adapters.ros2_answers import DriveMapping
-    from hil.adapters.ros2_options import QosProfile
+    from hil.adapters.ros2.answers import DriveMapping
+    from hil.adapters.ros2.options import QosProfile
 
     r, cam = cfg.target.ros2, cfg.camera
     topics = ros2_topics(cfg, vehicle_id)
@@ -114,7 +114,7 @@ def ros2_node_env(cfg: RunConfig, vehicle_id: int, session: str | None = None) -
     a ROS 2 node is remapped by its own launch arguments instead)."""
     import json
 
-    from hil.adapters.ros2_options import cyclone_xml, node_env
+    from hil.adapters.ros2.options import cyclone_xml, node_env
 
     r = cfg.target.ros2
     topics = ros2_topics(cfg, vehicle_id)
@@ -132,7 +132,7 @@ def tcp_token(cfg: RunConfig) -> str | None:
     Raises:
         ConfigError: ``token_env`` names an unset variable, or a token under 16 bytes.
     """
-    from hil.adapters.auth import new_token, token_from_env
+    from hil.adapters.wire.auth import new_token, token_from_env
 
     tc = cfg.target.tcp
     if tc.auth == TcpAuth.NONE:
@@ -146,7 +146,7 @@ def tcp_token(cfg: RunConfig) -> str | None:
 
 def tcp_options(cfg: RunConfig, vehicle_id: int, token: str | None) -> dict[str, object]:
     """Keyword options of the TCP link of one vehicle (``target.tcp``): ``{mode: address}``
-    as ``hil.adapters.tcp.TcpLink`` takes it, the token and the expected name."""
+    as ``hil.adapters.tcp.link.TcpLink`` takes it, the token and the expected name."""
     tc = cfg.target.tcp
     return {tc.mode.value: substitute(tc.address, vehicle_id=vehicle_id, base_port=tc.base_port),
             "kernel_stamps": tc.kernel_stamps, "token": token, "expect_name": cfg.target.expect_name}

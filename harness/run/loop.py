@@ -45,9 +45,9 @@ from typing import Any
 import numpy as np
 
 from hil.adapters.link import ProtocolFault, Received
-from hil.adapters.messages import CameraInfo, Command, ErrorMsg, Estimate, Heartbeat, ImageEncoding
 from hil.adapters.process import prioritise_this_thread
-from hil.adapters.protocol import ErrorCode
+from hil.adapters.wire.messages import CameraInfo, Command, ErrorMsg, Estimate, Heartbeat, ImageEncoding
+from hil.adapters.wire.protocol import ErrorCode
 from hil.common.errors import TransportError
 from hil.harness.analysis.events import Event, EventBus, EventKind
 from hil.harness.analysis.observers import RunObserver

@@ -2,7 +2,7 @@
 every vehicle of the run, which batches their frames (``hil.adapters.batching``).
 
 * ``transport: local``: the first vehicle's link starts the program once
-  (``hil.adapters.shared_local.SharedLocalTarget``); every vehicle's link hands it its
+  (``hil.adapters.local.shared_link.SharedLocalTarget``); every vehicle's link hands it its
   own socket (and frame ring) over a control socket, so each vehicle keeps its own
   session with PROTOCOL.md's framing.
 * ``transport: zenoh``: every vehicle's link joins the same endpoints (``{port}``
@@ -26,8 +26,8 @@ from pathlib import Path
 
 from hil.adapters.batching import ENV_BATCH_LOG
 from hil.adapters.link import Link, Received, open_link
+from hil.adapters.local.shared_link import SharedLocalLink, SharedLocalTarget
 from hil.adapters.process import die_with_parent
-from hil.adapters.shared_local import SharedLocalLink, SharedLocalTarget
 from hil.common.errors import TargetError
 from hil.harness.config.model import RunConfig, Transport
 from hil.harness.run.link_options import impair, target_command, zenoh_options

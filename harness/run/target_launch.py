@@ -13,10 +13,10 @@ from typing import Any
 
 from hil.adapters.link import Link, Received, open_link
 from hil.adapters.process import die_with_parent, end_process
-from hil.adapters.zenoh_options import AUTH_ENV
+from hil.adapters.wire.auth import ENV_TOKEN
+from hil.adapters.zenoh.options import AUTH_ENV
 from hil.common.errors import TargetError
 from hil.harness.config.model import RunConfig, Transport
-from hil.adapters.auth import ENV_TOKEN
 from hil.harness.run.link_options import (can_options, impair, ros2_node_env, ros2_options, run_credentials,
                                          run_key_prefix, target_command, tcp_options, tcp_token, zenoh_options)
 from hil.timing.clock import Clock
@@ -160,7 +160,7 @@ def can_preflight(cfg: RunConfig, *, frame_bytes: int) -> str:
     Raises:
         ConfigError: ``camera.fps`` asks for more than the bus carries.
     """
-    from hil.adapters.can_capacity import bus_capacity
+    from hil.adapters.can.capacity import bus_capacity
 
     c = cfg.target.can
     report = bus_capacity(bitrate=c.bitrate, data_bitrate=c.data_bitrate, fd=True, frame_bytes=frame_bytes,

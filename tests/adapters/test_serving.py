@@ -12,14 +12,14 @@ from pathlib import Path
 
 import pytest
 
-from hil.adapters import protocol
-from hil.adapters.messages import Bye, Inference
 from hil.adapters.sdk import Endpoint, serving, stop_on_sigterm
-from hil.adapters.tcp import TcpLink
+from hil.adapters.tcp.link import TcpLink
+from hil.adapters.wire import protocol
+from hil.adapters.wire.messages import Bye, Inference
 from hil.common.errors import TransportError
 from hil.timing.clock import MonotonicClock
-from tests.adapters.pair_tcp import tcp_echo
-from tests.adapters.pair_zenoh import free_port
+from tests.adapters.tcp.pair import tcp_echo
+from tests.adapters.zenoh.pair import free_port
 
 
 def _wait_gone(link, timeout_s: float) -> str:
@@ -107,7 +107,8 @@ def test_sigterm_makes_a_can_target_say_bye() -> None:
     pytest.importorskip("isotp")
     import can
 
-    from hil.adapters.can_transport import CanLink, serve_endpoint
+    from hil.adapters.can.link import CanLink
+    from hil.adapters.can.target import serve_endpoint
 
     channel = f"hil-serving-{uuid.uuid4().hex}"
     bus = can.Bus(interface="virtual", channel=channel, fd=True, ignore_config=True)

@@ -19,12 +19,12 @@ from collections.abc import Iterator, Sequence
 
 import pytest
 
-from hil.adapters.messages import Control, DrivingState, Inference
 from hil.adapters.sdk import Endpoint
-from hil.adapters.tcp import TcpLink
+from hil.adapters.tcp.link import TcpLink
+from hil.adapters.wire.messages import Control, DrivingState, Inference
 from hil.timing.clock import MonotonicClock
-from tests.adapters.pair_zenoh import ROOT, free_port
 from tests.adapters.test_conformance import next_estimate, send_frame
+from tests.adapters.zenoh.pair import ROOT, free_port
 from tests.targets import c_build
 
 
@@ -190,7 +190,8 @@ def test_a_can_target_announces_itself_and_serves_run_after_run():
         pytest.skip("signals need the main thread")
     import can
 
-    from hil.adapters.can_transport import CanLink, serve_endpoint
+    from hil.adapters.can.link import CanLink
+    from hil.adapters.can.target import serve_endpoint
 
     channel = f"hil-programs-{uuid.uuid4().hex}"
     bus = can.Bus(interface="virtual", channel=channel, fd=True, ignore_config=True)

@@ -15,14 +15,14 @@ from pathlib import Path
 
 import pytest
 
-from hil.adapters import protocol
 from hil.adapters.link import Link
-from hil.adapters.local import LocalLink
-from hil.adapters.messages import (Bye, CameraInfo, ClockId, Command, Control, DrivingState, ErrorMsg, Estimate, Frame,
-                                   ImageEncoding, SyncRequest)
-from hil.adapters.tcp import TcpLink
-from tests.targets import c_build
+from hil.adapters.local.link import LocalLink
+from hil.adapters.tcp.link import TcpLink
+from hil.adapters.wire import protocol
+from hil.adapters.wire.messages import (Bye, CameraInfo, ClockId, Command, Control, DrivingState, ErrorMsg, Estimate,
+                                        Frame, ImageEncoding, SyncRequest)
 from hil.timing.clock import MonotonicClock
+from tests.targets import c_build
 
 pytestmark = pytest.mark.skipif(c_build.unavailable() is not None, reason=str(c_build.unavailable()))
 
@@ -248,7 +248,7 @@ def test_large_frames_and_oversized_lengths(tmp_path):
     """A 640x480 frame (more than the target's first buffer) is answered; a header
     announcing more than MAX_PAYLOAD is refused at offset 12 before any allocation;
     an idle target sends HEARTBEATs."""
-    from hil.adapters.messages import Heartbeat
+    from hil.adapters.wire.messages import Heartbeat
 
     big = bytearray(protocol.encode(SyncRequest(4, 1, 5)))
     big[12:16] = (protocol.MAX_PAYLOAD + 1).to_bytes(4, "little")

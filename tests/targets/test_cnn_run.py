@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from hil.adapters import protocol
-from hil.adapters.messages import CameraInfo, Command, Estimate, Frame, ImageEncoding
 from hil.adapters.sdk import Endpoint
+from hil.adapters.wire import protocol
+from hil.adapters.wire.messages import CameraInfo, Command, Estimate, Frame, ImageEncoding
 from hil.common.errors import TransportError
 
 CAM = CameraInfo(207.846, 207.846, 160.0, 120.0, 1.3)
@@ -125,14 +125,14 @@ def test_short_run_reports_inference_time_from_the_targets_stamps(tmp_path: Path
 @pytest.mark.slow
 def test_served_over_zenoh_like_on_a_remote_host(tmp_path: Path):
     pytest.importorskip("torch")
-    from tests.adapters.pair_zenoh import ROOT, SKIP_REASON, end_process, free_port
+    from tests.adapters.zenoh.pair import ROOT, SKIP_REASON, end_process, free_port
 
     if SKIP_REASON:
         pytest.skip(SKIP_REASON)
     import os
     import subprocess
 
-    from hil.adapters.zenoh_transport import ZenohLink
+    from hil.adapters.zenoh.link import ZenohLink
     from hil.timing.clock import MonotonicClock
 
     port = free_port()
