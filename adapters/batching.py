@@ -370,7 +370,7 @@ def serve_batched(infer_batch: BatchInferFn, *, target_name: str, transport: str
                 raise TransportError(f"the local transport takes no options; got {sorted(transport_options)}")
             serve_shared(scheduler, make_endpoint)
         else:
-            options = {k: v for k, v in transport_options.items() if k not in ("vehicle_id", "shared_memory")}
+            options = {k: v for k, v in transport_options.items() if k != "vehicle_id"}  # it serves ``vehicles``
             serve_shared(scheduler, make_endpoint, vehicles=list(vehicles), **options)
     finally:
         scheduler.stop()

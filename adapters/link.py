@@ -371,16 +371,30 @@ class Link(ABC):
 TRANSPORTS = transports.NAMES  # the transport names, from the table in hil.adapters.transports
 
 
-def open_link(transport: str | transports.Transport, **options: object) -> Link:
+def open_link(transport: str | transports.Transport, *, options: object = None, **kwargs: object) -> Link:
     """Build the link for ``transport`` by name (not yet opened). The link class is
     looked up in :data:`hil.adapters.transports.BACKENDS` and its module imported only
     now, so zenoh and python-can stay optional and this module imports no transport.
 
+    Args:
+        options: the transport's options model (``transports.options_class``, e.g. a
+            ``ZenohOptions``); None: its defaults.
+        kwargs: what the link takes besides: ``vehicle_id``, ``clock``, ``rx_queue``
+            and the run's hooks of that transport (a local link's ``command``, a CAN
+            bus's ``tap``, a tcp link's ``abandon``).
+
     Raises:
-        TransportError: unknown transport name (listing the valid ones).
+        TransportError: unknown transport name (listing the valid ones), or options
+            of another model.
     """
     cls: Callable[..., Link] = transports.link_class(transport)
-    return cls(**options)
+    if options is not None:
+        model = transports.options_class(transport)
+        if not isinstance(options, model):
+            raise TransportError(f"{transports.transport_of(transport).value} link: options must be a "
+                                 f"{model.__name__}, not {type(options).__name__}")
+        kwargs["options"] = options
+    return cls(**kwargs)
 
 
 __all__ = ["Estimate", "Link", "LinkStats", "Received", "SyncSample", "open_link"]

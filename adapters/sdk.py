@@ -440,7 +440,10 @@ def serve(infer: InferFn, *, target_name: str, transport: str | transports.Trans
         clock: the clock to stamp with (default: this host's monotonic clock).
         on_command: optional handler of COMMAND messages (text in, reply text out),
             for control software that takes commands during a run (model swaps).
-        transport_options: passed to the transport (see its module).
+        transport_options: passed to the transport's ``serve_endpoint`` (its package's
+            ``target`` module): ``options``, its options model (e.g. a ``ZenohOptions``,
+            ``hil.adapters.zenoh.options``), and ``vehicle_id``, ``keep_serving``;
+            ``transport_options(args)`` makes them from the command line.
 
     Returns:
         Counters of what was served.

@@ -37,7 +37,8 @@ sys.path.insert(0, str(ROOT))
 
 from hil.adapters.wire import protocol  # noqa: E402
 from hil.adapters.wire.messages import CameraInfo, Control, DrivingState, Estimate, Frame, ImageEncoding  # noqa: E402
-from hil.adapters.wire.receipt import RealtimeMapper, StreamReader, enable_kernel_stamps, recv_stamped
+from hil.adapters.wire.receipt import (RealtimeMapper, StreamReader, enable_kernel_stamps,  # noqa: E402
+                                       recv_stamped)
 from hil.adapters.wire.stream import StreamDecoder  # noqa: E402
 from hil.timing.clock import MonotonicClock  # noqa: E402
 

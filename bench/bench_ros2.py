@@ -36,7 +36,7 @@ from hil.adapters.link import open_link  # noqa: E402
 from hil.adapters.ros2 import cdr as ros2_cdr  # noqa: E402
 from hil.adapters.ros2.dds import Participant, take, write  # noqa: E402
 from hil.adapters.ros2.msgs import AckermannDriveStamped, CompressedImage, Header, Image, Time  # noqa: E402
-from hil.adapters.ros2.options import IMAGE_QOS, REPLY_QOS, cyclone_xml, node_env  # noqa: E402
+from hil.adapters.ros2.options import IMAGE_QOS, REPLY_QOS, Ros2Options, cyclone_xml, node_env  # noqa: E402
 from hil.adapters.wire.messages import CameraInfo, Estimate, ImageEncoding  # noqa: E402
 from hil.timing.clock import MonotonicClock  # noqa: E402
 
@@ -123,8 +123,8 @@ def link_round_trips(rounds: int, jpeg: bytes | None) -> list[int]:
     dom = random.randrange(150, 233)
     env = dict(os.environ, PYTHONPATH=str(ROOT), **node_env(dom, cyclone_xml()))
     child = subprocess.Popen([sys.executable, "-m", "hil.targets.echo", "--transport", "ros2"], env=env)
-    link = open_link("ros2", vehicle_id=0, clock=MonotonicClock(), domain_id=dom, compressed=jpeg is not None,
-                     image_topic="/camera/image_raw/compressed" if jpeg else "/camera/image_raw")
+    link = open_link("ros2", vehicle_id=0, clock=MonotonicClock(),
+                     options=Ros2Options(domain_id=dom, compressed=jpeg is not None))  # image_transport's topics
     out: list[int] = []
     try:
         link.open(hello_timeout_s=30)

@@ -16,7 +16,7 @@ except ImportError as err:  # pragma: no cover - depends on the install
     raise ImportError("the CAN transport needs python-can: pip install 'python-can>=4.6,<5'") from err
 
 from hil.adapters.can.dbc import MAX_VEHICLE_ID, VEHICLE_MASK
-from hil.adapters.can.options import LOCAL_INTERFACES
+from hil.adapters.can.options import LOCAL_INTERFACES, CanOptions
 from hil.common.errors import ConfigError, TransportError
 
 
@@ -40,7 +40,9 @@ def interface_of(bus: can.BusABC) -> str | None:
     return next((name for name, (m, c) in BACKENDS.items() if mod.startswith(m) and c == cls), None)
 
 
-def check_options(*, interface: str, vehicle_id: int, bitrate: int, data_bitrate: int, fd: bool) -> None:
+def check_options(options: CanOptions, *, vehicle_id: int) -> None:
+    """Raise ``ConfigError`` naming the first of ``options`` (or ``vehicle_id``) that is refused."""
+    interface, bitrate, data_bitrate, fd = options.interface, options.bitrate, options.data_bitrate, options.fd
     check_interface(interface)
     if not 0 <= vehicle_id <= MAX_VEHICLE_ID:
         raise ConfigError(f"vehicle_id={vehicle_id}: the CAN id carries vehicle ids 0..{MAX_VEHICLE_ID}")
@@ -52,7 +54,7 @@ def check_options(*, interface: str, vehicle_id: int, bitrate: int, data_bitrate
                           f"data_bitrate (bit/s), e.g. 500000 and 2000000")
 
 
-def open_bus(*, interface: str, channel: str, bitrate: int, data_bitrate: int, vehicle_id: int) -> can.BusABC:
+def open_bus(options: CanOptions, *, vehicle_id: int) -> can.BusABC:
     """Open a CAN FD bus receiving only ``vehicle_id``'s frames.
 
     socketcan takes its bitrates from the interface (``ip link set can0 type can
@@ -63,10 +65,11 @@ def open_bus(*, interface: str, channel: str, bitrate: int, data_bitrate: int, v
         ConfigError: refused or unknown interface.
         TransportError: the bus cannot be opened (with a hint).
     """
+    interface, channel = options.interface, options.channel
     check_interface(interface)
     kwargs: dict[str, Any] = {"fd": True}  # python-can's Bus takes per-interface options
     if interface not in ("socketcan", "virtual"):
-        kwargs.update(bitrate=bitrate, data_bitrate=data_bitrate)
+        kwargs.update(bitrate=options.bitrate, data_bitrate=options.data_bitrate)
     filters = [{"can_id": vehicle_id, "can_mask": VEHICLE_MASK, "extended": True}]
     try:
         return can.Bus(interface=interface, channel=channel, can_filters=filters, ignore_config=True, **kwargs)

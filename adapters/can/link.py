@@ -56,7 +56,7 @@ from collections.abc import Callable
 from hil.adapters.can.bus import check_options, open_bus
 from hil.adapters.can.capacity import CapacityReport, bus_capacity
 from hil.adapters.can.dbc import Role
-from hil.adapters.can.options import HEARTBEAT_TIMEOUT_S
+from hil.adapters.can.options import CanOptions
 from hil.adapters.can.peer import CanPeer, CanStats, CanTap
 from hil.adapters.link import Link, LinkStats, Received
 from hil.adapters.wire.messages import Hello, Message
@@ -66,8 +66,8 @@ from hil.timing.clock import Clock
 class CanHalf:
     """The harness's side of one vehicle on a CAN bus, not itself a ``Link``: the bus
     options (checked when built), the bus and its ``CanPeer``. ``CanLink`` is this half
-    and nothing else; ``hil.adapters.mixed.link.MixedLink`` composes it with a Zenoh frame
-    path. Repeated HELLOs (a target's heartbeat until it hears us) are dropped here.
+    and nothing else; ``hil.adapters.mixed.link.MixedLink`` composes it with a Zenoh
+    frame path. Repeated HELLOs (a target's heartbeat until it hears us) are dropped here.
 
     Args:
         as ``CanLink``.
@@ -76,17 +76,15 @@ class CanHalf:
         ConfigError: an option is invalid (names it).
     """
 
-    def __init__(self, *, vehicle_id: int, clock: Clock, interface: str, channel: str, bitrate: int,
-                 data_bitrate: int, fd: bool, camera_over: str, heartbeat_timeout_s: float,
-                 tap: CanTap | None = None) -> None:
-        check_options(interface=interface, vehicle_id=vehicle_id, bitrate=bitrate, data_bitrate=data_bitrate, fd=fd)
-        if camera_over not in ("isotp", "none"):
-            raise ConfigError(f"camera_over={camera_over!r}; expected 'isotp' (frames on this bus) or 'none' "
+    def __init__(self, *, vehicle_id: int, clock: Clock, options: CanOptions, tap: CanTap | None = None) -> None:
+        check_options(options, vehicle_id=vehicle_id)
+        if options.camera_over not in ("isotp", "none"):
+            raise ConfigError(f"camera_over={options.camera_over!r}; expected 'isotp' (frames on this bus) or 'none' "
                               f"(a mixed target takes frames over another transport)")
-        self.vehicle_id, self.clock = vehicle_id, clock
-        self.interface, self.channel = interface, channel
-        self.bitrate, self.data_bitrate, self.camera_over = bitrate, data_bitrate, camera_over
-        self.heartbeat_timeout_s = heartbeat_timeout_s
+        self.vehicle_id, self.clock, self.options = vehicle_id, clock, options
+        self.interface, self.channel = options.interface, options.channel
+        self.bitrate, self.data_bitrate, self.camera_over = options.bitrate, options.data_bitrate, options.camera_over
+        self.heartbeat_timeout_s = options.heartbeat_timeout_s
         self.tap = tap
         self._peer: CanPeer | None = None
         self._hello_seen = False
@@ -117,8 +115,7 @@ class CanHalf:
             link_stats.protocol_errors += 1
             link_stats.last_error = text
 
-        bus = open_bus(interface=self.interface, channel=self.channel, bitrate=self.bitrate,
-                       data_bitrate=self.data_bitrate, vehicle_id=self.vehicle_id)
+        bus = open_bus(self.options, vehicle_id=self.vehicle_id)
         try:
             self._peer = CanPeer(role=Role.HARNESS, bus=bus, owns_bus=True, vehicle_id=self.vehicle_id,
                                  clock=self.clock, deliver=deliver, deliver_bytes=deliver_bytes,
@@ -151,13 +148,8 @@ class CanLink(Link):
     Args:
         vehicle_id: 0..65535, carried in every CAN id.
         clock: stamps sends and receipts (the harness clock).
-        interface, channel: python-can's, a local bus (``LOCAL_INTERFACES``).
-        bitrate, data_bitrate: nominal and CAN FD data bitrates, bit/s (socketcan
-            takes them from ``ip link`` instead).
-        fd: must be True (the transport's frames are CAN FD).
-        camera_over: ``"isotp"`` (camera frames on this bus) or ``"none"`` (a mixed
-            target takes frames over another transport).
-        heartbeat_timeout_s: silence after which the target is gone.
+        options: the bus (``CanOptions``: a local interface and channel, bitrates, CAN
+            FD, ``camera_over``, the heartbeat timeout).
         tap: sees every frame sent and received with its stamp on ``clock``
             (``hil.adapters.can.peer.CanTap``; the harness's bus log).
 
@@ -167,14 +159,11 @@ class CanLink(Link):
 
     transport_name = "can"
 
-    def __init__(self, *, vehicle_id: int, clock: Clock, interface: str = "socketcan", channel: str = "vcan0",
-                 bitrate: int = 500_000, data_bitrate: int = 2_000_000, fd: bool = True,
-                 camera_over: str = "isotp", heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_S,
+    def __init__(self, *, vehicle_id: int, clock: Clock, options: CanOptions | None = None,
                  rx_queue_size: int = 1024, rx_queue: queue.Queue[Received] | None = None,
                  tap: CanTap | None = None) -> None:
-        self.can = CanHalf(vehicle_id=vehicle_id, clock=clock, interface=interface, channel=channel,
-                           bitrate=bitrate, data_bitrate=data_bitrate, fd=fd, camera_over=camera_over,
-                           heartbeat_timeout_s=heartbeat_timeout_s, tap=tap)
+        self.options = options or CanOptions()
+        self.can = CanHalf(vehicle_id=vehicle_id, clock=clock, options=self.options, tap=tap)
         super().__init__(vehicle_id=vehicle_id, clock=clock, rx_queue_size=rx_queue_size, rx_queue=rx_queue)
 
     @property

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 from hil.adapters.can.bus import check_interface, check_options, interface_of, open_bus
 from hil.adapters.can.dbc import Role
-from hil.adapters.can.options import HEARTBEAT_TIMEOUT_S
+from hil.adapters.can.options import CanOptions
 from hil.adapters.can.peer import CanPeer
 from hil.adapters.sdk import add_stats, announce_line, fresh_endpoint, said_bye, serving, session_line, stop_on_sigterm
 from hil.common.errors import TransportError
@@ -24,9 +24,8 @@ if TYPE_CHECKING:
     from hil.adapters.sdk import Endpoint
 
 
-def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str = "vcan0", bitrate: int = 500_000,
-                   data_bitrate: int = 2_000_000, vehicle_id: int = 0, bus: can.BusABC | None = None,
-                   heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_S, keep_serving: bool = False,
+def serve_endpoint(ep: Endpoint, *, options: CanOptions | None = None, vehicle_id: int = 0,
+                   bus: can.BusABC | None = None, keep_serving: bool = False,
                    announce: Callable[[str], None] | None = None, transport: str = "can", frames_from: str = "",
                    on_session: Callable[[Endpoint], None] | None = None) -> None:
     """Target side: serve ``ep`` on the CAN bus until the harness says BYE (with
@@ -37,6 +36,8 @@ def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str =
     line per session to ``announce`` (default stderr).
 
     Args:
+        options: the bus (``CanOptions``: interface, channel, bitrates, heartbeat
+            timeout; ``camera_over`` is the harness's).
         bus: an open python-can bus to use instead of opening one (tests pass a
             ``virtual`` bus); the caller keeps ownership and closes it.
         transport, frames_from, on_session: for a mixed target (``hil.adapters.mixed.link``):
@@ -47,13 +48,14 @@ def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str =
         ConfigError: an option is invalid.
         TransportError: the bus cannot be opened, or failed while serving.
     """
-    check_options(interface=interface, vehicle_id=vehicle_id, bitrate=bitrate, data_bitrate=data_bitrate, fd=True)
+    o = options or CanOptions()
+    interface, channel = o.interface, o.channel
+    check_options(o, vehicle_id=vehicle_id)
     if bus is not None and (name := interface_of(bus)) is not None:
         check_interface(name)
     owns = bus is None
     if bus is None:
-        bus = open_bus(interface=interface, channel=channel, bitrate=bitrate, data_bitrate=data_bitrate,
-                       vehicle_id=vehicle_id)
+        bus = open_bus(o, vehicle_id=vehicle_id)
     say = announce or (lambda text: print(text, file=sys.stderr, flush=True))
     quit_ = threading.Event()  # SIGTERM or Ctrl-C: no further runs
     current = ep
@@ -67,7 +69,7 @@ def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str =
             for n in itertools.count(1):
                 if on_session is not None:
                     on_session(current)
-                ended = _serve_session(current, bus, vehicle_id=vehicle_id, heartbeat_timeout_s=heartbeat_timeout_s,
+                ended = _serve_session(current, bus, vehicle_id=vehicle_id, heartbeat_timeout_s=o.heartbeat_timeout_s,
                                        quit_=quit_)
                 st = current.stats
                 if st.frames_received or st.sync_answered or current.harness_said_bye:  # a harness came

@@ -5,10 +5,10 @@ command with one end inherited; the descriptor number is in ``HIL_LOCAL_FD``.
 Messages travel back-to-back on the stream (PROTOCOL.md section 10.1). The child's
 stdout and stderr go to a log file so a failure can be explained in one line.
 
-Camera frames of ``shm_inline_below`` bytes and more go through shared memory when
-the target says it can read them (``hil.adapters.local.shm``: a ring of slots in an anonymous
-segment whose descriptor is in ``HIL_LOCAL_SHM``; HELLO capability bit 0); the
-socket then carries a 32-byte notice in place of the frame. A frame larger than a
+Camera frames of ``LocalOptions.shm_inline_below`` bytes and more go through shared
+memory when the target says it can read them (``hil.adapters.local.shm``: a ring of
+slots in an anonymous segment whose descriptor is in ``HIL_LOCAL_SHM``; HELLO
+capability bit 0); the socket then carries a 32-byte notice in place of the frame. A frame larger than a
 slot, and every frame to a target without the capability, goes inline.
 
 The harness half, ``LocalLink``; the child's half, ``serve_endpoint``, is in
@@ -28,8 +28,8 @@ from pathlib import Path
 from typing import BinaryIO, NoReturn
 
 from hil.adapters.link import Link, Received
-from hil.adapters.local.options import ENV_FD
-from hil.adapters.local.shm import DEFAULT_INLINE_BELOW, DEFAULT_SLOT_BYTES, DEFAULT_SLOTS, ENV_SHM, SHM_FRAMES, ShmRing
+from hil.adapters.local.options import ENV_FD, LocalOptions
+from hil.adapters.local.shm import ENV_SHM, SHM_FRAMES, ShmRing
 from hil.adapters.process import die_with_parent, end_process, prioritise_this_thread
 from hil.adapters.wire import protocol
 from hil.adapters.wire.messages import Hello, MsgType
@@ -54,14 +54,10 @@ class LocalLink(Link):
     """Starts ``command`` as a child process and talks to it over a socket pair.
 
     Args:
+        command: the target program and its arguments.
+        options: the shared-memory frame ring (``LocalOptions``; default: offered).
         log_path: receives the child's stdout and stderr.
         env: the child's environment (default: this process's).
-        shm: offer the shared-memory frame ring (used only if the target advertises
-            ``SHM_FRAMES`` in its HELLO).
-        shm_slots: slots in the ring (1..64); a slot is reused ``shm_slots`` frames later.
-        shm_slot_bytes: largest FRAME message (64 + 40 + image bytes) a slot holds;
-            larger frames go inline (counted in ``local_stats.too_big_for_slot``).
-        shm_inline_below: FRAME messages shorter than this (bytes) stay inline.
 
     Raises:
         TargetError: empty command. TransportError: bad ring options.
@@ -69,10 +65,8 @@ class LocalLink(Link):
 
     transport_name = "local"
 
-    def __init__(self, *, command: Sequence[str], vehicle_id: int, clock: Clock,
+    def __init__(self, *, command: Sequence[str], vehicle_id: int, clock: Clock, options: LocalOptions | None = None,
                  log_path: str | os.PathLike[str] | None = None, env: Mapping[str, str] | None = None,
-                 shm: bool = True, shm_slots: int = DEFAULT_SLOTS, shm_slot_bytes: int = DEFAULT_SLOT_BYTES,
-                 shm_inline_below: int = DEFAULT_INLINE_BELOW,
                  rx_queue_size: int = 1024, rx_queue: queue.Queue[Received] | None = None) -> None:
         super().__init__(vehicle_id=vehicle_id, clock=clock, rx_queue_size=rx_queue_size,
                          rx_queue=rx_queue)
@@ -81,14 +75,14 @@ class LocalLink(Link):
         self._send_lock = threading.Lock()
         if not command:
             raise TargetError("target.command is empty; give the program to run")
-        if shm_inline_below < 0:
-            raise TransportError(f"shm_inline_below={shm_inline_below}: expected a byte count >= 0")
-        ShmRing.check_options(slots=shm_slots, slot_bytes=shm_slot_bytes)
+        o = self.options = options or LocalOptions()
+        if o.shm_inline_below < 0:
+            raise TransportError(f"shm_inline_below={o.shm_inline_below}: expected a byte count >= 0")
+        ShmRing.check_options(slots=o.shm_slots, slot_bytes=o.shm_slot_bytes)
         self.command = list(command)
         self.log_path = Path(log_path) if log_path else None
         self._env = dict(env) if env else None
-        self._shm = (shm, shm_slots, shm_slot_bytes)
-        self._inline_below = max(shm_inline_below, protocol.HEADER_SIZE)
+        self._inline_below = max(o.shm_inline_below, protocol.HEADER_SIZE)
         self.local_stats = LocalStats()
         self.receipt_stats = ReaderStats()  # how each message's receipt was stamped (hil.adapters.wire.receipt)
         self._opened_ns = 0
@@ -118,10 +112,9 @@ class LocalLink(Link):
     def _socket_and_ring(self) -> socket.socket:
         """Make the frame ring (if asked for and possible) and the socket pair; keeps
         our end and returns the target's."""
-        use_shm, slots, slot_bytes = self._shm
-        if use_shm:
+        if self.options.shm:
             try:
-                self._ring = ShmRing(slots=slots, slot_bytes=slot_bytes)
+                self._ring = ShmRing(slots=self.options.shm_slots, slot_bytes=self.options.shm_slot_bytes)
             except TransportError as err:  # an optimisation only: frames go inline
                 self.stats.last_error = f"no shared-memory frame ring, frames go inline: {err}"
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)

@@ -33,7 +33,6 @@ from hil.adapters.process import die_with_parent, end_process
 from hil.common.errors import TargetError, TransportError
 
 
-
 class SharedLocalTarget:
     """The one target process of a shared local target, and its control socket.
 
@@ -113,8 +112,9 @@ class SharedLocalLink(LocalLink):
     (and ring) go to the running shared process instead of a child of its own.
     Closing it ends this vehicle's session, not the process."""
 
-    def __init__(self, *, host: SharedLocalTarget, **options: object) -> None:
-        super().__init__(command=host.command, log_path=host.log_path, **options)  # type: ignore[arg-type]
+    def __init__(self, *, host: SharedLocalTarget, **kwargs: object) -> None:
+        """``kwargs``: as ``LocalLink`` takes them (``vehicle_id``, ``clock``, ``options``, ...)."""
+        super().__init__(command=host.command, log_path=host.log_path, **kwargs)  # type: ignore[arg-type]
         self.host = host
 
     def _open(self) -> None:

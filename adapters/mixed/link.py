@@ -33,17 +33,15 @@ from __future__ import annotations
 
 import queue
 import threading
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from hil.adapters.can.link import CanHalf
-from hil.adapters.can.options import HEARTBEAT_TIMEOUT_S
 from hil.adapters.can.peer import CanStats, CanTap
 from hil.adapters.link import Link, Received
+from hil.adapters.mixed.options import MixedOptions
 from hil.adapters.wire import protocol
 from hil.adapters.wire.messages import Bye, Hello, MsgType
 from hil.adapters.zenoh.link import ZenohHalf, ZenohStats
-from hil.adapters.zenoh.options import DEFAULT_LEASE_MS
 from hil.common.errors import TargetError, TransportError
 from hil.timing.clock import Clock
 
@@ -68,11 +66,10 @@ class MixedLink(Link):
     Args:
         vehicle_id: 0..65535 (the CAN id carries it).
         clock: the harness clock.
-        interface, channel, bitrate, data_bitrate, fd, heartbeat_timeout_s: the CAN
-            half, as ``CanLink`` (a local bus only).
-        connect, listen, mode, key_prefix, multicast_scouting, tls, usrpwd,
-            congestion_control, lease_ms, shared_memory: the Zenoh half, as
-            ``ZenohLink`` (multicast scouting off unless asked for).
+        options: ``MixedOptions``: ``can`` the CAN half's, as ``CanLink`` takes them (a
+            local bus only; ``camera_over`` is ``none`` here), ``zenoh`` the Zenoh
+            half's, as ``ZenohLink`` takes them (at least one endpoint).
+        tap: sees every CAN frame, as ``CanLink``'s.
 
     Raises:
         ConfigError: an option of either half is invalid (names it).
@@ -80,21 +77,12 @@ class MixedLink(Link):
 
     transport_name = "mixed"
 
-    def __init__(self, *, vehicle_id: int, clock: Clock, interface: str = "socketcan", channel: str = "vcan0",
-                 bitrate: int = 500_000, data_bitrate: int = 2_000_000, fd: bool = True,
-                 heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_S,
-                 connect: Sequence[str] = ("tcp/127.0.0.1:7447",), listen: Sequence[str] = (), mode: str = "peer",
-                 key_prefix: str = "hil", multicast_scouting: bool = False, tls: Mapping[str, object] | None = None,
-                 usrpwd: Mapping[str, str] | None = None, congestion_control: str = "block",
-                 lease_ms: int = DEFAULT_LEASE_MS, shared_memory: bool | None = None, rx_queue_size: int = 1024,
-                 rx_queue: queue.Queue[Received] | None = None, tap: CanTap | None = None) -> None:
-        self.can = CanHalf(vehicle_id=vehicle_id, clock=clock, interface=interface, channel=channel,
-                           bitrate=bitrate, data_bitrate=data_bitrate, fd=fd, camera_over="none",
-                           heartbeat_timeout_s=heartbeat_timeout_s, tap=tap)
-        self.zenoh = ZenohHalf(vehicle_id=vehicle_id, connect=connect, listen=listen, mode=mode,
-                               key_prefix=key_prefix, multicast_scouting=multicast_scouting, tls=tls,
-                               usrpwd=usrpwd, congestion_control=congestion_control, lease_ms=lease_ms,
-                               shared_memory=shared_memory, what="the mixed link's zenoh half")
+    def __init__(self, *, vehicle_id: int, clock: Clock, options: MixedOptions | None = None,
+                 rx_queue_size: int = 1024, rx_queue: queue.Queue[Received] | None = None,
+                 tap: CanTap | None = None) -> None:
+        o = self.options = options or MixedOptions()
+        self.can = CanHalf(vehicle_id=vehicle_id, clock=clock, options=replace(o.can, camera_over="none"), tap=tap)
+        self.zenoh = ZenohHalf(vehicle_id=vehicle_id, options=o.zenoh, what="the mixed link's zenoh half")
         super().__init__(vehicle_id=vehicle_id, clock=clock, rx_queue_size=rx_queue_size, rx_queue=rx_queue)
         self.keys = self.zenoh.keys
         self.mixed_stats = MixedStats()

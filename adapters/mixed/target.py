@@ -5,14 +5,14 @@ and does everything else on CAN (the wire and the session start are described in
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from hil.adapters.can.bus import check_interface
-from hil.adapters.can.options import HEARTBEAT_TIMEOUT_S
 from hil.adapters.can.target import serve_endpoint as serve_can
-from hil.adapters.zenoh.options import DEFAULT_LEASE_MS
-from hil.adapters.zenoh.session import CLOSE_TIMEOUT_S, Keys, close_session, make_config, open_session
+from hil.adapters.mixed.options import MixedOptions
+from hil.adapters.zenoh.session import CLOSE_TIMEOUT_S, Keys, close_session, open_with
+from hil.adapters.zenoh.target import where
 from hil.common.errors import ConfigError, TransportError
 
 try:
@@ -26,36 +26,30 @@ if TYPE_CHECKING:
     from hil.adapters.sdk import Endpoint
 
 
-def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str = "vcan0", bitrate: int = 500_000,
-                   data_bitrate: int = 2_000_000, vehicle_id: int = 0, bus: can.BusABC | None = None,
-                   heartbeat_timeout_s: float = HEARTBEAT_TIMEOUT_S, listen: Sequence[str] = (),
-                   connect: Sequence[str] = (), mode: str = "peer", key_prefix: str = "hil",
-                   multicast_scouting: bool = False, tls: Mapping[str, object] | None = None,
-                   lease_ms: int = DEFAULT_LEASE_MS, shared_memory: bool | None = None,
-                   usrpwd: Mapping[str, str] | None = None, keep_serving: bool = False,
+def serve_endpoint(ep: Endpoint, *, options: MixedOptions | None = None, vehicle_id: int = 0,
+                   bus: can.BusABC | None = None, keep_serving: bool = False,
                    announce: Callable[[str], None] | None = None) -> None:
-    """Target side: frames from Zenoh (``listen``/``connect``), everything else on the
-    CAN bus, until the harness says BYE (with ``keep_serving``: then the next
-    harness), ``ep.stop()``, or SIGTERM (then BYE on CAN, ``hil.adapters.sdk.serving``).
+    """Target side: frames from Zenoh (``options.zenoh``: ``listen``/``connect``),
+    everything else on the CAN bus (``options.can``), until the harness says BYE (with
+    ``keep_serving``: then the next harness), ``ep.stop()``, or SIGTERM (then BYE on
+    CAN, ``hil.adapters.sdk.serving``).
 
     Args:
         bus: an open python-can bus to use (tests pass a ``virtual`` one); the caller
-            keeps ownership. Other CAN options as ``hil.adapters.can.target.serve_endpoint``,
-            Zenoh options as ``hil.adapters.zenoh.target.serve_endpoint``.
+            keeps ownership. The CAN half as ``hil.adapters.can.target.serve_endpoint``,
+            the Zenoh half as ``hil.adapters.zenoh.target.serve_endpoint``.
 
     Raises:
         ConfigError: an option is invalid, or neither ``listen`` nor ``connect`` is given.
         TransportError: the Zenoh session or the CAN bus cannot be opened, or the bus failed.
     """
-    if not listen and not connect:
+    o = options or MixedOptions()
+    if not o.zenoh.listen and not o.zenoh.connect:
         raise ConfigError("a mixed target takes its frames over zenoh: give --listen ENDPOINT "
                           "(e.g. tcp/0.0.0.0:7447) or --connect ENDPOINT")
-    check_interface(interface)
-    keys = Keys.of(key_prefix, vehicle_id)
-    cfg = make_config(mode=mode, connect=connect, listen=listen, tls=tls, multicast_scouting=multicast_scouting,
-                      lease_ms=lease_ms, shared_memory=shared_memory, usrpwd=usrpwd)
-    session = open_session(cfg, f"listen={list(listen)} connect={list(connect)}",
-                           dictionary=(usrpwd or {}).get("dictionary"))
+    check_interface(o.can.interface)
+    keys = Keys.of(o.zenoh.key_prefix, vehicle_id)
+    session = open_with(o.zenoh)
 
     current = [ep]  # the endpoint of the session being served
 
@@ -76,11 +70,8 @@ def serve_endpoint(ep: Endpoint, *, interface: str = "socketcan", channel: str =
             entities.append(session.liveliness().declare_token(keys.alive))
         except zenoh.ZError as err:
             raise TransportError(f"zenoh declarations on {keys.h2t!r} failed: {err}") from err
-        where = " and ".join(part for part in (f"listening on {', '.join(listen)}" if listen else "",
-                                               f"connecting to {', '.join(connect)}" if connect else "") if part)
-        serve_can(ep, interface=interface, channel=channel, bitrate=bitrate, data_bitrate=data_bitrate,
-                  vehicle_id=vehicle_id, bus=bus, heartbeat_timeout_s=heartbeat_timeout_s, keep_serving=keep_serving,
-                  announce=announce, transport="mixed", frames_from=f"over zenoh {where} on {keys.h2t}",
+        serve_can(ep, options=o.can, vehicle_id=vehicle_id, bus=bus, keep_serving=keep_serving, announce=announce,
+                  transport="mixed", frames_from=f"over zenoh {where(o.zenoh)} on {keys.h2t}",
                   on_session=lambda e: current.__setitem__(0, e))
     finally:
         entities.clear()

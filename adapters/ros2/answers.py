@@ -38,30 +38,17 @@ from dataclasses import dataclass, field
 from hil.adapters.ros2.msgs import (AckermannDrive, BoundingBox2D, CameraInfo, Detection2D, Detection2DArray, Header,
                                     ObjectHypothesis, ObjectHypothesisWithPose, Point, Point2D, Pose, Pose2D,
                                     PoseWithCovariance, Quaternion, Time)
+from hil.adapters.ros2.options import DriveLimits
 from hil.adapters.wire.messages import Control, DetectedObject, DrivingState, Estimate, ObjectClass
-from hil.common.errors import ConfigError
 
 PIXEL_CENTRE = 0.5  # a pixel's centre: harness coordinates (edges on integers) minus ROS 2's
 ALIASES = {"car": ObjectClass.VEHICLE, "truck": ObjectClass.VEHICLE, "bus": ObjectClass.VEHICLE,
            "motorcycle": ObjectClass.VEHICLE, "person": ObjectClass.PEDESTRIAN}
 
 
-@dataclass(frozen=True)
-class DriveMapping:
-    """The constants of the control mapping (module docstring). Units: m/s^2, 1/s, m/s."""
-
-    max_accel_mps2: float = 3.0
-    max_decel_mps2: float = 8.0
-    speed_gain_per_s: float = 1.0
-    stop_speed_mps: float = 0.05
-
-    def __post_init__(self) -> None:
-        for name in ("max_accel_mps2", "max_decel_mps2", "speed_gain_per_s"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ConfigError(f"ros2 {name}={v!r}: expected a positive number")
-        if not (math.isfinite(self.stop_speed_mps) and self.stop_speed_mps >= 0):
-            raise ConfigError(f"ros2 stop_speed_mps={self.stop_speed_mps!r}: expected a number >= 0")
+class DriveMapping(DriveLimits):
+    """The control mapping (module docstring) with the constants of ``DriveLimits``
+    (``hil.adapters.ros2.options``, where their defaults live)."""
 
     def control_of(self, d: AckermannDrive, ego_speed_mps: float) -> tuple[Control, DrivingState]:
         """The harness's control and driving state for drive command ``d``."""

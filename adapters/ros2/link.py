@@ -38,9 +38,9 @@ and no answer writer is matched (its participant left, or its lease ran out:
 
 from __future__ import annotations
 
+import dataclasses
 import queue
 import threading
-from collections.abc import Sequence
 from typing import Any
 
 from hil.adapters.link import Link, ProtocolFault, Received
@@ -51,8 +51,7 @@ from hil.adapters.ros2.dds import Participant, WriterInfo, handle_of, matched_wr
 from hil.adapters.ros2.msgs import (AckermannDriveStamped, CameraInfo, Clock, CompressedImage, Detection2DArray, Header,
                                     Image, TFMessage, Transform, TransformStamped, Twist, TwistStamped, Vector3,
                                     dds_name)
-from hil.adapters.ros2.options import (CLOCK_QOS, IMAGE_QOS, REPLY_QOS, STATIC_QOS, ClockMode, QosProfile, cyclone_xml,
-                                       dds_topic, topic_problem)
+from hil.adapters.ros2.options import CLOCK_QOS, STATIC_QOS, ClockMode, Ros2Options, dds_topic, topic_problem
 from hil.adapters.wire import protocol
 from hil.adapters.wire.messages import ClockId, Frame, Hello, ImageEncoding, MsgType, SyncResponse
 from hil.common.errors import ConfigError, TransportError
@@ -65,45 +64,40 @@ MAX_NAMED = 16  # foreign writers and type mismatches named in the stats (all ar
 
 
 class Ros2Link(Link):
-    """Harness side over ROS 2 (module docstring). Options are keyword-only; topics
-    are fully qualified ROS 2 names; ``mount`` is the camera's (forward, lateral,
-    height) in m and (pitch, yaw) in rad; ``compressed``: frames are JPEG."""
+    """Harness side over ROS 2 (module docstring). ``options`` (``Ros2Options``): the
+    domain, Cyclone's discovery, the clock mode, the topics (fully qualified ROS 2
+    names), the TF frames and camera mount, QoS and the control mapping's constants;
+    ``realtime``: the system clock of ``clock: system`` stamps (tests give their own)."""
 
     transport_name = "ros2"
 
-    def __init__(self, *, vehicle_id: int, clock: HarnessClock, domain_id: int = 0, interface: str = "127.0.0.1",
-                 peers: Sequence[str] = ("127.0.0.1",), multicast: bool = False, lease_ms: int = 1000,
-                 clock_mode: str = "sim", compressed: bool = True, image_topic: str = "/camera/image_raw/compressed",
-                 camera_info_topic: str = "/camera/camera_info", speed_topic: str = "/vehicle/twist",
-                 clock_topic: str = "/clock", control_topic: str = "/control/ackermann_cmd",
-                 detections_topic: str = "/perception/detections", base_frame: str = "base_link",
-                 camera_frame: str = "camera_link", optical_frame: str = "camera_optical_frame",
-                 mount: tuple[float, float, float, float, float] = (2.3, 0.0, 1.3, 0.0, 0.0),
-                 image_qos: QosProfile = IMAGE_QOS, reply_qos: QosProfile = REPLY_QOS,
-                 mapping: DriveMapping | None = None, realtime: HarnessClock | None = None,
-                 rx_queue_size: int = 1024, rx_queue: queue.Queue[Received] | None = None) -> None:
+    def __init__(self, *, vehicle_id: int, clock: HarnessClock, options: Ros2Options | None = None,
+                 realtime: HarnessClock | None = None, rx_queue_size: int = 1024,
+                 rx_queue: queue.Queue[Received] | None = None) -> None:
         """Raises ConfigError: a bad option (checked here, before anything opens)."""
         super().__init__(vehicle_id=vehicle_id, clock=clock, rx_queue_size=rx_queue_size, rx_queue=rx_queue)
+        o = self.options = options or Ros2Options()
         try:
-            self.clock_mode = ClockMode(clock_mode)
+            self.clock_mode = ClockMode(o.clock)
         except ValueError:
-            raise ConfigError(f"ros2 clock={clock_mode!r}: expected sim or system") from None
-        for name, topic in (("image_topic", image_topic), ("camera_info_topic", camera_info_topic),
-                            ("control_topic", control_topic), ("clock_topic", clock_topic),
-                            *((("speed_topic", speed_topic),) if speed_topic else ()),
-                            *((("detections_topic", detections_topic),) if detections_topic else ())):
+            raise ConfigError(f"ros2 clock={o.clock!r}: expected sim or system") from None
+        t = o.topics
+        for name, topic in (("image_topic", o.image_topic), ("camera_info_topic", t.camera_info),
+                            ("control_topic", t.control), ("clock_topic", t.clock),
+                            *((("speed_topic", t.speed),) if t.speed else ()),
+                            *((("detections_topic", t.detections),) if t.detections else ())):
             if (problem := topic_problem(topic)) is not None:
                 raise ConfigError(f"ros2 {name}: expected {problem}")
-        self.domain_id, self.compressed, self.mount = domain_id, compressed, mount
-        self.config_xml = cyclone_xml(interface=interface, peers=tuple(peers), multicast=multicast, lease_ms=lease_ms)
-        self.topics = {"image": image_topic, "camera_info": camera_info_topic, "speed": speed_topic,
-                       "clock": clock_topic, CONTROL: control_topic, DETECTIONS: detections_topic}
-        self.frames = (base_frame, camera_frame, optical_frame)
-        self.image_qos, self.reply_qos = image_qos, reply_qos
-        self.mapping = mapping or DriveMapping()
+        self.domain_id, self.compressed, self.mount = o.domain_id, o.compressed, o.mount
+        self.config_xml = o.cyclone_xml()
+        self.topics = {"image": o.image_topic, "camera_info": t.camera_info, "speed": t.speed,
+                       "clock": t.clock, CONTROL: t.control, DETECTIONS: t.detections}
+        self.frames = (o.base_frame, o.camera_frame, o.optical_frame)
+        self.image_qos, self.reply_qos = o.image_qos, o.reply_qos
+        self.mapping = DriveMapping(**dataclasses.asdict(o.drive))
         self._realtime = realtime or RealtimeClock()
         self._rt_offset_ns = 0
-        self._book = AnswerBook(vehicle_id=vehicle_id, kinds=(CONTROL, DETECTIONS) if detections_topic else (CONTROL,))
+        self._book = AnswerBook(vehicle_id=vehicle_id, kinds=(CONTROL, DETECTIONS) if t.detections else (CONTROL,))
         self._book_lock = threading.Lock()
         self._dds: Participant | None = None
         self._w: dict[str, Any] = {}
@@ -115,7 +109,7 @@ class Ros2Link(Link):
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.ros2_stats: dict[str, Any] = {
-            "domain_id": domain_id, "clock": self.clock_mode.value, "images_sent": 0, "write_failures": 0,
+            "domain_id": o.domain_id, "clock": self.clock_mode.value, "images_sent": 0, "write_failures": 0,
             "sync_requests_unanswered": 0, "answers": 0, "matched_by_stamp": 0, "matched_by_arrival": 0,
             "unmatched_answers": 0, "clock_samples": 0, "malformed": 0, "foreign_samples": 0,
             "foreign_writers": [], "type_mismatches": [], "writers": {}}

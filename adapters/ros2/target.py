@@ -35,17 +35,18 @@ from hil.adapters.ros2.cdr import CdrError, decode
 from hil.adapters.ros2.dds import Participant, take, write
 from hil.adapters.ros2.msgs import (AckermannDriveStamped, CameraInfo, CompressedImage, Detection2DArray, Header, Image,
                                     TFMessage, TwistStamped)
-from hil.adapters.ros2.options import IMAGE_QOS, REPLY_QOS, STATIC_QOS, cyclone_xml, topic_problem
+from hil.adapters.ros2.options import (COMPRESSED_IMAGE_TOPIC, IMAGE_QOS, RAW_IMAGE_TOPIC, REPLY_QOS, STATIC_QOS,
+                                       Topics, cyclone_xml, topic_problem)
 from hil.adapters.sdk import Endpoint, announce_line, serving
 from hil.adapters.wire import protocol
 from hil.adapters.wire.messages import CameraInfo as HilCameraInfo
 from hil.adapters.wire.messages import Estimate, Frame, ImageEncoding, MsgType
 from hil.common.errors import ConfigError, TransportError
 
+_HARNESS = Topics()  # the harness's defaults (a node the harness starts is told its run's anyway)
 DEFAULT_TOPICS: Mapping[str, str] = {
-    "image": "/camera/image_raw", "compressed_image": "/camera/image_raw/compressed",
-    "camera_info": "/camera/camera_info", "speed": "/vehicle/twist", "control": "/control/ackermann_cmd",
-    "detections": "/perception/detections"}
+    "image": RAW_IMAGE_TOPIC, "compressed_image": COMPRESSED_IMAGE_TOPIC, "camera_info": _HARNESS.camera_info,
+    "speed": _HARNESS.speed, "control": _HARNESS.control, "detections": _HARNESS.detections}
 POLL_S = 0.05
 _KEPT = 64  # camera infos and speeds kept by stamp
 

@@ -40,16 +40,15 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from hil.adapters.link import Link, Received
-from hil.adapters.tcp.handshake import (HANDSHAKE_S, Candidate, Requirements, listening_socket, parse_address, peer_text,
-                                        tune)
-from hil.adapters.tcp.options import DEFAULT_ADDRESS
+from hil.adapters.tcp.handshake import (HANDSHAKE_S, Candidate, Requirements, listening_socket, parse_address,
+                                        peer_text, tune)
+from hil.adapters.tcp.options import DEFAULT_ADDRESS, TcpOptions
 from hil.adapters.wire import protocol
 from hil.adapters.wire.messages import Heartbeat, Hello
 from hil.adapters.wire.receipt import ReaderStats, StreamReader, enable_kernel_stamps
 from hil.common.errors import TargetError, TransportError
 from hil.timing.clock import Clock
 
-HEARTBEAT_IDLE_S = 0.25  # the harness sends a HEARTBEAT after this long without sending
 MAX_CANDIDATES = 16  # connections a listening harness checks at once; more: the oldest is refused
 CONNECT_RETRY_S = 0.05
 REDIAL_S = 0.25  # after a refused peer, before dialling again
@@ -68,14 +67,10 @@ class TcpLink(Link):
     """Harness side of one TCP connection to one target.
 
     Args:
-        connect: ``host:port`` of a target that listens (the harness dials).
-        listen: ``host:port`` the harness listens on for a target that dials in
-            (give exactly one of the two; neither: connect to ``127.0.0.1:7600``).
-        kernel_stamps: stamp receipt with ``SO_TIMESTAMPNS`` (default on).
-        heartbeat_idle_s: send a HEARTBEAT after this long without sending (0: never).
-        token: the shared secret the target must prove (PROTOCOL.md 4.8), or None to
-            accept a target that does not prove one (a version-1 target started by hand).
-        expect_name: accept only a HELLO whose name starts with this.
+        options: ``TcpOptions``: the address to dial (``connect``, a target that
+            listens) or to listen on (``listen``, a target that dials in), receipt
+            stamps, heartbeats, the token the target must prove and the name it must
+            say (default: dial ``127.0.0.1:7600``, no token).
         abandon: called while waiting for the target; a text (why, e.g. "the target
             process exited") stops the wait at once.
 
@@ -85,9 +80,7 @@ class TcpLink(Link):
 
     transport_name = "tcp"
 
-    def __init__(self, *, vehicle_id: int, clock: Clock, connect: str | None = None, listen: str | None = None,
-                 kernel_stamps: bool = True, heartbeat_idle_s: float = HEARTBEAT_IDLE_S,
-                 token: bytes | str | None = None, expect_name: str | None = None,
+    def __init__(self, *, vehicle_id: int, clock: Clock, options: TcpOptions | None = None,
                  abandon: Callable[[], str | None] | None = None,
                  rx_queue_size: int = 1024, rx_queue: queue.Queue[Received] | None = None) -> None:
         super().__init__(vehicle_id=vehicle_id, clock=clock, rx_queue_size=rx_queue_size, rx_queue=rx_queue)
@@ -95,14 +88,15 @@ class TcpLink(Link):
         self._listener: socket.socket | None = None
         self._reader: threading.Thread | None = None
         self._beater: threading.Thread | None = None
-        if connect and listen:
-            raise TransportError(f"tcp: give connect or listen, not both (connect={connect!r}, listen={listen!r})")
-        self.listening = bool(listen)
-        self.address = parse_address(listen or connect or DEFAULT_ADDRESS, field="listen" if listen else "connect")
-        self.kernel_stamps = kernel_stamps
-        self.heartbeat_idle_s = heartbeat_idle_s
-        raw = token.encode("utf-8") if isinstance(token, str) else token
-        self.need = Requirements(vehicle_id, raw or None, expect_name)
+        o = self.options = options or TcpOptions()
+        if o.connect and o.listen:
+            raise TransportError(f"tcp: give connect or listen, not both (connect={o.connect!r}, listen={o.listen!r})")
+        self.listening = bool(o.listen)
+        self.address = parse_address(o.listen or o.connect or DEFAULT_ADDRESS,
+                                     field="listen" if o.listen else "connect")
+        self.kernel_stamps = o.kernel_stamps
+        self.heartbeat_idle_s = o.heartbeat_idle_s
+        self.need = Requirements(vehicle_id, o.token.encode("utf-8") if o.token else None, o.expect_name)
         self._abandon = abandon
         self.tcp_stats = TcpStats()
         self.peer: str | None = None  # host:port of the accepted peer

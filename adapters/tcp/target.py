@@ -26,8 +26,8 @@ from typing import TYPE_CHECKING
 
 from hil.adapters.sdk import add_stats, announce_line, fresh_endpoint, session_line, stop_on_sigterm
 from hil.adapters.tcp.handshake import listening_socket, parse_address, peer_text, tune
-from hil.adapters.tcp.options import DEFAULT_ADDRESS
-from hil.adapters.wire.auth import ENV_TOKEN, token_from_env
+from hil.adapters.tcp.options import DEFAULT_ADDRESS, TcpOptions
+from hil.adapters.wire.auth import token_from_env
 from hil.adapters.wire.receipt import StreamReader
 from hil.common.errors import TransportError
 
@@ -38,21 +38,23 @@ RETRY_S = 0.05
 __all__ = ["serve_endpoint"]
 
 
-def serve_endpoint(ep: Endpoint, *, listen: str | None = None, connect: str | None = None,
-                   connect_timeout_s: float = 30.0, keep_serving: bool = False, token_env: str = ENV_TOKEN,
+def serve_endpoint(ep: Endpoint, *, options: TcpOptions | None = None, keep_serving: bool = False,
                    announce: Callable[[str], None] | None = None) -> None:
     """Serve ``ep`` on TCP until the harness says BYE or the connection ends (with
     ``keep_serving``: then serve the next harness), or SIGTERM/Ctrl-C.
 
-    Listens on ``listen`` (default ``127.0.0.1:7600``) for a harness, or dials the
-    harness at ``connect`` (retrying for ``connect_timeout_s``; with ``keep_serving``,
-    until stopped). ``announce`` gets the start-up and session lines (default: stderr).
+    ``options`` (``TcpOptions``): listens on ``listen`` (default ``127.0.0.1:7600``)
+    for a harness, or dials the harness at ``connect`` (retrying for
+    ``connect_timeout_s``; with ``keep_serving``, until stopped); proves the token in
+    ``token_env``. ``announce`` gets the start-up and session lines (default: stderr).
 
     Raises:
         TransportError: both addresses given, a malformed one, cannot listen (the
             port is in use), or cannot connect in time.
         ConfigError: the token in ``token_env`` is too short.
     """
+    o = options or TcpOptions()
+    listen, connect, token_env = o.listen, o.connect, o.token_env
     if listen and connect:
         raise TransportError(f"tcp: give --listen or --connect, not both ({listen!r}, {connect!r})")
     say = announce or (lambda text: print(text, file=sys.stderr, flush=True))
@@ -76,7 +78,7 @@ def serve_endpoint(ep: Endpoint, *, listen: str | None = None, connect: str | No
         with stop_on_sigterm(quit_.set):
             say(announce_line(ep, transport="tcp", where=where, access=access, keep_serving=keep_serving))
             for n in itertools.count(1):
-                got = _accept(listener, quit_) if listener is not None else _dial(address, quit_, connect_timeout_s,
+                got = _accept(listener, quit_) if listener is not None else _dial(address, quit_, o.connect_timeout_s,
                                                                                  keep_serving=keep_serving)
                 if got is None:
                     return

@@ -56,14 +56,14 @@ from __future__ import annotations
 
 import queue
 import threading
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from types import MappingProxyType
 
 from hil.adapters.link import Link, LinkStats, Received
 from hil.adapters.wire import protocol
 from hil.adapters.wire.messages import Heartbeat, MsgType
-from hil.adapters.zenoh.options import DEFAULT_LEASE_MS
+from hil.adapters.zenoh.options import ZenohOptions
 from hil.adapters.zenoh.session import CLOSE_TIMEOUT_S, Keys, _is, close_session, make_config, open_session
 from hil.common.errors import ConfigError, TransportError
 from hil.timing.clock import Clock
@@ -111,29 +111,25 @@ class ZenohHalf:
     HELLO handshake; ``hil.adapters.mixed.link.MixedLink`` uses it as its frame path.
 
     Args:
-        options as ``ZenohLink``; ``what`` names the link in messages.
+        options: the session's (``ZenohOptions``); ``what`` names the link in messages.
 
     Raises:
         ConfigError: a bad option (checked here, before anything opens).
     """
 
-    def __init__(self, *, vehicle_id: int, connect: Sequence[str], listen: Sequence[str], mode: str,
-                 key_prefix: str, multicast_scouting: bool, tls: Mapping[str, object] | None,
-                 usrpwd: Mapping[str, str] | None, congestion_control: str, lease_ms: int,
-                 shared_memory: bool | None, what: str = "zenoh link") -> None:
-        if congestion_control not in CONGESTION:
-            raise ConfigError(f"zenoh congestion_control={congestion_control!r}: expected 'block' or 'drop'")
-        if not connect and not listen:
+    def __init__(self, *, vehicle_id: int, options: ZenohOptions, what: str = "zenoh link") -> None:
+        if options.congestion_control not in CONGESTION:
+            raise ConfigError(f"zenoh congestion_control={options.congestion_control!r}: expected 'block' or 'drop'")
+        if not options.connect and not options.listen:
             raise ConfigError(f"{what} needs at least one connect or listen endpoint")
         self.what = what
-        self.keys = Keys.of(key_prefix, vehicle_id)
-        self.congestion_control = congestion_control
-        self.connect, self.listen = list(connect), list(listen)
-        self.usrpwd = bool(usrpwd)
-        self.dictionary = (usrpwd or {}).get("dictionary")  # the run's own credentials (zenoh.options.run_usrpwd)
-        self.config = make_config(mode=mode, connect=connect, listen=listen, tls=tls, usrpwd=usrpwd,
-                                  multicast_scouting=multicast_scouting, lease_ms=lease_ms,
-                                  shared_memory=shared_memory)
+        self.options = options
+        self.keys = Keys.of(options.key_prefix, vehicle_id)
+        self.congestion_control = options.congestion_control
+        self.connect, self.listen = list(options.connect), list(options.listen)
+        self.usrpwd = bool(options.usrpwd)
+        self.dictionary = (options.usrpwd or {}).get("dictionary")  # the run's own credentials (ZenohOptions.for_run)
+        self.config = make_config(options)
         self.stats = ZenohStats()
         self._session: zenoh.Session | None = None
         self._publisher: zenoh.Publisher | None = None
@@ -226,22 +222,17 @@ class ZenohHalf:
 class ZenohLink(Link):
     """Harness side over Zenoh: publishes on ``h2t``, receives on ``t2h`` (module docstring).
 
-    Options are keyword-only; ``connect``/``listen`` are Zenoh endpoints
-    (``tcp/host:port``, ``tls/host:port``); ``congestion_control`` is ``"block"``
-    (default, nothing dropped silently) or ``"drop"``; ``lease_ms`` as in
-    ``config_entries``. ``config`` is the ``zenoh.Config`` the session opens with;
-    ``zenoh_stats`` counts what only this transport has.
+    ``options`` (``ZenohOptions``): at least one ``connect`` or ``listen`` endpoint
+    (``tcp/host:port``, ``tls/host:port``); ``congestion_control`` ``"block"`` (the
+    default, nothing dropped silently) or ``"drop"``; ``lease_ms`` as in
+    ``hil.adapters.zenoh.session.config_entries``. ``config`` is the ``zenoh.Config``
+    the session opens with; ``zenoh_stats`` counts what only this transport has.
     """
 
     transport_name = "zenoh"
 
-    def __init__(self, *, vehicle_id: int, clock: Clock, connect: Sequence[str] = ("tcp/127.0.0.1:7447",),
-                 listen: Sequence[str] = (), mode: str = "peer", key_prefix: str = "hil",
-                 multicast_scouting: bool = False, tls: Mapping[str, object] | None = None,
-                 usrpwd: Mapping[str, str] | None = None,
-                 congestion_control: str = "block", lease_ms: int = DEFAULT_LEASE_MS,
-                 shared_memory: bool | None = None, rx_queue_size: int = 1024,
-                 rx_queue: queue.Queue[Received] | None = None) -> None:
+    def __init__(self, *, vehicle_id: int, clock: Clock, options: ZenohOptions | None = None,
+                 rx_queue_size: int = 1024, rx_queue: queue.Queue[Received] | None = None) -> None:
         """Raises ConfigError: a bad option (checked here, before anything opens)."""
         super().__init__(vehicle_id=vehicle_id, clock=clock, rx_queue_size=rx_queue_size, rx_queue=rx_queue)
         self._hb_thread: threading.Thread | None = None
@@ -249,10 +240,8 @@ class ZenohLink(Link):
         self._hello_seen = threading.Event()
         self._hello_lock = threading.Lock()
         self._target_seen = False
-        self.zenoh = ZenohHalf(vehicle_id=vehicle_id, connect=connect, listen=listen, mode=mode,
-                               key_prefix=key_prefix, multicast_scouting=multicast_scouting, tls=tls,
-                               usrpwd=usrpwd, congestion_control=congestion_control, lease_ms=lease_ms,
-                               shared_memory=shared_memory)
+        self.options = options or ZenohOptions()
+        self.zenoh = ZenohHalf(vehicle_id=vehicle_id, options=self.options)
         self.zenoh_stats = self.zenoh.stats
         self.keys, self.config = self.zenoh.keys, self.zenoh.config
 

@@ -1,7 +1,12 @@
-"""Zenoh endpoint and TLS option checks that need no ``zenoh`` import.
+"""The zenoh transport's options, in one place and with no ``zenoh`` import:
+``ZenohOptions`` (both halves' session: endpoints, mode, keys, lease, TLS,
+user/password), a run's own keys and credentials (``ZenohOptions.for_run``) and
+what a target the harness starts is told (``ZenohOptions.child_env``), a target's
+``--tls``/``--auth-dictionary`` (``parse_tls``, ``target_usrpwd``), and the endpoint
+and TLS checks.
 
 The run config (``hil.harness.config.target``) validates with these before anything
-starts, and ``hil.adapters.zenoh.link`` applies the same rules when it builds a
+starts, and ``hil.adapters.zenoh.session`` applies the same rules when it builds a
 session, so a config that can never open a session is refused up front.
 """
 
@@ -9,15 +14,18 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Mapping
+import secrets
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
 
 from hil.common.errors import ConfigError
 
-__all__ = ["AUTH_ENV", "DEFAULT_LEASE_MS", "IP_PROTOCOLS", "PROTOCOLS", "TLS_KEYS", "endpoint_problem", "run_usrpwd", "tls_key_problem",
-           "usrpwd_from_env"]
+__all__ = ["AUTH_ENV", "DEFAULT_LEASE_MS", "IP_PROTOCOLS", "PREFIX_ENV", "PROTOCOLS", "TLS_KEYS", "ZenohOptions",
+           "endpoint_problem", "parse_tls", "run_usrpwd", "target_usrpwd", "tls_key_problem", "usrpwd_from_env"]
 
 DEFAULT_LEASE_MS = 1000  # a silent peer is gone after this (Zenoh's own default: 10 s)
 AUTH_ENV = "HIL_ZENOH_AUTH"  # a run's own user:password, given to the target the harness starts
+PREFIX_ENV = "HIL_ZENOH_KEY_PREFIX"  # the run's key prefix, given to the target the harness starts
 
 # Zenoh's link protocols (zenoh 1.10). The IP ones take ``host:port``.
 IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
@@ -95,3 +103,92 @@ def usrpwd_from_env(environ: Mapping[str, str] = os.environ) -> dict[str, str] |
     if not sep or not user or not password:
         raise ConfigError(f"{AUTH_ENV} must be user:password")
     return run_usrpwd(user, password)
+
+
+def parse_tls(items: Sequence[str]) -> dict[str, str | bool] | None:
+    """``transport/link/tls`` options from a target's ``--tls KEY=VALUE`` items
+    (``true``/``false`` become booleans), or None for none.
+
+    Raises:
+        ConfigError: an item is not ``KEY=VALUE`` with a known key (one line naming it).
+    """
+    tls: dict[str, str | bool] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        problem = "KEY=VALUE, e.g. listen_certificate=dev.pem" if not sep or not key else tls_key_problem(key)
+        if problem is not None:
+            raise ConfigError(f"--tls {item!r}: expected {problem}")
+        tls[key] = {"true": True, "false": False}.get(value.lower(), value)
+    return tls or None
+
+
+def target_usrpwd(dictionary_file: str | None, environ: Mapping[str, str] = os.environ) -> dict[str, str] | None:
+    """A target's user/password options: admit only the peers listed in
+    ``dictionary_file`` (``--auth-dictionary``), else the run's own credentials a
+    harness that started it gave in ``AUTH_ENV`` (``usrpwd_from_env``), else None.
+
+    Raises:
+        ConfigError: ``AUTH_ENV`` is set but not ``user:password``.
+    """
+    if dictionary_file:
+        return {"dictionary_file": dictionary_file}
+    return usrpwd_from_env(environ)
+
+
+@dataclass(frozen=True)
+class ZenohOptions:
+    """A Zenoh session's options, the one home of their defaults: the harness's link
+    (``ZenohLink``, a mixed link's ``ZenohHalf``), a target's ``serve_endpoint``, the
+    run config (``target.zenoh``) and the target programs' command line read them.
+
+    Attributes:
+        connect, listen: Zenoh endpoints (``tcp/host:port``, ``tls/host:port``); a
+            session needs at least one. Lists are kept as tuples.
+        mode: ``peer`` or ``client``.
+        key_prefix: the keys are ``<key_prefix>/v<vehicle>/...`` (``hil.adapters.zenoh.session.Keys``).
+        multicast_scouting: off unless asked for (nothing is discovered).
+        congestion_control: the harness's puts, ``block`` (nothing dropped silently)
+            or ``drop``; a target's answers always block.
+        lease_ms: how long a silent peer is waited for before it is gone (ms).
+        tls: ``transport/link/tls`` keys (``TLS_KEYS``), or None.
+        usrpwd: Zenoh's user/password (``hil.adapters.zenoh.session.USRPWD_KEYS``, or
+            ``dictionary``: a run's own lines, ``run_usrpwd``), or None.
+        shared_memory: Zenoh's shared-memory transport; None keeps Zenoh's default (on).
+    """
+
+    connect: Sequence[str] = ()
+    listen: Sequence[str] = ()
+    mode: str = "peer"
+    key_prefix: str = "hil"
+    multicast_scouting: bool = False
+    congestion_control: str = "block"
+    lease_ms: int = DEFAULT_LEASE_MS
+    tls: Mapping[str, object] | None = None
+    usrpwd: Mapping[str, str] | None = field(default=None, repr=False)  # a password: never in a repr
+    shared_memory: bool | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("connect", "listen"):  # a bare string stays one, for the session's check to name
+            value = getattr(self, name)
+            if not isinstance(value, str):
+                object.__setattr__(self, name, tuple(value))
+
+    def for_run(self, *, session: str, vehicle_id: int, credentials: bool) -> ZenohOptions:
+        """These options for a run whose harness starts its own target: keys under
+        ``<key_prefix>/run-<session>`` (no other target on the endpoint answers for
+        it) and, with ``credentials``, user/password made for this run from fresh
+        randomness (never the session nonce, which summary.json shows), so a third
+        peer gets no session."""
+        usrpwd = (run_usrpwd(f"hil-{session}-v{vehicle_id}", secrets.token_urlsafe(24)) if credentials
+                  else self.usrpwd)
+        return replace(self, key_prefix=f"{self.key_prefix}/run-{session}", usrpwd=usrpwd)
+
+    def child_env(self) -> dict[str, str]:
+        """What a target the harness starts is told (the SDK follows both): the key
+        prefix (``PREFIX_ENV``) and, where the run made its own, the credentials
+        (``AUTH_ENV``, ``user:password``; never written to the run folder)."""
+        env = {PREFIX_ENV: self.key_prefix}
+        own = self.usrpwd or {}
+        if "dictionary" in own:
+            env[AUTH_ENV] = f"{own['user']}:{own['password']}"
+        return env

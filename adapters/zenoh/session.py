@@ -14,13 +14,13 @@ import os
 import re
 import tempfile
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
 
 from hil.adapters.wire import protocol
 from hil.adapters.wire.messages import MsgType
-from hil.adapters.zenoh.options import DEFAULT_LEASE_MS, TLS_KEYS, endpoint_problem
+from hil.adapters.zenoh.options import TLS_KEYS, ZenohOptions, endpoint_problem
 from hil.common.errors import ConfigError, TransportError
 
 try:
@@ -75,25 +75,24 @@ def _check_endpoints(name: str, endpoints: Sequence[str]) -> list[str]:
     return out
 
 
-def config_entries(*, mode: str = "peer", connect: Sequence[str] = (), listen: Sequence[str] = (),
-                   multicast_scouting: bool = False, gossip: bool = False,
-                   tls: Mapping[str, object] | None = None, lease_ms: int = DEFAULT_LEASE_MS,
-                   keep_alive: int = DEFAULT_KEEP_ALIVE, shared_memory: bool | None = None,
-                   usrpwd: Mapping[str, str] | None = None) -> dict[str, object]:
-    """The Zenoh config this transport uses, as ``{config path: JSON value}``.
+def config_entries(options: ZenohOptions, *, gossip: bool = False,
+                   keep_alive: int = DEFAULT_KEEP_ALIVE) -> dict[str, object]:
+    """The Zenoh config of a session with ``options``, as ``{config path: JSON value}``
+    (``keep_alive``: keep-alives per lease; ``gossip``: Zenoh's gossip scouting).
 
-    ``usrpwd``: Zenoh's user/password authentication (``USRPWD_KEYS``): ``user`` and
+    ``options.usrpwd``: Zenoh's user/password authentication (``USRPWD_KEYS``): ``user`` and
     ``password`` to present, ``dictionary_file`` (lines ``user:password``) to accept
     only those peers; or ``dictionary``, the lines themselves, which
     :func:`open_session` writes to a private file only while the session opens (a
     run's own credentials: ``hil.adapters.zenoh.options.run_usrpwd``, ``AUTH_ENV``).
 
-    ``lease_ms`` (ms) is how long a peer may stay silent before this session's lease
-    runs out at the other end; ``shared_memory`` None keeps Zenoh's default (on).
+    ``options.lease_ms`` (ms) is how long a peer may stay silent before this session's
+    lease runs out at the other end; ``shared_memory`` None keeps Zenoh's default (on).
 
     Raises:
         ConfigError: a bad mode, endpoint, TLS key or lease (the message names it).
     """
+    mode, lease_ms, multicast_scouting = options.mode, options.lease_ms, options.multicast_scouting
     if mode not in MODES:
         raise ConfigError(f"zenoh mode={mode!r}: expected one of {', '.join(MODES)}")
     if not isinstance(lease_ms, int) or lease_ms < 100:
@@ -102,8 +101,8 @@ def config_entries(*, mode: str = "peer", connect: Sequence[str] = (), listen: S
         raise ConfigError(f"zenoh keep_alive={keep_alive!r}: expected an integer >= 1")
     entries: dict[str, object] = {
         "mode": mode,
-        "connect/endpoints": _check_endpoints("connect", connect),
-        "listen/endpoints": _check_endpoints("listen", listen),
+        "connect/endpoints": _check_endpoints("connect", options.connect),
+        "listen/endpoints": _check_endpoints("listen", options.listen),
         "connect/retry": dict(_RETRY),
         "scouting/multicast/enabled": bool(multicast_scouting),
         "scouting/gossip/enabled": bool(gossip),
@@ -114,31 +113,31 @@ def config_entries(*, mode: str = "peer", connect: Sequence[str] = (), listen: S
         # Without scouting there is nothing to wait for: open() returns at once (else
         # 500 ms) and unreached endpoints are retried in the background (connect/retry).
         entries["scouting/delay"] = 0
-    if shared_memory is not None:
-        entries["transport/shared_memory/enabled"] = bool(shared_memory)
+    if options.shared_memory is not None:
+        entries["transport/shared_memory/enabled"] = bool(options.shared_memory)
     value: object  # a usrpwd value (str), then a tls value
-    for key, value in (usrpwd or {}).items():
+    for key, value in (options.usrpwd or {}).items():
         if key == "dictionary":
             continue  # inline lines: open_session writes them (see above)
         if key not in USRPWD_KEYS:
             raise ConfigError(f"zenoh usrpwd key {key!r} is unknown; valid: {', '.join(USRPWD_KEYS)}")
         entries[f"transport/auth/usrpwd/{key}"] = str(value)
-    for key, value in (tls or {}).items():
+    for key, value in (options.tls or {}).items():
         if key not in TLS_KEYS:
             raise ConfigError(f"zenoh tls key {key!r} is unknown; valid: {', '.join(TLS_KEYS)}")
         entries[f"transport/link/tls/{key}"] = value
     return entries
 
 
-def make_config(**options: object) -> zenoh.Config:
-    """A ``zenoh.Config`` from ``config_entries(**options)``; nothing else is defaulted
-    from the environment.
+def make_config(options: ZenohOptions, *, gossip: bool = False, keep_alive: int = DEFAULT_KEEP_ALIVE) -> zenoh.Config:
+    """A ``zenoh.Config`` from ``config_entries(options, ...)``; nothing else is
+    defaulted from the environment.
 
     Raises:
         ConfigError: as ``config_entries``, or Zenoh rejects a value.
     """
     cfg = zenoh.Config()
-    for key, value in config_entries(**options).items():  # type: ignore[arg-type]
+    for key, value in config_entries(options, gossip=gossip, keep_alive=keep_alive).items():
         try:
             cfg.insert_json5(key, json.dumps(value))
         except zenoh.ZError as err:
@@ -199,9 +198,20 @@ def open_session(cfg: zenoh.Config, where: str, *, dictionary: str | None = None
             os.unlink(path)
 
 
+def open_with(options: ZenohOptions) -> zenoh.Session:
+    """A session with ``options`` (``make_config``; a run's own credentials written as
+    ``open_session`` does), as a target opens one.
+
+    Raises:
+        ConfigError: a bad option. TransportError: the session cannot be opened.
+    """
+    return open_session(make_config(options), f"listen={list(options.listen)} connect={list(options.connect)}",
+                        dictionary=(options.usrpwd or {}).get("dictionary"))
+
+
 def _is(data: bytes, mtype: MsgType) -> bool:
     return len(data) >= protocol.HEADER_SIZE and data[:4] == protocol.MAGIC and data[5] == mtype
 
 
 __all__ = ["BYE_LINGER_S", "CLOSE_TIMEOUT_S", "DEFAULT_KEEP_ALIVE", "MODES", "USRPWD_KEYS", "Keys", "close_session",
-           "config_entries", "make_config", "open_session", "zenoh_error_text"]
+           "config_entries", "make_config", "open_session", "open_with", "zenoh_error_text"]

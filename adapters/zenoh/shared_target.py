@@ -13,23 +13,21 @@ from __future__ import annotations
 
 import sys
 import threading
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 
 from hil.adapters.batching import BatchedEndpoint, BatchScheduler
 from hil.adapters.sdk import stop_on_sigterm
-from hil.adapters.zenoh.options import DEFAULT_LEASE_MS
-from hil.adapters.zenoh.session import CLOSE_TIMEOUT_S, Keys, close_session, make_config, open_session
-from hil.adapters.zenoh.target import _serve_one, _security, startup_line
+from hil.adapters.zenoh.options import ZenohOptions
+from hil.adapters.zenoh.session import CLOSE_TIMEOUT_S, Keys, close_session, open_with
+from hil.adapters.zenoh.target import _serve_one, startup_line
 from hil.common.errors import ConfigError
 
 
 def serve_shared(scheduler: BatchScheduler, make_endpoint: Callable[[], BatchedEndpoint], *,
-                 vehicles: Sequence[int], listen: Sequence[str] = (), connect: Sequence[str] = (),
-                 mode: str = "peer", key_prefix: str = "hil", multicast_scouting: bool = False,
-                 tls: Mapping[str, object] | None = None, lease_ms: int = DEFAULT_LEASE_MS,
-                 keep_serving: bool = False, usrpwd: Mapping[str, str] | None = None) -> None:
-    """Serve ``vehicles`` (ids) from one Zenoh session until each vehicle's harness
-    has left (``keep_serving``: until SIGTERM/Ctrl-C).
+                 vehicles: Sequence[int], options: ZenohOptions | None = None, keep_serving: bool = False) -> None:
+    """Serve ``vehicles`` (ids) from one Zenoh session (``options``, as a target of
+    its own takes them) until each vehicle's harness has left (``keep_serving``:
+    until SIGTERM/Ctrl-C).
 
     Raises:
         ConfigError: no vehicles, or neither ``listen`` nor ``connect``.
@@ -37,12 +35,10 @@ def serve_shared(scheduler: BatchScheduler, make_endpoint: Callable[[], BatchedE
     """
     if not vehicles:
         raise ConfigError("a shared zenoh target needs --vehicles (e.g. --vehicles 4, or 0,2,3)")
-    if not listen and not connect:
+    o = options or ZenohOptions()
+    if not o.listen and not o.connect:
         raise ConfigError("a zenoh target needs --listen ENDPOINT (e.g. tcp/0.0.0.0:7447) or --connect ENDPOINT")
-    cfg = make_config(mode=mode, connect=connect, listen=listen, tls=tls, multicast_scouting=multicast_scouting,
-                      lease_ms=lease_ms, usrpwd=usrpwd)
-    session = open_session(cfg, f"listen={list(listen)} connect={list(connect)}",
-                           dictionary=(usrpwd or {}).get("dictionary"))
+    session = open_with(o)
     quit_ = threading.Event()
     current: dict[int, BatchedEndpoint] = {}
     lock = threading.Lock()
@@ -54,7 +50,7 @@ def serve_shared(scheduler: BatchScheduler, make_endpoint: Callable[[], BatchedE
                 ep.stop()
 
     def serve_vehicle(vid: int) -> None:
-        keys = Keys.of(key_prefix, vid)
+        keys = Keys.of(o.key_prefix, vid)
         while not quit_.is_set():
             ep = make_endpoint()
             with lock:
@@ -67,8 +63,7 @@ def serve_shared(scheduler: BatchScheduler, make_endpoint: Callable[[], BatchedE
     try:
         with stop_on_sigterm(on_term):
             first = make_endpoint()
-            line = startup_line(first, listen=listen, connect=connect, keys=Keys.of(key_prefix, vehicles[0]),
-                                keep_serving=keep_serving, security=_security(listen, connect, tls, usrpwd))
+            line = startup_line(first, options=o, keys=Keys.of(o.key_prefix, vehicles[0]), keep_serving=keep_serving)
             print(f"{line}; shared by vehicles {', '.join(map(str, vehicles))} "
                   f"(window {scheduler.window_ns / 1e6:g} ms, batches of at most {scheduler.max_batch})",
                   file=sys.stderr, flush=True)

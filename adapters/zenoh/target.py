@@ -17,72 +17,66 @@ from __future__ import annotations
 
 import sys
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import zenoh
 
 from hil.adapters.sdk import announce_line, fresh_endpoint, serving, stop_on_sigterm
 from hil.adapters.wire.messages import MsgType
-from hil.adapters.zenoh.options import DEFAULT_LEASE_MS
-from hil.adapters.zenoh.session import (BYE_LINGER_S, CLOSE_TIMEOUT_S, Keys, _is, close_session, make_config,
-                                        open_session)
+from hil.adapters.zenoh.options import ZenohOptions
+from hil.adapters.zenoh.session import BYE_LINGER_S, CLOSE_TIMEOUT_S, Keys, _is, close_session, open_with
 from hil.common.errors import ConfigError, TransportError
 
 if TYPE_CHECKING:
-    from collections.abc import Mapping
-
     from hil.adapters.sdk import Endpoint
 
-__all__ = ["serve_endpoint", "startup_line"]
+__all__ = ["serve_endpoint", "startup_line", "where"]
 
 
-def startup_line(ep: Endpoint, *, listen: Sequence[str], connect: Sequence[str], keys: Keys,
-                 keep_serving: bool, security: str = "none") -> str:
+def where(options: ZenohOptions) -> str:
+    """Where a target's session listens and connects, as a clause for its lines."""
+    return " and ".join(part for part in (f"listening on {', '.join(options.listen)}" if options.listen else "",
+                                          f"connecting to {', '.join(options.connect)}" if options.connect else "")
+                        if part)
+
+
+def startup_line(ep: Endpoint, *, options: ZenohOptions, keys: Keys, keep_serving: bool) -> str:
     """What a person starting the target by hand needs to know, in one line."""
-    where = " and ".join(part for part in (f"listening on {', '.join(listen)}" if listen else "",
-                                           f"connecting to {', '.join(connect)}" if connect else "") if part)
-    return announce_line(ep, transport="zenoh", where=where, keys=f"{keys.h2t.rsplit('/', 1)[0]}/*",
-                         access=security, keep_serving=keep_serving)
+    return announce_line(ep, transport="zenoh", where=where(options), keys=f"{keys.h2t.rsplit('/', 1)[0]}/*",
+                         access=_security(options), keep_serving=keep_serving)
 
 
-def _security(listen: Sequence[str], connect: Sequence[str], tls: Mapping[str, object] | None,
-              usrpwd: Mapping[str, str] | None) -> str:
+def _security(options: ZenohOptions) -> str:
     parts = []
-    if any(str(e).startswith(("tls/", "quic/")) for e in (*listen, *connect)):
-        parts.append("mutual TLS" if (tls or {}).get("enable_mtls") else "TLS")
-    if (usrpwd or {}).get("dictionary"):
+    if any(str(e).startswith(("tls/", "quic/")) for e in (*options.listen, *options.connect)):
+        parts.append("mutual TLS" if (options.tls or {}).get("enable_mtls") else "TLS")
+    if (options.usrpwd or {}).get("dictionary"):
         parts.append("user/password of this run (from the harness that started it)")
-    elif (usrpwd or {}).get("dictionary_file"):
+    elif (options.usrpwd or {}).get("dictionary_file"):
         parts.append("user/password")
     return " + ".join(parts) or "open (anyone who reaches the endpoint can join; see README, threat model)"
 
 
-def serve_endpoint(ep: Endpoint, *, listen: Sequence[str] = (), connect: Sequence[str] = (), mode: str = "peer",
-                   key_prefix: str = "hil", vehicle_id: int = 0, multicast_scouting: bool = False,
-                   tls: Mapping[str, object] | None = None, lease_ms: int = DEFAULT_LEASE_MS,
-                   shared_memory: bool | None = None, keep_serving: bool = False,
-                   usrpwd: Mapping[str, str] | None = None,
-                   announce: Callable[[str], None] | None = None) -> None:
+def serve_endpoint(ep: Endpoint, *, options: ZenohOptions | None = None, vehicle_id: int = 0,
+                   keep_serving: bool = False, announce: Callable[[str], None] | None = None) -> None:
     """Serve ``ep`` on vehicle ``vehicle_id`` until the harness says BYE or its
     liveliness token goes away (with ``keep_serving``: then wait for the next
-    harness), or SIGTERM/Ctrl-C (then the target says BYE). Listens on ``listen``
-    (how a harness reaches a device, e.g. ``tcp/0.0.0.0:7447``) and/or connects to
-    ``connect``. ``usrpwd`` as ``hil.adapters.zenoh.session.config_entries`` (a
-    ``dictionary_file`` admits only the peers it lists). ``announce`` gets the
-    startup line (default: stderr).
+    harness), or SIGTERM/Ctrl-C (then the target says BYE). ``options``
+    (``ZenohOptions``): listens on ``listen`` (how a harness reaches a device, e.g.
+    ``tcp/0.0.0.0:7447``) and/or connects to ``connect``; a ``usrpwd``
+    ``dictionary_file`` admits only the peers it lists. ``announce`` gets the startup
+    line (default: stderr).
 
     Raises:
         ConfigError: a bad option, or neither ``listen`` nor ``connect`` given.
         TransportError: the session cannot be opened (e.g. the port is taken).
     """
-    if not listen and not connect:
+    o = options or ZenohOptions()
+    if not o.listen and not o.connect:
         raise ConfigError("a zenoh target needs --listen ENDPOINT (e.g. tcp/0.0.0.0:7447) or --connect ENDPOINT")
-    keys = Keys.of(key_prefix, vehicle_id)
-    cfg = make_config(mode=mode, connect=connect, listen=listen, tls=tls, multicast_scouting=multicast_scouting,
-                      lease_ms=lease_ms, shared_memory=shared_memory, usrpwd=usrpwd)
-    session = open_session(cfg, f"listen={list(listen)} connect={list(connect)}",
-                           dictionary=(usrpwd or {}).get("dictionary"))
+    keys = Keys.of(o.key_prefix, vehicle_id)
+    session = open_with(o)
     quit_ = threading.Event()  # SIGTERM or Ctrl-C: no further runs
     current = ep
 
@@ -92,8 +86,7 @@ def serve_endpoint(ep: Endpoint, *, listen: Sequence[str] = (), connect: Sequenc
 
     try:
         with stop_on_sigterm(on_term):
-            line = startup_line(ep, listen=listen, connect=connect, keys=keys, keep_serving=keep_serving,
-                                security=_security(listen, connect, tls, usrpwd))
+            line = startup_line(ep, options=o, keys=keys, keep_serving=keep_serving)
             (announce or (lambda text: print(text, file=sys.stderr, flush=True)))(line)
             while True:
                 _serve_one(session, current, keys=keys, vehicle_id=vehicle_id, quit_=quit_)

@@ -118,7 +118,8 @@ def shared_link(cfg: RunConfig, *, vehicle_id: int, clock: Clock, out_dir: Path,
             assert host is not None
             link: Link = SharedLocalLink(host=host, vehicle_id=vehicle_id, clock=clock, rx_queue=rx)
         else:  # zenoh: one set of endpoints (vehicle 0's), each vehicle its own keys
-            link = open_link("zenoh", vehicle_id=vehicle_id, clock=clock, rx_queue=rx, **zenoh_options(cfg, 0))
+            link = open_link(Transport.ZENOH, vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
+                             options=zenoh_options(cfg, vehicle_id=0))
         impair(cfg, link, vehicle_id=vehicle_id, clock=clock)  # target.impair applies per vehicle as usual
     except BaseException:
         if owned is not None:

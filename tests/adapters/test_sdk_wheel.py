@@ -53,7 +53,13 @@ def test_wheel_holds_the_target_side_only(tmp_path):
                     "hil_target_sdk-0.1.0.dist-info/WHEEL", "hil_target_sdk-0.1.0.dist-info/RECORD",
                     "hil_target_sdk-0.1.0.dist-info/top_level.txt"}
     assert {"hil/adapters/sdk.py", "hil/adapters/tcp/link.py", "hil/adapters/can/hil.dbc", "hil/timing/clock.py",
-            "hil/common/errors.py"} <= set(names)
+            "hil/common/errors.py", "hil/adapters/ros2/msg/vision_msgs/msg/Detection2D.msg"} <= set(names)
+    # Every package of the SDK's folders is listed in sdk/pyproject.toml, so the wheel has it whole.
+    packages = {"/".join(("hil", *p.relative_to(ROOT).parent.parts)) for folder in ("adapters", "timing", "common")
+                for p in (ROOT / folder).rglob("__init__.py")}
+    assert packages == {n.removesuffix("/__init__.py") for n in names if n.endswith("/__init__.py")}
+    for package in packages:
+        assert {f"{package}/{p.name}" for p in (ROOT / package.removeprefix("hil/")).glob("*.py")} <= set(names)
     assert not any(n.startswith("hil/__init__") for n in names)  # hil is a namespace shared with the harness
     required = [ln for ln in meta.splitlines() if ln.startswith("Requires-Dist:") and "extra ==" not in ln]
     assert required == ["Requires-Dist: numpy>=1.26,<2.5"]

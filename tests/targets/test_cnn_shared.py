@@ -349,9 +349,9 @@ def test_shared_zenoh_target_one_session_each_vehicles_keys(tmp_path: Path):
     from tests.adapters.zenoh.pair import free_port
 
     port = free_port()
-    script = _ECHO_SHARED.replace('window_ns=50_000_000, max_batch=8)',
-                                  'window_ns=50_000_000, max_batch=8, transport="zenoh", '
-                                  f'vehicles=[0, 1], listen=["tcp/127.0.0.1:{port}"])')
+    script = "from hil.adapters.zenoh.options import ZenohOptions\n" + _ECHO_SHARED.replace(
+        'window_ns=50_000_000, max_batch=8)', 'window_ns=50_000_000, max_batch=8, transport="zenoh", '
+        f'vehicles=[0, 1], options=ZenohOptions(listen=["tcp/127.0.0.1:{port}"]))')
     cfg = parse_config({"target": {"transport": "zenoh", "shared": True, "command": ["{python}", "-c", script],
                                    "zenoh": {"connect": [f"tcp/127.0.0.1:{port}"]}}})
     clock = MonotonicClock()

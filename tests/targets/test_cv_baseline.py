@@ -247,7 +247,8 @@ def test_imports_only_what_the_wire_carries() -> None:
             top.update(a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom):
             top.add(node.module or "")
-    assert top <= {"__future__", "argparse", "math", "sys", "collections.abc", "cv2", "numpy", "hil.adapters.wire.messages"}
+    assert top <= {"__future__", "argparse", "math", "sys", "collections.abc", "cv2", "numpy",
+                   "hil.adapters.wire.messages"}
     every = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
     assert not any(m and m.split(".")[0] in ("scenarios", "harness", "timing") for m in every)
 

@@ -16,6 +16,7 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
+from hil.adapters.can.options import CanOptions
 from hil.adapters.link import Link
 from hil.common.errors import TransportError
 from hil.timing.clock import MonotonicClock
@@ -71,7 +72,7 @@ def can_target(channel: str, echo_args: list[str], *, vehicle_id: int = 0) -> It
 
     def run() -> None:
         try:
-            serve_endpoint(ep, interface="virtual", channel=channel, vehicle_id=vehicle_id, bus=bus)
+            serve_endpoint(ep, options=CanOptions(interface="virtual", channel=channel), vehicle_id=vehicle_id, bus=bus)
         except BaseException as err:  # reported by the test thread below
             if not (isinstance(err, TransportError) and vanished.is_set()):  # leaving was the point
                 errors.append(err)
@@ -98,7 +99,8 @@ def can_pair(tmp_path: Path, echo_args: list[str]) -> Iterator[Link]:
     del tmp_path  # nothing to log: the target runs in this process
     channel = f"hil-test-{uuid.uuid4().hex}"
     with can_target(channel, echo_args):
-        link = open_link("can", interface="virtual", channel=channel, vehicle_id=0, clock=MonotonicClock())
+        link = open_link("can", options=CanOptions(interface="virtual", channel=channel), vehicle_id=0,
+                         clock=MonotonicClock())
         try:
             link.open(hello_timeout_s=10)
             yield link

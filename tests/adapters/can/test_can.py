@@ -21,16 +21,18 @@ pytest.importorskip("isotp", reason="can-isotp is not installed (pip install 'ca
 
 import can  # noqa: E402
 
-from hil.adapters.can.capacity import (bus_capacity, classic_frame_time_s, fd_frame_time_s, isotp_frame_lengths)  # noqa: E402
+from hil.adapters.can.capacity import (bus_capacity, classic_frame_time_s, fd_frame_time_s,  # noqa: E402
+                                       isotp_frame_lengths)
 from hil.adapters.can.dbc import DBC_PATH, MAX_DBC_OBJECTS, HilCan, Role, load_database  # noqa: E402
 from hil.adapters.can.link import CanLink  # noqa: E402
+from hil.adapters.can.options import CanOptions  # noqa: E402
 from hil.adapters.can.target import serve_endpoint  # noqa: E402
 from hil.adapters.link import open_link  # noqa: E402
 from hil.adapters.sdk import Endpoint  # noqa: E402
 from hil.adapters.wire import protocol  # noqa: E402
-from hil.adapters.wire.messages import (Bye, CameraInfo, ClockId, Control, DetectedObject, DrivingState, ErrorMsg,
-                                        Estimate, Frame, Heartbeat, Hello, ImageEncoding, Inference, ObjectClass,
-                                        SyncRequest, SyncResponse)
+from hil.adapters.wire.messages import (Bye, CameraInfo, ClockId, Control, DetectedObject, DrivingState,  # noqa: E402
+                                        ErrorMsg, Estimate, Frame, Heartbeat, Hello, ImageEncoding, Inference,
+                                        ObjectClass, SyncRequest, SyncResponse)
 from hil.common.errors import ConfigError, ProtocolError, TargetError  # noqa: E402
 from hil.timing.clock import MonotonicClock  # noqa: E402
 
@@ -40,6 +42,11 @@ OBJ = DetectedObject(ObjectClass.PEDESTRIAN, 0.75, (10.5, 20.0, 30.25, 80.0), (1
 
 def channel() -> str:
     return f"hil-test-{uuid.uuid4().hex}"
+
+
+def virtual(chan: str) -> CanOptions:
+    """A python-can ``virtual`` bus (in this process only) on channel ``chan``."""
+    return CanOptions(interface="virtual", channel=chan)
 
 
 # ---------------------------------------------------------------- DBC
@@ -152,7 +159,7 @@ def target(chan: str, infer: Callable[[Frame], Inference], *, name: str = "t", v
 
     def run() -> None:
         try:
-            serve_endpoint(ep, interface="virtual", channel=chan, vehicle_id=vehicle_id, bus=bus)
+            serve_endpoint(ep, options=virtual(chan), vehicle_id=vehicle_id, bus=bus)
         except BaseException as err:
             errors.append(err)
 
@@ -189,7 +196,7 @@ def test_jpeg_frame_crosses_isotp_intact_and_the_estimate_comes_back():
         return Inference(DrivingState.STOP, Control(brake=0.5), (OBJ,) * 3)
 
     chan = channel()
-    with target(chan, infer), CanLink(vehicle_id=0, clock=MonotonicClock(), interface="virtual", channel=chan) as link:
+    with target(chan, infer), CanLink(vehicle_id=0, clock=MonotonicClock(), options=virtual(chan)) as link:
         link.open(hello_timeout_s=5)
         t_tx = link.send_frame(frame_id=9, sim_time_ns=1, t0_ns=link.clock.now_ns(), width=320, height=240,
                                encoding=ImageEncoding.JPEG, camera=CAM, ego_speed_mps=3.0, data=jpeg)
@@ -209,8 +216,7 @@ def test_large_estimate_and_long_hello_travel_over_isotp():
     chan = channel()
     name = "a-target-name-longer-than-the-52-bytes-a-hello-frame-carries"
     infer = lambda frame: Inference(DrivingState.SAFE, Control(), many)  # noqa: E731
-    with target(chan, infer, name=name), CanLink(vehicle_id=0, clock=MonotonicClock(), interface="virtual",
-                                                 channel=chan) as link:
+    with target(chan, infer, name=name), CanLink(vehicle_id=0, clock=MonotonicClock(), options=virtual(chan)) as link:
         assert link.open(hello_timeout_s=5).target_name == name
         link.send_frame(frame_id=1, sim_time_ns=0, t0_ns=0, width=2, height=2, encoding=ImageEncoding.RGB8,
                         camera=CAM, ego_speed_mps=0.0, data=bytes(12))
@@ -224,8 +230,8 @@ def test_vehicles_share_a_bus_without_hearing_each_other():
     chan = channel()
     idle = lambda frame: Inference(DrivingState.SAFE, Control())  # noqa: E731
     with target(chan, idle, name="one", vehicle_id=1), target(chan, idle, name="two", vehicle_id=2):
-        with CanLink(vehicle_id=2, clock=MonotonicClock(), interface="virtual", channel=chan) as two, \
-                CanLink(vehicle_id=1, clock=MonotonicClock(), interface="virtual", channel=chan) as one:
+        with CanLink(vehicle_id=2, clock=MonotonicClock(), options=virtual(chan)) as two, \
+                CanLink(vehicle_id=1, clock=MonotonicClock(), options=virtual(chan)) as one:
             assert two.open(hello_timeout_s=5).target_name == "two"
             assert one.open(hello_timeout_s=5).target_name == "one"
             assert one.sync_exchange(timeout_s=2) is not None and two.sync_exchange(timeout_s=2) is not None
@@ -233,7 +239,7 @@ def test_vehicles_share_a_bus_without_hearing_each_other():
 
 def test_a_newer_camera_frame_replaces_the_one_waiting():
     chan = channel()  # no target: the first frame waits for flow control that never comes
-    link = CanLink(vehicle_id=0, clock=MonotonicClock(), interface="virtual", channel=chan)
+    link = CanLink(vehicle_id=0, clock=MonotonicClock(), options=virtual(chan))
     with pytest.raises(TargetError, match="did not say hello"):
         link.open(hello_timeout_s=0.05)
     try:
@@ -250,9 +256,10 @@ def test_a_newer_camera_frame_replaces_the_one_waiting():
 
 
 def test_udp_multicast_is_refused_everywhere():
-    for make in (lambda: CanLink(vehicle_id=0, clock=MonotonicClock(), interface="udp_multicast", channel="x"),
-                 lambda: open_link("can", vehicle_id=0, clock=MonotonicClock(), interface="udp_multicast"),
-                 lambda: serve_endpoint(Endpoint(lambda f: None, target_name="t"), interface="udp_multicast")):
+    udp = CanOptions(interface="udp_multicast", channel="x")
+    for make in (lambda: CanLink(vehicle_id=0, clock=MonotonicClock(), options=udp),
+                 lambda: open_link("can", vehicle_id=0, clock=MonotonicClock(), options=udp),
+                 lambda: serve_endpoint(Endpoint(lambda f: None, target_name="t"), options=udp)):
         with pytest.raises(ConfigError, match="udp_multicast.*off this machine"):
             make()
 
@@ -260,13 +267,13 @@ def test_udp_multicast_is_refused_everywhere():
 def test_bad_options_name_the_value():
     clock = MonotonicClock()
     with pytest.raises(ConfigError, match="unknown CAN interface 'nope'; valid: .*virtual"):
-        CanLink(vehicle_id=0, clock=clock, interface="nope")
+        CanLink(vehicle_id=0, clock=clock, options=CanOptions(interface="nope"))
     with pytest.raises(ConfigError, match="vehicle_id=70000"):
-        CanLink(vehicle_id=70000, clock=clock, interface="virtual")
+        CanLink(vehicle_id=70000, clock=clock, options=CanOptions(interface="virtual"))
     with pytest.raises(ConfigError, match="fd=False"):
-        CanLink(vehicle_id=0, clock=clock, interface="virtual", fd=False)
+        CanLink(vehicle_id=0, clock=clock, options=CanOptions(interface="virtual", fd=False))
     with pytest.raises(ConfigError, match="camera_over='udp'"):
-        CanLink(vehicle_id=0, clock=clock, interface="virtual", camera_over="udp")
+        CanLink(vehicle_id=0, clock=clock, options=CanOptions(interface="virtual", camera_over="udp"))
 
 
 VCAN0 = Path("/sys/class/net/vcan0")
@@ -276,11 +283,12 @@ VCAN0 = Path("/sys/class/net/vcan0")
                                                "type vcan && sudo ip link set vcan0 mtu 72 up)")
 def test_socketcan_vcan0_round_trip():
     ep = Endpoint(lambda frame: Inference(DrivingState.SAFE, Control(throttle=0.5)), target_name="vcan")
-    thread = threading.Thread(target=serve_endpoint, args=(ep,), kwargs={"interface": "socketcan", "channel": "vcan0",
-                                                                          "vehicle_id": 4242}, daemon=True)
+    vcan0 = CanOptions(interface="socketcan", channel="vcan0")
+    thread = threading.Thread(target=serve_endpoint, args=(ep,), kwargs={"options": vcan0, "vehicle_id": 4242},
+                              daemon=True)
     thread.start()
     try:
-        with CanLink(vehicle_id=4242, clock=MonotonicClock(), interface="socketcan", channel="vcan0") as link:
+        with CanLink(vehicle_id=4242, clock=MonotonicClock(), options=vcan0) as link:
             assert link.open(hello_timeout_s=5).target_name == "vcan"
             link.send_frame(frame_id=1, sim_time_ns=0, t0_ns=0, width=64, height=64, encoding=ImageEncoding.RGB8,
                             camera=CAM, ego_speed_mps=0.0, data=bytes(64 * 64 * 3))
@@ -351,7 +359,7 @@ def test_a_late_reader_keeps_each_frames_interface_arrival():
     channel = f"late-reader-{uuid.uuid4().hex}"
     device = can.Bus(interface="virtual", channel=channel, fd=True, ignore_config=True)
     clock = MonotonicClock()
-    link = CanLink(vehicle_id=0, clock=clock, interface="virtual", channel=channel)
+    link = CanLink(vehicle_id=0, clock=clock, options=virtual(channel))
     try:
         from hil.adapters.can.dbc import HilCan, Role
 

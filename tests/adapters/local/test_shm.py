@@ -14,12 +14,14 @@ import textwrap
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from hil.adapters.link import Link, open_link
 from hil.adapters.local import shm
 from hil.adapters.local.link import LocalLink
+from hil.adapters.local.options import LocalOptions
 from hil.adapters.local.shm import (NOTICE_SIZE, NOTICES, SHM_FRAMES, Notice, ShmReader, ShmRing, decode_notice,
                                     encode_notice)
 from hil.adapters.wire import protocol
@@ -71,9 +73,10 @@ LEGACY_TARGET = textwrap.dedent("""
 
 
 @contextlib.contextmanager
-def local(tmp_path: Path, command: list[str], **options: object) -> Iterator[LocalLink]:
+def local(tmp_path: Path, command: list[str], **options: Any) -> Iterator[LocalLink]:
+    """An open local link to ``command``; ``options``: ``LocalOptions``' (the ring)."""
     link = open_link("local", command=command, vehicle_id=0, clock=MonotonicClock(),
-                     log_path=tmp_path / "target.log", **options)
+                     log_path=tmp_path / "target.log", options=LocalOptions(**options))
     assert isinstance(link, LocalLink)
     try:
         link.open(hello_timeout_s=20)
@@ -362,6 +365,6 @@ def test_hello_capability_is_added_only_to_the_hello():
 
 def test_link_checks_ring_options_before_starting_anything():
     with pytest.raises(TransportError, match="shm slots=65"):
-        LocalLink(command=["true"], vehicle_id=0, clock=MonotonicClock(), shm_slots=65)
+        LocalLink(command=["true"], vehicle_id=0, clock=MonotonicClock(), options=LocalOptions(shm_slots=65))
     with pytest.raises(TransportError, match="shm_inline_below=-1"):
-        LocalLink(command=["true"], vehicle_id=0, clock=MonotonicClock(), shm_inline_below=-1)
+        LocalLink(command=["true"], vehicle_id=0, clock=MonotonicClock(), options=LocalOptions(shm_inline_below=-1))

@@ -15,6 +15,7 @@ import time
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -26,11 +27,14 @@ pytest.importorskip("isotp", reason="can-isotp is not installed (pip install 'ca
 import can  # noqa: E402
 import zenoh  # noqa: E402
 
+from hil.adapters.can.options import CanOptions  # noqa: E402
 from hil.adapters.link import Link, open_link  # noqa: E402
 from hil.adapters.mixed.link import MixedLink  # noqa: E402
+from hil.adapters.mixed.options import MixedOptions  # noqa: E402
 from hil.adapters.mixed.target import serve_endpoint  # noqa: E402
 from hil.adapters.sdk import TRANSPORTS, Endpoint, add_transport_args, transport_options  # noqa: E402
 from hil.adapters.wire.messages import CameraInfo, Estimate, Frame, ImageEncoding, Inference  # noqa: E402
+from hil.adapters.zenoh.options import ZenohOptions  # noqa: E402
 from hil.adapters.zenoh.session import Keys, make_config  # noqa: E402
 from hil.common.errors import ConfigError, TargetError, TransportError  # noqa: E402
 from hil.timing.clock import MonotonicClock  # noqa: E402
@@ -98,8 +102,8 @@ def mixed_target(channel: str, port: int, echo_args: list[str] = (), *, vehicle_
 
     def run() -> None:
         try:
-            serve_endpoint(ep, interface="virtual", channel=channel, vehicle_id=vehicle_id, bus=bus,
-                           listen=[f"tcp/127.0.0.1:{port}"])
+            serve_endpoint(ep, options=options(channel, listen=[f"tcp/127.0.0.1:{port}"]), vehicle_id=vehicle_id,
+                           bus=bus)
         except BaseException as err:  # reported by the test thread below
             if not (isinstance(err, TransportError) and vanished.is_set()):
                 errors.append(err)
@@ -119,9 +123,14 @@ def mixed_target(channel: str, port: int, echo_args: list[str] = (), *, vehicle_
             raise errors[0]
 
 
-def mixed_link(channel: str, port: int, **options: object) -> MixedLink:
-    link = open_link("mixed", vehicle_id=options.pop("vehicle_id", 0), clock=MonotonicClock(),
-                     interface="virtual", channel=channel, connect=[f"tcp/127.0.0.1:{port}"], **options)
+def options(channel: str, **zenoh: Any) -> MixedOptions:
+    """A mixed device's options: virtual CAN ``channel``, the Zenoh half's ``zenoh``."""
+    return MixedOptions(zenoh=ZenohOptions(**zenoh), can=CanOptions(interface="virtual", channel=channel))
+
+
+def mixed_link(channel: str, port: int, *, vehicle_id: int = 0) -> MixedLink:
+    link = open_link("mixed", vehicle_id=vehicle_id, clock=MonotonicClock(),
+                     options=options(channel, connect=[f"tcp/127.0.0.1:{port}"]))
     assert isinstance(link, MixedLink)
     return link
 
@@ -215,7 +224,7 @@ def test_device_losing_its_zenoh_side_is_noticed():
     channel, port = f"hil-mixed-{uuid.uuid4().hex}", free_port()
     keys = Keys.of("hil", 0)
     with can_target(channel, []):  # the device's CAN half: the plain CAN echo target
-        session = zenoh.open(make_config(listen=[f"tcp/127.0.0.1:{port}"]))
+        session = zenoh.open(make_config(ZenohOptions(listen=[f"tcp/127.0.0.1:{port}"])))
         try:
             entities = [session.declare_subscriber(keys.h2t, lambda s: None),
                         session.liveliness().declare_token(keys.alive)]
@@ -268,13 +277,14 @@ def test_two_vehicles_share_the_bus_and_keep_apart():
 
 def test_options_are_checked_before_anything_opens():
     with pytest.raises(ConfigError, match="udp_multicast"):
-        MixedLink(vehicle_id=0, clock=MonotonicClock(), interface="udp_multicast", channel="x")
+        MixedLink(vehicle_id=0, clock=MonotonicClock(), options=MixedOptions(
+            zenoh=ZenohOptions(connect=["tcp/127.0.0.1:7447"]), can=CanOptions(interface="udp_multicast", channel="x")))
     with pytest.raises(ConfigError, match="connect or listen"):
-        MixedLink(vehicle_id=0, clock=MonotonicClock(), interface="virtual", channel="x", connect=())
+        MixedLink(vehicle_id=0, clock=MonotonicClock(), options=options("x", connect=()))
     with pytest.raises(ConfigError, match="vehicle_id=70000"):
-        MixedLink(vehicle_id=70_000, clock=MonotonicClock(), interface="virtual", channel="x")
+        MixedLink(vehicle_id=70_000, clock=MonotonicClock(), options=options("x", connect=["tcp/127.0.0.1:7447"]))
     with pytest.raises(ConfigError, match="--listen"):
-        serve_endpoint(Endpoint(lambda f: None, target_name="x"), interface="virtual", channel="x")
+        serve_endpoint(Endpoint(lambda f: None, target_name="x"), options=options("x"))
 
 
 def test_target_programs_take_mixed_with_both_option_sets():
@@ -286,8 +296,10 @@ def test_target_programs_take_mixed_with_both_option_sets():
     a = p.parse_args(["--transport", "mixed", "--listen", "tcp/127.0.0.1:7447", "--interface", "virtual",
                       "--channel", "c", "--vehicle", "3"])
     opts = transport_options(a)
-    assert opts["listen"] == ["tcp/127.0.0.1:7447"] and opts["interface"] == "virtual"
-    assert opts["channel"] == "c" and opts["vehicle_id"] == 3 and opts["key_prefix"] == "hil"
+    o = opts["options"]
+    assert isinstance(o, MixedOptions) and opts["vehicle_id"] == 3
+    assert o.zenoh.listen == ("tcp/127.0.0.1:7447",) and o.zenoh.key_prefix == "hil"
+    assert o.can.interface == "virtual" and o.can.channel == "c"
 
 
 def test_sdk_serve_dispatches_mixed():
@@ -298,8 +310,8 @@ def test_sdk_serve_dispatches_mixed():
     bus = can.Bus(interface="virtual", channel=channel, fd=True, ignore_config=True)
     result: list[object] = []
     thread = threading.Thread(target=lambda: result.append(serve(
-        Echo(throttle=0.5).infer, target_name="via-serve", transport="mixed", interface="virtual",
-        channel=channel, bus=bus, listen=[f"tcp/127.0.0.1:{port}"])), daemon=True)
+        Echo(throttle=0.5).infer, target_name="via-serve", transport="mixed",
+        options=options(channel, listen=[f"tcp/127.0.0.1:{port}"]), bus=bus)), daemon=True)
     thread.start()
     try:
         with mixed_link(channel, port) as link:
@@ -339,9 +351,10 @@ def test_mixed_link_takes_the_zenoh_half_s_authentication(monkeypatch):
 
     monkeypatch.setenv("HIL_ZENOH_PASSWORD", "s3cret")
     cfg = parse_config({"target": {"transport": "mixed", "command": [], "zenoh": {"auth": {"user": "hil"}}}})
-    options = zenoh_options(cfg, 0)
-    assert options["usrpwd"] == {"user": "hil", "password": "s3cret"}
-    link = MixedLink(vehicle_id=0, clock=MonotonicClock(), interface="virtual", channel="x", **options)
+    zenoh_half = zenoh_options(cfg, vehicle_id=0)
+    assert zenoh_half.usrpwd == {"user": "hil", "password": "s3cret"}
+    link = MixedLink(vehicle_id=0, clock=MonotonicClock(),
+                     options=MixedOptions(zenoh=zenoh_half, can=CanOptions(interface="virtual", channel="x")))
     assert json.loads(link.zenoh.config.get_json("transport/auth/usrpwd/user")) == "hil"
 
 

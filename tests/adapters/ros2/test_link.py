@@ -19,7 +19,7 @@ from hil.adapters.link import ProtocolFault, open_link
 from hil.adapters.ros2 import cdr as ros2_cdr
 from hil.adapters.ros2.dds import Participant, take, write
 from hil.adapters.ros2.msgs import AckermannDrive, AckermannDriveStamped, Header, Image, TFMessage
-from hil.adapters.ros2.options import IMAGE_QOS, REPLY_QOS, STATIC_QOS, cyclone_xml, node_env
+from hil.adapters.ros2.options import IMAGE_QOS, REPLY_QOS, STATIC_QOS, Ros2Options, Topics, cyclone_xml, node_env
 from hil.adapters.wire.messages import CameraInfo, DrivingState, Estimate, ImageEncoding
 from hil.common.errors import TargetError
 from hil.timing.clock import MonotonicClock
@@ -65,8 +65,9 @@ class FakeNode:
 
 
 def link_for(dom: int, **kw):
-    return open_link("ros2", vehicle_id=0, clock=MonotonicClock(), domain_id=dom, compressed=False,
-                     image_topic="/camera/image_raw", detections_topic="", **kw)
+    """A link on domain ``dom`` sending raw images, reading no detections; ``kw``: ``Ros2Options``' others."""
+    return open_link("ros2", vehicle_id=0, clock=MonotonicClock(), options=Ros2Options(
+        domain_id=dom, compressed=False, topics=Topics(image="/camera/image_raw", detections=""), **kw))
 
 
 def send(link, fid: int, *, sim_ns: int) -> int:
@@ -215,7 +216,8 @@ def test_sdk_target_as_a_ros2_node_in_a_child_process_and_its_death(tmp_path) ->
     log = open(tmp_path / "echo.log", "wb")  # noqa: SIM115 - closed below
     proc = subprocess.Popen([sys.executable, "-m", "hil.targets.echo", "--transport", "ros2", "--brake", "0.5",
                              "--exit-after-frames", "2"], env=env, stdout=log, stderr=log, start_new_session=True)
-    link = open_link("ros2", vehicle_id=0, clock=MonotonicClock(), domain_id=dom, compressed=True, lease_ms=500)
+    link = open_link("ros2", vehicle_id=0, clock=MonotonicClock(),
+                     options=Ros2Options(domain_id=dom, compressed=True, lease_ms=500))
     try:
         hello = link.open(hello_timeout_s=20)
         assert hello.target_name == "echo"

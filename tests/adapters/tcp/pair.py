@@ -12,6 +12,7 @@ from pathlib import Path
 
 from hil.adapters.link import Link
 from hil.adapters.tcp.link import TcpLink
+from hil.adapters.tcp.options import TcpOptions
 from hil.timing.clock import MonotonicClock
 from tests.adapters.zenoh.pair import ROOT, end_process, free_port
 
@@ -39,7 +40,7 @@ def tcp_echo(log_path: Path, args: Sequence[str] = (), *, listen: str | None = N
 def tcp_pair(tmp_path: Path, echo_args: list[str]) -> Iterator[Link]:
     address = f"127.0.0.1:{free_port()}"
     with tcp_echo(tmp_path / "target.log", echo_args, listen=address):
-        link = TcpLink(vehicle_id=0, clock=MonotonicClock(), connect=address)
+        link = TcpLink(vehicle_id=0, clock=MonotonicClock(), options=TcpOptions(connect=address))
         try:
             link.open(hello_timeout_s=20)
             yield link

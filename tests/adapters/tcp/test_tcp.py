@@ -13,6 +13,7 @@ import pytest
 
 from hil.adapters.tcp.handshake import parse_address
 from hil.adapters.tcp.link import TcpLink
+from hil.adapters.tcp.options import TcpOptions
 from hil.adapters.tcp.target import serve_endpoint
 from hil.adapters.wire import protocol
 from hil.adapters.wire.messages import ClockId, Heartbeat, Hello
@@ -40,15 +41,16 @@ def test_bad_addresses_name_the_field(text):
 
 
 def test_connect_or_listen_not_both():
+    both = TcpOptions(connect="127.0.0.1:1", listen="127.0.0.1:2")
     with pytest.raises(TransportError, match="not both"):
-        TcpLink(vehicle_id=0, clock=MonotonicClock(), connect="127.0.0.1:1", listen="127.0.0.1:2")
+        TcpLink(vehicle_id=0, clock=MonotonicClock(), options=both)
     with pytest.raises(TransportError, match="not both"):
-        serve_endpoint(None, listen="127.0.0.1:1", connect="127.0.0.1:2")  # type: ignore[arg-type]
+        serve_endpoint(None, options=both)  # type: ignore[arg-type]
 
 
 def test_no_target_is_a_transport_error_naming_the_address():
     port = free_port()  # nothing listens there
-    link = TcpLink(vehicle_id=0, clock=MonotonicClock(), connect=f"127.0.0.1:{port}")
+    link = TcpLink(vehicle_id=0, clock=MonotonicClock(), options=TcpOptions(connect=f"127.0.0.1:{port}"))
     t = time.monotonic()
     with pytest.raises(TransportError, match=rf"cannot connect to the target at 127.0.0.1:{port} within 0.5 s"):
         link.open(hello_timeout_s=0.5)
@@ -58,7 +60,7 @@ def test_no_target_is_a_transport_error_naming_the_address():
 
 def test_harness_listens_and_the_target_dials_in(tmp_path):
     address = f"127.0.0.1:{free_port()}"
-    link = TcpLink(vehicle_id=0, clock=MonotonicClock(), listen=address)
+    link = TcpLink(vehicle_id=0, clock=MonotonicClock(), options=TcpOptions(listen=address))
     assert link.start_listening()[1] == int(address.split(":")[1])
     with tcp_echo(tmp_path / "t.log", ["--throttle", "0.5"], connect=address):
         try:
@@ -132,7 +134,8 @@ def test_idle_harness_sends_heartbeats():
 
         t = threading.Thread(target=fake_target, daemon=True)
         t.start()
-        link = TcpLink(vehicle_id=2, clock=MonotonicClock(), connect=f"127.0.0.1:{port}", heartbeat_idle_s=0.1)
+        link = TcpLink(vehicle_id=2, clock=MonotonicClock(),
+                       options=TcpOptions(connect=f"127.0.0.1:{port}", heartbeat_idle_s=0.1))
         t0 = time.monotonic()
         link.open(hello_timeout_s=5)
         assert done.wait(3.0)
@@ -145,7 +148,7 @@ def test_idle_harness_sends_heartbeats():
 def test_target_closing_marks_the_link_gone(tmp_path):
     address = f"127.0.0.1:{free_port()}"
     with tcp_echo(tmp_path / "t.log", ["--exit-after-frames", "0"], listen=address):
-        link = TcpLink(vehicle_id=0, clock=MonotonicClock(), connect=address)
+        link = TcpLink(vehicle_id=0, clock=MonotonicClock(), options=TcpOptions(connect=address))
         link.open(hello_timeout_s=20)
         send_frame(link, 0)  # the echo target dies on it
         deadline = time.monotonic() + 1.0
@@ -163,7 +166,7 @@ def test_close_while_waiting_for_the_target(mode, monkeypatch):
     open() gives up at once and the reader ends without an exception."""
     failures: list[BaseException] = []
     monkeypatch.setattr(threading, "excepthook", lambda args: failures.append(args.exc_value))
-    link = TcpLink(vehicle_id=0, clock=MonotonicClock(), **{mode: f"127.0.0.1:{free_port()}"})
+    link = TcpLink(vehicle_id=0, clock=MonotonicClock(), options=TcpOptions(**{mode: f"127.0.0.1:{free_port()}"}))
     outcome: list[BaseException] = []
     opener = threading.Thread(target=lambda: outcome.append(pytest.raises(Exception, link.open,
                                                                           hello_timeout_s=10).value))
@@ -201,8 +204,8 @@ def _late_reader_round_trip(link: TcpLink, hold_s: float) -> tuple[int, int, int
 def test_t0p_does_not_wait_for_the_reader_thread(stamps, tmp_path):
     address = f"127.0.0.1:{free_port()}"
     with tcp_echo(tmp_path / "t.log", [], listen=address):
-        link = TcpLink(vehicle_id=0, clock=MonotonicClock(), connect=address, kernel_stamps=stamps,
-                       heartbeat_idle_s=0)
+        link = TcpLink(vehicle_id=0, clock=MonotonicClock(),
+                       options=TcpOptions(connect=address, kernel_stamps=stamps, heartbeat_idle_s=0))
         try:
             link.open(hello_timeout_s=20)
             send_frame(link, 0)  # warm up both sides (and the kernel's stamping)
@@ -244,7 +247,7 @@ def _env(token: str | None) -> dict[str, str]:
 def test_a_link_with_a_token_measures_only_the_target_that_proves_it(target_token, refused, tmp_path):
     address = f"127.0.0.1:{free_port()}"
     with tcp_echo(tmp_path / "t.log", ["--name", "candidate"], listen=address, env=_env(target_token)):
-        link = TcpLink(vehicle_id=2, clock=MonotonicClock(), connect=address, token=TOKEN)
+        link = TcpLink(vehicle_id=2, clock=MonotonicClock(), options=TcpOptions(connect=address, token=TOKEN))
         try:
             if refused is None:
                 hello = link.open(hello_timeout_s=20)
@@ -267,7 +270,7 @@ def test_a_link_with_a_token_measures_only_the_target_that_proves_it(target_toke
 def test_expect_name_refuses_a_connection_not_the_run(tmp_path):
     address = f"127.0.0.1:{free_port()}"
     with tcp_echo(tmp_path / "t.log", [], listen=address, env=_env(None)):
-        link = TcpLink(vehicle_id=0, clock=MonotonicClock(), connect=address, expect_name="cv")
+        link = TcpLink(vehicle_id=0, clock=MonotonicClock(), options=TcpOptions(connect=address, expect_name="cv"))
         with pytest.raises(TransportError, match=r"says it is 'echo', not 'cv' \(target.expect_name\)"):
             link.open(hello_timeout_s=2)
         link.close()
@@ -277,7 +280,7 @@ def test_a_silent_caller_does_not_hold_up_a_listening_harness(tmp_path):
     """A stranger connects first and says nothing; the run's own target dials in after
     it and is accepted at once (callers are checked side by side, not in turn)."""
     address = f"127.0.0.1:{free_port()}"
-    link = TcpLink(vehicle_id=0, clock=MonotonicClock(), listen=address, token=TOKEN)
+    link = TcpLink(vehicle_id=0, clock=MonotonicClock(), options=TcpOptions(listen=address, token=TOKEN))
     host, port = link.start_listening()
     with socket.create_connection((host, port)) as silent:
         with tcp_echo(tmp_path / "t.log", [], connect=address, env=_env(TOKEN)):

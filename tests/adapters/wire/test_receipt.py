@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import pytest
 
 from hil.adapters.tcp.link import TcpLink
+from hil.adapters.tcp.options import TcpOptions
 from hil.adapters.wire import protocol
 from hil.adapters.wire.messages import SyncResponse
 from hil.adapters.wire.receipt import Receipt, StreamReader, enable_kernel_stamps
@@ -165,8 +166,8 @@ def test_tcp_link_stamps_each_message_alone_while_its_reader_is_held_up():
 
     clock = MonotonicClock()
     with socket.create_server(("127.0.0.1", 0)) as server:
-        link = TcpLink(vehicle_id=1, clock=clock, connect="127.0.0.1:%d" % server.getsockname()[1],
-                       heartbeat_idle_s=0)
+        link = TcpLink(vehicle_id=1, clock=clock,
+                       options=TcpOptions(connect="127.0.0.1:%d" % server.getsockname()[1], heartbeat_idle_s=0))
         opener = threading.Thread(target=lambda: link.open(hello_timeout_s=5))
         opener.start()
         c, _ = server.accept()

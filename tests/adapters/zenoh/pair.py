@@ -11,6 +11,7 @@ import subprocess
 import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 from hil.adapters.link import Link
 from hil.timing.clock import MonotonicClock
@@ -69,13 +70,21 @@ def end_process(proc: subprocess.Popen[bytes], grace_s: float = 3.0) -> None:
         proc.wait()
 
 
+def zenoh_link(port: int, **options: Any) -> Link:
+    """A Zenoh link (vehicle 0, not open) connecting to 127.0.0.1:``port``;
+    ``options``: ``ZenohOptions``' others."""
+    from hil.adapters.zenoh.link import ZenohLink
+    from hil.adapters.zenoh.options import ZenohOptions
+
+    return ZenohLink(vehicle_id=0, clock=MonotonicClock(),
+                     options=ZenohOptions(connect=[f"tcp/127.0.0.1:{port}"], **options))
+
+
 @contextlib.contextmanager
 def zenoh_pair(tmp_path: Path, echo_args: list[str]) -> Iterator[Link]:
-    from hil.adapters.zenoh.link import ZenohLink
-
     port = free_port()
     with echo_target(tmp_path / "target.log", port, echo_args):
-        link = ZenohLink(vehicle_id=0, clock=MonotonicClock(), connect=[f"tcp/127.0.0.1:{port}"])
+        link = zenoh_link(port)
         try:
             link.open(hello_timeout_s=20)
             yield link

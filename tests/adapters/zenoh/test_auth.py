@@ -12,16 +12,13 @@ from pathlib import Path
 import pytest
 
 from hil.common.errors import ConfigError, TargetError
-from tests.adapters.zenoh.pair import ROOT, SKIP_REASON, end_process, free_port
+from tests.adapters.zenoh.pair import ROOT, SKIP_REASON, end_process, free_port, zenoh_link
 
 pytestmark = pytest.mark.skipif(SKIP_REASON is not None, reason=SKIP_REASON or "")
 
 
 def _link(port: int, **options: object):
-    from hil.adapters.zenoh.link import ZenohLink
-    from hil.timing.clock import MonotonicClock
-
-    return ZenohLink(vehicle_id=0, clock=MonotonicClock(), connect=[f"tcp/127.0.0.1:{port}"], **options)
+    return zenoh_link(port, **options)
 
 
 @pytest.mark.slow

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.adapters.zenoh.pair import SKIP_REASON, ROOT, echo_target, free_port
+from tests.adapters.zenoh.pair import SKIP_REASON, ROOT, echo_target, free_port, zenoh_link
 from tests.conftest import GL_BACKEND
 
 pytestmark = pytest.mark.skipif(SKIP_REASON is not None, reason=SKIP_REASON or "")
@@ -30,13 +30,11 @@ def _thaw_and_kill(pid: int) -> None:
 
 @pytest.mark.slow
 def test_closing_a_link_to_a_frozen_target_is_bounded(tmp_path: Path):
-    from hil.adapters.zenoh.link import ZenohLink
     from hil.adapters.zenoh.session import CLOSE_TIMEOUT_S
-    from hil.timing.clock import MonotonicClock
 
     port = free_port()
     with echo_target(tmp_path / "t.log", port) as proc:
-        link = ZenohLink(vehicle_id=0, clock=MonotonicClock(), connect=[f"tcp/127.0.0.1:{port}"])
+        link = zenoh_link(port)
         try:
             link.open(hello_timeout_s=20)
             os.kill(proc.pid, signal.SIGSTOP)  # our own child, by PID

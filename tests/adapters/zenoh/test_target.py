@@ -12,7 +12,7 @@ import sys
 
 import pytest
 
-from tests.adapters.zenoh.pair import ROOT, SKIP_REASON, end_process, free_port
+from tests.adapters.zenoh.pair import ROOT, SKIP_REASON, end_process, free_port, zenoh_link
 
 pytestmark = pytest.mark.skipif(SKIP_REASON is not None, reason=SKIP_REASON or "")
 
@@ -26,8 +26,6 @@ def _first_line(proc: subprocess.Popen[str], timeout_s: float) -> str:
 
 @pytest.mark.slow
 def test_hil_target_announces_itself_and_serves_run_after_run():
-    from hil.adapters.zenoh.link import ZenohLink
-    from hil.timing.clock import MonotonicClock
 
     port = free_port()
     proc = subprocess.Popen([sys.executable, "-m", "hil.harness.cli.main", "target", "echo", "--transport", "zenoh",
@@ -40,7 +38,7 @@ def test_hil_target_announces_itself_and_serves_run_after_run():
         assert "keys hil/v0/*" in line and "clock MONOTONIC" in line and "capabilities:" in line, line
         assert "run after run" in line, line
         for run in range(2):  # the second harness finds the target still there
-            link = ZenohLink(vehicle_id=0, clock=MonotonicClock(), connect=[f"tcp/127.0.0.1:{port}"])
+            link = zenoh_link(port)
             try:
                 assert link.open(hello_timeout_s=20).target_name == "echo", run
                 assert link.sync_exchange(timeout_s=2.0) is not None, run
@@ -57,16 +55,13 @@ def test_hil_target_announces_itself_and_serves_run_after_run():
 
 @pytest.mark.slow
 def test_once_serves_one_harness():
-    from hil.adapters.zenoh.link import ZenohLink
-    from hil.timing.clock import MonotonicClock
-
     port = free_port()
     proc = subprocess.Popen([sys.executable, "-m", "hil.harness.cli.main", "target", "echo", "--transport", "zenoh",
                              "--listen", f"tcp/127.0.0.1:{port}", "--once"], cwd=ROOT, stdin=subprocess.DEVNULL,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         assert "serving one run" in _first_line(proc, 30)
-        with ZenohLink(vehicle_id=0, clock=MonotonicClock(), connect=[f"tcp/127.0.0.1:{port}"]) as link:
+        with zenoh_link(port) as link:
             link.open(hello_timeout_s=20)
         assert proc.wait(timeout=10) == 0
     finally:

@@ -31,12 +31,14 @@ class ThirdPeer:
     def __init__(self, port: int) -> None:
         import zenoh
 
+        from hil.adapters.zenoh.options import ZenohOptions
         from hil.adapters.zenoh.session import make_config
 
         self.samples: dict[str, int] = {}
         self.forged = threading.Event()
         self.lock = threading.Lock()
-        self.session = zenoh.open(make_config(connect=[f"tcp/127.0.0.1:{port}"]))  # retries until it listens
+        # It retries until the target listens.
+        self.session = zenoh.open(make_config(ZenohOptions(connect=[f"tcp/127.0.0.1:{port}"])))
         self.peers_seen = 0
         self.sub = self.session.declare_subscriber("**", self._on_sample)
 

@@ -13,6 +13,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -20,8 +21,10 @@ zenoh = pytest.importorskip("zenoh")
 
 from hil.adapters.link import open_link  # noqa: E402
 from hil.adapters.sdk import Endpoint  # noqa: E402
-from hil.adapters.wire.messages import (Control, DrivingState, Estimate, Frame, Hello, ImageEncoding, Inference)  # noqa: E402
+from hil.adapters.wire.messages import (Control, DrivingState, Estimate, Frame, Hello, ImageEncoding,  # noqa: E402
+                                        Inference)
 from hil.adapters.zenoh.link import ZenohLink  # noqa: E402
+from hil.adapters.zenoh.options import ZenohOptions  # noqa: E402
 from hil.adapters.zenoh.session import Keys, config_entries, make_config  # noqa: E402
 from hil.adapters.zenoh.target import serve_endpoint  # noqa: E402
 from hil.common.errors import ConfigError, TargetError, TransportError  # noqa: E402
@@ -34,14 +37,15 @@ def cfg_json(cfg: zenoh.Config, key: str) -> object:
     return json.loads(cfg.get_json(key))
 
 
-def link_to(*ports: int, vehicle_id: int = 0, **options: object) -> ZenohLink:
+def link_to(*ports: int, vehicle_id: int = 0, **options: Any) -> ZenohLink:
+    """A Zenoh link connecting to ``ports`` of 127.0.0.1; ``options``: ``ZenohOptions``'."""
     return ZenohLink(vehicle_id=vehicle_id, clock=MonotonicClock(),
-                     connect=[f"tcp/127.0.0.1:{p}" for p in ports], **options)  # type: ignore[arg-type]
+                     options=ZenohOptions(connect=[f"tcp/127.0.0.1:{p}" for p in ports], **options))
 
 
 @contextlib.contextmanager
-def raw_session(**options: object) -> Iterator[zenoh.Session]:
-    s = zenoh.open(make_config(**options))
+def raw_session(**options: Any) -> Iterator[zenoh.Session]:
+    s = zenoh.open(make_config(ZenohOptions(**options)))
     try:
         yield s
     finally:
@@ -50,9 +54,9 @@ def raw_session(**options: object) -> Iterator[zenoh.Session]:
 
 @contextlib.contextmanager
 def inproc_target(infer: Callable[[Frame], Inference], port: int, *, name: str = "inproc",
-                  scheme: str = "tcp", **options: object) -> Iterator[Endpoint]:
-    """``serve_endpoint`` listening on 127.0.0.1:``port`` (``port`` 0: ``options``
-    say where), on a thread of this process (so no signal handlers)."""
+                  scheme: str = "tcp", vehicle_id: int = 0, **options: Any) -> Iterator[Endpoint]:
+    """``serve_endpoint`` listening on 127.0.0.1:``port`` (``port`` 0: ``options``, a
+    ``ZenohOptions``', say where), on a thread of this process (so no signal handlers)."""
     ep = Endpoint(infer, target_name=name)
     errors: list[BaseException] = []
     if port:
@@ -60,7 +64,7 @@ def inproc_target(infer: Callable[[Frame], Inference], port: int, *, name: str =
 
     def run() -> None:
         try:
-            serve_endpoint(ep, **options)  # type: ignore[arg-type]
+            serve_endpoint(ep, options=ZenohOptions(**options), vehicle_id=vehicle_id)
         except BaseException as err:  # reported by the test below
             errors.append(err)
 
@@ -93,7 +97,7 @@ def wait_for(cond: Callable[[], bool], timeout_s: float) -> float:
 
 
 def test_config_has_no_scouting_and_only_the_explicit_endpoints():
-    cfg = make_config(mode="peer", connect=["tcp/127.0.0.1:7447"])
+    cfg = make_config(ZenohOptions(mode="peer", connect=["tcp/127.0.0.1:7447"]))
     assert cfg_json(cfg, "mode") == "peer"
     assert cfg_json(cfg, "scouting/multicast/enabled") is False
     assert cfg_json(cfg, "scouting/gossip/enabled") is False
@@ -109,11 +113,11 @@ def test_config_has_no_scouting_and_only_the_explicit_endpoints():
 def test_tls_options_pass_through_and_unknown_keys_are_refused():
     tls = {"root_ca_certificate": "/etc/hil/ca.pem", "enable_mtls": True,
            "connect_certificate": "/etc/hil/h.pem", "connect_private_key": "/etc/hil/h.key"}
-    cfg = make_config(connect=["tls/device.local:7447"], tls=tls)
+    cfg = make_config(ZenohOptions(connect=["tls/device.local:7447"], tls=tls))
     for key, value in tls.items():
         assert cfg_json(cfg, f"transport/link/tls/{key}") == value
     with pytest.raises(ConfigError, match="root_ca_certificate"):
-        config_entries(tls={"root_ca": "ca.pem"})
+        config_entries(ZenohOptions(tls={"root_ca": "ca.pem"}))
 
 
 @pytest.mark.parametrize("options, match", [
@@ -127,9 +131,9 @@ def test_tls_options_pass_through_and_unknown_keys_are_refused():
     ({"connect": [], "listen": []}, "at least one"),
 ])
 def test_bad_options_are_refused_before_anything_opens(options, match):
-    kwargs = {"vehicle_id": 0, "clock": MonotonicClock(), **options}
+    bad = ZenohOptions(**{"connect": ["tcp/127.0.0.1:7447"], **options})
     with pytest.raises(ConfigError, match=match):
-        ZenohLink(**kwargs)
+        ZenohLink(vehicle_id=0, clock=MonotonicClock(), options=bad)
 
 
 def test_keys_are_per_prefix_and_vehicle():
@@ -158,7 +162,7 @@ def test_open_link_by_name_and_raw_320x240_frame_round_trip():
     port = free_port()
     with inproc_target(infer, port):
         with open_link("zenoh", vehicle_id=0, clock=MonotonicClock(),
-                       connect=[f"tcp/127.0.0.1:{port}"]) as link:
+                       options=ZenohOptions(connect=[f"tcp/127.0.0.1:{port}"])) as link:
             link.open(hello_timeout_s=10)
             for i in range(3):
                 link.send_frame(frame_id=i, sim_time_ns=0, t0_ns=link.clock.now_ns(), width=320, height=240,
@@ -243,19 +247,19 @@ def test_tls_link_trusts_only_its_ca(tmp_path: Path):
 
 
 def _tls_link(port: int, ca: Path) -> ZenohLink:
-    return ZenohLink(vehicle_id=0, clock=MonotonicClock(), connect=[f"tls/127.0.0.1:{port}"],
-                     tls={"root_ca_certificate": str(ca)})
+    return ZenohLink(vehicle_id=0, clock=MonotonicClock(),
+                     options=ZenohOptions(connect=[f"tls/127.0.0.1:{port}"], tls={"root_ca_certificate": str(ca)}))
 
 
 def test_client_mode_through_a_router():
     port = free_port()
-    router_cfg = make_config(listen=[f"tcp/127.0.0.1:{port}"])
+    router_cfg = make_config(ZenohOptions(listen=[f"tcp/127.0.0.1:{port}"]))
     router_cfg.insert_json5("mode", '"router"')
     router = zenoh.open(router_cfg)
     try:
-        client = {"mode": "client", "connect": [f"tcp/127.0.0.1:{port}"]}
+        client: dict[str, Any] = {"mode": "client", "connect": [f"tcp/127.0.0.1:{port}"]}
         with inproc_target(safe, 0, name="behind-router", vehicle_id=4, **client), \
-             ZenohLink(vehicle_id=4, clock=MonotonicClock(), **client) as link:  # type: ignore[arg-type]
+             ZenohLink(vehicle_id=4, clock=MonotonicClock(), options=ZenohOptions(**client)) as link:
             assert link.open(hello_timeout_s=10).target_name == "behind-router"
             send_frame(link, 9)
             assert next_estimate(link)[0].frame_id == 9
@@ -264,7 +268,7 @@ def test_client_mode_through_a_router():
 
 
 def test_client_mode_without_a_router_fails_at_open():
-    link = ZenohLink(vehicle_id=0, clock=MonotonicClock(), mode="client", connect=[f"tcp/127.0.0.1:{free_port()}"])
+    link = link_to(free_port(), mode="client")
     with link, pytest.raises(TransportError, match="cannot open a zenoh session"):
         link.open(hello_timeout_s=1)
 
