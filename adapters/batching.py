@@ -36,9 +36,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
 
-from hil.adapters import protocol, transports
-from hil.adapters.messages import ErrorMsg, Estimate, Frame, Inference, Message
+from hil.adapters import transports
 from hil.adapters.sdk import CommandFn, Endpoint
+from hil.adapters.wire import protocol
+from hil.adapters.wire.messages import ErrorMsg, Estimate, Frame, Inference, Message
 from hil.common.errors import ConfigError, ProtocolError, TransportError
 from hil.timing.clock import Clock, MonotonicClock
 
@@ -46,7 +47,7 @@ BatchInferFn = Callable[[Sequence[Frame]], Sequence[Inference]]
 # The parts of the batch ``infer_batch`` last ran, in ns, in the order the log's header names them.
 BatchPartsFn = Callable[[], Sequence[int]]
 ENV_BATCH_LOG = "HIL_BATCH_LOG"
-ENV_CTL = "HIL_LOCAL_CTL"  # a shared local target's control socket (hil.adapters.shared_local)
+ENV_CTL = "HIL_LOCAL_CTL"  # a shared local target's control socket (hil.adapters.local.shared_link)
 DEFAULT_WINDOW_NS = 2_000_000
 DEFAULT_MAX_BATCH = 16
 BATCH_LOG_HEADER = "batch,batch_size,vehicle_id,frame_id,t_rx_ns,t_infer_start_ns,t_infer_end_ns\n"
@@ -343,8 +344,8 @@ def serve_batched(infer_batch: BatchInferFn, *, target_name: str, transport: str
     """Serve ``infer_batch`` to many vehicles from this one process (a shared target).
 
     ``transport``: ``local`` (started by the harness with ``target.shared: true``:
-    vehicles arrive over ``HIL_LOCAL_CTL``, ``hil.adapters.shared_local``) or ``zenoh``
-    (one session, the keys of each of ``vehicles``, ``hil.adapters.shared_zenoh``).
+    vehicles arrive over ``HIL_LOCAL_CTL``, ``hil.adapters.local.shared_link``) or ``zenoh``
+    (one session, the keys of each of ``vehicles``, ``hil.adapters.zenoh.shared_target``).
     ``announce`` gets one line when serving ends (default: stderr): the batch counts.
     ``batch_parts``: (part names, a function giving the last batch's parts in ns):
     the batch log gets a ``<name>_ns`` column per part.
@@ -369,7 +370,7 @@ def serve_batched(infer_batch: BatchInferFn, *, target_name: str, transport: str
                 raise TransportError(f"the local transport takes no options; got {sorted(transport_options)}")
             serve_shared(scheduler, make_endpoint)
         else:
-            options = {k: v for k, v in transport_options.items() if k not in ("vehicle_id", "shared_memory")}
+            options = {k: v for k, v in transport_options.items() if k != "vehicle_id"}  # it serves ``vehicles``
             serve_shared(scheduler, make_endpoint, vehicles=list(vehicles), **options)
     finally:
         scheduler.stop()

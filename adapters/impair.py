@@ -44,8 +44,8 @@ from typing import Any
 
 import numpy as np
 
-from hil.adapters import protocol
-from hil.adapters.messages import Bye, Estimate, Hello, MsgType, SyncRequest, SyncResponse
+from hil.adapters.wire import protocol
+from hil.adapters.wire.messages import Bye, Estimate, Hello, MsgType, SyncRequest, SyncResponse
 from hil.common.errors import ProtocolError
 from hil.timing.clock import Clock
 

@@ -23,13 +23,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import NoReturn
 
-from hil.adapters import protocol, transports
+from hil.adapters import transports
 from hil.adapters.impair import LinkImpairment
-from hil.adapters.receipt import Receipt
-from hil.adapters.messages import (Bye, CameraInfo, Command, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
-                                   Message, SyncRequest,
-                                   SyncResponse)
-from hil.adapters.stream import StreamDecoder
+from hil.adapters.wire import protocol
+from hil.adapters.wire.messages import (Bye, CameraInfo, Command, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
+                                        Message, SyncRequest, SyncResponse)
+from hil.adapters.wire.receipt import Receipt
+from hil.adapters.wire.stream import StreamDecoder
 from hil.common.errors import ProtocolError, TargetError, TransportError
 from hil.timing.clock import Clock
 from hil.timing.sync import SyncSample
@@ -39,7 +39,7 @@ from hil.timing.sync import SyncSample
 class Received:
     """A message, the harness-clock instant (ns) its last byte arrived, the vehicle id
     of the link it came through, and how much earlier the arrival may have been: the
-    truth lies in ``[t_rx_ns - rx_uncertainty_ns, t_rx_ns]`` (``hil.adapters.receipt``)."""
+    truth lies in ``[t_rx_ns - rx_uncertainty_ns, t_rx_ns]`` (``hil.adapters.wire.receipt``)."""
 
     msg: Message
     t_rx_ns: int
@@ -333,7 +333,7 @@ class Link(ABC):
 
     def _on_receipt(self, r: Receipt[NoReturn]) -> None:
         """Reader-thread entry for stream transports read one message at a time
-        (``hil.adapters.receipt.StreamReader``): each item with the read's own stamp."""
+        (``hil.adapters.wire.receipt.StreamReader``): each item with the read's own stamp."""
         self.stats.bytes_received += r.nbytes
         for item in r.items:
             self._dispatch(item, r.t_rx_ns, r.uncertainty_ns)
@@ -410,16 +410,30 @@ class Link(ABC):
 TRANSPORTS = transports.NAMES  # the transport names, from the table in hil.adapters.transports
 
 
-def open_link(transport: str | transports.Transport, **options: object) -> Link:
+def open_link(transport: str | transports.Transport, *, options: object = None, **kwargs: object) -> Link:
     """Build the link for ``transport`` by name (not yet opened). The link class is
     looked up in :data:`hil.adapters.transports.BACKENDS` and its module imported only
     now, so zenoh and python-can stay optional and this module imports no transport.
 
+    Args:
+        options: the transport's options model (``transports.options_class``, e.g. a
+            ``ZenohOptions``); None: its defaults.
+        kwargs: what the link takes besides: ``vehicle_id``, ``clock``, ``rx_queue``
+            and the run's hooks of that transport (a local link's ``command``, a CAN
+            bus's ``tap``, a tcp link's ``abandon``).
+
     Raises:
-        TransportError: unknown transport name (listing the valid ones).
+        TransportError: unknown transport name (listing the valid ones), or options
+            of another model.
     """
     cls: Callable[..., Link] = transports.link_class(transport)
-    return cls(**options)
+    if options is not None:
+        model = transports.options_class(transport)
+        if not isinstance(options, model):
+            raise TransportError(f"{transports.transport_of(transport).value} link: options must be a "
+                                 f"{model.__name__}, not {type(options).__name__}")
+        kwargs["options"] = options
+    return cls(**kwargs)
 
 
 __all__ = ["Estimate", "Link", "LinkStats", "Received", "SyncSample", "open_link"]

@@ -2,8 +2,8 @@
 
 An AI developer writes one function and calls ``serve``::
 
-    from hil.adapters.messages import Inference, Control, DrivingState
     from hil.adapters.sdk import serve
+    from hil.adapters.wire.messages import Inference, Control, DrivingState
 
     def infer(frame):
         return Inference(DrivingState.SAFE, Control(throttle=0.2))
@@ -32,11 +32,12 @@ from typing import NoReturn, TypeVar, cast
 
 import numpy as np
 
-from hil.adapters import protocol, transports
-from hil.adapters.messages import (Auth, AuthStep, Bye, ClockId, Command, ErrorMsg, Estimate, Frame, Hello,
-                                   ImageEncoding, Inference, Message, SyncRequest, SyncResponse)
-from hil.adapters.receipt import StreamReader
-from hil.adapters.stream import StreamDecoder
+from hil.adapters import transports
+from hil.adapters.wire import protocol
+from hil.adapters.wire.messages import (Auth, AuthStep, Bye, ClockId, Command, ErrorMsg, Estimate, Frame, Hello,
+                                        ImageEncoding, Inference, Message, SyncRequest, SyncResponse)
+from hil.adapters.wire.receipt import StreamReader
+from hil.adapters.wire.stream import StreamDecoder
 from hil.common.errors import ConfigError, ProtocolError, TransportError
 from hil.timing.clock import Clock, MonotonicClock
 
@@ -92,7 +93,7 @@ class Endpoint:
         ``protocol.CAP_COMMANDS``); called on the reader thread, so it must be quick
         and thread-safe; its return value is the reply's text. ``token``: the shared
         secret this target proves when challenged (announced as ``protocol.CAP_AUTH``,
-        PROTOCOL.md 4.8; ``hil.adapters.auth``)."""
+        PROTOCOL.md 4.8; ``hil.adapters.wire.auth``)."""
         self.infer = infer
         self.on_command = on_command
         self.clock = clock or MonotonicClock()
@@ -222,7 +223,7 @@ class Endpoint:
             why = "this target holds no token" if not self.token else "a target sends the PROOF, never receives it"
             self.send(ErrorMsg(a.vehicle_id, protocol.ErrorCode.UNEXPECTED, f"AUTH {a.step.name}: {why}"))
             return
-        from hil.adapters.auth import proof
+        from hil.adapters.wire.auth import proof
 
         self._vehicle_id = a.vehicle_id
         self.send(Auth(a.vehicle_id, AuthStep.PROOF, proof(self.token, a.data, a.vehicle_id)))
@@ -276,7 +277,7 @@ class Endpoint:
             self.stats.estimates_sent += 1
 
 
-CAPABILITY_NAMES = ((0x0000_0001, "SHM_FRAMES"),  # hil.adapters.shm.SHM_FRAMES (local transport only)
+CAPABILITY_NAMES = ((0x0000_0001, "SHM_FRAMES"),  # hil.adapters.local.shm.SHM_FRAMES (local transport only)
                     (protocol.CAP_COMMANDS, "COMMANDS"), (protocol.CAP_AUTH, "AUTH"))
 
 
@@ -374,7 +375,7 @@ def serve_stream(ep: Endpoint, reader: StreamReader[R], *, send: Callable[[bytes
                  on_term: Callable[[], None] | None = None) -> str:
     """A stream transport's target loop (tcp, local) inside ``serving``: the next
     message from ``reader`` (one message per read, each stamped with its own arrival,
-    ``hil.adapters.receipt``), handed to ``deliver(item, t_rx)`` (default
+    ``hil.adapters.wire.receipt``), handed to ``deliver(item, t_rx)`` (default
     ``ep.on_message``), until BYE, end of stream or a broken socket (the harness has
     left: no BYE back), or SIGTERM, which shuts the socket's reading side to end the
     blocked read and leaves its writing side open for our BYE (and calls
@@ -439,7 +440,10 @@ def serve(infer: InferFn, *, target_name: str, transport: str | transports.Trans
         clock: the clock to stamp with (default: this host's monotonic clock).
         on_command: optional handler of COMMAND messages (text in, reply text out),
             for control software that takes commands during a run (model swaps).
-        transport_options: passed to the transport (see its module).
+        transport_options: passed to the transport's ``serve_endpoint`` (its package's
+            ``target`` module): ``options``, its options model (e.g. a ``ZenohOptions``,
+            ``hil.adapters.zenoh.options``), and ``vehicle_id``, ``keep_serving``;
+            ``transport_options(args)`` makes them from the command line.
 
     Returns:
         Counters of what was served.

@@ -1,16 +1,20 @@
 """The transports, registered as data: one table from transport kind to its halves.
 
-Each :class:`Transport` names, as ``"module:attribute"`` strings, its harness-side
-link class (a :class:`hil.adapters.link.Link`), its target-side serve function
-(``serve_endpoint(ep, **options)``, driving an :class:`hil.adapters.sdk.Endpoint`) and,
-where it has one, the serve function of a shared target (one process serving many
-vehicles, ``serve_shared(scheduler, make_endpoint, **options)``). They are imported
-by :mod:`importlib` only when a run asks for that transport, so zenoh and python-can
+Each transport is a package, ``hil.adapters.<name>``, and its :class:`Backend` row
+names, as ``"module:attribute"`` strings, its harness-side link class (a
+:class:`hil.adapters.link.Link`, in ``<name>.link``), its target-side serve function
+(``serve_endpoint(ep, **options)``, driving an :class:`hil.adapters.sdk.Endpoint`, in
+``<name>.target``), its options model (a frozen dataclass in ``<name>.options``: the
+one home of the transport's defaults, which the link, the serve function, the
+harness's config and the SDK's command line read) and, where it has one, the serve
+function of a shared target (one process serving many vehicles,
+``serve_shared(scheduler, make_endpoint, **options)``). They are imported by
+:mod:`importlib` only when a run asks for that transport, so zenoh and python-can
 stay optional and this module imports no transport: ``open_link``, ``sdk.serve`` and
 ``batching.serve_batched`` look their transport up here instead of importing every
 transport, and the transports import ``link`` and ``sdk`` without a circle.
 
-Adding a transport is one row in :data:`BACKENDS` (and one member of
+Adding a transport is one package and one row in :data:`BACKENDS` (and one member of
 :class:`Transport`); config, the SDK command line and ``open_link`` take it from here.
 
 Raises: :class:`hil.common.errors.TransportError` for an unknown transport name (listing the
@@ -23,7 +27,7 @@ import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING, Protocol, cast
 
 from hil.common.errors import TransportError
 
@@ -42,6 +46,15 @@ class Transport(str, Enum):
     ROS2 = "ros2"  # ROS 2 topics over Cyclone DDS: an unmodified ROS 2 node is the target
 
 
+class TransportOptions(Protocol):
+    """What every transport's options model has besides its fields."""
+
+    def child_env(self) -> dict[str, str]:
+        """The environment a target the harness starts is given (its run's keys,
+        token, domain...): ``{}`` where the transport tells it nothing."""
+        ...
+
+
 @dataclass(frozen=True)
 class Backend:
     """Where a transport's halves live, as ``"module:attribute"``.
@@ -49,24 +62,33 @@ class Backend:
     Attributes:
         link: the harness-side :class:`hil.adapters.link.Link` subclass.
         serve: the target side, ``serve_endpoint(ep, **options) -> None``.
+        options: its options model (a frozen dataclass, a :class:`TransportOptions`).
         shared: a shared target's ``serve_shared(scheduler, make_endpoint, **options)``,
             or None where the transport cannot serve many vehicles from one process.
     """
 
     link: str
     serve: str
+    options: str
     shared: str | None = None
+
+    @classmethod
+    def of(cls, package: str, link: str, options: str, *, shared: bool = False) -> Backend:
+        """The row of the transport in ``hil.adapters.<package>``: ``link.<link>``,
+        ``target.serve_endpoint``, ``options.<options>`` and, if ``shared``,
+        ``shared_target.serve_shared``."""
+        base = f"hil.adapters.{package}"
+        return cls(f"{base}.link:{link}", f"{base}.target:serve_endpoint", f"{base}.options:{options}",
+                   f"{base}.shared_target:serve_shared" if shared else None)
 
 
 BACKENDS: dict[Transport, Backend] = {
-    Transport.LOCAL: Backend("hil.adapters.local:LocalLink", "hil.adapters.local:serve_endpoint",
-                             shared="hil.adapters.shared_local:serve_shared"),
-    Transport.ZENOH: Backend("hil.adapters.zenoh_transport:ZenohLink", "hil.adapters.zenoh_target:serve_endpoint",
-                             shared="hil.adapters.shared_zenoh:serve_shared"),
-    Transport.CAN: Backend("hil.adapters.can_transport:CanLink", "hil.adapters.can_transport:serve_endpoint"),
-    Transport.MIXED: Backend("hil.adapters.mixed:MixedLink", "hil.adapters.mixed:serve_endpoint"),
-    Transport.TCP: Backend("hil.adapters.tcp:TcpLink", "hil.adapters.tcp:serve_endpoint"),
-    Transport.ROS2: Backend("hil.adapters.ros2_transport:Ros2Link", "hil.adapters.ros2_target:serve_endpoint"),
+    Transport.LOCAL: Backend.of("local", "LocalLink", "LocalOptions", shared=True),
+    Transport.ZENOH: Backend.of("zenoh", "ZenohLink", "ZenohOptions", shared=True),
+    Transport.CAN: Backend.of("can", "CanLink", "CanOptions"),
+    Transport.MIXED: Backend.of("mixed", "MixedLink", "MixedOptions"),
+    Transport.TCP: Backend.of("tcp", "TcpLink", "TcpOptions"),
+    Transport.ROS2: Backend.of("ros2", "Ros2Link", "Ros2Options"),
 }
 
 NAMES: tuple[str, ...] = tuple(t.value for t in Transport)  # in table order: local, zenoh, can, mixed, tcp, ros2
@@ -107,6 +129,16 @@ def serve_function(name: str | Transport) -> Callable[..., None]:
     return cast(Callable[..., None], _resolve(BACKENDS[transport_of(name)].serve))
 
 
+def options_class(name: str | Transport) -> type[TransportOptions]:
+    """The options model of transport ``name`` (its ``options`` module imported now: no
+    transport library is).
+
+    Raises:
+        TransportError: unknown transport.
+    """
+    return cast("type[TransportOptions]", _resolve(BACKENDS[transport_of(name)].options))
+
+
 def shared_serve_function(name: str | Transport) -> Callable[..., None]:
     """A shared target's ``serve_shared(scheduler, make_endpoint, **options)`` over ``name``.
 
@@ -121,5 +153,5 @@ def shared_serve_function(name: str | Transport) -> Callable[..., None]:
     return cast(Callable[..., None], _resolve(path))
 
 
-__all__ = ["BACKENDS", "NAMES", "Backend", "Transport", "link_class", "serve_function", "shared_serve_function",
-           "transport_of"]
+__all__ = ["BACKENDS", "NAMES", "Backend", "Transport", "TransportOptions", "link_class", "options_class",
+           "serve_function", "shared_serve_function", "transport_of"]

@@ -40,8 +40,8 @@ import cv2
 import numpy as np
 import torch
 
-from hil.adapters.messages import CameraInfo, Frame, ImageEncoding
 from hil.adapters.sdk import decode_image
+from hil.adapters.wire.messages import CameraInfo, Frame, ImageEncoding
 from hil.targets.cnn.models import decode
 from hil.targets.cnn.preprocess import detector_input, steering_input
 from hil.targets.cnn.target import CnnTarget

@@ -1,5 +1,5 @@
 """What reading one message per read costs: the harness's receive path before and
-after ``hil.adapters.receipt`` (each message stamped with its own arrival), on the
+after ``hil.adapters.wire.receipt`` (each message stamped with its own arrival), on the
 same sockets, in the same run, next to the raw floor.
 
 Run: ``.venv/bin/python bench/bench_receipt.py`` (about 20 s; ``--rounds``,
@@ -35,11 +35,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from hil.adapters import protocol  # noqa: E402
-from hil.adapters.messages import CameraInfo, Control, DrivingState, Estimate, Frame, ImageEncoding  # noqa: E402
-from hil.adapters.receipt import (RealtimeMapper, StreamReader, enable_kernel_stamps,  # noqa: E402
-                                  recv_stamped)
-from hil.adapters.stream import StreamDecoder  # noqa: E402
+from hil.adapters.wire import protocol  # noqa: E402
+from hil.adapters.wire.messages import CameraInfo, Control, DrivingState, Estimate, Frame, ImageEncoding  # noqa: E402
+from hil.adapters.wire.receipt import (RealtimeMapper, StreamReader, enable_kernel_stamps,  # noqa: E402
+                                       recv_stamped)
+from hil.adapters.wire.stream import StreamDecoder  # noqa: E402
 from hil.timing.clock import MonotonicClock  # noqa: E402
 
 MESSAGES = {

@@ -6,7 +6,7 @@ Run: ``.venv/bin/python bench/bench_ros2.py`` (under a minute; ``--rounds``). Pr
 markdown tables. Not part of the test suite.
 
 Codec: µs per 320x240 raw ``sensor_msgs/Image`` (230 400 pixel bytes) and per JPEG
-``CompressedImage`` (~12 KB), encoded and decoded by hil.adapters.ros2_cdr and by
+``CompressedImage`` (~12 KB), encoded and decoded by hil.adapters.ros2.cdr and by
 Cyclone's ``IdlStruct.serialize``/``deserialize``; the floor is one copy of the bytes.
 
 Round trip: ``Link.send_frame`` to the ESTIMATE out of ``Link.recv``, to the echo
@@ -32,20 +32,20 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from hil.adapters import ros2_cdr  # noqa: E402
 from hil.adapters.link import open_link  # noqa: E402
-from hil.adapters.messages import CameraInfo, Estimate, ImageEncoding  # noqa: E402
-from hil.adapters.ros2_dds import Participant, take, write  # noqa: E402
-from hil.adapters.ros2_msgs import AckermannDriveStamped, CompressedImage, Header, Image, Time  # noqa: E402
-from hil.adapters.ros2_options import IMAGE_QOS, REPLY_QOS, cyclone_xml, node_env  # noqa: E402
+from hil.adapters.ros2 import cdr as ros2_cdr  # noqa: E402
+from hil.adapters.ros2.dds import Participant, take, write  # noqa: E402
+from hil.adapters.ros2.msgs import AckermannDriveStamped, CompressedImage, Header, Image, Time  # noqa: E402
+from hil.adapters.ros2.options import IMAGE_QOS, REPLY_QOS, Ros2Options, cyclone_xml, node_env  # noqa: E402
+from hil.adapters.wire.messages import CameraInfo, Estimate, ImageEncoding  # noqa: E402
 from hil.timing.clock import MonotonicClock  # noqa: E402
 
 CAM = CameraInfo(277.0, 277.0, 160.0, 120.0, 1.3)
 FLOOR_NODE = """
 import sys
-from hil.adapters.ros2_dds import Participant, take, write
-from hil.adapters.ros2_msgs import AckermannDriveStamped, CompressedImage, Image
-from hil.adapters.ros2_options import IMAGE_QOS, REPLY_QOS, cyclone_xml
+from hil.adapters.ros2.dds import Participant, take, write
+from hil.adapters.ros2.msgs import AckermannDriveStamped, CompressedImage, Image
+from hil.adapters.ros2.options import IMAGE_QOS, REPLY_QOS, cyclone_xml
 from cyclonedds.core import WaitSet, ReadCondition, SampleState, ViewState, InstanceState
 with Participant(domain_id=int(sys.argv[1]), config=cyclone_xml(), name="floor") as p:
     cls = CompressedImage if sys.argv[2] == "jpeg" else Image
@@ -123,8 +123,8 @@ def link_round_trips(rounds: int, jpeg: bytes | None) -> list[int]:
     dom = random.randrange(150, 233)
     env = dict(os.environ, PYTHONPATH=str(ROOT), **node_env(dom, cyclone_xml()))
     child = subprocess.Popen([sys.executable, "-m", "hil.targets.echo", "--transport", "ros2"], env=env)
-    link = open_link("ros2", vehicle_id=0, clock=MonotonicClock(), domain_id=dom, compressed=jpeg is not None,
-                     image_topic="/camera/image_raw/compressed" if jpeg else "/camera/image_raw")
+    link = open_link("ros2", vehicle_id=0, clock=MonotonicClock(),
+                     options=Ros2Options(domain_id=dom, compressed=jpeg is not None))  # image_transport's topics
     out: list[int] = []
     try:
         link.open(hello_timeout_s=30)

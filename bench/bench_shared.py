@@ -63,9 +63,9 @@ select_backend()
 import numpy as np
 
 from hil.adapters.link import Received
-from hil.adapters.local import LocalLink
-from hil.adapters.messages import CameraInfo, Estimate, ImageEncoding
-from hil.adapters.shared_local import SharedLocalLink, SharedLocalTarget
+from hil.adapters.local.link import LocalLink
+from hil.adapters.local.shared_link import SharedLocalLink, SharedLocalTarget
+from hil.adapters.wire.messages import CameraInfo, Estimate, ImageEncoding
 from hil.timing.clock import MonotonicClock
 from hil.training import dataset
 
@@ -123,7 +123,7 @@ def batch_cost(frames: list[tuple[bytes, CameraInfo, float]], *, device: str, th
     hits all alike. Returns the table and the nets alone per batch size."""
     import torch
 
-    from hil.adapters.messages import Frame
+    from hil.adapters.wire.messages import Frame
     from hil.targets.cnn.frontend import Frontend
     from hil.targets.cnn.target import CnnTarget
 

@@ -43,13 +43,15 @@ def loopback_accuracy(transport: str, tmp: Path) -> dict[str, object] | None:
         import socket
         import subprocess
 
+        from hil.adapters.zenoh.options import ZenohOptions
+
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
         proc = subprocess.Popen(cmd + ["--transport", "zenoh", "--listen", f"tcp/127.0.0.1:{port}"],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         try:
-            link = open_link("zenoh", connect=[f"tcp/127.0.0.1:{port}"], **opts)
+            link = open_link("zenoh", options=ZenohOptions(connect=[f"tcp/127.0.0.1:{port}"]), **opts)
         except Exception:
             proc.kill()
             return None

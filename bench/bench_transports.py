@@ -52,15 +52,17 @@ import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from hil.adapters import protocol  # noqa: E402
 from hil.adapters.link import Link, open_link  # noqa: E402
-from hil.adapters.messages import CameraInfo, Control, DrivingState, Estimate, Frame, ImageEncoding  # noqa: E402
+from hil.adapters.tcp.options import TcpOptions  # noqa: E402
+from hil.adapters.wire import protocol  # noqa: E402
+from hil.adapters.wire.messages import CameraInfo, Control, DrivingState, Estimate, Frame, ImageEncoding  # noqa: E402
 from hil.timing.clock import MonotonicClock  # noqa: E402
 
 CAM = CameraInfo(277.0, 277.0, 160.0, 120.0, 1.3)
@@ -122,8 +124,9 @@ def child_main(kind: str, args: list[str]) -> None:
     elif kind == "zenoh":
         import zenoh
 
-        from hil.adapters.zenoh_transport import make_config
-        session = zenoh.open(make_config(listen=[args[0]]))
+        from hil.adapters.zenoh.options import ZenohOptions
+        from hil.adapters.zenoh.session import make_config
+        session = zenoh.open(make_config(ZenohOptions(listen=[str(args[0])])))
         pub = session.declare_publisher(ZKEY_PONG, congestion_control=zenoh.CongestionControl.BLOCK)
         # Zenoh undeclares an entity when its Python object is dropped: keep it.
         entities = [session.declare_subscriber(ZKEY_PING, lambda s: (s.payload.to_bytes(), pub.put(REPLY)))]
@@ -263,10 +266,11 @@ def raw_handoff() -> Iterator[RoundTrip]:
 def raw_zenoh(payload: bytes) -> Iterator[RoundTrip]:
     import zenoh
 
-    from hil.adapters.zenoh_transport import make_config
+    from hil.adapters.zenoh.options import ZenohOptions
+    from hil.adapters.zenoh.session import make_config
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     proc = spawn_child("zenoh", endpoint, stdin=subprocess.PIPE)
-    session = zenoh.open(make_config(connect=[endpoint]))
+    session = zenoh.open(make_config(ZenohOptions(connect=[endpoint])))
     got: queue.SimpleQueue[bytes] = queue.SimpleQueue()
     entities = [session.declare_subscriber(ZKEY_PONG, lambda s: got.put(s.payload.to_bytes()))]
     pub = session.declare_publisher(ZKEY_PING, congestion_control=zenoh.CongestionControl.BLOCK)
@@ -364,9 +368,11 @@ def opened(link: Link) -> Iterator[Link]:
 
 
 @contextlib.contextmanager
-def local_link(**options: object) -> Iterator[Link]:
+def local_link(**options: Any) -> Iterator[Link]:
+    from hil.adapters.local.options import LocalOptions
+
     with opened(open_link("local", command=[sys.executable, "-m", "hil.targets.echo"], vehicle_id=0,
-                          clock=MonotonicClock(), **options)) as link:
+                          clock=MonotonicClock(), options=LocalOptions(**options))) as link:
         yield link
 
 
@@ -376,8 +382,10 @@ def zenoh_link() -> Iterator[Link]:
     proc = subprocess.Popen([sys.executable, "-m", "hil.targets.echo", "--transport", "zenoh", "--listen",
                              f"tcp/127.0.0.1:{port}"], cwd=ROOT, stdin=subprocess.DEVNULL)
     try:
+        from hil.adapters.zenoh.options import ZenohOptions
+
         with opened(open_link("zenoh", vehicle_id=0, clock=MonotonicClock(),
-                              connect=[f"tcp/127.0.0.1:{port}"])) as link:
+                              options=ZenohOptions(connect=[f"tcp/127.0.0.1:{port}"]))) as link:
             yield link
     finally:
         end(proc)
@@ -389,7 +397,8 @@ def tcp_link() -> Iterator[Link]:
     proc = subprocess.Popen([sys.executable, "-m", "hil.targets.echo", "--transport", "tcp", "--listen", address],
                             cwd=ROOT, stdin=subprocess.DEVNULL)
     try:
-        with opened(open_link("tcp", vehicle_id=0, clock=MonotonicClock(), connect=address)) as link:
+        with opened(open_link("tcp", vehicle_id=0, clock=MonotonicClock(),
+                              options=TcpOptions(connect=address))) as link:
             yield link
     finally:
         end(proc)
@@ -414,24 +423,25 @@ def tcp_c_link(exe: Path) -> Iterator[Link]:
     proc = subprocess.Popen([str(exe), "--transport", "tcp", "--listen", address], stdin=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     try:
-        with opened(open_link("tcp", vehicle_id=0, clock=MonotonicClock(), connect=address)) as link:
+        with opened(open_link("tcp", vehicle_id=0, clock=MonotonicClock(),
+                              options=TcpOptions(connect=address))) as link:
             yield link
     finally:
         end(proc)
 
 
 @contextlib.contextmanager
-def device_thread(serve: Callable[..., None], **options: object) -> Iterator[object]:
-    """``hil.targets.echo`` served by ``serve`` (CAN or mixed) on a virtual bus, in a thread."""
+def device_thread(serve: Callable[..., None], options: Any, channel: str) -> Iterator[object]:
+    """``hil.targets.echo`` served by ``serve`` (CAN or mixed, with ``options``) on
+    virtual bus ``channel``, in a thread."""
     import can
 
     from hil.adapters.sdk import Endpoint
     from hil.targets.echo import Echo
 
-    bus = can.Bus(interface="virtual", channel=options["channel"], fd=True, ignore_config=True)
+    bus = can.Bus(interface="virtual", channel=channel, fd=True, ignore_config=True)
     ep = Endpoint(Echo().infer, target_name="echo")
-    thread = threading.Thread(target=serve, args=(ep,), kwargs=dict(options, interface="virtual", bus=bus),
-                              daemon=True)
+    thread = threading.Thread(target=serve, args=(ep,), kwargs={"options": options, "bus": bus}, daemon=True)
     thread.start()
     try:
         yield ep
@@ -444,21 +454,26 @@ def device_thread(serve: Callable[..., None], **options: object) -> Iterator[obj
 
 @contextlib.contextmanager
 def can_link() -> Iterator[Link]:
-    from hil.adapters.can_transport import serve_endpoint
+    from hil.adapters.can.options import CanOptions
+    from hil.adapters.can.target import serve_endpoint
     channel = f"bench-{uuid.uuid4().hex}"
-    with device_thread(serve_endpoint, channel=channel), \
-            opened(open_link("can", vehicle_id=0, clock=MonotonicClock(), interface="virtual",
-                             channel=channel)) as link:
+    bus = CanOptions(interface="virtual", channel=channel)
+    with device_thread(serve_endpoint, bus, channel), \
+            opened(open_link("can", vehicle_id=0, clock=MonotonicClock(), options=bus)) as link:
         yield link
 
 
 @contextlib.contextmanager
 def mixed_link() -> Iterator[Link]:
-    from hil.adapters.mixed import serve_endpoint
+    from hil.adapters.can.options import CanOptions
+    from hil.adapters.mixed.options import MixedOptions
+    from hil.adapters.mixed.target import serve_endpoint
+    from hil.adapters.zenoh.options import ZenohOptions
     channel, port = f"bench-{uuid.uuid4().hex}", free_port()
-    with device_thread(serve_endpoint, channel=channel, listen=[f"tcp/127.0.0.1:{port}"]), \
-            opened(open_link("mixed", vehicle_id=0, clock=MonotonicClock(), interface="virtual", channel=channel,
-                             connect=[f"tcp/127.0.0.1:{port}"])) as link:
+    bus, endpoint = CanOptions(interface="virtual", channel=channel), f"tcp/127.0.0.1:{port}"
+    with device_thread(serve_endpoint, MixedOptions(zenoh=ZenohOptions(listen=[endpoint]), can=bus), channel), \
+            opened(open_link("mixed", vehicle_id=0, clock=MonotonicClock(),
+                             options=MixedOptions(zenoh=ZenohOptions(connect=[endpoint]), can=bus))) as link:
         yield link
 
 
@@ -488,11 +503,12 @@ def can_rates(n: int = 3000) -> tuple[float, float]:
     """(estimates/s a CanLink receives, raw virtual-bus CAN FD frames/s between two threads)."""
     import can
 
-    from hil.adapters.can_transport import serve_endpoint
+    from hil.adapters.can.options import CanOptions
+    from hil.adapters.can.target import serve_endpoint
     channel = f"bench-{uuid.uuid4().hex}"
-    with device_thread(serve_endpoint, channel=channel) as ep, \
-            opened(open_link("can", vehicle_id=0, clock=MonotonicClock(), interface="virtual",
-                             channel=channel)) as link:
+    bus = CanOptions(interface="virtual", channel=channel)
+    with device_thread(serve_endpoint, bus, channel) as ep, \
+            opened(open_link("can", vehicle_id=0, clock=MonotonicClock(), options=bus)) as link:
         est = [Estimate(0, i, DrivingState.SAFE, Control(0.0, 0.1, 0.0), (), 1, 2, 3, 4) for i in range(n)]
         sender = threading.Thread(target=lambda: [ep.send(e) for e in est])  # type: ignore[attr-defined]
         got = 0
@@ -521,8 +537,8 @@ def protocol_cpu_us(raw_img: bytes, n: int = 2000) -> float:
     """Median µs of the protocol work of one local round trip through the ring, in one
     thread with no I/O: build and encode the FRAME, write its slot, decode the notice,
     read and decode the slot, encode the ESTIMATE and stream-decode it."""
-    from hil.adapters.shm import NOTICES, ShmReader, ShmRing
-    from hil.adapters.stream import StreamDecoder
+    from hil.adapters.local.shm import NOTICES, ShmReader, ShmRing
+    from hil.adapters.wire.stream import StreamDecoder
 
     est = Estimate(0, 1, DrivingState.SAFE, Control(0.0, 0.1, 0.0), (), 1, 2, 3, 4)
     times = []

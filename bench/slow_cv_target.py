@@ -19,7 +19,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from hil.adapters.messages import Frame, Inference  # noqa: E402
+from hil.adapters.wire.messages import Frame, Inference  # noqa: E402
 from hil.targets import cv_baseline  # noqa: E402
 
 

@@ -3,8 +3,9 @@
     python sdk/build_wheel.py [--out dist/]
 
 What goes in it is ``sdk/pyproject.toml`` (the same file ``pip install -e ./sdk``
-reads): the packages ``hil.adapters`` (wire codec, stream decoder, the SDK's
-``Endpoint``/``serve``/``decode_image``, every transport's target endpoint),
+reads), its ``packages`` and their ``package-data``: ``hil.adapters`` and its
+subpackages (the wire codec, the SDK's ``Endpoint``/``serve``/``decode_image``, every
+transport's package with its target endpoint, ``hil.dbc``, the ROS 2 ``.msg`` files),
 ``hil.timing`` (clocks, the clock-sync estimator) and ``hil.common`` (the exception
 tree, object classes), from this repository's own folders: there is one copy of the
 code. It depends on numpy only; extras add a transport's library (``zenoh``,
@@ -27,7 +28,6 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA_SUFFIXES = (".py", ".dbc")
 
 
 def project() -> dict[str, Any]:
@@ -36,16 +36,27 @@ def project() -> dict[str, Any]:
         return tomllib.load(f)
 
 
-def files(package_dir: dict[str, str]) -> list[tuple[str, Path]]:
-    """``(name in the wheel, file)`` of every packaged file, in a stable order:
-    ``hil/adapters/sdk.py`` from ``adapters/sdk.py``."""
-    out = []
-    for pkg, folder in sorted(package_dir.items()):
-        src = (ROOT / "sdk" / folder).resolve()
-        for p in sorted(src.rglob("*")):
-            if p.is_file() and p.suffix in DATA_SUFFIXES and "__pycache__" not in p.parts:
-                out.append(("/".join([*pkg.split("."), *p.relative_to(src).parts]), p))
-    return out
+def package_folder(pkg: str, package_dir: dict[str, str]) -> Path:
+    """The folder of package ``pkg``, as setuptools resolves it: the longest prefix in
+    ``package-dir`` (``hil.adapters.tcp`` -> ``adapters/tcp``)."""
+    base = max((p for p in package_dir if pkg == p or pkg.startswith(p + ".")), key=len)
+    rest = pkg.removeprefix(base).lstrip(".").split(".") if pkg != base else []
+    return (ROOT / "sdk" / package_dir[base]).resolve().joinpath(*rest)
+
+
+def files(setuptools: dict[str, Any]) -> list[tuple[str, Path]]:
+    """``(name in the wheel, file)`` of every packaged file, in a stable order: each
+    listed package's modules (``hil/adapters/sdk.py`` from ``adapters/sdk.py``; a
+    package not listed is not shipped, as with setuptools) and its ``package-data``."""
+    package_dir, data = setuptools["package-dir"], setuptools.get("package-data", {})
+    out: dict[str, Path] = {}
+    for pkg in sorted(setuptools["packages"]):
+        src = package_folder(pkg, package_dir)
+        found = list(src.glob("*.py")) + [p for pattern in data.get(pkg, []) for p in src.glob(pattern)]
+        for p in found:
+            if p.is_file() and "__pycache__" not in p.parts:
+                out["/".join([*pkg.split("."), *p.relative_to(src).parts])] = p
+    return sorted(out.items())
 
 
 def metadata(proj: dict[str, Any]) -> str:
@@ -72,7 +83,7 @@ def build(out_dir: Path) -> Path:
     dist_info = f"{stem}.dist-info"
     wheel = out_dir / f"{stem}-py3-none-any.whl"
     out_dir.mkdir(parents=True, exist_ok=True)
-    entries = [(name, p.read_bytes()) for name, p in files(conf["tool"]["setuptools"]["package-dir"])]
+    entries = [(name, p.read_bytes()) for name, p in files(conf["tool"]["setuptools"])]
     entries += [
         (f"{dist_info}/METADATA", metadata(proj).encode()),
         (f"{dist_info}/WHEEL", b"Wheel-Version: 1.0\nGenerator: sdk/build_wheel.py\nRoot-Is-Purelib: true\n"

@@ -64,8 +64,8 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from hil.adapters.messages import (CameraInfo, Control, DetectedObject, DrivingState, Frame, ImageEncoding,
-                                   Inference, ObjectClass)
+from hil.adapters.wire.messages import (CameraInfo, Control, DetectedObject, DrivingState, Frame, ImageEncoding,
+                                        Inference, ObjectClass)
 
 VEHICLE_W_M, VEHICLE_H_M, CLEARANCE_M = 1.8, 1.4, 0.1
 CAMERA_TO_CENTRE_M = 2.3  # camera mount ahead of the vehicle centre (the yaw pivot)

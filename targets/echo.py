@@ -12,7 +12,7 @@ import os
 import time
 from collections.abc import Sequence
 
-from hil.adapters.messages import Control, DrivingState, Frame, Inference
+from hil.adapters.wire.messages import Control, DrivingState, Frame, Inference
 from hil.timing.clock import Clock, MonotonicClock, OffsetClock
 
 

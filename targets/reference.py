@@ -40,9 +40,9 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import IO, Any
 
-from hil.adapters import protocol
-from hil.adapters.messages import Control, DrivingState, Estimate, Frame, Inference, Message
 from hil.adapters.sdk import Endpoint
+from hil.adapters.wire import protocol
+from hil.adapters.wire.messages import Control, DrivingState, Estimate, Frame, Inference, Message
 from hil.common.errors import ProtocolError, TransportError
 
 TRUTH_VERSION = 1
@@ -313,16 +313,11 @@ def serve_endpoint(ep: Endpoint, transport: str, options: dict[str, object]) -> 
     Raises:
         TransportError: another transport, or it cannot be used.
     """
-    if transport == "local":
-        from hil.adapters.local import serve_endpoint as serve_local
+    from hil.adapters import transports
 
-        serve_local(ep)
-    elif transport == "zenoh":
-        from hil.adapters.zenoh_transport import serve_endpoint as serve_zenoh
-
-        serve_zenoh(ep, **options)
-    else:
+    if transport not in ("local", "zenoh"):
         raise TransportError(f"the reference target serves local or zenoh, not {transport!r}")
+    transports.serve_function(transport)(ep, **options)  # local: options is empty
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """An rclpy node as the harness's target: the OpenCV baseline behind ROS 2 topics, for
 users with a ROS 2 installation. NOT RUN HERE: these machines have no ROS 2; the
-conventions it follows are those the CI checks with hil.adapters.ros2_target (the same
+conventions it follows are those the CI checks with hil.adapters.ros2.target (the same
 baseline as a ROS 2 node on Cyclone DDS alone, README "ROS 2").
 
 With ROS 2 Humble (or newer) and ``ros-<distro>-vision-msgs``,
@@ -33,8 +33,8 @@ def main() -> int:  # pragma: no cover - needs ROS 2
     from sensor_msgs.msg import CameraInfo, CompressedImage
     from vision_msgs.msg import Detection2D, Detection2DArray, ObjectHypothesisWithPose
 
-    from hil.adapters.messages import CameraInfo as HilCamera
-    from hil.adapters.messages import DrivingState, Frame, ImageEncoding
+    from hil.adapters.wire.messages import CameraInfo as HilCamera
+    from hil.adapters.wire.messages import DrivingState, Frame, ImageEncoding
     from hil.targets.cv_baseline import CvBaseline
 
     class BaselineNode(Node):  # type: ignore[misc]  # rclpy is not installed here: Node is Any

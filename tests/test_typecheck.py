@@ -29,7 +29,7 @@ def _installed_folders() -> set[str]:
     folders = next(ast.literal_eval(n.value) for n in ast.walk(tree) if isinstance(n, ast.Assign)
                    and any(isinstance(t, ast.Name) and t.id == "FOLDERS" for t in n.targets))
     sdk = tomllib.loads((ROOT / "sdk" / "pyproject.toml").read_text(encoding="utf-8"))
-    return set(folders) | {p.removeprefix("hil.") for p in sdk["tool"]["setuptools"]["packages"]}
+    return set(folders) | {p.removeprefix("hil.").split(".")[0] for p in sdk["tool"]["setuptools"]["packages"]}
 
 
 def _mypy() -> dict[str, Any]:

@@ -60,7 +60,7 @@ class PipelineRecord:
     sim_time_apply_ns: int | None = None
     t_state_ns: int | None = None
     # How much earlier than t0' the estimate's last byte may have arrived (the reader
-    # found it already waiting, hil.adapters.receipt): the truth is in [t0' - this, t0'].
+    # found it already waiting, hil.adapters.wire.receipt): the truth is in [t0' - this, t0'].
     t0p_uncertainty_ns: int = 0
 
     def stages_ns(self) -> dict[str, int]:

@@ -56,7 +56,7 @@ import numpy as np
 # stalled it for ~250 ms.
 from scipy.optimize import linear_sum_assignment
 
-from hil.adapters.messages import DrivingState, Estimate
+from hil.adapters.wire.messages import DrivingState, Estimate
 from hil.common.classes import ObjectClass
 from hil.harness.analysis.late_reaction import Decision, EgoView, LateReaction, LateReactionJudge
 from hil.harness.config.cases import DetectorSettings

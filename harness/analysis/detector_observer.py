@@ -21,7 +21,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from hil.adapters.messages import DrivingState, Estimate
+from hil.adapters.wire.messages import DrivingState, Estimate
 from hil.harness.analysis.detector import (CornerCaseDetector, FrameTruth, Mismatch, TruthObject,
                                            link_anomalies, nearest_point_in_camera_frame)
 from hil.harness.analysis.events import Event, EventBus

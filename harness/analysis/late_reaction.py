@@ -31,7 +31,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 
-from hil.adapters.messages import DrivingState
+from hil.adapters.wire.messages import DrivingState
 
 HISTORY = 600  # decisions and truth ticks kept per ego (30 s of frames at 20 fps): bounded
 REPEAT_NS = 2_000_000_000  # a contact with the same entity within this belongs to the same one

@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Protocol
 
-from hil.adapters.messages import Estimate
+from hil.adapters.wire.messages import Estimate
 from hil.scenarios.ground_truth import CameraTruth, GroundTruth
 from hil.timing.records import PipelineRecord
 from hil.timing.sync import SyncSample

@@ -30,7 +30,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from hil.adapters.messages import Estimate
+from hil.adapters.wire.messages import Estimate
 from hil.harness.config.timing import TimingConfig
 from hil.harness.analysis.events import Event, EventBus, JsonSink
 from hil.scenarios.ground_truth import GroundTruth

@@ -28,11 +28,15 @@ from typing import Any
 
 import numpy as np
 
-from hil.adapters import protocol
-from hil.adapters.auth import token_from_env
+from hil.adapters.can.options import CanOptions
 from hil.adapters.link import Link, open_link
-from hil.adapters.messages import Bye, Command, ErrorMsg, Estimate, Heartbeat, Hello, ImageEncoding
-from hil.adapters.tcp import parse_address
+from hil.adapters.local.options import LocalOptions
+from hil.adapters.tcp.handshake import parse_address
+from hil.adapters.tcp.options import TcpOptions
+from hil.adapters.transports import TransportOptions
+from hil.adapters.wire import protocol
+from hil.adapters.wire.messages import Bye, Command, ErrorMsg, Estimate, Heartbeat, Hello, ImageEncoding
+from hil.adapters.zenoh.options import ZenohOptions
 from hil.common.errors import HilError, ProtocolError, TransportError
 from hil.harness.check.target_faults import CAM, _still_alive, check_malformed
 from hil.harness.check.target_session import Check, Session
@@ -44,8 +48,9 @@ KNOWN_CAPS = 0x0000_0007  # SHM_FRAMES | CAP_COMMANDS | CAP_AUTH
 
 
 def parse_endpoint(endpoint: str, command: list[str], *, vehicle_id: int,
-                   key_prefix: str) -> tuple[str, dict[str, Any]]:
-    """ENDPOINT (and the command after ``--`` for ``local``) -> (transport, link options).
+                   key_prefix: str) -> tuple[str, TransportOptions, dict[str, Any]]:
+    """ENDPOINT (and the command after ``--`` for ``local``) -> (transport, its options
+    model, what else its link takes: a local link's ``command``).
 
     Raises:
         TransportError: not one of the forms in the module docstring.
@@ -53,24 +58,24 @@ def parse_endpoint(endpoint: str, command: list[str], *, vehicle_id: int,
     if endpoint == "local":
         if not command:
             raise TransportError("local: give the target's command after --, e.g. hil target-check local -- ./t")
-        return "local", {"command": command}
+        return "local", LocalOptions(), {"command": command}
     scheme, sep, rest = endpoint.partition("://")
     if not sep:
         raise TransportError(f"ENDPOINT {endpoint!r}: expected tcp://HOST:PORT, tcp-listen://HOST:PORT, "
                              "zenoh://tcp/HOST:PORT, can://INTERFACE/CHANNEL or local -- COMMAND")
     if scheme == "tcp":
         parse_address(rest, field="ENDPOINT")
-        return "tcp", {"connect": rest}
+        return "tcp", TcpOptions(connect=rest), {}
     if scheme == "tcp-listen":
         parse_address(rest, field="ENDPOINT")
-        return "tcp", {"listen": rest}
+        return "tcp", TcpOptions(listen=rest), {}
     if scheme == "zenoh":
-        return "zenoh", {"connect": [rest], "key_prefix": key_prefix}
+        return "zenoh", ZenohOptions(connect=(rest,), key_prefix=key_prefix), {}
     if scheme == "can":
         interface, _, channel = rest.partition("/")
         if not interface or not channel:
             raise TransportError(f"ENDPOINT {endpoint!r}: expected can://INTERFACE/CHANNEL, e.g. can://socketcan/vcan0")
-        return "can", {"interface": interface, "channel": channel}
+        return "can", CanOptions(interface=interface, channel=channel), {}
     raise TransportError(f"ENDPOINT {endpoint!r}: unknown scheme {scheme!r} (tcp, tcp-listen, zenoh, can, local)")
 
 
@@ -286,7 +291,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("target_command", nargs="*", metavar="-- COMMAND",
                    help="local: the target's command and its options, after --")
     p.add_argument("--vehicle", type=int, default=0, help="vehicle id the target serves (default 0)")
-    p.add_argument("--key-prefix", default="hil", help="zenoh key prefix (default hil)")
+    p.add_argument("--key-prefix", default=ZenohOptions.key_prefix,
+                   help=f"zenoh key prefix (default {ZenohOptions.key_prefix})")
     p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for each answer (default 5)")
     p.add_argument("--token-env", default=None, metavar="NAME",
                    help="tcp: check the target's AUTH proof of the token in this environment variable "
@@ -311,13 +317,13 @@ def cmd(args: argparse.Namespace) -> int:
 
     try:
         check_ci_args(args)
-        transport, options = parse_endpoint(args.endpoint, command, vehicle_id=args.vehicle,
-                                            key_prefix=args.key_prefix)
+        transport, options, extra = parse_endpoint(args.endpoint, command, vehicle_id=args.vehicle,
+                                                   key_prefix=args.key_prefix)
         if args.token_env:
-            if transport != "tcp":
+            if not isinstance(options, TcpOptions):
                 raise TransportError("--token-env: the AUTH proof is checked over tcp only")
-            options["token"] = token_from_env(args.token_env, field="--token-env", required=True)
-        link = open_link(transport, vehicle_id=args.vehicle, clock=MonotonicClock(), **options)
+            options = options.for_run(started=False, token_env=args.token_env, field="--token-env")
+        link = open_link(transport, vehicle_id=args.vehicle, clock=MonotonicClock(), options=options, **extra)
     except HilError as err:
         print(f"hil target-check: error: {err}", file=sys.stderr)
         return EXIT_USAGE

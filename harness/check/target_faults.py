@@ -8,8 +8,8 @@ from __future__ import annotations
 import time
 import zlib
 
-from hil.adapters import protocol
-from hil.adapters.messages import CameraInfo, ErrorMsg, Estimate, Frame, ImageEncoding, SyncRequest
+from hil.adapters.wire import protocol
+from hil.adapters.wire.messages import CameraInfo, ErrorMsg, Estimate, Frame, ImageEncoding, SyncRequest
 from hil.harness.check.target_session import Session
 
 CAM = CameraInfo(277.0, 277.0, 160.0, 120.0, 1.3)

@@ -36,8 +36,8 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-from hil.adapters.protocol import FRAME_META_SIZE, MAX_PAYLOAD
 from hil.adapters.transports import Transport  # how the harness reaches the AI target: one enum, one table
+from hil.adapters.wire.protocol import FRAME_META_SIZE, MAX_PAYLOAD
 from hil.common.errors import ConfigError
 from hil.harness.config.cases import CornerCaseSettings, DetectorSettings
 from hil.harness.config.target import CanTargetConfig, ImpairConfig, Ros2TargetConfig, TcpTargetConfig, ZenohTargetConfig

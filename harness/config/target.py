@@ -10,6 +10,11 @@ per vehicle::
                 "--listen", "tcp/127.0.0.1:{port}", "--vehicle", "{vehicle_id}"]
       zenoh: {connect: ["tcp/127.0.0.1:{port}"]}
 
+Each section's defaults are its transport's options model's (``ZenohOptions``,
+``CanOptions``, ``TcpOptions``, ``Ros2Options`` in ``hil.adapters.<transport>.options``:
+one home per default); ``hil.harness.run.link_options`` turns a section into that
+model for one vehicle of a run.
+
 For ``zenoh``, ``can`` and ``mixed`` the ``command`` is optional: empty means the
 target runs elsewhere (a board on the bench); given, the harness also starts it
 locally (a loopback test or a simulated device) and ends it after the run.
@@ -34,9 +39,11 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, BaseModel, Field
 
-from hil.adapters.can_interfaces import LOCAL_INTERFACES
-from hil.adapters.ros2_options import MAX_DOMAIN_ID, topic_problem
-from hil.adapters.zenoh_options import endpoint_problem, tls_key_problem
+from hil.adapters.can.options import LOCAL_INTERFACES, CanOptions
+from hil.adapters.ros2.options import (IMAGE_QOS, MAX_DOMAIN_ID, REPLY_QOS, DriveLimits, QosProfile, Ros2Options,
+                                       Topics, topic_problem)
+from hil.adapters.tcp.options import DEFAULT_PORT, TcpOptions
+from hil.adapters.zenoh.options import ZenohOptions, endpoint_problem, tls_key_problem
 from hil.common.errors import ConfigError
 from hil.harness.config.types import MODEL_CONFIG, Float, Int
 
@@ -105,18 +112,19 @@ class ZenohAuthConfig(BaseModel):
 
 class ZenohTargetConfig(BaseModel):
     """Zenoh session of the harness. Multicast scouting stays off unless turned on;
-    ``tls`` keys pass through to ``transport/link/tls`` (see adapters/zenoh_transport)."""
+    ``tls`` keys pass through to ``transport/link/tls`` (see adapters/zenoh/link.py)."""
 
     model_config = MODEL_CONFIG
 
+    # A template (not an endpoint): the harness dials vehicle i's target at base_port + i.
     connect: list[ZenohEndpoint] = Field(default_factory=lambda: ["tcp/127.0.0.1:{port}"])
-    listen: list[ZenohEndpoint] = Field(default_factory=list)
-    mode: ZenohMode = ZenohMode.PEER
-    key_prefix: str = Field("hil", min_length=1)
+    listen: list[ZenohEndpoint] = Field(default_factory=lambda: list(ZenohOptions.listen))
+    mode: ZenohMode = ZenohMode(ZenohOptions.mode)
+    key_prefix: str = Field(ZenohOptions.key_prefix, min_length=1)
     base_port: Int = Field(7447, ge=1, le=65535)
-    multicast_scouting: bool = False
-    congestion_control: Congestion = Congestion.BLOCK
-    lease_ms: Int = Field(1000, ge=100, le=60_000)
+    multicast_scouting: bool = ZenohOptions.multicast_scouting
+    congestion_control: Congestion = Congestion(ZenohOptions.congestion_control)
+    lease_ms: Int = Field(ZenohOptions.lease_ms, ge=100, le=60_000)
     tls: dict[TlsKey, str | bool] | None = None
     auth: ZenohAuthConfig | None = None  # zenoh and mixed transports (see ZenohAuthConfig)
     # A target the harness starts serves keys under <key_prefix>/run-<session> (the run's
@@ -138,11 +146,11 @@ class CanTargetConfig(BaseModel):
 
     model_config = MODEL_CONFIG
 
-    interface: Literal[LOCAL_INTERFACES] = "socketcan"  # type: ignore[valid-type]  # buses on this machine
-    channel: str = "vcan0"
-    bitrate: Int = Field(500_000, ge=10_000, le=1_000_000)
-    data_bitrate: Int = Field(2_000_000, ge=100_000, le=12_000_000)
-    camera_over: str = Field("isotp", pattern="^(isotp|none)$")
+    interface: Literal[LOCAL_INTERFACES] = CanOptions.interface  # type: ignore[valid-type]  # buses on this machine
+    channel: str = CanOptions.channel
+    bitrate: Int = Field(CanOptions.bitrate, ge=10_000, le=1_000_000)
+    data_bitrate: Int = Field(CanOptions.data_bitrate, ge=100_000, le=12_000_000)
+    camera_over: str = Field(CanOptions.camera_over, pattern="^(isotp|none)$")
 
 
 class TcpMode(str, Enum):
@@ -156,7 +164,7 @@ class TcpAuth(str, Enum):
 
 
 class TcpTargetConfig(BaseModel):
-    """TCP connection of the harness (adapters/tcp.py, PROTOCOL.md section 10.5).
+    """TCP connection of the harness (adapters/tcp/link.py, PROTOCOL.md section 10.5).
     ``address`` is host:port, ``{port}`` being ``base_port + vehicle_id``; loopback
     unless given otherwise. ``kernel_stamps``: stamp receipt with the kernel's receive
     time (SO_TIMESTAMPNS) rather than when the reader thread woke.
@@ -172,8 +180,8 @@ class TcpTargetConfig(BaseModel):
 
     mode: TcpMode = TcpMode.CONNECT
     address: str = Field("127.0.0.1:{port}", pattern=r"^(tcp/)?(\[[0-9A-Fa-f:.]+\]|[^:\s\[\]]+):(\{port\}|[0-9]{1,5})$")
-    base_port: Int = Field(7600, ge=1, le=65535)
-    kernel_stamps: bool = True
+    base_port: Int = Field(DEFAULT_PORT, ge=1, le=65535)
+    kernel_stamps: bool = TcpOptions.kernel_stamps
     token_env: str | None = Field(None, pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")
     auth: TcpAuth = TcpAuth.AUTO
 
@@ -187,11 +195,11 @@ class Ros2Topics(BaseModel):
     model_config = MODEL_CONFIG
 
     image: RosTopic | None = None
-    camera_info: RosTopic = Field("/camera/camera_info", min_length=1)
-    speed: RosTopic = "/vehicle/twist"
-    clock: RosTopic = Field("/clock", min_length=1)
-    control: RosTopic = Field("/control/ackermann_cmd", min_length=1)
-    detections: RosTopic = "/perception/detections"
+    camera_info: RosTopic = Field(Topics.camera_info, min_length=1)
+    speed: RosTopic = Topics.speed
+    clock: RosTopic = Field(Topics.clock, min_length=1)
+    control: RosTopic = Field(Topics.control, min_length=1)
+    detections: RosTopic = Topics.detections
 
 
 class Ros2Qos(BaseModel):
@@ -199,9 +207,15 @@ class Ros2Qos(BaseModel):
 
     model_config = MODEL_CONFIG
 
-    reliability: Literal["reliable", "best_effort"] = "reliable"
-    history: Literal["keep_last", "keep_all"] = "keep_last"
-    depth: Int = Field(10, ge=1, le=10_000)
+    reliability: Literal["reliable", "best_effort"] = QosProfile.reliability.value
+    history: Literal["keep_last", "keep_all"] = QosProfile.history.value
+    depth: Int = Field(QosProfile.depth, ge=1, le=10_000)
+
+    @classmethod
+    def of(cls, profile: QosProfile) -> Ros2Qos:
+        """The config of ``profile`` (a default of ``hil.adapters.ros2.options``)."""
+        return cls(reliability=profile.reliability.value, history=profile.history.value,
+                   depth=profile.depth)
 
 
 class Ros2QosConfig(BaseModel):
@@ -211,12 +225,12 @@ class Ros2QosConfig(BaseModel):
 
     model_config = MODEL_CONFIG
 
-    images: Ros2Qos = Field(default_factory=lambda: Ros2Qos(depth=2))
-    answers: Ros2Qos = Field(default_factory=Ros2Qos)
+    images: Ros2Qos = Field(default_factory=lambda: Ros2Qos.of(IMAGE_QOS))
+    answers: Ros2Qos = Field(default_factory=lambda: Ros2Qos.of(REPLY_QOS))
 
 
 class Ros2TargetConfig(BaseModel):
-    """A ROS 2 node as the target (adapters/ros2_transport.py; README, "ROS 2").
+    """A ROS 2 node as the target (adapters/ros2/link.py; README, "ROS 2").
     Vehicle ``i``'s node is on DDS domain ``domain_id + i``; a node the harness starts
     (``command``) gets a domain of this run's own instead (``per_run_domain``). Cyclone
     DDS uses ``interface`` only, ``multicast`` off and unicast discovery to ``peers``.
@@ -228,22 +242,22 @@ class Ros2TargetConfig(BaseModel):
 
     model_config = MODEL_CONFIG
 
-    domain_id: Int = Field(0, ge=0, le=MAX_DOMAIN_ID)
+    domain_id: Int = Field(Ros2Options.domain_id, ge=0, le=MAX_DOMAIN_ID)
     per_run_domain: bool = True
-    interface: str = Field("127.0.0.1", min_length=1)
-    peers: list[str] = Field(default_factory=lambda: ["127.0.0.1"])
-    multicast: bool = False
-    lease_ms: Int = Field(1000, ge=100, le=600_000)
-    clock: Literal["sim", "system"] = "sim"
+    interface: str = Field(Ros2Options.interface, min_length=1)
+    peers: list[str] = Field(default_factory=lambda: list(Ros2Options.peers))
+    multicast: bool = Ros2Options.multicast
+    lease_ms: Int = Field(Ros2Options.lease_ms, ge=100, le=600_000)
+    clock: Literal["sim", "system"] = Ros2Options.clock
     topics: Ros2Topics = Field(default_factory=Ros2Topics)
-    base_frame: str = Field("base_link", min_length=1)
-    camera_frame: str = Field("camera_link", min_length=1)
-    optical_frame: str = Field("camera_optical_frame", min_length=1)
+    base_frame: str = Field(Ros2Options.base_frame, min_length=1)
+    camera_frame: str = Field(Ros2Options.camera_frame, min_length=1)
+    optical_frame: str = Field(Ros2Options.optical_frame, min_length=1)
     qos: Ros2QosConfig = Field(default_factory=Ros2QosConfig)
-    max_accel_mps2: Float = Field(3.0, gt=0, le=100)
-    max_decel_mps2: Float = Field(8.0, gt=0, le=100)
-    speed_gain_per_s: Float = Field(1.0, gt=0, le=100)
-    stop_speed_mps: Float = Field(0.05, ge=0, le=10)
+    max_accel_mps2: Float = Field(DriveLimits.max_accel_mps2, gt=0, le=100)
+    max_decel_mps2: Float = Field(DriveLimits.max_decel_mps2, gt=0, le=100)
+    speed_gain_per_s: Float = Field(DriveLimits.speed_gain_per_s, gt=0, le=100)
+    stop_speed_mps: Float = Field(DriveLimits.stop_speed_mps, ge=0, le=10)
 
 
 class LinkFaults(BaseModel):

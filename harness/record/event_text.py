@@ -17,7 +17,7 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from hil.adapters.messages import DrivingState
+from hil.adapters.wire.messages import DrivingState
 
 #: Fields every event carries; :func:`event_line` writes them in its own words.
 _CORE = ("kind", "vehicle", "frame_ids", "sim_time_ns", "harness_time_ns", "measured", "threshold", "unit",

@@ -8,14 +8,14 @@ Humble reads; newer releases read it too). It is written beside ``run.mcap`` aft
 the run, as the corner-case windows are, so the recording on the run's hot path and
 every reader of ``run.mcap`` stay as they were.
 
-Topics, per vehicle ``V`` (messages: hil.adapters.ros2_msgs, same bytes as the ros2
+Topics, per vehicle ``V`` (messages: hil.adapters.ros2.msgs, same bytes as the ros2
 transport's): ``/V/camera/image_raw/compressed`` (``CompressedImage``, jpeg runs) or
 ``/V/camera/image_raw`` (``Image``), ``/V/camera/camera_info``, ``/V/vehicle/twist``
 (the true ego speed), ``/V/control`` (``AckermannDriveStamped``), ``/V/detections``
 (``Detection2DArray``) and ``/V/driving_state`` (``std_msgs/String``: SAFE, SLOW,
 STOP); shared: ``/tf`` (``world`` -> every entity, at each ground-truth instant) and
 ``/tf_static`` (``V`` -> ``V/camera_link`` -> ``V/camera_optical_frame``, transient
-local). Estimates map as the ros2 transport reads them (hil.adapters.ros2_answers).
+local). Estimates map as the ros2 transport reads them (hil.adapters.ros2.answers).
 
 Times, all on the run's wall-clock timeline (the recorder's ``time_anchor``):
 ``header.stamp`` is the instant the data shows, the exposure instant t_state of the
@@ -40,13 +40,12 @@ from typing import Any
 
 import yaml
 
-from hil.adapters import ros2_cdr
-from hil.adapters.messages import Control, DetectedObject, DrivingState, ObjectClass
-from hil.adapters.ros2_answers import (OPTICAL_Q, DriveMapping, camera_info_of, detections_of, mount_quaternion,
-                                       stamp_of)
-from hil.adapters.ros2_msgs import (AckermannDriveStamped, CompressedImage, Header, Image, Quaternion, String,
+from hil.adapters.ros2 import cdr as ros2_cdr
+from hil.adapters.ros2.answers import OPTICAL_Q, DriveMapping, camera_info_of, detections_of, mount_quaternion, stamp_of
+from hil.adapters.ros2.msgs import (AckermannDriveStamped, CompressedImage, Header, Image, Quaternion, String,
                                     TFMessage, Transform, TransformStamped, Twist, TwistStamped, Vector3,
                                     msg_definitions, ros_name)
+from hil.adapters.wire.messages import Control, DetectedObject, DrivingState, ObjectClass
 from hil.common.errors import ConfigError
 from hil.harness.record.recorder import iter_salvaged_messages
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from hil.adapters.messages import CameraInfo
+from hil.adapters.wire.messages import CameraInfo
 from hil.harness.config.model import RunConfig
 from hil.harness.engine.analysis import AnalysisThread
 from hil.harness.run.loop import SimLoop

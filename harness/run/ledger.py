@@ -19,7 +19,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
-from hil.adapters.messages import Estimate
+from hil.adapters.wire.messages import Estimate
 from hil.harness.engine.messages import ApplyControl
 from hil.harness.run.vehicle_state import InFlight, VehicleRun
 

@@ -1,15 +1,25 @@
 """What a run's config says about one vehicle's link: the target's command line, the
-Zenoh key prefix and the TCP token of the run, each transport's link options, and the
-link faults to inject. Shared by the per-vehicle launch (``target_launch``) and the shared target."""
+transport's options model built from its ``target.<transport>`` section (one function
+per transport, in ``LINK_OPTIONS``; the run's own keys, token, credentials and domain
+come from the model's ``for_run``), and the link faults to inject. Shared by the
+per-vehicle launch (``target_launch``) and the shared target."""
 
 from __future__ import annotations
 
-import secrets
+import math
+from collections.abc import Callable
 
+from hil.adapters.can.options import CanOptions
 from hil.adapters.link import Link
+from hil.adapters.local.options import LocalOptions
+from hil.adapters.mixed.options import MixedOptions
+from hil.adapters.ros2.options import DriveLimits, QosProfile, Ros2Options, Topics, check_domain
+from hil.adapters.tcp.options import TcpOptions
+from hil.adapters.transports import TransportOptions
+from hil.adapters.zenoh.options import ZenohOptions
 from hil.common.errors import ConfigError
 from hil.harness.config.model import RunConfig, Transport
-from hil.harness.config.target import TcpAuth, substitute
+from hil.harness.config.target import TcpAuth, TcpMode, substitute
 from hil.timing.clock import Clock
 
 
@@ -20,143 +30,117 @@ def target_command(cfg: RunConfig, *, vehicle_id: int = 0) -> list[str]:
             for w in [*cfg.target.command, *cfg.target.args]]
 
 
-def run_key_prefix(cfg: RunConfig, session: str | None) -> str:
-    """The Zenoh key prefix of this run: ``<key_prefix>/run-<session>`` when the harness
-    starts the target itself (``target.zenoh.per_run_keys``), else ``key_prefix``."""
-    z = cfg.target.zenoh
-    if session and cfg.target.command and z.per_run_keys:
-        return f"{z.key_prefix}/run-{session}"
-    return z.key_prefix
+def _started(cfg: RunConfig, session: str | None) -> str | None:
+    """The run's session nonce when the harness starts the target itself, else None."""
+    return session if session and cfg.target.command else None
 
 
-def run_credentials(cfg: RunConfig, session: str | None, vehicle_id: int) -> tuple[str, str] | None:
-    """This run's own Zenoh user and password for a target the harness starts
-    (``target.zenoh.per_run_auth``), or None. The password is fresh randomness, never
-    the session nonce (which summary.json shows)."""
-    z = cfg.target.zenoh
-    if not (z.per_run_auth and z.auth is None and run_key_prefix(cfg, session) != z.key_prefix):
-        return None
-    return f"hil-{session}-v{vehicle_id}", secrets.token_urlsafe(24)
+def local_options(cfg: RunConfig, *, vehicle_id: int, session: str | None = None) -> LocalOptions:
+    """The local link's options: its defaults (no config section; ``target.command`` is the link's own)."""
+    return LocalOptions()
 
 
-def zenoh_options(cfg: RunConfig, vehicle_id: int, session: str | None = None,
-                  credentials: tuple[str, str] | None = None) -> dict[str, object]:
-    """Keyword options of the Zenoh link of one vehicle (``target.zenoh``);
-    ``credentials``: the run's own (``run_credentials``)."""
-    from hil.adapters.zenoh_options import run_usrpwd
-
-    z = cfg.target.zenoh
-    auth = run_usrpwd(*credentials) if credentials else z.auth.usrpwd() if z.auth else None
-    return {"connect": [substitute(e, vehicle_id=vehicle_id, base_port=z.base_port) for e in z.connect],
-            "listen": [substitute(e, vehicle_id=vehicle_id, base_port=z.base_port) for e in z.listen],
-            "mode": z.mode.value, "key_prefix": run_key_prefix(cfg, session), "multicast_scouting": z.multicast_scouting,
-            "congestion_control": z.congestion_control.value, "lease_ms": z.lease_ms,
-            "tls": dict(z.tls) if z.tls else None, **({"usrpwd": auth} if auth else {})}
-
-
-def ros2_domain(cfg: RunConfig, vehicle_id: int, session: str | None = None) -> int:
-    """The DDS domain of vehicle ``vehicle_id``'s node: this run's own when the harness
-    starts the node (``target.ros2.per_run_domain``), else ``domain_id + vehicle_id``.
+def zenoh_options(cfg: RunConfig, *, vehicle_id: int, session: str | None = None) -> ZenohOptions:
+    """The Zenoh options of one vehicle (``target.zenoh``): with ``session``, for a
+    target the harness starts, keys under ``<key_prefix>/run-<session>``
+    (``per_run_keys``) and user/password of the run's own (``per_run_auth``, where
+    ``auth`` gives none).
 
     Raises:
-        ConfigError: the domain is past 232.
+        ConfigError: ``target.zenoh.auth``'s password is not in its environment variable.
     """
-    from hil.adapters.ros2_options import check_domain, per_run_domain
-
-    r = cfg.target.ros2
-    if session and cfg.target.command and r.per_run_domain:
-        return per_run_domain(session, vehicle_id)
-    try:
-        return check_domain(r.domain_id + vehicle_id)
-    except ConfigError as err:
-        raise ConfigError(f"target.ros2.domain_id: {r.domain_id} + vehicle {vehicle_id} is past 232 ({err})") from None
-
-
-def ros2_topics(cfg: RunConfig, vehicle_id: int) -> dict[str, str]:
-    """The run's ROS 2 topics by role (``target.ros2.topics``, ``{vehicle_id}`` filled)."""
-    t = cfg.target.ros2.topics
-    image = t.image or ("/camera/image_raw/compressed" if ros2_compressed(cfg) else "/camera/image_raw")
-    out = {"image": image, "camera_info": t.camera_info, "speed": t.speed, "clock": t.clock, "control": t.control,
-           "detections": t.detections}
-    return {k: substitute(v, vehicle_id=vehicle_id, base_port=0) for k, v in out.items()}
+    z = cfg.target.zenoh
+    options = ZenohOptions(
+        connect=tuple(substitute(e, vehicle_id=vehicle_id, base_port=z.base_port) for e in z.connect),
+        listen=tuple(substitute(e, vehicle_id=vehicle_id, base_port=z.base_port) for e in z.listen),
+        mode=z.mode.value, key_prefix=z.key_prefix, multicast_scouting=z.multicast_scouting,
+        congestion_control=z.congestion_control.value, lease_ms=z.lease_ms, tls=dict(z.tls) if z.tls else None,
+        usrpwd=z.auth.usrpwd() if z.auth else None)
+    run = _started(cfg, session)
+    if run is not None and z.per_run_keys:  # a third peer gets no session
+        options = options.for_run(session=run, vehicle_id=vehicle_id, credentials=z.per_run_auth and z.auth is None)
+    return options
 
 
-def ros2_compressed(cfg: RunConfig) -> bool:
-    """Frames go out as ``CompressedImage`` (JPEG), else as ``Image``."""
-    return cfg.camera.encoding.value == "jpeg"
-
-
-def ros2_options(cfg: RunConfig, vehicle_id: int, session: str | None = None) -> dict[str, object]:
-    """Keyword options of the ROS 2 link of one vehicle (``target.ros2``)."""
-    import math
-
-    from hil.adapters.ros2_answers import DriveMapping
-    from hil.adapters.ros2_options import QosProfile
-
-    r, cam = cfg.target.ros2, cfg.camera
-    topics = ros2_topics(cfg, vehicle_id)
-    return {"domain_id": ros2_domain(cfg, vehicle_id, session), "interface": r.interface, "peers": tuple(r.peers),
-            "multicast": r.multicast, "lease_ms": r.lease_ms, "clock_mode": r.clock,
-            "compressed": ros2_compressed(cfg), "image_topic": topics["image"],
-            "camera_info_topic": topics["camera_info"], "speed_topic": topics["speed"], "clock_topic": topics["clock"],
-            "control_topic": topics["control"], "detections_topic": topics["detections"],
-            "base_frame": r.base_frame, "camera_frame": r.camera_frame, "optical_frame": r.optical_frame,
-            "mount": (cam.mount_forward_m, cam.mount_lateral_m, cam.mount_height_m, math.radians(cam.pitch_deg),
-                      math.radians(cam.yaw_deg)),
-            "image_qos": QosProfile(**r.qos.images.model_dump()), "reply_qos": QosProfile(**r.qos.answers.model_dump()),
-            "mapping": DriveMapping(max_accel_mps2=r.max_accel_mps2, max_decel_mps2=r.max_decel_mps2,
-                                    speed_gain_per_s=r.speed_gain_per_s, stop_speed_mps=r.stop_speed_mps)}
-
-
-def ros2_node_env(cfg: RunConfig, vehicle_id: int, session: str | None = None) -> dict[str, str]:
-    """Environment of a ROS 2 node the harness starts: its domain, Cyclone's loopback
-    configuration, and the run's topics for the SDK's ros2 target (``HIL_ROS2_TOPICS``;
-    a ROS 2 node is remapped by its own launch arguments instead)."""
-    import json
-
-    from hil.adapters.ros2_options import cyclone_xml, node_env
-
-    r = cfg.target.ros2
-    topics = ros2_topics(cfg, vehicle_id)
-    image_role = "compressed_image" if ros2_compressed(cfg) else "image"
-    node = {image_role: topics["image"], **{k: topics[k] for k in ("camera_info", "speed", "control", "detections")}}
-    xml = cyclone_xml(interface=r.interface, peers=tuple(r.peers), multicast=r.multicast, lease_ms=r.lease_ms)
-    return {**node_env(ros2_domain(cfg, vehicle_id, session), xml), "HIL_ROS2_TOPICS": json.dumps(node)}
-
-
-def tcp_token(cfg: RunConfig) -> str | None:
-    """The token a TCP target must prove (PROTOCOL.md 4.8): the one in
-    ``target.tcp.token_env``, else a fresh per-run secret when the harness starts the
-    target itself, else None (``target.tcp.auth: none``: always None).
+def tcp_options(cfg: RunConfig, *, vehicle_id: int, session: str | None = None) -> TcpOptions:
+    """The TCP options of one vehicle (``target.tcp``): the address to dial or listen on, receipt
+    stamps, the expected name, and the token a target must prove (PROTOCOL.md 4.8):
+    the one in ``token_env``, else a fresh per-run secret when the harness starts the
+    target itself, else none (``auth: none``: never one).
 
     Raises:
         ConfigError: ``token_env`` names an unset variable, or a token under 16 bytes.
     """
-    from hil.adapters.auth import new_token, token_from_env
-
     tc = cfg.target.tcp
+    address = substitute(tc.address, vehicle_id=vehicle_id, base_port=tc.base_port)
+    dial = tc.mode == TcpMode.CONNECT
+    options = TcpOptions(connect=address if dial else None, listen=None if dial else address,
+                         kernel_stamps=tc.kernel_stamps, expect_name=cfg.target.expect_name)
     if tc.auth == TcpAuth.NONE:
-        return None
-    if tc.token_env:
-        raw = token_from_env(tc.token_env, field="target.tcp.token_env", required=True)
-        assert raw is not None
-        return raw.decode("utf-8")
-    return new_token() if cfg.target.command else None
+        return options
+    return options.for_run(started=bool(cfg.target.command), token_env=tc.token_env, field="target.tcp.token_env")
 
 
-def tcp_options(cfg: RunConfig, vehicle_id: int, token: str | None) -> dict[str, object]:
-    """Keyword options of the TCP link of one vehicle (``target.tcp``): ``{mode: address}``
-    as ``hil.adapters.tcp.TcpLink`` takes it, the token and the expected name."""
-    tc = cfg.target.tcp
-    return {tc.mode.value: substitute(tc.address, vehicle_id=vehicle_id, base_port=tc.base_port),
-            "kernel_stamps": tc.kernel_stamps, "token": token, "expect_name": cfg.target.expect_name}
-
-
-def can_options(cfg: RunConfig, vehicle_id: int) -> dict[str, object]:
-    """Keyword options of the CAN link of one vehicle (``target.can``)."""
+def can_options(cfg: RunConfig, *, vehicle_id: int, session: str | None = None) -> CanOptions:
+    """The CAN options of one vehicle (``target.can``)."""
     c = cfg.target.can
-    return {"interface": c.interface, "channel": substitute(c.channel, vehicle_id=vehicle_id, base_port=0),
-            "bitrate": c.bitrate, "data_bitrate": c.data_bitrate}
+    return CanOptions(interface=c.interface, channel=substitute(c.channel, vehicle_id=vehicle_id, base_port=0),
+                      bitrate=c.bitrate, data_bitrate=c.data_bitrate, camera_over=c.camera_over)
+
+
+def mixed_options(cfg: RunConfig, *, vehicle_id: int, session: str | None = None) -> MixedOptions:
+    """A mixed target's: frames over ``target.zenoh``, the rest over ``target.can``."""
+    return MixedOptions(zenoh=zenoh_options(cfg, vehicle_id=vehicle_id, session=session),
+                        can=can_options(cfg, vehicle_id=vehicle_id))
+
+
+def ros2_options(cfg: RunConfig, *, vehicle_id: int, session: str | None = None) -> Ros2Options:
+    """The ROS 2 options of one vehicle (``target.ros2``, and the camera's encoding and
+    mount): its node's DDS domain is this run's own when the harness starts the node
+    (``per_run_domain``), else ``domain_id + vehicle_id``.
+
+    Raises:
+        ConfigError: the domain is past 232.
+    """
+    r, cam = cfg.target.ros2, cfg.camera
+    topics = Topics(**{role: substitute(name or "", vehicle_id=vehicle_id, base_port=0)
+                       for role, name in r.topics.model_dump().items()})
+    run = _started(cfg, session)
+    domain = r.domain_id + vehicle_id
+    if run is None or not r.per_run_domain:
+        try:
+            check_domain(domain)
+        except ConfigError as err:
+            raise ConfigError(f"target.ros2.domain_id: {r.domain_id} + vehicle {vehicle_id} is past 232 "
+                              f"({err})") from None
+    options = Ros2Options(
+        domain_id=domain, interface=r.interface, peers=tuple(r.peers), multicast=r.multicast, lease_ms=r.lease_ms,
+        clock=r.clock, compressed=cam.encoding.value == "jpeg", topics=topics, base_frame=r.base_frame,
+        camera_frame=r.camera_frame, optical_frame=r.optical_frame,
+        mount=(cam.mount_forward_m, cam.mount_lateral_m, cam.mount_height_m, math.radians(cam.pitch_deg),
+               math.radians(cam.yaw_deg)),
+        image_qos=QosProfile(**r.qos.images.model_dump()), reply_qos=QosProfile(**r.qos.answers.model_dump()),
+        drive=DriveLimits(max_accel_mps2=r.max_accel_mps2, max_decel_mps2=r.max_decel_mps2,
+                          speed_gain_per_s=r.speed_gain_per_s, stop_speed_mps=r.stop_speed_mps))
+    return options.for_run(session=run, vehicle_id=vehicle_id) if run is not None and r.per_run_domain else options
+
+
+# One function per transport: its config section -> its options model (transports.options_class).
+LINK_OPTIONS: dict[Transport, Callable[..., TransportOptions]] = {
+    Transport.LOCAL: local_options, Transport.ZENOH: zenoh_options, Transport.CAN: can_options,
+    Transport.MIXED: mixed_options, Transport.TCP: tcp_options, Transport.ROS2: ros2_options,
+}
+
+
+def link_options(cfg: RunConfig, *, vehicle_id: int, session: str | None = None) -> TransportOptions:
+    """The options model of ``cfg.target.transport`` for vehicle ``vehicle_id`` of the
+    run with nonce ``session`` (``LINK_OPTIONS``).
+
+    Raises:
+        ConfigError: an option the config could not check alone is unusable (a
+            password or token not in its environment variable, a domain past 232).
+    """
+    return LINK_OPTIONS[cfg.target.transport](cfg, vehicle_id=vehicle_id, session=session)
 
 
 def impair(cfg: RunConfig, link: Link, *, vehicle_id: int, clock: Clock) -> None:

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.adapters.messages import ImageEncoding
+from hil.adapters.wire.messages import ImageEncoding
 from hil.harness.config.model import CameraConfig, Encoding, Mode, RunConfig
 from hil.harness.engine.physics import PhysicsSpec, spread_phases
 from hil.harness.engine.procs import physics_core

@@ -25,8 +25,8 @@ from collections.abc import Callable
 from typing import Any
 
 from hil.adapters.link import ProtocolFault, Received
-from hil.adapters.messages import CameraInfo, Command, ErrorMsg, Estimate, ImageEncoding
-from hil.adapters.protocol import ErrorCode
+from hil.adapters.wire.messages import CameraInfo, Command, ErrorMsg, Estimate, ImageEncoding
+from hil.adapters.wire.protocol import ErrorCode
 from hil.common.errors import TransportError
 from hil.harness.analysis.events import Event, EventBus, EventKind
 from hil.harness.config.model import Encoding, Mode, RunConfig

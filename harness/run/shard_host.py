@@ -108,7 +108,7 @@ class ShardHost:
 
     def _build(self, start: ShardStart, warmup: dict[str, list[Any]]) -> None:
         from hil.adapters.impair import record_on
-        from hil.adapters.messages import CameraInfo
+        from hil.adapters.wire.messages import CameraInfo
         from hil.harness.analysis.detector_observer import DetectorObserver
         from hil.harness.analysis.timing_observer import TimingObserver
         from hil.harness.config.model import dump_config

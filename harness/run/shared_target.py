@@ -2,7 +2,7 @@
 every vehicle of the run, which batches their frames (``hil.adapters.batching``).
 
 * ``transport: local``: the first vehicle's link starts the program once
-  (``hil.adapters.shared_local.SharedLocalTarget``); every vehicle's link hands it its
+  (``hil.adapters.local.shared_link.SharedLocalTarget``); every vehicle's link hands it its
   own socket (and frame ring) over a control socket, so each vehicle keeps its own
   session with PROTOCOL.md's framing.
 * ``transport: zenoh``: every vehicle's link joins the same endpoints (``{port}``
@@ -26,8 +26,8 @@ from pathlib import Path
 
 from hil.adapters.batching import ENV_BATCH_LOG
 from hil.adapters.link import Link, Received, open_link
+from hil.adapters.local.shared_link import SharedLocalLink, SharedLocalTarget
 from hil.adapters.process import die_with_parent
-from hil.adapters.shared_local import SharedLocalLink, SharedLocalTarget
 from hil.common.errors import TargetError
 from hil.harness.config.model import RunConfig, Transport
 from hil.harness.run.link_options import impair, target_command, zenoh_options
@@ -118,7 +118,8 @@ def shared_link(cfg: RunConfig, *, vehicle_id: int, clock: Clock, out_dir: Path,
             assert host is not None
             link: Link = SharedLocalLink(host=host, vehicle_id=vehicle_id, clock=clock, rx_queue=rx)
         else:  # zenoh: one set of endpoints (vehicle 0's), each vehicle its own keys
-            link = open_link("zenoh", vehicle_id=vehicle_id, clock=clock, rx_queue=rx, **zenoh_options(cfg, 0))
+            link = open_link(Transport.ZENOH, vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
+                             options=zenoh_options(cfg, vehicle_id=0))
         impair(cfg, link, vehicle_id=vehicle_id, clock=clock)  # target.impair applies per vehicle as usual
     except BaseException:
         if owned is not None:

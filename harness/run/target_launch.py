@@ -14,12 +14,9 @@ from typing import Any
 
 from hil.adapters.link import Link, Received, open_link
 from hil.adapters.process import die_with_parent, end_process
-from hil.adapters.zenoh_options import AUTH_ENV
 from hil.common.errors import TargetError, TransportError
 from hil.harness.config.model import RunConfig, Transport
-from hil.adapters.auth import ENV_TOKEN
-from hil.harness.run.link_options import (can_options, impair, ros2_node_env, ros2_options, run_credentials,
-                                         run_key_prefix, target_command, tcp_options, tcp_token, zenoh_options)
+from hil.harness.run.link_options import impair, link_options, target_command
 from hil.timing.clock import Clock
 
 SYNC_WARMUP_SAMPLES = 8  # clock-sync exchanges each link makes before the run
@@ -92,9 +89,10 @@ def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, ou
               rx: queue.Queue[Received] | None = None, session: str | None = None,
               can_tap: Callable[[Any, int, bool], None] | None = None) -> tuple[Link, TargetProcess | None]:
     """Build (not open) the link of one vehicle, starting its local target process
-    first where a network transport has a ``command``. A ``mixed`` target takes
-    frames over ``target.zenoh`` and answers over ``target.can``; ``can_tap`` sees
-    every CAN frame of a ``can`` or ``mixed`` link (the run's bus log).
+    first where a network transport has a ``command``: the transport's options model
+    from its config section (``link_options``), opened by ``open_link``. A ``mixed``
+    target takes frames over ``target.zenoh`` and answers over ``target.can``;
+    ``can_tap`` sees every CAN frame of a ``can`` or ``mixed`` link (the run's bus log).
 
     Raises:
         TargetError: the command cannot be started.
@@ -106,40 +104,22 @@ def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, ou
 
         return shared_link(cfg, vehicle_id=vehicle_id, clock=clock, out_dir=out_dir, rx=rx)  # type: ignore[return-value]
     log = out_dir / f"target-{vehicle}.log"
-    if t.transport == Transport.LOCAL:
-        link = open_link("local", command=target_command(cfg, vehicle_id=vehicle_id), vehicle_id=vehicle_id,
-                         clock=clock, log_path=log, rx_queue=rx)
+    options = link_options(cfg, vehicle_id=vehicle_id, session=session)  # the run's own keys, token, domain
+    if t.transport == Transport.LOCAL:  # the link starts its target itself
+        link = open_link(t.transport, vehicle_id=vehicle_id, clock=clock, rx_queue=rx, options=options,
+                         command=target_command(cfg, vehicle_id=vehicle_id), log_path=log)
         impair(cfg, link, vehicle_id=vehicle_id, clock=clock)
         return link, None
-    env = {"HIL_SESSION": session} if session else {}
-    creds = None
-    if t.transport in (Transport.ZENOH, Transport.MIXED):
-        env["HIL_ZENOH_KEY_PREFIX"] = run_key_prefix(cfg, session)
-        creds = run_credentials(cfg, session, vehicle_id)  # a third peer gets no session
-        if creds is not None:
-            env[AUTH_ENV] = ":".join(creds)
-    elif t.transport == Transport.ROS2:  # its own domain, Cyclone on loopback, the run's topics
-        env.update(ros2_node_env(cfg, vehicle_id, session))
-    token = tcp_token(cfg) if t.transport == Transport.TCP else None
-    if token is not None:  # the target proves it holds this (PROTOCOL.md 4.8); never recorded
-        env[ENV_TOKEN] = token
+    # What the target is told (its run's keys, credentials, token, DDS domain; never recorded).
+    env = {**({"HIL_SESSION": session} if session else {}), **options.child_env()}
     proc = TargetProcess(target_command(cfg, vehicle_id=vehicle_id), log_path=log, env=env) if t.command else None
+    # The run's hooks a link takes besides its options: the bus log of a CAN bus, and for
+    # tcp, to stop waiting once the target this run started is gone.
+    hooks: dict[Transport, dict[str, object]] = {Transport.TCP: {"abandon": _exited(proc)},
+                                                 Transport.CAN: {"tap": can_tap}, Transport.MIXED: {"tap": can_tap}}
     try:
-        if t.transport == Transport.ZENOH:
-            link = open_link("zenoh", vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
-                             **zenoh_options(cfg, vehicle_id, session, creds))
-        elif t.transport == Transport.TCP:  # only the target that proves the token (or names itself as expected)
-            link = open_link("tcp", vehicle_id=vehicle_id, clock=clock, rx_queue=rx, abandon=_exited(proc),
-                             **tcp_options(cfg, vehicle_id, token))
-        elif t.transport == Transport.ROS2:  # target.ros2: a ROS 2 node over Cyclone DDS
-            link = open_link("ros2", vehicle_id=vehicle_id, clock=clock, rx_queue=rx,
-                             **ros2_options(cfg, vehicle_id, session))
-        elif t.transport == Transport.MIXED:  # frames over target.zenoh, the rest over target.can
-            link = open_link("mixed", vehicle_id=vehicle_id, clock=clock, rx_queue=rx, tap=can_tap,
-                             **zenoh_options(cfg, vehicle_id, session, creds), **can_options(cfg, vehicle_id))
-        else:
-            link = open_link("can", vehicle_id=vehicle_id, clock=clock, camera_over=t.can.camera_over, rx_queue=rx,
-                             tap=can_tap, **can_options(cfg, vehicle_id))
+        link = open_link(t.transport, vehicle_id=vehicle_id, clock=clock, rx_queue=rx, options=options,
+                         **hooks.get(t.transport, {}))
     except BaseException:
         if proc is not None:
             proc.close()
@@ -246,7 +226,7 @@ def can_preflight(cfg: RunConfig, *, frame_bytes: int) -> str:
     Raises:
         ConfigError: ``camera.fps`` asks for more than the bus carries.
     """
-    from hil.adapters.can_capacity import bus_capacity
+    from hil.adapters.can.capacity import bus_capacity
 
     c = cfg.target.can
     report = bus_capacity(bitrate=c.bitrate, data_bitrate=c.data_bitrate, fd=True, frame_bytes=frame_bytes,

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.adapters.messages import Estimate
+from hil.adapters.wire.messages import Estimate
 from hil.harness.analysis.events import Event, EventBus, EventKind
 from hil.harness.analysis.observers import RunObserver
 from hil.harness.record import foxglove_out

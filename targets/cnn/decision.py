@@ -35,7 +35,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from hil.adapters.messages import DetectedObject, DrivingState, ObjectClass
+from hil.adapters.wire.messages import DetectedObject, DrivingState, ObjectClass
 from hil.targets.cnn.geometry import PRIORS
 from hil.targets.cv_baseline import CAMERA_TO_CENTRE_M, WHEELBASE_M, CvBaseline
 

@@ -16,7 +16,7 @@ import signal
 import sys
 from collections.abc import Sequence
 
-from hil.adapters.messages import CameraInfo, Frame, ImageEncoding
+from hil.adapters.wire.messages import CameraInfo, Frame, ImageEncoding
 from hil.common.errors import ProtocolError
 from hil.targets.cnn import pool
 

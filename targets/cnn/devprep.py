@@ -27,7 +27,7 @@ from collections.abc import Callable, Sequence
 
 import torch
 
-from hil.adapters.messages import Frame, ImageEncoding
+from hil.adapters.wire.messages import Frame, ImageEncoding
 from hil.common.errors import ProtocolError
 from hil.targets.cnn.preprocess import DET_H, DET_W, STEER_H, STEER_W, steering_crop_rows
 

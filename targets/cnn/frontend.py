@@ -27,7 +27,7 @@ from collections.abc import Callable, Collection, Sequence
 import cv2
 import numpy as np
 
-from hil.adapters.messages import CameraInfo, Frame, ImageEncoding
+from hil.adapters.wire.messages import CameraInfo, Frame, ImageEncoding
 from hil.targets.cnn.pool import NETS, Layout, Pool, PoolError, ProcessPool, ThreadPool, prepare_into
 
 AUTO_GAIN = 0.2  # the pool must decode a batch this much faster than the process alone

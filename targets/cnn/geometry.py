@@ -35,7 +35,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from hil.adapters.messages import CameraInfo, ObjectClass
+from hil.adapters.wire.messages import CameraInfo, ObjectClass
 from hil.targets.cv_baseline import ground_x  # one ground-plane projection for both AIs
 
 SIGMA_PX = 1.0  # box edge error assumed, px

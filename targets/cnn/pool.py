@@ -37,9 +37,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.adapters.messages import Frame
 from hil.adapters.process import die_with_parent, end_process
 from hil.adapters.sdk import decode_image
+from hil.adapters.wire.messages import Frame
 from hil.common.errors import ProtocolError
 from hil.targets.cnn.preprocess import DET_H, DET_W, STEER_H, STEER_W, detector_input, steering_input
 

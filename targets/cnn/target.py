@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.adapters.messages import Control, DetectedObject, Frame, ImageEncoding, Inference
+from hil.adapters.wire.messages import Control, DetectedObject, Frame, ImageEncoding, Inference
 from hil.common.classes import DETECTABLE
 from hil.targets.cnn import commands
 from hil.targets.cnn.decision import Policy, decide, in_path, nearest_in_path

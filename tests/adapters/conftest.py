@@ -2,7 +2,7 @@
 
 A pair factory opens a harness-side ``Link`` (HELLO received) to a real target
 running the SDK's echo target, and closes everything it started. Each transport
-contributes its factory in its own module ``tests/adapters/pair_<name>.py`` exposing
+contributes its factory in its own module ``tests/adapters/<name>/pair.py`` exposing
 ``PAIR_FACTORY`` (a context-manager function ``(tmp_path, echo_args) -> Link``) and
 optionally ``SKIP_REASON`` (a string when the transport cannot run here).
 """
@@ -38,9 +38,9 @@ def _factory(name: str):
     if name == "local":
         return local_pair, None
     try:
-        mod = importlib.import_module(f"tests.adapters.pair_{name}")
+        mod = importlib.import_module(f"tests.adapters.{name}.pair")
     except ModuleNotFoundError as err:
-        if err.name == f"tests.adapters.pair_{name}":
+        if err.name == f"tests.adapters.{name}.pair":
             return None, f"no {name} pair factory yet"
         raise
     return mod.PAIR_FACTORY, getattr(mod, "SKIP_REASON", None)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 
 from hil.adapters.link import Link
-from hil.adapters.messages import CameraInfo, Estimate, ImageEncoding
+from hil.adapters.wire.messages import CameraInfo, Estimate, ImageEncoding
 
 CAM = CameraInfo(277.0, 277.0, 160.0, 120.0, 1.3)
 

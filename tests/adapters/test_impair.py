@@ -14,10 +14,10 @@ from pathlib import Path
 
 import pytest
 
-from hil.adapters import protocol
 from hil.adapters.impair import Action, Impairment, LinkImpairment
 from hil.adapters.link import Received
-from hil.adapters.messages import Control, DrivingState, Estimate, SyncRequest
+from hil.adapters.wire import protocol
+from hil.adapters.wire.messages import Control, DrivingState, Estimate, SyncRequest
 from hil.timing.clock import MonotonicClock
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -56,7 +56,7 @@ def _sync_bytes(seq: int) -> bytes:
 
 def _frame_like(seq: int) -> bytes:
     # A COMMAND-sized message stands in for traffic; the stage only reads the header.
-    from hil.adapters.messages import Command
+    from hil.adapters.wire.messages import Command
     return protocol.encode(Command(0, seq, "x" * 100, 0))
 
 

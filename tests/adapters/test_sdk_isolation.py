@@ -27,7 +27,7 @@ BLOCKER = textwrap.dedent("""
 def test_sdk_imports_without_heavy_modules():
     code = BLOCKER + textwrap.dedent("""
         from hil.adapters.sdk import Endpoint, serve, decode_image
-        import hil.adapters.sdk, hil.adapters.protocol, hil.adapters.messages
+        import hil.adapters.sdk, hil.adapters.wire.protocol, hil.adapters.wire.messages
         loaded = sorted(m for m in sys.modules if m.split(".")[0] in BLOCKED)
         print("LOADED", loaded)
     """)
@@ -41,15 +41,15 @@ def test_blocked_sdk_serves_a_frame(tmp_path):
     # A target program using only the SDK, run by the real local link under the blocker.
     prog = tmp_path / "device_ai.py"
     prog.write_text(BLOCKER + textwrap.dedent("""
-        from hil.adapters.messages import Control, DrivingState, Inference
         from hil.adapters.sdk import decode_image, serve
+        from hil.adapters.wire.messages import Control, DrivingState, Inference
         def infer(frame):
             img = decode_image(frame)
             return Inference(DrivingState.STOP, Control(brake=float(img.mean()) / 255.0))
         serve(infer, target_name="device")
     """))
     from hil.adapters.link import open_link
-    from hil.adapters.messages import CameraInfo, Estimate, ImageEncoding
+    from hil.adapters.wire.messages import CameraInfo, Estimate, ImageEncoding
     from hil.timing.clock import MonotonicClock
 
     env = {"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"}

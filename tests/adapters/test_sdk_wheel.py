@@ -52,8 +52,14 @@ def test_wheel_holds_the_target_side_only(tmp_path):
     assert tops == {"hil/adapters", "hil/timing", "hil/common", "hil_target_sdk-0.1.0.dist-info/METADATA",
                     "hil_target_sdk-0.1.0.dist-info/WHEEL", "hil_target_sdk-0.1.0.dist-info/RECORD",
                     "hil_target_sdk-0.1.0.dist-info/top_level.txt"}
-    assert {"hil/adapters/sdk.py", "hil/adapters/tcp.py", "hil/adapters/hil.dbc", "hil/timing/clock.py",
-            "hil/common/errors.py"} <= set(names)
+    assert {"hil/adapters/sdk.py", "hil/adapters/tcp/link.py", "hil/adapters/can/hil.dbc", "hil/timing/clock.py",
+            "hil/common/errors.py", "hil/adapters/ros2/msg/vision_msgs/msg/Detection2D.msg"} <= set(names)
+    # Every package of the SDK's folders is listed in sdk/pyproject.toml, so the wheel has it whole.
+    packages = {"/".join(("hil", *p.relative_to(ROOT).parent.parts)) for folder in ("adapters", "timing", "common")
+                for p in (ROOT / folder).rglob("__init__.py")}
+    assert packages == {n.removesuffix("/__init__.py") for n in names if n.endswith("/__init__.py")}
+    for package in packages:
+        assert {f"{package}/{p.name}" for p in (ROOT / package.removeprefix("hil/")).glob("*.py")} <= set(names)
     assert not any(n.startswith("hil/__init__") for n in names)  # hil is a namespace shared with the harness
     required = [ln for ln in meta.splitlines() if ln.startswith("Requires-Dist:") and "extra ==" not in ln]
     assert required == ["Requires-Dist: numpy>=1.26,<2.5"]
@@ -70,7 +76,7 @@ def test_bad_out_is_one_line_and_exit_2(tmp_path):
 @pytest.mark.slow
 def test_fresh_venv_has_the_sdk_and_nothing_heavy(fresh_python, tmp_path):
     code = textwrap.dedent("""
-        import importlib, hil.adapters.sdk, hil.adapters.tcp, hil.adapters.local
+        import importlib, hil.adapters.sdk, hil.adapters.tcp.link, hil.adapters.local.link
         print("SDK", hil.adapters.sdk.__file__)
         for name in ("mujoco", "cv2", "pydantic", "scipy", "hil.harness", "hil.scenarios", "hil.targets", "zenoh", "can"):
             try:
@@ -94,8 +100,8 @@ def test_fresh_venv_serves_a_real_run(fresh_python, tmp_path):
 
     prog = tmp_path / "device_ai.py"
     prog.write_text(textwrap.dedent("""
-        from hil.adapters.messages import Control, DrivingState, Inference
         from hil.adapters.sdk import decode_image, serve
+        from hil.adapters.wire.messages import Control, DrivingState, Inference
 
         def infer(frame):
             img = decode_image(frame)

@@ -12,14 +12,15 @@ from pathlib import Path
 
 import pytest
 
-from hil.adapters import protocol
-from hil.adapters.messages import Bye, Inference
 from hil.adapters.sdk import Endpoint, serving, stop_on_sigterm
-from hil.adapters.tcp import TcpLink
+from hil.adapters.tcp.link import TcpLink
+from hil.adapters.tcp.options import TcpOptions
+from hil.adapters.wire import protocol
+from hil.adapters.wire.messages import Bye, Inference
 from hil.common.errors import TransportError
 from hil.timing.clock import MonotonicClock
-from tests.adapters.pair_tcp import tcp_echo
-from tests.adapters.pair_zenoh import free_port
+from tests.adapters.tcp.pair import tcp_echo
+from tests.adapters.zenoh.pair import free_port
 
 
 def _wait_gone(link, timeout_s: float) -> str:
@@ -32,7 +33,7 @@ def _wait_gone(link, timeout_s: float) -> str:
 def test_sigterm_makes_a_tcp_target_say_bye_and_exit_cleanly(tmp_path: Path) -> None:
     address = f"127.0.0.1:{free_port()}"
     with tcp_echo(tmp_path / "t.log", listen=address) as proc:
-        link = TcpLink(vehicle_id=0, clock=MonotonicClock(), connect=address)
+        link = TcpLink(vehicle_id=0, clock=MonotonicClock(), options=TcpOptions(connect=address))
         try:
             link.open(hello_timeout_s=20)
             proc.send_signal(signal.SIGTERM)  # the target is blocked in its read: no frame will wake it
@@ -107,11 +108,14 @@ def test_sigterm_makes_a_can_target_say_bye() -> None:
     pytest.importorskip("isotp")
     import can
 
-    from hil.adapters.can_transport import CanLink, serve_endpoint
+    from hil.adapters.can.link import CanLink
+    from hil.adapters.can.options import CanOptions
+    from hil.adapters.can.target import serve_endpoint
 
     channel = f"hil-serving-{uuid.uuid4().hex}"
     bus = can.Bus(interface="virtual", channel=channel, fd=True, ignore_config=True)
-    link = CanLink(vehicle_id=0, clock=MonotonicClock(), interface="virtual", channel=channel)
+    virtual = CanOptions(interface="virtual", channel=channel)
+    link = CanLink(vehicle_id=0, clock=MonotonicClock(), options=virtual)
     seen: list[str] = []
 
     def harness() -> None:
@@ -125,7 +129,7 @@ def test_sigterm_makes_a_can_target_say_bye() -> None:
     t = threading.Thread(target=harness, daemon=True)
     t.start()
     try:
-        serve_endpoint(_endpoint(), interface="virtual", channel=channel, bus=bus)  # returns on SIGTERM
+        serve_endpoint(_endpoint(), options=virtual, bus=bus)  # returns on SIGTERM
     finally:
         t.join(timeout=10)
         bus.shutdown()

@@ -19,12 +19,13 @@ from collections.abc import Iterator, Sequence
 
 import pytest
 
-from hil.adapters.messages import Control, DrivingState, Inference
 from hil.adapters.sdk import Endpoint
-from hil.adapters.tcp import TcpLink
+from hil.adapters.tcp.link import TcpLink
+from hil.adapters.tcp.options import TcpOptions
+from hil.adapters.wire.messages import Control, DrivingState, Inference
 from hil.timing.clock import MonotonicClock
-from tests.adapters.pair_zenoh import ROOT, free_port
 from tests.adapters.test_conformance import next_estimate, send_frame
+from tests.adapters.zenoh.pair import ROOT, free_port
 from tests.targets import c_build
 
 
@@ -78,7 +79,7 @@ def target(argv: Sequence[str], env: dict[str, str] | None = None) -> Iterator[L
 
 
 def _one_session(address: str) -> None:
-    link = TcpLink(vehicle_id=3, clock=MonotonicClock(), connect=address)
+    link = TcpLink(vehicle_id=3, clock=MonotonicClock(), options=TcpOptions(connect=address))
     try:
         link.open(hello_timeout_s=20)
         send_frame(link, 1)
@@ -128,7 +129,7 @@ def test_a_dialling_tcp_target_dials_again_after_each_run():
     with target([*HIL, "target", "echo", "--transport", "tcp", "--connect", address]) as t:
         assert "dialling the harness at" in t.expect("tcp target")
         for n in (1, 2):
-            link = TcpLink(vehicle_id=0, clock=MonotonicClock(), listen=address)
+            link = TcpLink(vehicle_id=0, clock=MonotonicClock(), options=TcpOptions(listen=address))
             try:
                 link.open(hello_timeout_s=20)
                 send_frame(link, 5)
@@ -190,9 +191,12 @@ def test_a_can_target_announces_itself_and_serves_run_after_run():
         pytest.skip("signals need the main thread")
     import can
 
-    from hil.adapters.can_transport import CanLink, serve_endpoint
+    from hil.adapters.can.link import CanLink
+    from hil.adapters.can.options import CanOptions
+    from hil.adapters.can.target import serve_endpoint
 
     channel = f"hil-programs-{uuid.uuid4().hex}"
+    virtual = CanOptions(interface="virtual", channel=channel)
     bus = can.Bus(interface="virtual", channel=channel, fd=True, ignore_config=True)
     said: queue.Queue[str] = queue.Queue()
     served: list[int] = []
@@ -201,7 +205,7 @@ def test_a_can_target_announces_itself_and_serves_run_after_run():
     def harnesses() -> None:
         try:
             for fid in (1, 2):
-                link = CanLink(vehicle_id=0, clock=MonotonicClock(), interface="virtual", channel=channel)
+                link = CanLink(vehicle_id=0, clock=MonotonicClock(), options=virtual)
                 try:
                     link.open(hello_timeout_s=10)
                     send_frame(link, fid)
@@ -218,7 +222,7 @@ def test_a_can_target_announces_itself_and_serves_run_after_run():
     t.start()
     ep = Endpoint(lambda frame: Inference(DrivingState.SAFE, Control()), target_name="can-echo")
     try:
-        serve_endpoint(ep, interface="virtual", channel=channel, bus=bus, keep_serving=True, announce=said.put)
+        serve_endpoint(ep, options=virtual, bus=bus, keep_serving=True, announce=said.put)
     finally:
         t.join(timeout=20)
         bus.shutdown()

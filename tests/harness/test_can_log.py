@@ -19,7 +19,7 @@ from mcap.reader import make_reader
 
 from hil.harness.config.model import load_config
 from hil.harness.run.driver import execute, prepare_out_dir
-from tests.adapters.pair_can import can_target
+from tests.adapters.can.pair import can_target
 from tests.conftest import GL_BACKEND
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -19,8 +19,8 @@ import yaml
 
 from hil.harness.report.ci_cases import of_calibrate, of_run, run_figures
 from hil.harness.report.ci_outputs import CiCase, CiReport, write_junit
-from tests.adapters.pair_tcp import tcp_echo
-from tests.adapters.pair_zenoh import free_port
+from tests.adapters.tcp.pair import tcp_echo
+from tests.adapters.zenoh.pair import free_port
 from tests.conftest import GL_BACKEND
 from tests.harness.junit_check import read_junit
 

@@ -7,10 +7,10 @@ import math
 
 import pytest
 
-from hil.adapters.messages import Control, DetectedObject, DrivingState, Estimate, ObjectClass
-from hil.harness.config.cases import DetectorSettings
+from hil.adapters.wire.messages import Control, DetectedObject, DrivingState, Estimate, ObjectClass
 from hil.harness.analysis.detector import (Cause, CornerCaseDetector, FrameTruth, MismatchKind,
                                            TruthObject, link_anomalies, match, nearest_point_in_camera_frame)
+from hil.harness.config.cases import DetectorSettings
 from hil.timing.anomaly import Anomaly, AnomalyKind, Severity
 
 S, W, P = DrivingState.SAFE, DrivingState.SLOW, DrivingState.STOP

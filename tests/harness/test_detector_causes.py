@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import math
 
-from hil.adapters.messages import Control, DetectedObject, DrivingState, Estimate, ObjectClass
-from hil.harness.config.cases import DetectorSettings
+from hil.adapters.wire.messages import Control, DetectedObject, DrivingState, Estimate, ObjectClass
 from hil.harness.analysis.detector import Cause, CornerCaseDetector, FrameTruth, Mismatch, MismatchKind, TruthObject
 from hil.harness.analysis.late_reaction import EgoView
+from hil.harness.config.cases import DetectorSettings
 from hil.timing.anomaly import Severity
 
 S, W, P = DrivingState.SAFE, DrivingState.SLOW, DrivingState.STOP

@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import pytest
 
-from hil.adapters.messages import Control, DrivingState, Estimate
+from hil.adapters.wire.messages import Control, DrivingState, Estimate
 from hil.harness.analysis.detector import MismatchKind
-from hil.harness.config.cases import DetectorSettings
 from hil.harness.analysis.detector_observer import DetectorObserver
+from hil.harness.config.cases import DetectorSettings
 from hil.harness.config.model import CameraConfig
 from hil import scenarios
 from hil.scenarios.ground_truth import CameraTruth, GroundTruth, RefStateRules

@@ -12,8 +12,8 @@ import pytest
 from hil.harness.cli import main as cli
 
 from hil.harness.check import target_check
-from tests.adapters.pair_tcp import tcp_echo
-from tests.adapters.pair_zenoh import free_port
+from tests.adapters.tcp.pair import tcp_echo
+from tests.adapters.zenoh.pair import free_port
 from tests.targets import c_build
 
 needs_cc = pytest.mark.skipif(c_build.unavailable() is not None, reason=str(c_build.unavailable()))

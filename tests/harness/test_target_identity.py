@@ -138,7 +138,10 @@ def test_the_tcp_token_of_a_run(monkeypatch):
     never the value); auth: none asks none."""
     from hil.common.errors import ConfigError
     from hil.harness.config.model import load_config
-    from hil.harness.run.link_options import tcp_token
+    from hil.harness.run.link_options import tcp_options
+
+    def tcp_token(cfg):
+        return tcp_options(cfg, vehicle_id=0).token
 
     cfg = ROOT / "hil_configs" / "tcp.yaml"
     a, b = tcp_token(load_config(cfg)), tcp_token(load_config(cfg))

@@ -13,11 +13,11 @@ from pathlib import Path
 
 import pytest
 
+from hil.common.errors import ConfigError
 from hil.harness.config.model import load_config
 from hil.harness.run.driver import execute, prepare_out_dir
-from tests.adapters.pair_can import can_target
+from tests.adapters.can.pair import can_target
 from tests.conftest import GL_BACKEND, read_mcap
-from hil.common.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
 

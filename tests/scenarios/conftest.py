@@ -58,7 +58,7 @@ def drive_with_baseline(sim: Any, *, duration_s: float, steps_per_frame: int = 2
                         cruise_speed_mps: float = 10.0) -> Drive:
     """Closed loop in one process: every ``steps_per_frame`` physics steps each ego's
     camera is JPEG-encoded, the baseline infers and its control is applied."""
-    from hil.adapters.messages import CameraInfo, Frame, ImageEncoding
+    from hil.adapters.wire.messages import CameraInfo, Frame, ImageEncoding
     from hil.targets.cv_baseline import CvBaseline
 
     k = sim.intrinsics()

@@ -15,14 +15,15 @@ from pathlib import Path
 
 import pytest
 
-from hil.adapters import protocol
 from hil.adapters.link import Link
-from hil.adapters.local import LocalLink
-from hil.adapters.messages import (Bye, CameraInfo, ClockId, Command, Control, DrivingState, ErrorMsg, Estimate, Frame,
-                                   ImageEncoding, SyncRequest)
-from hil.adapters.tcp import TcpLink
-from tests.targets import c_build
+from hil.adapters.local.link import LocalLink
+from hil.adapters.tcp.link import TcpLink
+from hil.adapters.tcp.options import TcpOptions
+from hil.adapters.wire import protocol
+from hil.adapters.wire.messages import (Bye, CameraInfo, ClockId, Command, Control, DrivingState, ErrorMsg, Estimate,
+                                        Frame, ImageEncoding, SyncRequest)
 from hil.timing.clock import MonotonicClock
+from tests.targets import c_build
 
 pytestmark = pytest.mark.skipif(c_build.unavailable() is not None, reason=str(c_build.unavailable()))
 
@@ -49,7 +50,7 @@ def c_link(transport: str, tmp_path: Path, *, extra: tuple[str, ...] = ()) -> It
         with open(log, "ab") as f:
             proc = subprocess.Popen([exe, "--transport", "tcp", "--listen", address, "--once", "--verbose", *extra],
                                     stdout=f, stderr=f, stdin=subprocess.DEVNULL, env=env)
-        link: Link = TcpLink(vehicle_id=4, clock=MonotonicClock(), connect=address)
+        link: Link = TcpLink(vehicle_id=4, clock=MonotonicClock(), options=TcpOptions(connect=address))
     else:
         link = LocalLink(command=[exe, "--verbose", *extra], vehicle_id=4, clock=MonotonicClock(), log_path=log,
                          env=env)
@@ -185,7 +186,7 @@ def test_bye_ends_the_target_cleanly(tmp_path):
         proc = subprocess.Popen([exe, "--transport", "tcp", "--listen", address, "--once"], stdout=f, stderr=f,
                                 env=dict(os.environ, **c_build.SAN_ENV))
     try:
-        link = TcpLink(vehicle_id=0, clock=MonotonicClock(), connect=address, heartbeat_idle_s=0)
+        link = TcpLink(vehicle_id=0, clock=MonotonicClock(), options=TcpOptions(connect=address, heartbeat_idle_s=0))
         link.open(hello_timeout_s=20)
         link.send_raw(protocol.encode(Bye(0, "done")))
         assert proc.wait(timeout=10) == 0
@@ -248,7 +249,7 @@ def test_large_frames_and_oversized_lengths(tmp_path):
     """A 640x480 frame (more than the target's first buffer) is answered; a header
     announcing more than MAX_PAYLOAD is refused at offset 12 before any allocation;
     an idle target sends HEARTBEATs."""
-    from hil.adapters.messages import Heartbeat
+    from hil.adapters.wire.messages import Heartbeat
 
     big = bytearray(protocol.encode(SyncRequest(4, 1, 5)))
     big[12:16] = (protocol.MAX_PAYLOAD + 1).to_bytes(4, "little")

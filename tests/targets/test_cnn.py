@@ -16,11 +16,11 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from hil.adapters.messages import (CameraInfo, DetectedObject, DrivingState, Frame, ImageEncoding,  # noqa: E402
-                                   ObjectClass)
+from hil.adapters.wire.messages import (CameraInfo, DetectedObject, DrivingState, Frame, ImageEncoding,  # noqa: E402
+                                        ObjectClass)
 from hil.targets.cnn import commands, geometry, models  # noqa: E402
-from hil.targets.cnn.decision import Policy, decide, in_path, path_y  # noqa: E402
 from hil.targets.cnn.cli import main  # noqa: E402
+from hil.targets.cnn.decision import Policy, decide, in_path, path_y  # noqa: E402
 from hil.targets.cnn.target import CnnTarget  # noqa: E402
 from hil.targets.cv_baseline import CvBaseline  # noqa: E402
 

@@ -22,7 +22,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from hil.adapters.messages import CameraInfo, DrivingState, Frame, ImageEncoding  # noqa: E402
+from hil.adapters.wire.messages import CameraInfo, DrivingState, Frame, ImageEncoding  # noqa: E402
 
 LANE_HALF_WIDTH_M, CAR_HALF_WIDTH_M = 3.7 / 2, 0.9
 

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from hil.adapters import protocol
-from hil.adapters.messages import CameraInfo, Command, Estimate, Frame, ImageEncoding
 from hil.adapters.sdk import Endpoint
+from hil.adapters.wire import protocol
+from hil.adapters.wire.messages import CameraInfo, Command, Estimate, Frame, ImageEncoding
 from hil.common.errors import TransportError
 
 CAM = CameraInfo(207.846, 207.846, 160.0, 120.0, 1.3)
@@ -125,15 +125,12 @@ def test_short_run_reports_inference_time_from_the_targets_stamps(tmp_path: Path
 @pytest.mark.slow
 def test_served_over_zenoh_like_on_a_remote_host(tmp_path: Path):
     pytest.importorskip("torch")
-    from tests.adapters.pair_zenoh import ROOT, SKIP_REASON, end_process, free_port
+    from tests.adapters.zenoh.pair import ROOT, SKIP_REASON, end_process, free_port, zenoh_link
 
     if SKIP_REASON:
         pytest.skip(SKIP_REASON)
     import os
     import subprocess
-
-    from hil.adapters.zenoh_transport import ZenohLink
-    from hil.timing.clock import MonotonicClock
 
     port = free_port()
     with open(tmp_path / "t.log", "ab") as log:
@@ -142,7 +139,7 @@ def test_served_over_zenoh_like_on_a_remote_host(tmp_path: Path):
                                 env=dict(os.environ, PYTHONUNBUFFERED="1"), stdin=subprocess.DEVNULL,
                                 stdout=log, stderr=log)
     try:
-        with ZenohLink(vehicle_id=0, clock=MonotonicClock(), connect=[f"tcp/127.0.0.1:{port}"]) as link:
+        with zenoh_link(port) as link:
             hello = link.open(hello_timeout_s=60)
             assert hello.target_name.startswith("cnn@cpu (") and hello.capabilities & protocol.CAP_COMMANDS
             f = _frame(3)

@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hil.adapters import protocol
 from hil.adapters.batching import BatchedEndpoint, BatchLog, BatchScheduler, parse_vehicles
-from hil.adapters.messages import (CameraInfo, Control, DrivingState, Estimate, Frame, Hello, ImageEncoding, Inference,
-                                   SyncRequest, SyncResponse)
+from hil.adapters.wire import protocol
+from hil.adapters.wire.messages import (CameraInfo, Control, DrivingState, Estimate, Frame, Hello, ImageEncoding,
+                                        Inference, SyncRequest, SyncResponse)
 
 torch = pytest.importorskip("torch")
 
@@ -191,7 +191,7 @@ def test_newest_frame_per_vehicle_wins_and_no_vehicle_starves():
 
 
 def test_an_output_the_wire_cannot_carry_fails_that_frame_not_the_service():
-    from hil.adapters.messages import ErrorMsg
+    from hil.adapters.wire.messages import ErrorMsg
 
     def bad_for_vehicle_1(frames):
         return [Inference(DrivingState.SAFE, Control(0.0, 2.0 if f.vehicle_id == 1 else 0.5, 0.0), ())
@@ -228,7 +228,7 @@ def test_scheduler_and_vehicle_options_are_checked():
 _ECHO_SHARED = """
 import sys
 from hil.adapters.batching import serve_batched
-from hil.adapters.messages import Control, DrivingState, Inference
+from hil.adapters.wire.messages import Control, DrivingState, Inference
 def infer_batch(frames):
     return [Inference(DrivingState.SAFE, Control(0.0, float(f.vehicle_id) / 10, 0.0), ()) for f in frames]
 serve_batched(infer_batch, target_name="echo-shared", window_ns=50_000_000, max_batch=8)
@@ -236,7 +236,7 @@ serve_batched(infer_batch, target_name="echo-shared", window_ns=50_000_000, max_
 
 
 def test_one_local_process_serves_every_vehicle_on_its_own_socket(tmp_path: Path):
-    from hil.adapters.shared_local import SharedLocalLink, SharedLocalTarget
+    from hil.adapters.local.shared_link import SharedLocalLink, SharedLocalTarget
     from hil.timing.clock import MonotonicClock
 
     clock = MonotonicClock()
@@ -345,13 +345,13 @@ def test_shared_zenoh_target_one_session_each_vehicles_keys(tmp_path: Path):
     from hil.harness.config.model import parse_config
     from hil.harness.run.shared_target import BATCH_LOG_NAME, LOG_NAME
     from hil.harness.run.target_launch import make_link
-    from tests.adapters.pair_zenoh import free_port
     from hil.timing.clock import MonotonicClock
+    from tests.adapters.zenoh.pair import free_port
 
     port = free_port()
-    script = _ECHO_SHARED.replace('window_ns=50_000_000, max_batch=8)',
-                                  'window_ns=50_000_000, max_batch=8, transport="zenoh", '
-                                  f'vehicles=[0, 1], listen=["tcp/127.0.0.1:{port}"])')
+    script = "from hil.adapters.zenoh.options import ZenohOptions\n" + _ECHO_SHARED.replace(
+        'window_ns=50_000_000, max_batch=8)', 'window_ns=50_000_000, max_batch=8, transport="zenoh", '
+        f'vehicles=[0, 1], options=ZenohOptions(listen=["tcp/127.0.0.1:{port}"]))')
     cfg = parse_config({"target": {"transport": "zenoh", "shared": True, "command": ["{python}", "-c", script],
                                    "zenoh": {"connect": [f"tcp/127.0.0.1:{port}"]}}})
     clock = MonotonicClock()
@@ -378,7 +378,7 @@ def test_shared_zenoh_target_one_session_each_vehicles_keys(tmp_path: Path):
 def test_the_shared_configs_args_also_serve_one_vehicle_per_target(tmp_path: Path):
     """``--set target.shared=false`` on shared.yaml: the same args (``--shared`` too)
     start an ordinary per-vehicle target on the local transport."""
-    from hil.adapters.local import LocalLink
+    from hil.adapters.local.link import LocalLink
     from hil.timing.clock import MonotonicClock
 
     clock = MonotonicClock()

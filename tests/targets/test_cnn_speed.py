@@ -19,7 +19,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from hil.adapters.messages import CameraInfo, Control, DrivingState, Frame, ImageEncoding, Inference  # noqa: E402
+from hil.adapters.wire.messages import CameraInfo, Control, DrivingState, Frame, ImageEncoding, Inference  # noqa: E402
 from hil.common.errors import ProtocolError  # noqa: E402
 from hil.targets.cnn import pool as cnn_pool  # noqa: E402
 from hil.targets.cnn.frontend import Frontend  # noqa: E402
@@ -182,7 +182,7 @@ def test_the_batch_log_carries_each_batchs_parts(tmp_path: Path):
 
 
 def _shared(tmp_path: Path, *args: str):
-    from hil.adapters.shared_local import SharedLocalTarget
+    from hil.adapters.local.shared_link import SharedLocalTarget
 
     return SharedLocalTarget([sys.executable, "-m", "hil.targets.cnn", "--threads", "1", *args],
                              log_path=tmp_path / "target.log", env={"HIL_BATCH_LOG": str(tmp_path / "b.csv")})
@@ -194,9 +194,9 @@ def test_shared_target_on_decode_workers_answers_as_the_single_core_path(tmp_pat
     the one ``infer_batch`` in this process gives for the same batch, every stamp is
     ordered and the batch log's, each batch's parts lie inside its inference, and
     the workers leave with the target when the harness says BYE."""
-    from hil.adapters import protocol
-    from hil.adapters.messages import Estimate
-    from hil.adapters.shared_local import SharedLocalLink
+    from hil.adapters.local.shared_link import SharedLocalLink
+    from hil.adapters.wire import protocol
+    from hil.adapters.wire.messages import Estimate
     from hil.timing.clock import MonotonicClock
 
     clock = MonotonicClock()
@@ -260,7 +260,7 @@ def test_no_decode_worker_outlives_its_target(tmp_path: Path, sig):
     """SIGTERM: the target leaves through its finally blocks and closes the pool
     (exit 0, its status line written); SIGKILL: the kernel ends the workers
     (PR_SET_PDEATHSIG). Either way none is left."""
-    from hil.adapters.shared_local import SharedLocalLink
+    from hil.adapters.local.shared_link import SharedLocalLink
     from hil.timing.clock import MonotonicClock
 
     host = _shared(tmp_path, "--decode-workers", "2")

@@ -13,8 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from hil.adapters.messages import (CameraInfo, DrivingState, Frame, ImageEncoding, Inference,
-                                   ObjectClass)
+from hil.adapters.wire.messages import CameraInfo, DrivingState, Frame, ImageEncoding, Inference, ObjectClass
 from hil.targets import cv_baseline
 from hil.targets.cv_baseline import CvBaseline
 
@@ -248,7 +247,8 @@ def test_imports_only_what_the_wire_carries() -> None:
             top.update(a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom):
             top.add(node.module or "")
-    assert top <= {"__future__", "argparse", "math", "sys", "collections.abc", "cv2", "numpy", "hil.adapters.messages"}
+    assert top <= {"__future__", "argparse", "math", "sys", "collections.abc", "cv2", "numpy",
+                   "hil.adapters.wire.messages"}
     every = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
     assert not any(m and m.split(".")[0] in ("scenarios", "harness", "timing") for m in every)
 
@@ -258,7 +258,7 @@ def test_main_serves_the_baseline(tmp_path: Path) -> None:
     import sys
 
     from hil.adapters.link import open_link
-    from hil.adapters.messages import Estimate
+    from hil.adapters.wire.messages import Estimate
     from hil.timing.clock import MonotonicClock
 
     link = open_link("local", command=[sys.executable, "-m", "hil.targets.cv_baseline", "--name", "cv-test",

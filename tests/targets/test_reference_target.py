@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from hil.adapters import protocol
-from hil.adapters.messages import CameraInfo, Control, DrivingState, Estimate, Frame, ImageEncoding
+from hil.adapters.wire import protocol
+from hil.adapters.wire.messages import CameraInfo, Control, DrivingState, Estimate, Frame, ImageEncoding
 from hil.common.errors import ProtocolError
 from hil.targets.reference import (Faults, InjectedClock, ReferenceEndpoint, bad_crc_bytes, bad_length_bytes)
 

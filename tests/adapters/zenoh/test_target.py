@@ -1,0 +1,70 @@
+"""``hil target NAME --transport zenoh`` as a person on a bench starts it: it says
+where it listens, its clock and capabilities, and serves harness after harness
+until stopped (issue 14, item 15)."""
+
+from __future__ import annotations
+
+import os
+import select
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from tests.adapters.zenoh.pair import ROOT, SKIP_REASON, end_process, free_port, zenoh_link
+
+pytestmark = pytest.mark.skipif(SKIP_REASON is not None, reason=SKIP_REASON or "")
+
+
+def _first_line(proc: subprocess.Popen[str], timeout_s: float) -> str:
+    assert proc.stderr is not None
+    ready, _, _ = select.select([proc.stderr], [], [], timeout_s)  # waits on the pipe, bounded
+    assert ready, "the target printed nothing at startup"
+    return proc.stderr.readline()
+
+
+@pytest.mark.slow
+def test_hil_target_announces_itself_and_serves_run_after_run():
+
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "hil.harness.cli.main", "target", "echo", "--transport", "zenoh",
+                             "--listen", f"tcp/127.0.0.1:{port}"], cwd=ROOT, stdin=subprocess.DEVNULL,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    try:
+        line = _first_line(proc, 30)
+        assert f"echo: zenoh target listening on tcp/127.0.0.1:{port}" in line, line
+        assert "keys hil/v0/*" in line and "clock MONOTONIC" in line and "capabilities:" in line, line
+        assert "run after run" in line, line
+        for run in range(2):  # the second harness finds the target still there
+            link = zenoh_link(port)
+            try:
+                assert link.open(hello_timeout_s=20).target_name == "echo", run
+                assert link.sync_exchange(timeout_s=2.0) is not None, run
+            finally:
+                link.close()
+            assert proc.poll() is None, f"the target exited after run {run + 1}"
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 0
+    finally:
+        end_process(proc)  # type: ignore[arg-type]
+        if proc.stderr is not None:
+            proc.stderr.close()
+
+
+@pytest.mark.slow
+def test_once_serves_one_harness():
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "hil.harness.cli.main", "target", "echo", "--transport", "zenoh",
+                             "--listen", f"tcp/127.0.0.1:{port}", "--once"], cwd=ROOT, stdin=subprocess.DEVNULL,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        assert "serving one run" in _first_line(proc, 30)
+        with zenoh_link(port) as link:
+            link.open(hello_timeout_s=20)
+        assert proc.wait(timeout=10) == 0
+    finally:
+        end_process(proc)  # type: ignore[arg-type]
+        if proc.stderr is not None:
+            proc.stderr.close()
