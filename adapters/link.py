@@ -103,6 +103,8 @@ class Link(ABC):
         self._sync_seq = 0
         self._command_seq = 0
         self._impair: LinkImpairment | None = None
+        self._deliver: Callable[[Received], None] | None = None
+        self._started = False
 
     def set_impairment(self, stage: LinkImpairment) -> None:
         """Put a link-fault stage (adapters/impair.py) on the send and receive paths;
@@ -118,14 +120,27 @@ class Link(ABC):
 
     # -- lifecycle -----------------------------------------------------------
 
+    def start(self) -> None:
+        """Start the transport now (a local target: its process is spawned, from the
+        calling thread) without waiting for the HELLO; :meth:`open` then only waits.
+        So a run starts many targets at once and waits for them together.
+
+        Raises:
+            TargetError: the target could not start.
+        """
+        if not self._started:
+            self._started = True
+            self._open()
+
     def open(self, *, hello_timeout_s: float) -> Hello:
-        """Connect (or start) the target and wait for its HELLO.
+        """Connect (or start, unless :meth:`start` did) the target and wait for its
+        HELLO.
 
         Raises:
             TargetError: the target could not start or did not say hello in time.
             TransportError: the transport could not connect.
         """
-        self._open()
+        self.start()
         deadline = self.clock.now_ns() + int(hello_timeout_s * 1e9)
         while True:
             remaining = (deadline - self.clock.now_ns()) / 1e9
@@ -136,6 +151,8 @@ class Link(ABC):
             except queue.Empty:
                 if self._peer_gone.is_set():
                     raise TargetError(self._no_hello_reason(hello_timeout_s)) from None
+                if self._closed:  # closed from another thread (the run is being ended)
+                    raise TargetError("the link was closed while waiting for the target's hello") from None
                 continue
             if r.link_vehicle_id != self.vehicle_id:
                 self._rx.put(r)  # another link's message: give it back
@@ -290,6 +307,24 @@ class Link(ABC):
         except queue.Empty:
             return None
 
+    def deliver_to(self, fn: Callable[[Received], None] | None) -> None:
+        """Hand every received message but clock-sync answers (estimates, errors,
+        command replies, protocol faults) to ``fn`` on the thread that stamped and
+        decoded it, the moment it is decoded, instead of queueing it for ``recv``: the
+        harness handles an estimate where it arrived, with no hand-off to another
+        thread. What was queued before is handed over first; ``None`` queues again.
+        ``fn`` must not block for long: it holds up this link's reading."""
+        pending: list[Received] = []
+        while True:
+            try:
+                pending.append(self._rx.get_nowait())
+            except queue.Empty:
+                break
+        for r in pending:
+            if fn is not None:
+                fn(r)
+        self._deliver = fn
+
     def _on_bytes(self, data: bytes | bytearray | memoryview, t_rx_ns: int) -> None:
         """Reader-thread entry for stream transports: decode and dispatch."""
         self.stats.bytes_received += len(data)
@@ -333,6 +368,10 @@ class Link(ABC):
         self._enqueue(target, r)
 
     def _enqueue(self, target: queue.Queue[Received], r: Received) -> None:
+        deliver = self._deliver
+        if deliver is not None and target is self._rx:
+            deliver(r)
+            return
         try:
             target.put_nowait(r)
         except queue.Full:

@@ -14,7 +14,11 @@ vehicle; events at ~2 per second.
    through the recorder (enqueue to closed file), next to a raw unbuffered file write
    of the same payload bytes in 1 MiB blocks in the same run (the floor), with the
    ratio; medians of ``--repeat`` tries.
-3. Foxglove views: the writer thread's time per camera frame with the Foxglove views
+3. What a message costs: µs to encode one message of each kind the run writes, with
+   the standard library's JSON encoder (the recorder's until 2026-11), orjson (today's,
+   ``hil.harness.record.encoding``) and msgspec (when installed); and a camera frame as
+   JSON with base64 data (today's) against foxglove-sdk's protobuf, plus zstd of each.
+4. Foxglove views: the writer thread's time per camera frame with the Foxglove views
    (annotations, calibration, transforms, log, latency; derived on the writer thread)
    and without, flat out; and the encode cost of one frame's ImageAnnotations as
    JSON (what is written) against foxglove-sdk's protobuf (``foxglove.messages``,
@@ -186,6 +190,59 @@ def annotation_encode_cost(n: int) -> dict[str, float]:
     return out
 
 
+def message_costs(msgs: list[Msg], images: list[bytes], n: int = 3000) -> list[tuple[str, dict[str, float]]]:
+    """µs per message to encode a sample of each kind, per encoder (module docstring, 3)."""
+    from hil.harness.record.encoding import dumps
+
+    std = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
+    encoders: dict[str, Any] = {"json (stdlib)": lambda o: std.encode(o).encode(), "orjson": dumps}
+    try:
+        import msgspec
+
+        encoders["msgspec"] = msgspec.json.Encoder().encode
+    except ImportError:
+        pass
+    sample: dict[str, Any] = {}
+    for kind, topic, payload, _t in msgs:
+        if kind == "json":
+            sample.setdefault(topic.rsplit("/", 1)[-1], payload)
+    rows = []
+    for name, obj in sample.items():
+        costs = {}
+        for enc, fn in encoders.items():
+            t = time.perf_counter()
+            for _ in range(n):
+                fn(obj)
+            costs[enc] = (time.perf_counter() - t) / n * 1e6
+        rows.append((f"{name} ({len(dumps(obj))} B)", costs))
+    return rows
+
+
+def image_costs(images: list[bytes], n: int = 2000) -> dict[str, float]:
+    """µs to encode one JPEG camera frame as JSON with base64 data (today's) and as
+    foxglove-sdk protobuf (if installed), and bytes after zstd of each."""
+    import zstandard
+
+    blob = images[0]
+    z = zstandard.ZstdCompressor(level=3)
+    t = time.perf_counter()
+    for i in range(n):
+        data = _image_json(10**18 + i, "ego0/camera", b'"format":"jpeg",', blob)
+    out = {"json_us": (time.perf_counter() - t) / n * 1e6, "json_bytes": len(data),
+           "json_zstd_bytes": len(z.compress(data)), "jpeg_bytes": len(blob)}
+    try:
+        import foxglove.messages as fm
+    except ImportError:
+        return out
+    t = time.perf_counter()
+    for i in range(n):
+        pb = fm.CompressedImage(timestamp=fm.Timestamp(1_000_000 + i, 5), frame_id="ego0/camera", data=blob,
+                                format="jpeg").encode()
+    out.update(protobuf_us=(time.perf_counter() - t) / n * 1e6, protobuf_bytes=len(pb),
+               protobuf_zstd_bytes=len(z.compress(pb)))
+    return out
+
+
 def _put(rec: Recorder, m: Msg) -> bool:
     kind, topic, payload, t = m
     if kind == "image":
@@ -318,6 +375,21 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\nThe run's load needs {need:.2f} MB/s and {len(msgs) / a.duration:.0f} messages/s: "
               f"headroom x{rates['zstd'] / need:.0f} with zstd (the run's choice), x{rates['lz4'] / need:.0f} "
               f"with lz4.")
+        print("\n## What a message costs (encode only, µs per message)\n")
+        rows = message_costs(with_truth(msgs), images)
+        names = list(rows[0][1])
+        print("| message | " + " | ".join(names) + " | stdlib / orjson |")
+        print("| --- | " + " | ".join("---:" for _ in names) + " | ---: |")
+        for label, costs in rows:
+            print(f"| {label} | " + " | ".join(f"{costs[k]:.1f}" for k in names)
+                  + f" | {costs['json (stdlib)'] / costs['orjson']:.1f}x |")
+        ic = image_costs(images)
+        print("\n| one JPEG camera frame | encode (µs) | bytes | after zstd |")
+        print("| --- | ---: | ---: | ---: |")
+        print(f"| JSON, base64 data (written) | {ic['json_us']:.1f} | {ic['json_bytes']} | {ic['json_zstd_bytes']} |")
+        if "protobuf_us" in ic:
+            print(f"| foxglove-sdk protobuf | {ic['protobuf_us']:.1f} | {ic['protobuf_bytes']} | "
+                  f"{ic['protobuf_zstd_bytes']} |")
         print("\n## Foxglove views (writer thread, zstd, flat out; each camera frame has 2 true boxes)\n")
         vmsgs = with_truth(msgs)
         vc = views_cost(vmsgs, vehicles=vehicles, folder=folder, repeat=a.repeat)

@@ -32,6 +32,7 @@ import queue
 import statistics
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -52,7 +53,9 @@ from hil.harness.config.model import parse_config
 from hil.harness.engine.pool import Engine, auto_workers
 from hil.harness.record.channels import register_all
 from hil.harness.record.recorder import Recorder
-from hil.harness.run.loop import SimLoop, engine_specs
+from hil.harness.analysis.events import EventBus
+from hil.harness.run.assemble import local_loop
+from hil.harness.run.loop import engine_specs
 from hil.harness.run.vehicle_state import VehicleRun
 from hil import scenarios
 from hil.scenarios.ground_truth import RefStateRules
@@ -67,19 +70,31 @@ STEP_S = 0.002
 
 class EchoLink:
     """An in-process stand-in for a link: every frame is answered at once (a gentle
-    throttle), straight into the loop's receive queue. No transport, no process."""
+    throttle) from a reader thread of its own, as a real link's reader delivers. No
+    transport, no process."""
 
-    def __init__(self, vehicle_id: int, clock: MonotonicClock, rx: queue.Queue[Received]) -> None:
-        self.vehicle_id, self.clock, self.rx = vehicle_id, clock, rx
+    def __init__(self, vehicle_id: int, clock: MonotonicClock) -> None:
+        self.vehicle_id, self.clock = vehicle_id, clock
         self.alive = True
         self.peer_gone_reason: str | None = None
         self.hello = None
+        self.impairment = None
         self.stats = LinkStats()
+        self._out: queue.Queue[Received | None] = queue.Queue()
+        self._deliver: Any = None
+        threading.Thread(target=self._reader, daemon=True).start()
+
+    def deliver_to(self, fn: Any) -> None:
+        self._deliver = fn
+
+    def _reader(self) -> None:
+        while (r := self._out.get()) is not None:
+            self._deliver(r)
 
     def send_frame(self, *, frame_id: int, **_: Any) -> int:
         t = self.clock.now_ns()
         est = Estimate(self.vehicle_id, frame_id, DrivingState.SAFE, Control(0.0, 0.1, 0.0), (), t, t, t, t)
-        self.rx.put(Received(est, self.clock.now_ns(), self.vehicle_id))
+        self._out.put(Received(est, self.clock.now_ns(), self.vehicle_id))
         self.stats.frames_sent += 1
         return t
 
@@ -90,7 +105,7 @@ class EchoLink:
         return []
 
     def close(self) -> None:
-        pass
+        self._out.put(None)
 
 
 def _world(n: int) -> Any:
@@ -136,18 +151,20 @@ def loop(n: int, frames: int, *, boxes: bool, out: Path) -> float:
         "scenario": {"name": "multi_vehicle", "params": {"n_vehicles": n}},
     })
     clock = MonotonicClock()
-    rx: queue.Queue[Received] = queue.Queue(maxsize=4096)
     world = _world(n)
     phys, rend = engine_specs(cfg, world, RefStateRules())
-    with Simulation(world) as sim, Engine(physics=phys, render=rend, workers=auto_workers(n), events=rx) as eng:
-        vehicles = [VehicleRun(e, i, EchoLink(i, clock, rx)) for i, e in enumerate(sim.egos)]  # type: ignore[arg-type]
+    with Simulation(world) as sim, Engine(physics=phys, render=rend, workers=auto_workers(n)) as eng:
+        vehicles = [VehicleRun(e, i, EchoLink(i, clock)) for i, e in enumerate(sim.egos)]  # type: ignore[arg-type]
         with Recorder(out, queue_size=65536, compression="zstd") as rec:
             register_all(rec, sim.egos)
-            lp = SimLoop(cfg, sim, vehicles, rx, rec, clock, engine=eng, physics=phys)
+            lp = local_loop(cfg, sim, vehicles, engine=eng, physics=phys, rec=rec, bus=EventBus.recording_to(rec),
+                            clock=clock, latency=None)
             t0 = time.perf_counter()
             stats = lp.run()
             dt = time.perf_counter() - t0
             rec.flush()
+            for v in vehicles:
+                v.link.close()
         sent = sum(v.next_frame_id for v in vehicles)
         assert stats.ended_by == "duration", stats.ended_by
     return sent / dt

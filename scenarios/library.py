@@ -201,7 +201,7 @@ CROSS_HALF_M = LANE_W + 0.5  # half width of a road over its shoulders
             "road's egos (half from each side) pass through it first. Seed: each ego's start "
             "+-1.5 m along its lane and speed +-0.5 m/s.",
     params=(
-        Param("n_vehicles", 1, 16, 4, "", "ego vehicles (each runs its own target)", integer=True),
+        Param("n_vehicles", 1, 64, 4, "", "ego vehicles (each runs its own target; beyond 16 a real-time run checks first that this machine renders them in time)", integer=True),
         Param("speed_mps", 0.0, 20.0, 10.0, "m/s", "initial speed of every ego"),
         Param("headway_m", 12.0, 80.0, 30.0, "m", "front-to-front spacing within a lane"),
         Param("main_start_m", 20.0, 400.0, 110.0, "m", "first main-road ego's front to the junction's edge"),

@@ -161,8 +161,11 @@ class DetectorObserver:
             # Its camera truth (rendered after the frame) is still on its way, or an
             # earlier frame waits for its own: judged in frame order when they come.
             vj.waiting[rec.frame_id] = (rec, estimate)
-            for k in [k for k in vj.waiting if k < rec.frame_id - _KEEP_FRAMES]:
-                del vj.waiting[k]  # truth never came (truth.visible_boxes off): bounded
+            while vj.waiting:  # truth never came (truth.visible_boxes off): bounded, oldest out first
+                oldest = next(iter(vj.waiting))
+                if oldest >= rec.frame_id - _KEEP_FRAMES:
+                    break
+                del vj.waiting[oldest]
             return
         self._judge(vj, rec, estimate)
 

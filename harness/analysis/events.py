@@ -72,6 +72,8 @@ class EventKind(str, Enum):
     REPLAYED_DROPPED = "replayed_dropped"
     REPLAYED_STALE = "replayed_stale"
     REPLAYED_PENDING = "replayed_pending"
+    # the harness itself: a process that could not keep up with the physics's rings
+    CONSUMER_BEHIND = "consumer_behind"
 
     @property
     def is_mismatch(self) -> bool:
@@ -81,7 +83,7 @@ class EventKind(str, Enum):
     def family(self) -> str:
         """What the kind belongs to (README "What a run writes"): ``anomaly`` (timing,
         counted in ``vehicles.<name>.anomalies``), ``mismatch``, ``estimate``,
-        ``world``, ``command``, ``protocol``, ``target`` or ``replay``."""
+        ``world``, ``command``, ``protocol``, ``target``, ``replay`` or ``harness``."""
         return _FAMILY.get(self, "anomaly")
 
 
@@ -93,6 +95,7 @@ _FAMILY: Mapping[EventKind, str] = {
     EventKind.TARGET_COMMAND_FAILED: "command",
     EventKind.PROTOCOL_ERROR: "protocol", EventKind.TARGET_ERROR: "target",
     **{k: "replay" for k in EventKind if k.value.startswith("replayed_")},
+    EventKind.CONSUMER_BEHIND: "harness",
 }
 
 # Severity of the kinds that do not carry their own (anomalies and mismatches do).
@@ -106,6 +109,7 @@ DEFAULT_SEVERITY: Mapping[EventKind, Severity] = {
     EventKind.REPLAYED_DROPPED: Severity.WARNING,
     EventKind.REPLAYED_STALE: Severity.WARNING,
     EventKind.REPLAYED_PENDING: Severity.WARNING,
+    EventKind.CONSUMER_BEHIND: Severity.WARNING,
 }
 
 
@@ -202,7 +206,10 @@ EVENT_SCHEMA: dict[str, Any] = {
 Subscriber = Callable[[Event, int], None]
 
 
-class _JsonWriter(Protocol):
+class JsonSink(Protocol):
+    """Where JSON messages are written (the run's Recorder, a corner-case recorder in
+    front of it, or a shard's encoding recorder): write-only."""
+
     def write_json(self, topic: str, obj: Mapping[str, Any], *, log_time_ns: int, publish_time_ns: int) -> bool: ...
 
 
@@ -232,7 +239,7 @@ class EventBus:
             fn(ev, t)
 
     @classmethod
-    def recording_to(cls, rec: _JsonWriter) -> EventBus:
+    def recording_to(cls, rec: JsonSink) -> EventBus:
         """A bus whose first subscriber writes every event on ``/events`` of ``rec``
         (publish time: when it happened; log time: when it was known)."""
         bus = cls()
@@ -246,4 +253,5 @@ class EventBus:
         return bus
 
 
-__all__ = ["DEFAULT_SEVERITY", "EVENT_SCHEMA", "Event", "EventBus", "EventKind", "MISMATCH_PREFIX", "Subscriber"]
+__all__ = ["DEFAULT_SEVERITY", "EVENT_SCHEMA", "Event", "EventBus", "EventKind", "JsonSink", "MISMATCH_PREFIX",
+           "Subscriber"]

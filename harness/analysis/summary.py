@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 from hil.harness.analysis.detector_observer import DetectorObserver
@@ -13,6 +14,25 @@ from hil.timing.records import STAGES, FrameStatus
 from hil.timing.stats import summarize_ns
 
 SCHEMA_VERSION = 1
+
+
+@dataclass(frozen=True)
+class CameraFigures:
+    """One vehicle's camera pipeline in real time: frames handed to its link, those
+    more than the frame tolerance after their camera instant, and the worst lag (ns)."""
+
+    frames: int
+    late_frames: int
+    worst_lag_ns: int
+
+    @classmethod
+    def of(cls, v: VehicleRun) -> CameraFigures:
+        return cls(v.next_frame_id, v.late_frames, v.worst_frame_lag_ns)
+
+
+def wall_seconds(stats: LoopStats) -> float:
+    """The loop's wall time (s), the run's rates are per."""
+    return max((stats.wall_end_ns - stats.wall_start_ns) / 1e9, 1e-9)
 
 
 def vehicle_summary(v: VehicleRun, *, wall_s: float, timing: TimingObserver | None = None,
@@ -61,12 +81,12 @@ def _budgets(v: VehicleRun, timing: TimingObserver | None) -> dict[str, Any]:
     return stage_budgets(values, deadlines)
 
 
-def build_summary(*, loop: SimLoop, stats: LoopStats, recorder_stats: dict[str, Any],
-                  meta: dict[str, Any], timing: TimingObserver | None = None,
-                  detector: DetectorObserver | None = None) -> dict[str, Any]:
-    wall_s = max((stats.wall_end_ns - stats.wall_start_ns) / 1e9, 1e-9)
+def build_summary(*, loop: SimLoop, stats: LoopStats, recorder_stats: dict[str, Any], meta: dict[str, Any],
+                  vehicles: dict[str, dict[str, Any]], camera: dict[str, CameraFigures]) -> dict[str, Any]:
+    """The run's summary from its loop and, per vehicle, what its shard summed up
+    (``vehicle_summary``, ``CameraFigures``)."""
+    wall_s = wall_seconds(stats)
     sim_s = stats.sim_steps * loop.sim.step_ns / 1e9
-    vehicles = {v.name: vehicle_summary(v, wall_s=wall_s, timing=timing, detector=detector) for v in loop.vehicles}
     for name, s in vehicles.items():  # what /events holds for this vehicle, kind by kind
         s["events"] = loop.events.counts(name)
     final = {e.vehicle: e for e in loop.sim.truth_snapshot().egos}  # once, and without taking collisions
@@ -83,8 +103,8 @@ def build_summary(*, loop: SimLoop, stats: LoopStats, recorder_stats: dict[str, 
         "ended_by": stats.ended_by,
         "sim_time_s": round(sim_s, 6),
         "wall_time_s": round(wall_s, 6),
-        "realtime": realtime_summary(loop, stats, sim_s=sim_s, wall_s=wall_s),
-        "harness_cost": _cost(stats, frames=sum(v.next_frame_id for v in loop.vehicles)),
+        "realtime": realtime_summary(loop, stats, camera, sim_s=sim_s, wall_s=wall_s),
+        "harness_cost": _cost(stats, frames=sum(c.frames for c in camera.values())),
         "collisions": loop.collisions,
         # Every event the run published (per vehicle: vehicles.<name>.events; here those of
         # no vehicle); /events holds them all but the `unrecorded` (recording queue full).
@@ -95,7 +115,8 @@ def build_summary(*, loop: SimLoop, stats: LoopStats, recorder_stats: dict[str, 
     }
 
 
-def realtime_summary(loop: SimLoop, stats: LoopStats, *, sim_s: float, wall_s: float) -> dict[str, Any]:
+def realtime_summary(loop: SimLoop, stats: LoopStats, camera: dict[str, CameraFigures], *, sim_s: float,
+                     wall_s: float) -> dict[str, Any]:
     """``summary.json``'s ``realtime``: the one definition of whether a run kept real time.
 
     Two paths must keep up. The physics: its own pace (simulated over its own wall
@@ -103,7 +124,8 @@ def realtime_summary(loop: SimLoop, stats: LoopStats, *, sim_s: float, wall_s: f
     no step later than ``engine.late_tolerance_ms``. The cameras: no frame handed to
     its link later than the frame tolerance after its camera instant (``t_tx -
     t_state``; ``engine.frame_late_tolerance_ms``, default one camera period).
-    ``kept_realtime`` needs both; ``lagging`` names which did not. Lockstep runs wait
+    ``kept_realtime`` needs both, and no consumer of the physics's rings behind
+    (``behind``: records each lost); ``lagging`` names what did not keep up. Lockstep runs wait
     by design: they keep real time trivially."""
     cfg = loop.cfg
     realtime = cfg.mode.value == "realtime"
@@ -111,14 +133,16 @@ def realtime_summary(loop: SimLoop, stats: LoopStats, *, sim_s: float, wall_s: f
     lat = stats.lateness
     span_s = stats.physics_span_ns / 1e9
     rtf = sim_s / span_s if span_s > 0 else sim_s / wall_s
-    frames = sum(v.next_frame_id for v in loop.vehicles)
-    late_frames = sum(v.late_frames for v in loop.vehicles)
-    worst_ns = max((v.worst_frame_lag_ns for v in loop.vehicles), default=0)
+    frames = sum(c.frames for c in camera.values())
+    late_frames = sum(c.late_frames for c in camera.values())
+    worst_ns = max((c.worst_lag_ns for c in camera.values()), default=0)
     lagging = []
     if realtime and (rtf < 0.95 * requested or stats.late_steps > 0):
         lagging.append("physics")
     if realtime and late_frames > 0:
         lagging.append("camera")
+    if stats.behind:
+        lagging.append("consumers")
     return {
         "mode": cfg.mode.value,
         "requested_factor": requested,
@@ -132,7 +156,10 @@ def realtime_summary(loop: SimLoop, stats: LoopStats, *, sim_s: float, wall_s: f
         "max_lateness_ms": round(stats.max_lateness_ns / 1e6, 3),
         "camera": {"frames": frames, "late_frames": late_frames, "tolerance_ms": loop.frame_tolerance_ns / 1e6,
                    "worst_lag_ms": round(worst_ns / 1e6, 3),
-                   "by_vehicle": {v.name: v.late_frames for v in loop.vehicles if v.late_frames}},
+                   "by_vehicle": {name: c.late_frames for name, c in camera.items() if c.late_frames}},
+        # Consumers of the physics's rings that fell behind (records lost, the physics
+        # never waits): "run" (this process), "render-<w>" (a render worker).
+        "behind": dict(stats.behind),
         "lagging": lagging,
         "kept_realtime": not lagging,
         "physics_scheduling": stats.scheduling,
@@ -141,9 +168,13 @@ def realtime_summary(loop: SimLoop, stats: LoopStats, *, sim_s: float, wall_s: f
 
 
 def _cost(stats: LoopStats, *, frames: int) -> dict[str, Any]:
-    """The run process's own CPU time per frame (µs): the loop thread (frames,
-    estimates, controls) and the analysis thread (truth, observers, recording)."""
+    """The harness's own CPU time per frame (µs): every process of the run but the
+    physics and the render workers (``run_us_per_frame``: all threads, links,
+    recording and analysis included, until the recording is flushed), and of it the
+    loop thread (frames, estimates, controls) and the analysis thread (truth,
+    observers, recording)."""
     per = max(frames, 1)
-    return {"frames": frames, "loop_thread_us_per_frame": round(stats.loop_cpu_ns / per / 1e3, 1),
+    return {"frames": frames, "run_us_per_frame": round(stats.run_cpu_ns / per / 1e3, 1),
+            "loop_thread_us_per_frame": round(stats.loop_cpu_ns / per / 1e3, 1),
             "analysis_thread_us_per_frame": round(stats.analysis_cpu_ns / per / 1e3, 1),
             "analysis_tasks_dropped": stats.analysis_dropped}

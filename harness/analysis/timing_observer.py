@@ -31,9 +31,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from hil.adapters.wire.messages import Estimate
-from hil.harness.analysis.events import Event, EventBus
 from hil.harness.config.timing import TimingConfig
-from hil.harness.record.recorder import Recorder
+from hil.harness.analysis.events import Event, EventBus, JsonSink
 from hil.scenarios.ground_truth import GroundTruth
 from hil.timing.anomaly import Anomaly, AnomalyDetector
 from hil.timing.histogram import StageHistograms
@@ -117,7 +116,7 @@ class _VehicleTiming:
 class TimingObserver:
     """A ``RunObserver``; ``summary()`` gives the per-vehicle timing figures."""
 
-    def __init__(self, cfg: TimingConfig, vehicles: list[str], *, recorder: Recorder,
+    def __init__(self, cfg: TimingConfig, vehicles: list[str], *, recorder: JsonSink,
                  events: EventBus | None = None, handoff_margin_ns: int = HANDOFF_MARGIN_NS) -> None:
         """``events``: the run's bus the anomalies go on (default: one that records
         them on ``recorder``'s ``/events``). ``handoff_margin_ns``: the longest the

@@ -139,13 +139,18 @@ def _realtime(rt: Mapping[str, Any]) -> Check:
     if "camera" in lag:
         parts.append(f"{cam.get('late_frames')} of {cam.get('frames')} camera frames left over "
                      f"{cam.get('tolerance_ms')} ms after their camera instant (worst {cam.get('worst_lag_ms')} ms)")
+    if "consumers" in lag:
+        behind = rt.get("behind") or {}
+        parts.append("fell behind the physics (records lost): "
+                     + ", ".join(f"{name} {n}" for name, n in sorted(behind.items())))
     if not parts:
         return Check(CheckName.REALTIME, True, "kept: physics on pace with no late step, every camera frame "
                      "out in time", measured=0.0, limit=0.0, unit="late steps and frames",
                      details={"lagging": []})
     return Check(CheckName.REALTIME, False, "not kept: " + "; ".join(parts),
-                 measured=float((rt.get("late_steps") or 0) + (cam.get("late_frames") or 0)), limit=0.0,
-                 unit="late steps and frames", details={"lagging": lag})
+                 measured=float((rt.get("late_steps") or 0) + (cam.get("late_frames") or 0)
+                                + sum((rt.get("behind") or {}).values())), limit=0.0,
+                 unit="late steps, frames and lost records", details={"lagging": lag})
 
 
 def _deadline(vehicles: Mapping[str, Any], allowed: float) -> Check:

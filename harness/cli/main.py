@@ -233,6 +233,10 @@ def realtime_warning(realtime: dict[str, Any], *, sim_steps: int) -> str | None:
         parts.append(f"the camera pipeline lagged: {cam.get('late_frames')} of {cam.get('frames')} frames left "
                      f"more than {cam.get('tolerance_ms'):g} ms after their camera instant "
                      f"(worst {cam.get('worst_lag_ms'):.1f} ms)")
+    if "consumers" in lagging:
+        behind = realtime.get("behind") or {}
+        parts.append("the harness fell behind the physics, which did not wait: records lost by "
+                     + ", ".join(f"{name} ({n})" for name, n in sorted(behind.items())))
     return (f"real time was not kept: {'; '.join(parts)}; latencies were measured on a late simulation. "
             f"Close other programs, lower camera.fps, the image size or the number of vehicles, or use "
             f"mode: lockstep")

@@ -12,8 +12,7 @@ from rich.live import Live
 from rich.table import Table
 
 from hil.common.eta import time_left
-from hil.harness.run.vehicle_state import VehicleRun
-from hil.timing.records import FrameStatus
+from hil.harness.run.vehicle_state import ProgressRow
 
 
 def make_console() -> Console:
@@ -59,17 +58,15 @@ class Progress:
             self._live.__exit__(None, None, None)
             self._live = None
 
-    def update(self, *, now_ns: int, sim_time_s: float, duration_s: float,
-               vehicles: list[VehicleRun], anomalies: Callable[[str], int] | None = None) -> None:
+    def update(self, *, now_ns: int, sim_time_s: float, duration_s: float, rows: list[ProgressRow]) -> None:
         if self._live is None or now_ns - self._last_ns < self.refresh_ns:
             return
         self._last_ns = now_ns
         t = _table(f"sim {sim_time_s:6.2f} / {duration_s:g} s",
                    ("vehicle", "frames", "fps", "e2e p50 ms", "e2e p99 ms", "dropped", "anomalies"))
-        for v in vehicles:
-            t.add_row(v.name, str(v.next_frame_id), f"{v.fps_meter.rate_hz(now_ns):.1f}",
-                      _ms(v.e2e_window.percentile_ms(50)), _ms(v.e2e_window.percentile_ms(99)),
-                      str(v.count(FrameStatus.DROPPED)), "-" if anomalies is None else str(anomalies(v.name)))
+        for r in rows:
+            t.add_row(r.name, str(r.frames), f"{r.fps:.1f}", _ms(r.e2e_p50_ms), _ms(r.e2e_p99_ms), str(r.dropped),
+                      "-" if r.anomalies is None else str(r.anomalies))
         self._live.update(t, refresh=True)
 
 

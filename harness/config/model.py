@@ -30,6 +30,8 @@ from pydantic import (
     BaseModel,
     Field,
     ValidationError,
+    ValidationInfo,
+    field_validator,
     model_validator,
 )
 from pydantic_core import PydanticCustomError
@@ -232,6 +234,9 @@ class EngineFaults(BaseModel):
 
     render_delay_ms: Float = Field(0.0, ge=0, le=10_000)
     render_delay_every: Int = Field(1, ge=1, le=1_000_000)
+    # The run process stops reading the physics's ring this long, once, half a second
+    # into the run, as a stuck consumer would: the physics must not wait for it.
+    stall_run_ms: Float = Field(0.0, ge=0, le=60_000)
 
 
 class EngineConfig(BaseModel):
@@ -251,7 +256,30 @@ class EngineConfig(BaseModel):
     late_tolerance_ms: Float = Field(5.0, gt=0, le=1000)  # a physics step later than this is late
     frame_late_tolerance_ms: Float | None = Field(None, gt=0, le=60_000)  # None: one camera period
     realtime_priority: Int = Field(10, ge=0, le=99)  # SCHED_FIFO for the physics process (0: don't ask)
+    # Without SCHED_FIFO the physics asks for this nice value instead (allowed where
+    # RLIMIT_NICE grants it); 0: don't.
+    fallback_nice: Int = Field(-10, ge=-20, le=0)
+    # "auto": with 4 or more cores the physics has the last core to itself (the
+    # harness's other processes and the targets keep off it); a number: that core;
+    # "none": no pinning.
+    physics_cpu: str | int = "auto"
+    ring_kib: Int = Field(4096, ge=1, le=1 << 20)  # each ring the physics writes into (KiB)
+    # Processes the vehicles' work is cut into (links, timing analysis, detector,
+    # recording's encoding): "auto" gives one per 16 vehicles, at most a quarter of the
+    # cores, and 1 (the run process itself) below that; a number asks for that many
+    # (at most one per vehicle). Transports can and mixed and shared targets keep
+    # every vehicle in the run process.
+    shards: str | int = "auto"
     faults: EngineFaults = Field(default_factory=EngineFaults)
+
+    @field_validator("physics_cpu", "shards", mode="before")
+    @classmethod
+    def _auto_or_count(cls, v: object, info: ValidationInfo) -> object:
+        words = ("auto", "none") if info.field_name == "physics_cpu" else ("auto",)
+        low = 0 if info.field_name == "physics_cpu" else 1
+        if v in words or (isinstance(v, int) and not isinstance(v, bool) and low <= v <= 4095):
+            return v
+        raise ValueError(f"{' or '.join(repr(w) for w in words)} or a whole number from {low}")
 
 
 # The verdicts a run can fail on (hil.harness.analysis.verdict.CheckName, same values).

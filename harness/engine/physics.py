@@ -5,14 +5,11 @@ says (lockstep), applies each control the moment it arrives, and at every camera
 instant sends the world state to the run process. Each step's lateness (how long
 after its due instant it started) goes into a fixed-size histogram.
 
-Messages (tuples, over one ``multiprocessing`` pipe between our own processes):
-
-run -> physics                           physics -> run
-``("start", wall_start_ns)``             ``("ready", scheduling)``
-``("ctl", vi, frame_id, s, t, b)``       ``("applied", vi, frame_id, t_apply_ns, steps, qpos, qvel)``
-``("advance", to_step, [ctl...])``       ``("state", vis, t_state_ns, steps, qpos, qvel, collisions)``
-``("halt",)`` stop stepping              ``("finished", steps)`` (then still applies controls)
-``("exit",)``                            ``("done", LatenessHistogram.to_json(), final state)``
+Messages (``hil.harness.engine.messages``, over one ``multiprocessing`` pipe between
+our own processes): ``Start``, ``ApplyControl``, ``Advance``, ``Halt``, ``Exit`` in;
+``PhysicsReady``, ``WorldState`` (each camera instant), ``Applied`` (each control),
+``Finished`` (after the last step; controls still apply) and ``Done`` (the lateness
+histogram and the final state) out; ``RenderJob`` to the render workers.
 """
 
 from __future__ import annotations
@@ -27,7 +24,10 @@ from typing import Any
 
 import numpy as np
 
+from hil.harness.engine.messages import (Advance, Applied, ApplyControl, Done, Exit, Finished, Halt, PhysicsReady,
+                                         RenderJob, Start, WorldState, encode)
 from hil.harness.engine.procs import ask_realtime, die_with_parent
+from hil.harness.engine.rings import Ring, RingSpec
 
 SPIN_NS = 60_000          # spin the last 60 µs before a due instant (sleep overshoots)
 BIN_NS = 10_000           # lateness histogram resolution: 10 µs
@@ -48,7 +48,10 @@ class PhysicsSpec:
     phases: tuple[int, ...]         # capture phase (steps) of each ego, in 0..period-1
     late_tolerance_ns: int
     realtime_priority: int
-    assign: tuple[int, ...] = ()    # render worker (index into the job pipes) of each ego
+    assign: tuple[int, ...] = ()    # render worker (index into the job rings) of each ego
+    spin_ns: int = SPIN_NS          # busy-wait this long before each due instant (sleep overshoots)
+    fallback_nice: int = 0          # asked for where SCHED_FIFO is refused (engine.fallback_nice)
+    cpu: int | None = None          # the core the physics keeps to itself (engine.physics_cpu)
 
 
 def capture_table(period_steps: int, phases: tuple[int, ...]) -> dict[int, tuple[int, ...]]:
@@ -102,19 +105,41 @@ class LatenessHistogram:
                 "bins": {int(k): int(self.counts[k]) for k in nz}}
 
 
-def physics_main(conn: Connection, jobs: list[Connection], spec: PhysicsSpec, parent_pid: int) -> None:
-    """Entry point of the physics process. ``jobs``: one pipe to each render worker,
-    which gets the world state of its vehicles' camera instants directly."""
+@dataclass(frozen=True)
+class PhysicsOutputs:
+    """Where the physics process writes: rings it never waits on
+    (``hil.harness.engine.rings``); a consumer that falls behind loses records, each
+    counted in its ring (and in ``Done``'s ``behind``)."""
+
+    run: RingSpec                  # the run process: every world state, the answers, the end
+    jobs: tuple[RingSpec, ...]     # one per render worker: its egos' render jobs
+    # Shards in processes of their own (hil.harness.engine.shard_proc): each gets the
+    # world states of its egos' camera instants (every state in lockstep, and every
+    # one with a collision) and its egos' answers in its own ring, and sends its
+    # controls on its own pipe. ``shard_of``: the shard of each ego (empty: none).
+    shards: tuple[RingSpec, ...] = ()
+    shard_of: tuple[int, ...] = ()
+    controls: tuple[Connection, ...] = ()
+
+
+def physics_main(conn: Connection, outputs: PhysicsOutputs, spec: PhysicsSpec, parent_pid: int) -> None:
+    """Entry point of the physics process. ``conn`` brings the run's commands (and
+    takes ``PhysicsReady``); everything else goes out through ``outputs``: each
+    render worker gets the world state of its vehicles' camera instants directly."""
     die_with_parent(parent_pid)
-    scheduling = ask_realtime(spec.realtime_priority)
+    scheduling = ask_realtime(spec.realtime_priority, fallback_nice=spec.fallback_nice, cpu=spec.cpu)
     from hil.scenarios.sim import Simulation  # no renderer here: physics only
 
     sim = Simulation(spec.world, rules=spec.rules)
-    keeper = _Keeper(conn, jobs, sim, spec)
+    run = Ring.open(outputs.run, producer=True)
+    jobs = [Ring.open(j, producer=True) for j in outputs.jobs]
+    shards = [Ring.open(r, producer=True) for r in outputs.shards]
+    keeper = _Keeper(conn, run, jobs, sim, spec, shards=shards, shard_of=outputs.shard_of,
+                     controls=list(outputs.controls))
     gc.collect()
     gc.freeze()
     gc.disable()  # the loop makes no reference cycles; a collection would be a stall
-    conn.send(("ready", scheduling))
+    conn.send(PhysicsReady(scheduling))
     try:
         keeper.serve()
     except (EOFError, BrokenPipeError, KeyboardInterrupt):
@@ -125,83 +150,126 @@ def physics_main(conn: Connection, jobs: list[Connection], spec: PhysicsSpec, pa
 
 
 class _Keeper:
-    def __init__(self, conn: Connection, jobs: list[Connection], sim: Any, spec: PhysicsSpec) -> None:
-        self.conn, self.jobs, self.sim, self.spec = conn, jobs, sim, spec
+    def __init__(self, conn: Connection, run: Ring, jobs: list[Ring], sim: Any, spec: PhysicsSpec, *,
+                 shards: list[Ring], shard_of: tuple[int, ...], controls: list[Connection]) -> None:
+        self.conn, self.run, self.jobs, self.sim, self.spec = conn, run, jobs, sim, spec
+        self.shards, self.shard_of = shards, shard_of
         self.egos: tuple[str, ...] = sim.egos
         self.table = capture_table(spec.period_steps, spec.phases)
         self.hist = LatenessHistogram(tolerance_ns=spec.late_tolerance_ns)
         self.halted = False
         self.exiting = False
         self.span_ns = 0
-        self.fd = conn.fileno()
+        # What brings controls: the run's pipe, and each shard's (until its end closes).
+        self.inputs: dict[int, Connection] = {conn.fileno(): conn, **{c.fileno(): c for c in controls}}
 
     # -- messages ---------------------------------------------------------------
 
-    def _pending(self) -> bool:
-        return bool(select.select([self.fd], [], [], 0)[0])
+    def _ready(self, timeout_s: float | None) -> list[Connection]:
+        """The inputs with a message waiting (up to ``timeout_s``; None: until one)."""
+        return [self.inputs[fd] for fd in select.select(list(self.inputs), [], [], timeout_s)[0]]
 
-    def _handle(self, msg: tuple[Any, ...]) -> None:
-        tag = msg[0]
-        if tag == "ctl":
-            self._apply(msg)
-        elif tag == "halt":
-            self.halted = True
-        elif tag == "exit":
-            self.halted = self.exiting = True
+    def _serve(self, ready: list[Connection]) -> None:
+        """One message from each input in ``ready``. A shard's closed pipe is dropped
+        (its shard is gone); the run's raises EOFError (the run is gone: leave)."""
+        for c in ready:
+            try:
+                msg = c.recv()
+            except EOFError:
+                if c is self.conn:
+                    raise
+                del self.inputs[c.fileno()]
+                continue
+            self._handle(msg)
 
-    def _apply(self, msg: tuple[Any, ...]) -> None:
-        _, vi, frame_id, steer, throttle, brake = msg
-        self.sim.set_control(self.egos[vi], steering_rad=steer, throttle=throttle, brake=brake)
+    def _handle(self, msg: object) -> None:
+        match msg:
+            case ApplyControl():
+                self._apply(msg)
+            case Halt():
+                self.halted = True
+            case Exit():
+                self.halted = self.exiting = True
+
+    def _apply(self, c: ApplyControl) -> None:
+        self.sim.set_control(self.egos[c.vi], steering_rad=c.steering_rad, throttle=c.throttle, brake=c.brake)
         t_apply = time.monotonic_ns()
         steps, qpos, qvel = self.sim.state()
-        self.conn.send(("applied", vi, frame_id, t_apply, steps, qpos, qvel))
+        k = self.shard_of[c.vi] if self.shard_of else -1
+        (self.run if k < 0 else self.shards[k]).write(encode(Applied(c.vi, c.frame_id, t_apply, steps, qpos, qvel)))
 
     def _drain(self) -> None:
-        while self._pending():
-            self._handle(self.conn.recv())
+        while ready := self._ready(0):
+            self._serve(ready)
 
     def _publish(self, vis: tuple[int, ...], t_state_ns: int) -> None:
         """A camera instant: the state to the render workers first (capture latency),
         then to the run process (truth)."""
         steps, qpos, qvel = self.sim.state()
-        by_worker: dict[int, list[str]] = {}
+        by_worker: dict[int, list[int]] = {}
         for vi in vis:
-            by_worker.setdefault(self.spec.assign[vi], []).append(self.egos[vi])
-        for w, names in by_worker.items():
-            self.jobs[w].send(("job", steps, qpos, qvel, names, t_state_ns))
-        self.conn.send(("state", vis, t_state_ns, steps, qpos, qvel, self.sim.take_collisions()))
+            by_worker.setdefault(self.spec.assign[vi], []).append(vi)
+        unrendered: list[int] = []
+        for w, mine in by_worker.items():
+            if not self.jobs[w].write(encode(RenderJob(steps, qpos, qvel, tuple(mine), t_state_ns))):
+                unrendered += mine  # that worker is behind: these frames will not come
+        collisions = tuple(self.sim.take_collisions())
+        state = encode(WorldState(vis, t_state_ns, steps, qpos, qvel, collisions, tuple(unrendered)))
+        self.run.write(state)
+        if self.shards:
+            wanted = (range(len(self.shards)) if collisions or not self.spec.realtime
+                      else {self.shard_of[vi] for vi in vis})
+            for k in wanted:
+                self.shards[k].write(state)
+
+    def _send_last(self, msg: Finished | Done, *, to: list[Ring] | None = None) -> None:
+        """The end of the run: no deadline left, so wait for room (up to 10 s)."""
+        data = encode(msg)
+        for ring in to or [self.run]:
+            for _ in range(10_000):
+                if ring.write(data, count=False):
+                    break
+                time.sleep(0.001)
+            else:
+                ring.write(data)  # counted: its consumer is gone or stuck
+
+    def behind(self) -> dict[str, int]:
+        """Records each consumer's ring could not take, by consumer name."""
+        return {r.name: r.dropped for r in (self.run, *self.jobs, *self.shards) if r.dropped}
 
     # -- the loops ----------------------------------------------------------------
 
     def serve(self) -> None:
         msg = self.conn.recv()
-        if msg[0] == "exit":
-            return
+        if not isinstance(msg, Start):
+            return  # Exit before the start
         start = time.monotonic_ns()
         if self.spec.realtime:
-            start = int(msg[1])
+            start = msg.wall_start_ns
             self._realtime(start)
         else:
             self._lockstep()
         self.span_ns = time.monotonic_ns() - start
-        self.conn.send(("finished", self.sim.steps))
+        self._send_last(Finished(self.sim.steps))
         while not self.exiting:  # the run drains its frames: controls still apply
-            self._handle(self.conn.recv())
+            self._serve(self._ready(None))
         steps, qpos, qvel = self.sim.state()
         # span_ns: the physics's own wall time from start to its last step (its pace).
-        self.conn.send(("done", {**self.hist.to_json(), "span_ns": self.span_ns}, steps, qpos, qvel,
-                        self.sim.take_collisions()))
+        done = Done({**self.hist.to_json(), "span_ns": self.span_ns, "behind": self.behind()}, steps, qpos, qvel,
+                    tuple(self.sim.take_collisions()))
+        self._send_last(done, to=self.shards)  # after their last answers: the shards know they have all
+        self._send_last(done)
 
     def _realtime(self, start_ns: int) -> None:
         sim, spec, clock = self.sim, self.spec, time.monotonic_ns
-        period, table, wps = spec.period_steps, self.table, spec.wall_per_step_ns
+        period, table, wps, spin = spec.period_steps, self.table, spec.wall_per_step_ns, spec.spin_ns
         while sim.steps < spec.total_steps and not self.halted:
             due = start_ns + int(sim.steps * wps)
             now = clock()
             while now < due:
                 wait = due - now
-                if wait > SPIN_NS and select.select([self.fd], [], [], (wait - SPIN_NS) / 1e9)[0]:
-                    self._handle(self.conn.recv())  # a control: applied at once
+                if wait > spin and (ready := self._ready((wait - spin) / 1e9)):
+                    self._serve(ready)  # a control: applied at once
                 now = clock()
             self.hist.add(now - due)
             self._drain()
@@ -214,13 +282,12 @@ class _Keeper:
         sim, spec = self.sim, self.spec
         while not self.halted:
             msg = self.conn.recv()
-            if msg[0] != "advance":
+            if not isinstance(msg, Advance):
                 self._handle(msg)
                 continue
-            _, to_step, ctls = msg
-            for c in ctls:
+            for c in msg.controls:
                 self._apply(c)
-            to_step = min(int(to_step), spec.total_steps)
+            to_step = min(msg.to_step, spec.total_steps)
             while sim.steps < to_step:
                 sim.step()
             if sim.steps >= spec.total_steps:

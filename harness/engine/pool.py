@@ -7,18 +7,23 @@ from __future__ import annotations
 import contextlib
 import multiprocessing as mp
 import os
-import queue
 import sys
-from collections.abc import Iterator
-from dataclasses import replace
-from typing import Any
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
+from multiprocessing.connection import Connection
+from typing import Any, TypeVar
 
 from hil.common.errors import SimulationError
-from hil.harness.engine.physics import PhysicsSpec, physics_main
-from hil.harness.engine.procs import Pump, widen_pipe
+from hil.harness.engine.messages import (Advance, ApplyControl, Exit, Halt, PhysicsReady, Start, StopWorker,
+                                         WorkerFailed, WorkerReady)
+from hil.harness.engine.physics import PhysicsOutputs, PhysicsSpec, physics_main
+from hil.harness.engine.procs import Pump, RingPump, end_child, widen_pipe
 from hil.harness.engine.render import FrameSlots, RenderSpec, render_main
+from hil.harness.engine.rings import Ring, RingSpec
 
 START_TIMEOUT_S = 60.0
+RING_BYTES = 4 << 20  # each of the physics's rings: ~2,000 world states of a 16-vehicle scene
+_M = TypeVar("_M")
 
 
 def auto_workers(n_vehicles: int) -> int:
@@ -28,13 +33,14 @@ def auto_workers(n_vehicles: int) -> int:
 
 
 @contextlib.contextmanager
-def _without_main_module() -> Iterator[None]:
+def without_main_module() -> Iterator[None]:
     """While starting children: hide ``__main__``'s file and spec, so a spawned child
     does not import the caller's main script (it needs only our modules). A user's
     script that calls ``execute`` without an ``if __name__ == "__main__"`` guard
     would otherwise run again in every child."""
     main = sys.modules.get("__main__")
-    saved = {k: main.__dict__[k] for k in ("__file__", "__spec__") if main is not None and k in main.__dict__}
+    saved: dict[str, Any] = {k: main.__dict__[k] for k in ("__file__", "__spec__")
+                             if main is not None and k in main.__dict__}
     try:
         if main is not None:
             main.__dict__.pop("__file__", None)
@@ -46,94 +52,161 @@ def _without_main_module() -> Iterator[None]:
             main.__dict__.update(saved)
 
 
-class Engine:
-    """Starts the children; their messages arrive in ``events`` (the run's one event
-    queue, which the links feed too) as tuples tagged ``"physics"`` or ``"render"``."""
+@dataclass(frozen=True)
+class ShardIO:
+    """A shard process's ends of the engine: its ring from the physics (states and
+    answers), its pipe to the physics (controls), its pipe from each render worker
+    (frames, camera truth), and the shared-memory frame slots of its vehicles."""
 
-    def __init__(self, *, physics: PhysicsSpec, render: RenderSpec, workers: int,
-                 events: queue.Queue[Any]) -> None:
+    ring: RingSpec
+    control: Connection
+    frames: tuple[Connection, ...]
+    shm: dict[str, str]
+    slot_bytes: int
+
+
+class Engine:
+    """Starts the children; once :meth:`connect` names the run's handlers, their
+    messages (``hil.harness.engine.messages``) go there, on the threads that read them."""
+
+    def __init__(self, *, physics: PhysicsSpec, render: RenderSpec, workers: int, ring_bytes: int = RING_BYTES,
+                 stall_run: tuple[int, float] | None = None, shard_of: tuple[int, ...] = ()) -> None:
+        """``stall_run``: (step, seconds): the injected stuck consumer
+        (``engine.faults.stall_run_ms``, see ``RingPump``). ``shard_of``: the shard
+        process of each ego when the run's vehicles live in shards of their own
+        (empty: in this process); their ends are :meth:`shard_io`."""
         self._procs: list[Any] = []
         self._conns: list[Any] = []
         self.slots: dict[str, FrameSlots] = {}
         self.scheduling = "not started"
         self.worker_pids: list[int] = []
-        self.events = events
+        self.rings: list[Ring] = []
+        self._pumps: list[Pump | RingPump] = []
+        self._stall = stall_run
+        self.shard_of = shard_of
+        self._shard_ends: list[ShardIO] = []
         ctx = mp.get_context("spawn")
         names = render.vehicles
+        n_shards = max(shard_of, default=-1) + 1
         try:
             self.slots = {v: FrameSlots(slot_bytes=render.slot_bytes) for v in names}
             shm = {v: s.shm.name for v, s in self.slots.items()}
             self.workers = max(1, min(workers, len(names)))
             self.assign = {v: i % self.workers for i, v in enumerate(names)}
             self._render: list[Any] = []
-            job_ends = []
+            # The physics writes into rings it never waits on: one per render worker
+            # (its jobs), one for this process (world states, answers, the end).
+            self.rings = [Ring.create(f"render-{w}", capacity=ring_bytes) for w in range(self.workers)]
+            self._run_ring = Ring.create("run", capacity=ring_bytes)
+            self.rings.append(self._run_ring)
+            # A shard in its own process: a ring from the physics (its egos' states and
+            # answers), a pipe to it (its controls), a pipe from each render worker.
+            shard_rings = [Ring.create(f"shard-{k}", capacity=ring_bytes) for k in range(n_shards)]
+            self.rings += shard_rings
+            controls = [ctx.Pipe(duplex=False) for _ in range(n_shards)]
+            frames = [[ctx.Pipe(duplex=False) for _ in range(n_shards)] for _ in range(self.workers)]
             for w in range(self.workers):
                 mine = tuple(v for v in names if self.assign[v] == w)
-                rs = replace(render, vehicles=mine, shm={v: shm[v] for v in mine})
+                rs = replace(render, vehicles=mine, shm={v: shm[v] for v in mine},
+                             out_of={v: shard_of[names.index(v)] for v in mine} if n_shards else None)
                 a, b = ctx.Pipe()
-                jr, jw = ctx.Pipe(duplex=False)  # physics -> worker: world states
-                for c in (a, b, jr, jw):
+                for c in (a, b, *(c for pair in frames[w] for c in pair)):
                     widen_pipe(c)
-                rp = ctx.Process(target=render_main, args=(b, jr, rs, os.getpid()), name=f"hil-render-{w}",
-                                 daemon=True)
-                with _without_main_module():
+                outs = tuple(wr for _rd, wr in frames[w])
+                rp = ctx.Process(target=render_main, args=(b, self.rings[w].consumer_spec(), rs, os.getpid(), outs),
+                                 name=f"hil-render-{w}", daemon=True)
+                with without_main_module():
                     rp.start()
                 b.close()
-                jr.close()
-                job_ends.append(jw)
+                for _rd, wr in frames[w]:
+                    wr.close()
                 self._procs.append(rp)
                 self._render.append(a)
             physics = replace(physics, assign=tuple(self.assign[v] for v in names))
+            outputs = PhysicsOutputs(run=self._run_ring.producer_spec(),
+                                     jobs=tuple(r.producer_spec() for r in self.rings[:self.workers]),
+                                     shards=tuple(r.producer_spec() for r in shard_rings), shard_of=shard_of,
+                                     controls=tuple(rd for rd, _wr in controls))
             pc, cc = ctx.Pipe()
-            widen_pipe(pc), widen_pipe(cc)
-            p = ctx.Process(target=physics_main, args=(cc, job_ends, physics, os.getpid()), name="hil-physics",
+            widen_pipe(pc)
+            widen_pipe(cc)
+            p = ctx.Process(target=physics_main, args=(cc, outputs, physics, os.getpid()), name="hil-physics",
                             daemon=True)
-            with _without_main_module():
+            with without_main_module():
                 p.start()
             cc.close()
-            for jw in job_ends:
-                jw.close()
+            for rd, _wr in controls:
+                rd.close()
+            for r in self.rings:  # the children hold their ends now: a child's exit reads as end of file
+                r.release(producer=True, consumer=r not in (self._run_ring, *shard_rings))
+            self._shard_ends = [ShardIO(ring=shard_rings[k].consumer_spec(), control=controls[k][1],
+                                        frames=tuple(frames[w][k][0] for w in range(self.workers)),
+                                        shm={v: shm[v] for i, v in enumerate(names) if shard_of[i] == k},
+                                        slot_bytes=render.slot_bytes)
+                                for k in range(n_shards)]
             self._procs.append(p)
             self._physics = pc
             self._conns = [pc, *self._render]
-            self.scheduling = self._expect(pc, "ready", "physics")[1]
+            self.scheduling = self._expect(pc, PhysicsReady, "physics").scheduling
             for w, c in enumerate(self._render):
-                self.worker_pids.append(int(self._expect(c, "ready", f"render worker {w}")[1]))
-            self._pumps = [Pump(pc, events, name="physics", transform=lambda m: ("physics", *m))]
-            self._pumps += [Pump(c, events, name=f"render-{w}", transform=lambda m: ("render", *m))
-                            for w, c in enumerate(self._render)]
+                self.worker_pids.append(self._expect(c, WorkerReady, f"render worker {w}").pid)
+
         except BaseException:
             self.close()
             raise
 
     @staticmethod
-    def _expect(conn: Any, tag: str, who: str) -> tuple[Any, ...]:
+    def _expect(conn: Any, kind: type[_M], who: str) -> _M:
         if not conn.poll(START_TIMEOUT_S):
             raise SimulationError(f"{who} did not start within {START_TIMEOUT_S:.0f} s")
         try:
             msg = conn.recv()
         except EOFError as err:
             raise SimulationError(f"{who} exited while starting") from err
-        if msg[0] != tag:
-            raise SimulationError(str(msg[1]) if msg[0] == "error" else f"{who}: unexpected {msg[0]!r}")
+        if not isinstance(msg, kind):
+            raise SimulationError(msg.text if isinstance(msg, WorkerFailed)
+                                  else f"{who}: unexpected {type(msg).__name__}")
         return msg
+
+    def shard_io(self, k: int) -> ShardIO:
+        """What shard process ``k`` needs from the engine (pass it to the process at
+        its start, then :meth:`release_shard_io`)."""
+        return self._shard_ends[k]
+
+    def release_shard_io(self) -> None:
+        """This process's copies of the shards' ends, closed once their processes
+        hold them (so a shard's exit reads as end of file where it matters)."""
+        ends, self._shard_ends = self._shard_ends, []
+        for io in ends:
+            io.control.close()
+            for c in io.frames:
+                c.close()
+        for r in self.rings:
+            if r.name.startswith("shard-"):
+                r.release(consumer=True)
+
+    def connect(self, *, on_physics: Callable[[Any], None], on_render: Callable[[Any], None]) -> None:
+        """Hand every message of the physics (its ring) to ``on_physics`` and of the
+        render workers to ``on_render``, each on the thread that reads it."""
+        self._pumps = [RingPump(self._run_ring, on_physics, name="physics", stall=self._stall)]
+        self._pumps += [Pump(c, on_render, name=f"render-{w}") for w, c in enumerate(self._render)]
 
     # -- to the physics process ------------------------------------------------------
 
     def start(self, wall_start_ns: int) -> None:
-        self._physics.send(("start", wall_start_ns))
+        self._physics.send(Start(wall_start_ns))
 
-    def control(self, vi: int, frame_id: int, steering: float, throttle: float, brake: float) -> None:
-        self._physics.send(("ctl", vi, frame_id, steering, throttle, brake))
+    def control(self, c: ApplyControl) -> None:
+        self._physics.send(c)
 
-    def advance(self, to_step: int, controls: list[tuple[Any, ...]]) -> None:
-        self._physics.send(("advance", to_step, controls))
+    def advance(self, to_step: int, controls: tuple[ApplyControl, ...]) -> None:
+        self._physics.send(Advance(to_step, controls))
 
     def halt(self) -> None:
-        self._physics.send(("halt",))
+        self._physics.send(Halt())
 
     def exit_physics(self) -> None:
-        self._physics.send(("exit",))
+        self._physics.send(Exit())
 
     # -- from the render pool ----------------------------------------------------------
 
@@ -143,6 +216,16 @@ class Engine:
     def alive(self) -> bool:
         return all(p.is_alive() for p in self._procs)
 
+    def behind(self) -> dict[str, int]:
+        """Records the physics could not hand to each consumer so far (its ring was
+        full: the consumer fell behind), by consumer name; only those with losses."""
+        out = {}
+        for r in self.rings:
+            n = r.dropped_now()
+            if n:
+                out[r.name] = n
+        return out
+
     # -- lifetime ------------------------------------------------------------------------
 
     def close(self) -> None:
@@ -151,25 +234,25 @@ class Engine:
         procs, self._procs = self._procs, []
         for c in getattr(self, "_render", []):
             try:
-                c.send(("stop",))
+                c.send(StopWorker())
             except (OSError, ValueError):
                 pass
         if procs:
             try:
-                self._physics.send(("exit",))
+                self._physics.send(Exit())
             except (OSError, ValueError, AttributeError):
                 pass
         for p in procs:
-            p.join(2.0)
-            if p.is_alive():
-                p.terminate()
-                p.join(2.0)
-            if p.is_alive():
-                p.kill()
-                p.join(2.0)
+            end_child(p)
         for c in self._conns:
             c.close()
         self._conns = []
+        self.release_shard_io()
+        for pump in self._pumps:
+            pump.join(1.0)
+        rings, self.rings = self.rings, []
+        for r in rings:
+            r.close()
         slots, self.slots = self.slots, {}
         for s in slots.values():
             s.close()

@@ -1,13 +1,14 @@
 """Process plumbing shared by the engine's children: die with the parent, ask for a
-real-time scheduling class, and pump a child's pipe into the run's event queue."""
+real-time scheduling class, keep a core for the physics, and pump a child's pipe or
+the physics's ring into the run's handlers."""
 
 from __future__ import annotations
 
 import ctypes
 import os
-import queue
 import signal
 import threading
+import time
 from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
@@ -39,17 +40,74 @@ def preexec_die_with_parent() -> None:
     _prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL))
 
 
-def ask_realtime(priority: int) -> str:
-    """Ask for SCHED_FIFO at ``priority`` (0: don't) and 1 ns timer slack; returns
-    what was granted, in words, for the summary."""
+def ask_realtime(priority: int, *, fallback_nice: int = 0, cpu: int | None = None) -> str:
+    """Ask for SCHED_FIFO at ``priority`` (0: don't) and 1 ns timer slack; without it
+    (refused on a VM or without privileges, or not asked for), ask for nice
+    ``fallback_nice`` instead (granted to root or where ``RLIMIT_NICE`` allows; 0:
+    don't). With ``cpu``, run on that core only. Returns what was granted, in words,
+    for the summary."""
     _prctl(_PR_SET_TIMERSLACK, 1)
-    if priority <= 0:
-        return "normal (real-time class not requested)"
+    where = ""
+    if cpu is not None:
+        try:
+            os.sched_setaffinity(0, {cpu})
+            where = f", on core {cpu}"
+        except (OSError, AttributeError) as err:
+            where = f", core {cpu} refused ({getattr(err, 'strerror', None) or err})"
+    if priority > 0:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+            return f"SCHED_FIFO priority {priority}{where}"
+        except (PermissionError, OSError, AttributeError) as err:
+            why = f"SCHED_FIFO refused: {getattr(err, 'strerror', None) or err}"
+    else:
+        why = "real-time class not requested"
+    if fallback_nice < 0:
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, fallback_nice)
+            return f"normal, nice {fallback_nice} ({why}){where}"
+        except (PermissionError, OSError):
+            why += f"; nice {fallback_nice} refused too"
+    return f"normal ({why}){where}"
+
+
+def physics_core(setting: str | int) -> int | None:
+    """The core the physics keeps to itself under ``engine.physics_cpu``: ``"auto"``
+    gives it the last core of this process's set when there are 4 or more (fewer
+    cannot spare one: rendering needs them), ``"none"`` none, a number that core."""
+    if setting == "none":
+        return None
+    if isinstance(setting, int):
+        return setting
     try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    except (PermissionError, OSError, AttributeError) as err:
-        return f"normal (SCHED_FIFO refused: {getattr(err, 'strerror', None) or err})"
-    return f"SCHED_FIFO priority {priority}"
+        cores = sorted(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return None
+    return cores[-1] if len(cores) >= 4 else None
+
+
+def keep_off_core(cpu: int | None) -> set[int] | None:
+    """Keep the calling thread (the threads and children it starts from now on) off
+    core ``cpu``, the physics's own (None: nothing to do). Returns the cores it had,
+    for :func:`restore_affinity`."""
+    if cpu is None:
+        return None
+    try:
+        before = set(os.sched_getaffinity(0))
+        if before - {cpu}:
+            os.sched_setaffinity(0, before - {cpu})
+        return before
+    except (OSError, AttributeError):
+        return None
+
+
+def restore_affinity(cores: set[int] | None) -> None:
+    """Undo :func:`keep_off_core` (None: nothing to undo)."""
+    if cores:
+        try:
+            os.sched_setaffinity(0, cores)
+        except (OSError, AttributeError):
+            pass
 
 
 def lower_thread_priority(nice: int = 10) -> None:
@@ -65,6 +123,18 @@ def lower_thread_priority(nice: int = 10) -> None:
         pass
 
 
+def end_child(p: Any, *, grace_s: float = 2.0) -> None:
+    """Wait ``grace_s`` for a child process (``multiprocessing``) to leave as asked,
+    then terminate it, then kill it."""
+    p.join(grace_s)
+    if p.is_alive():
+        p.terminate()
+        p.join(2.0)
+    if p.is_alive():
+        p.kill()
+        p.join(2.0)
+
+
 def widen_pipe(conn: Connection, size: int = 1 << 20) -> None:
     """Let a pipe hold ``size`` bytes, so a child never blocks on a busy reader."""
     try:
@@ -75,27 +145,68 @@ def widen_pipe(conn: Connection, size: int = 1 << 20) -> None:
 
 
 class Pump:
-    """A daemon thread that moves every message of ``conn`` into ``out`` as
-    ``(tag, *fields)`` tuples, and ``("eof", name)`` when the child's end closes."""
+    """A daemon thread that hands every message of ``conn`` to ``deliver`` (on this
+    thread: no further hand-off), and ``ChildGone(name)`` when the child's end closes."""
 
-    def __init__(self, conn: Connection, out: queue.Queue[Any], *, name: str,
-                 transform: Callable[[Any], Any] | None = None) -> None:
-        self._conn, self._out, self.name = conn, out, name
-        self._transform = transform
+    def __init__(self, conn: Connection, deliver: Callable[[Any], None], *, name: str) -> None:
+        self._conn, self._deliver, self.name = conn, deliver, name
         self._thread = threading.Thread(target=self._run, name=f"pump-{name}", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
         from hil.adapters.process import prioritise_this_thread
+        from hil.harness.engine.messages import ChildGone
 
-        prioritise_this_thread()  # world states and frames are on the capture path
+        prioritise_this_thread()  # frames are on the capture path
+        deliver = self._deliver
         while True:
             try:
                 msg = self._conn.recv()
             except (EOFError, OSError):
-                self._out.put(("eof", self.name))
+                deliver(ChildGone(self.name))
                 return
-            self._out.put(msg if self._transform is None else self._transform(msg))
+            deliver(msg)
+
+    def join(self, timeout_s: float) -> None:
+        self._thread.join(timeout_s)
+
+
+class RingPump:
+    """A daemon thread that decodes every record of a ring the physics writes
+    (``hil.harness.engine.rings``) and hands it to ``deliver`` (on this thread), and
+    ``ChildGone(name)`` when its producer's end closes. ``stall``: (step, seconds):
+    once the world state of that step is read, stop reading that long
+    (``engine.faults.stall_run_ms``)."""
+
+    def __init__(self, ring: Any, deliver: Callable[[Any], None], *, name: str,
+                 stall: tuple[int, float] | None = None) -> None:
+        self._ring, self._deliver, self.name = ring, deliver, name
+        self._stall = stall
+        self._thread = threading.Thread(target=self._run, name=f"ring-{name}", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        import select
+
+        from hil.adapters.process import prioritise_this_thread
+        from hil.harness.engine.messages import ChildGone, decode
+
+        prioritise_this_thread()
+        ring, put, stall = self._ring, self._deliver, self._stall
+        try:
+            while True:
+                select.select([ring.fileno()], [], [])
+                for record in ring.read():
+                    msg = decode(record)
+                    put(msg)
+                    if stall is not None and getattr(msg, "steps", -1) >= stall[0]:
+                        time.sleep(stall[1])  # the injected fault: a stuck consumer
+                        stall = None
+                if ring.closed_by_producer:
+                    break
+        except (OSError, ValueError, AssertionError):  # closed under us: the run is over
+            pass
+        put(ChildGone(self.name))
 
     def join(self, timeout_s: float) -> None:
         self._thread.join(timeout_s)

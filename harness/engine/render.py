@@ -1,16 +1,17 @@
 """Render workers: each a process with its own MuJoCo mirror of the world and its own
 EGL context, serving the cameras of the vehicles assigned to it.
 
-A job is a world state sent by the physics process itself at a camera instant (so
-a capture never waits behind the run process) and the vehicles to capture. The
+A job is a world state the physics process itself writes at a camera instant into
+the worker's ring (``hil.harness.engine.rings``: so a capture never waits behind the
+run process, and the physics never waits for a worker) and the egos to capture. The
 worker renders each camera, stamps ``t0`` when the pixels are ready, encodes, and
 writes the bytes into that vehicle's shared-memory slot ring (images never cross a
 pipe); then, with ``truth.visible_boxes``, it renders segmentation for the camera
 truth — after every frame of the job is out, so truth adds no capture latency.
 
-Worker -> run messages: ``("ready", pid)``, ``("frame", vehicle, steps, t_state_ns,
-speed_mps, t0_ns, t_encoded_ns, slot, nbytes, encoding)``, ``("camtruth", vehicle,
-steps, CameraTruth)``, ``("error", text)``. The run process sends ``("stop",)``.
+Worker -> run messages (``hil.harness.engine.messages``): ``WorkerReady``,
+``FrameReady`` (the frame's stamps and its slot), ``CameraTruthReady``,
+``WorkerFailed``. The run process sends ``StopWorker`` (or just goes away).
 """
 
 from __future__ import annotations
@@ -24,7 +25,9 @@ from typing import Any
 
 import numpy as np
 
+from hil.harness.engine.messages import CameraTruthReady, FrameReady, RenderJob, WorkerFailed, WorkerReady, decode
 from hil.harness.engine.procs import die_with_parent
+from hil.harness.engine.rings import Ring, RingSpec
 
 SLOTS = 8  # frames of one camera in flight between a worker and the links
 
@@ -54,6 +57,7 @@ class RenderSpec:
     min_visible_px: int
     delay_ns: int = 0              # injected fault: hold a frame this long before t0 ...
     delay_every: int = 1           # ... every this many frames of a camera (engine.faults)
+    out_of: dict[str, int] | None = None  # vehicle -> its shard's pipe (index into render_main's ``outs``)
 
 
 class FrameSlots:
@@ -99,9 +103,12 @@ def _hold(ns: int) -> None:
         pass
 
 
-def render_main(conn: Connection, jobs: Connection, spec: RenderSpec, parent_pid: int) -> None:
-    """Entry point of a render worker: jobs from the physics process on ``jobs``,
-    results (and ``stop``) with the run process on ``conn``."""
+def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, parent_pid: int,
+                outs: tuple[Connection, ...] = ()) -> None:
+    """Entry point of a render worker: jobs from the physics process in the ring
+    ``jobs``, results (and ``StopWorker``) with the run process on ``conn``; the
+    frames of a vehicle whose shard runs in a process of its own go to that shard's
+    pipe in ``outs`` (``spec.out_of``)."""
     from multiprocessing.connection import wait
 
     die_with_parent(parent_pid)
@@ -124,36 +131,50 @@ def render_main(conn: Connection, jobs: Connection, spec: RenderSpec, parent_pid
                 sim.camera_truth(name, min_visible_px=spec.min_visible_px)
         slots = {v: FrameSlots(slot_bytes=spec.slot_bytes, name=spec.shm[v]) for v in spec.vehicles}
     except Exception as err:  # noqa: BLE001 - reported to the run, which raises SimulationError
-        conn.send(("error", f"render worker could not start: {err}"))
+        conn.send(WorkerFailed(f"render worker could not start: {err}"))
         os._exit(1)
     counter = {v: 0 for v in spec.vehicles}
-    conn.send(("ready", os.getpid()))
+    ring = Ring.open(jobs, producer=False)
+    to = {v: outs[spec.out_of[v]] if spec.out_of else conn for v in spec.vehicles}
+    conn.send(WorkerReady(os.getpid()))
     try:
         while True:
-            ready = wait([jobs, conn])
+            ready = wait([jobs.bell, conn])
             if conn in ready:
-                break  # "stop" (or the run process is gone)
-            msg = jobs.recv()
-            _, steps, qpos, qvel, names, t_state = msg
-            sim.load_state(steps, qpos, qvel)
-            for name in names:
-                rgb = sim.render(name)
-                if spec.delay_ns and counter[name] % spec.delay_every == 0:
-                    _hold(spec.delay_ns)
-                t0 = time.monotonic_ns()
-                data, enc = encode_image(rgb, jpeg=spec.jpeg, quality=spec.jpeg_quality)
-                slot = counter[name] % SLOTS
-                counter[name] += 1
-                n = slots[name].write(slot, data)
-                conn.send(("frame", name, steps, t_state, sim.speed_mps(name), t0, time.monotonic_ns(), slot, n,
-                           enc))
-            if spec.visible_boxes:
-                for name in names:
-                    conn.send(("camtruth", name, steps, sim.camera_truth(name, min_visible_px=spec.min_visible_px)))
+                break  # StopWorker (or the run process is gone)
+            records = ring.read()
+            if not records and ring.closed_by_producer:
+                break  # the physics is gone
+            for record in records:
+                _render_job(decode(record), to, sim, slots, counter, spec)  # type: ignore[arg-type]
     except (EOFError, BrokenPipeError, KeyboardInterrupt):
         pass
     finally:
+        ring.close()
         for s in slots.values():
             s.close()
         sim.close()
         os._exit(0)
+
+
+def _render_job(job: RenderJob, to: dict[str, Connection], sim: Any, slots: dict[str, FrameSlots],
+                counter: dict[str, int], spec: RenderSpec) -> None:
+    """Render, stamp, encode and hand over the frames of one job; then their camera
+    truth (segmentation), which adds no capture latency there."""
+    steps = job.steps
+    sim.load_state(steps, job.qpos, job.qvel)
+    names = [sim.egos[vi] for vi in job.vis]
+    for name in names:
+        rgb = sim.render(name)
+        if spec.delay_ns and counter[name] % spec.delay_every == 0:
+            _hold(spec.delay_ns)
+        t0 = time.monotonic_ns()
+        data, enc = encode_image(rgb, jpeg=spec.jpeg, quality=spec.jpeg_quality)
+        slot = counter[name] % SLOTS
+        counter[name] += 1
+        n = slots[name].write(slot, data)
+        to[name].send(FrameReady(name, steps, job.t_state_ns, sim.speed_mps(name), t0, time.monotonic_ns(), slot, n,
+                                 enc))
+    if spec.visible_boxes:
+        for name in names:
+            to[name].send(CameraTruthReady(name, steps, sim.camera_truth(name, min_visible_px=spec.min_visible_px)))

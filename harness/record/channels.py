@@ -97,7 +97,7 @@ def sync_sample_json(s: SyncSample, *, warmup: bool = False) -> dict[str, Any]:
             "t4_ns": s.t4_ns, "offset_ns": s.offset_ns, "delay_ns": s.delay_ns, "warmup": warmup}
 
 
-def register_all(rec: Recorder, vehicles: Iterable[str], *, anchor: TimeAnchor | None = None,
+def register_all(rec: Any, vehicles: Iterable[str], *, anchor: TimeAnchor | None = None,
                  views: bool = True) -> None:
     """Declare every JSON channel of a run; put the recording on the wall clock
     (``anchor``, captured now if not given; skipped if messages were already
@@ -127,10 +127,7 @@ def register_all(rec: Recorder, vehicles: Iterable[str], *, anchor: TimeAnchor |
         inner.set_time_anchor(anchor or TimeAnchor.capture())
     cfg = _run_config(inner)
     if views:
-        cam = cfg.get("camera")
-        ok = isinstance(cam, dict) and all(k in cam for k in ("width", "height", "fovy_deg"))
-        foxglove_out.FoxgloveViews(vehicles, camera=cam if ok else None, offset_ns=inner.log_time_offset_ns,
-                                   deadline_ms=_deadlines(cfg, vehicles)).install(inner)
+        views_of(cfg, vehicles, offset_ns=inner.log_time_offset_ns).install(inner)
     recording = cfg.get("recording") or {}
     if recording.get("live") is True:
         from hil.harness.record.live import DEFAULT_HOST, LiveView
@@ -142,6 +139,15 @@ def register_all(rec: Recorder, vehicles: Iterable[str], *, anchor: TimeAnchor |
         inner.add_tap("live_view", live)
         print(f"live view: {live.url} (Foxglove: Open connection -> Foxglove WebSocket; "
               "layout hil_configs/foxglove_layout.json)", file=sys.stderr, flush=True)
+
+
+def views_of(cfg: dict[str, Any], vehicles: list[str], *, offset_ns: int) -> foxglove_out.FoxgloveViews:
+    """The Foxglove views of ``vehicles`` under the run config ``cfg`` (as JSON):
+    the camera calibration and each one's end-to-end deadline."""
+    cam = cfg.get("camera")
+    ok = isinstance(cam, dict) and all(k in cam for k in ("width", "height", "fovy_deg"))
+    return foxglove_out.FoxgloveViews(vehicles, camera=cam if ok else None, offset_ns=offset_ns,
+                                      deadline_ms=_deadlines(cfg, vehicles))
 
 
 def _deadlines(cfg: dict[str, Any], vehicles: list[str]) -> dict[str, float]:

@@ -75,9 +75,7 @@ from __future__ import annotations
 
 import base64
 import json
-import math
 import os
-import queue
 import struct
 import threading
 import time
@@ -97,13 +95,14 @@ from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 
 from hil.common.errors import ConfigError, RecordingError
 from hil.harness import __version__
+from hil.harness.engine.handoff import Handoff
 from hil.harness.record import chunk_index
 from hil.harness.record import foxglove_schemas as fx
+from hil.harness.record.encoding import dumps
 
 _MESSAGE_ENCODING = "json"
 _SCHEMA_ENCODING = "jsonschema"
 _SEQUENCE_MASK = 0xFFFF_FFFF  # MCAP sequence numbers are uint32
-_CONTROL_PUT_TIMEOUT_S = 0.5
 _IDLE_POLL_S = 0.5
 
 
@@ -192,6 +191,7 @@ class _Op(IntEnum):
     RAW = 2
     FLUSH = 3
     STOP = 4
+    ENCODED = 5
 
 
 class _Sink:
@@ -204,10 +204,13 @@ class _Sink:
         self.position = 0
 
     def write(self, data: bytes | bytearray | memoryview) -> int:
+        raw = self._raw
+        if raw is None:
+            raise OSError("the recording's file is not open")
         view = memoryview(data).cast("B")
         total = len(view)
         while view:
-            n = self._raw.write(view)  # raw writes may be partial
+            n = raw.write(view)  # raw writes may be partial
             view = view[n:]
         self.position += total
         return total
@@ -217,28 +220,6 @@ class _Sink:
 
     def flush(self) -> None:
         """Nothing is buffered here."""
-
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"Object of type {type(value).__name__} is not JSON serializable")
-
-
-def _finite(value: Any) -> Any:
-    """``value`` with NaN and infinities replaced by ``None`` (JSON has neither, and
-    Foxglove's parser rejects the ``NaN`` literal). Only called when encoding failed."""
-    if isinstance(value, (np.generic, np.ndarray)):
-        value = _json_default(value)
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite(v) for v in value]
-    return value
 
 
 class Recorder:
@@ -319,10 +300,9 @@ class Recorder:
         self._chunk_size = chunk_size
         self._chunk_duration_ns = chunk_duration_ns
 
-        self._queue: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=queue_size)
+        self._queue: Handoff[tuple[Any, ...]] = Handoff(queue_size)
         for name, data in (metadata or {}).items():
             self.add_metadata(name, data)
-        self._encoder = json.JSONEncoder(separators=(",", ":"), allow_nan=False, default=_json_default)
 
         try:
             self._open()
@@ -407,6 +387,24 @@ class Recorder:
                 f"topic {topic!r} is not registered; call register_json_channel({topic!r}, name, schema) first"
             )
         return self._put(_Op.JSON, topic, log_time_ns, publish_time_ns, obj, None, None)
+
+    def write_encoded(self, topic: str, data: bytes, *, log_time_ns: int, publish_time_ns: int,
+                      sequence: int | None = None) -> bool:
+        """Enqueue a message ``topic``'s producer already encoded (``data``, in the
+        topic's encoding): the writer only writes it. ``sequence``: the producer's own
+        per-topic sequence number (a producer in another process keeps its own, and
+        its drops leave gaps there); None: taken here as for every other write.
+        Derivations do not run on it (its producer ran them).
+
+        Returns:
+            ``True`` if enqueued, ``False`` if dropped (queue full, or recorder closed).
+
+        Raises:
+            ConfigError: ``topic`` was never registered.
+        """
+        if topic not in self._topics:
+            raise ConfigError(f"topic {topic!r} is not registered; register it before writing encoded messages")
+        return self._put(_Op.ENCODED, topic, log_time_ns, publish_time_ns, data, None, None, seq=sequence)
 
     def write_image(self, topic: str, data: bytes, *, fmt: str, frame_id: str,
                     log_time_ns: int, publish_time_ns: int) -> bool:
@@ -621,35 +619,32 @@ class Recorder:
                 f"topic {topic!r} carries {known[0]!r}; write {schema_name!r} messages to another topic"
             )
 
-    def _put(self, op: _Op, topic: str, log_ns: int, pub_ns: int, a: Any, b: Any, c: Any) -> bool:
+    def _put(self, op: _Op, topic: str, log_ns: int, pub_ns: int, a: Any, b: Any, c: Any, *,
+             seq: int | None = None) -> bool:
         with self._lock:
             # The sequence number is taken before the attempt: drops leave gaps.
-            seq = self._next_seq[topic] = (self._next_seq.get(topic, 0) + 1) & _SEQUENCE_MASK
+            if seq is None:
+                seq = self._next_seq[topic] = (self._next_seq.get(topic, 0) + 1) & _SEQUENCE_MASK
             if self._closing:
                 self._dropped += 1
                 return False
-            try:
-                self._queue.put_nowait((op, topic, seq, log_ns, pub_ns, a, b, c))
-            except queue.Full:
+            if not self._queue.put((op, topic, seq, log_ns, pub_ns, a, b, c)):
                 self._dropped += 1
                 return False
             self._enqueued += 1
-            depth = self._queue.qsize()
+            depth = len(self._queue)
             if depth > self._max_depth:
                 self._max_depth = depth
             return True
 
     def _put_control(self, item: tuple[Any, ...]) -> bool:
-        """Blocking put of a command that must not be dropped; gives up only if the
-        writer thread is gone (then nobody would drain the queue)."""
+        """Queue a command that must not be dropped (past the queue's bound); False if
+        the writer thread is gone (then nobody would drain the queue)."""
         thread = self._thread
-        while thread is not None and thread.is_alive():
-            try:
-                self._queue.put(item, timeout=_CONTROL_PUT_TIMEOUT_S)
-                return True
-            except queue.Full:
-                continue
-        return False
+        if thread is None or not thread.is_alive():
+            return False
+        self._queue.put_always(item)
+        return True
 
     # --- writer thread ----------------------------------------------------------------
 
@@ -660,12 +655,11 @@ class Recorder:
         get = self._queue.get
         main = threading.main_thread()
         while True:
-            try:
-                item = get(timeout=_IDLE_POLL_S)
-            except queue.Empty:
+            item = get(_IDLE_POLL_S)
+            if item is None:
                 # Forgotten close(): finish the file at interpreter exit instead of
                 # hanging it (this thread is not a daemon).
-                if not main.is_alive() and self._queue.empty():
+                if not main.is_alive() and not len(self._queue):
                     break
                 continue
             op = item[0]
@@ -705,10 +699,9 @@ class Recorder:
         op, topic, seq, log_ns, pub_ns, a, b, c = item
         log_ns += self._offset_ns
         if op is _Op.JSON:
-            try:
-                data = self._encoder.encode(a).encode()
-            except ValueError:  # NaN or infinity somewhere: write them as null
-                data = self._encoder.encode(_finite(a)).encode()
+            data = dumps(a)  # NaN and infinities as null
+        elif op is _Op.ENCODED:
+            data = a
         elif op is _Op.IMAGE:
             data = _image_json(pub_ns + self._offset_ns, c, b'"format":"%s",' % b.encode(), a)
         else:
@@ -718,7 +711,7 @@ class Recorder:
             data = _image_json(pub_ns + self._offset_ns, c, fields, a)
         self._add(topic, data, log_ns, pub_ns, seq)
         self._written += 1  # only this thread writes it (derived ones too); stats reads an int
-        if op is _Op.JSON and topic in self._derivations:
+        if op is _Op.JSON and topic in self._derivations:  # (an ENCODED message's producer derived its own)
             self._derive(topic, a, log_ns - self._offset_ns, pub_ns)
 
     def _derive(self, topic: str, obj: Mapping[str, Any], log_ns: int, pub_ns: int) -> None:
@@ -734,11 +727,7 @@ class Recorder:
                     continue
                 with self._lock:
                     seq = self._next_seq[d_topic] = (self._next_seq.get(d_topic, 0) + 1) & _SEQUENCE_MASK
-                try:
-                    data = self._encoder.encode(d_obj).encode()
-                except ValueError:
-                    data = self._encoder.encode(_finite(d_obj)).encode()
-                self._add(d_topic, data, d_log + self._offset_ns, d_pub, seq)
+                self._add(d_topic, dumps(d_obj), d_log + self._offset_ns, d_pub, seq)
                 self._written += 1  # every message in the file: the statistics record's count
                 with self._lock:
                     self._derived += 1

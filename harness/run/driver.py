@@ -12,7 +12,6 @@ import json
 import math
 import os
 import platform
-import queue
 import secrets
 import signal
 import time
@@ -28,7 +27,6 @@ from hil.harness.config.model import RunConfig, Transport, config_hash, dump_con
 from hil.harness.engine.heap import fix_mmap_threshold
 from hil.timing.clock import MonotonicClock
 
-SYNC_WARMUP_SAMPLES = 8
 
 
 @dataclass(frozen=True)
@@ -146,37 +144,6 @@ def _target_batches(out_dir: Path) -> dict[str, Any] | None:
             "mean_size": round(sum(k * v for k, v in sizes.items()) / total, 3) if total else 0.0}
 
 
-def _exit_note(proc: Any) -> str:
-    """'; the target process exited with code N: <its log's last lines>' for a target
-    the harness started that is gone, else ''."""
-    code = proc.exited() if proc is not None and hasattr(proc, "exited") else None
-    if code is None:
-        return ""
-    tail = proc.log_tail()
-    return f"; the target process it started exited with code {code}" + (f": {tail}" if tail else "")
-
-
-def _check_identity(cfg: RunConfig, vehicles: list[Any], procs: list[Any]) -> None:
-    """The run measures the target it started or was told to reach, no other.
-
-    Raises:
-        TargetError: a target the harness started is gone although something answered
-            (another process on its endpoint), or a HELLO names another target than
-            ``target.expect_name``.
-    """
-    for p in procs:
-        if hasattr(p, "exited") and p.exited() is not None:
-            raise TargetError("another target answered on the endpoint, but the target this run started is gone"
-                              f"{_exit_note(p)} — refusing to measure a target it did not start (is a leftover "
-                              "target or another run using the port?)")
-    want = cfg.target.expect_name
-    for v in vehicles:
-        got = v.link.hello.target_name if v.link.hello is not None else ""
-        if want is not None and not got.startswith(want):
-            raise TargetError(f"{v.name}: the target that answered says it is {got!r}, not {want!r} "
-                              "(target.expect_name) — refusing to measure it")
-
-
 RESERVE_BYTES = 2 << 20  # kept free on the run's disk until the summary and report are written
 
 
@@ -225,30 +192,32 @@ def _sigterm_interrupts() -> Callable[[], None] | None:
         raise KeyboardInterrupt
 
     prev = signal.signal(signal.SIGTERM, on_term)
-    return lambda: signal.signal(signal.SIGTERM, prev)
+
+    def restore() -> None:
+        signal.signal(signal.SIGTERM, prev)
+
+    return restore
 
 
 def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Callable[..., None] | None,
              notify: Callable[[str], None], install_signal_handlers: bool) -> RunResult:
     # Imported here: these pull in mujoco, whose GL backend the caller chose first.
-    from hil.adapters.link import Received
-    from hil.harness.analysis.detector_observer import DetectorObserver
     from hil.harness.analysis.events import EventBus
-    from hil.harness.analysis.spill import spill_summary
-    from hil.harness.analysis.summary import build_summary
+    from hil.harness.analysis.summary import build_summary, wall_seconds
     from hil.harness.analysis.verdict import parse_fail_on, verdict_json
-    from hil.harness.analysis.timing_observer import TimingObserver
     from hil.harness.cases.recorder import CaseRecorder
     from hil.harness.config.model import LatencyKind
     from hil.harness.engine.pool import Engine, auto_workers
+    from hil.harness.engine.procs import keep_off_core, restore_affinity
     from hil.harness.record.can_log import open_can_log
-    from hil.harness.record.channels import register_all, sync_sample_json
+    from hil.harness.record.channels import register_all
     from hil.harness.record.recorder import Recorder, TimeAnchor
     from hil.harness.report.run_report import write_report
     from hil.harness.run.latency import LatencyProfile
-    from hil.harness.run.loop import SimLoop, encode_image, engine_specs
-    from hil.harness.run.target_launch import can_preflight, make_link
-    from hil.harness.run.vehicle_state import VehicleRun
+    from hil.harness.run import capacity
+    from hil.harness.run.fleet import LocalFleet, ShardedFleet, assign, shard_count
+    from hil.harness.run.loop import encode_image, engine_specs
+    from hil.harness.run.target_launch import can_preflight
     from hil import scenarios
     from hil.scenarios.sim import Simulation
 
@@ -258,7 +227,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     latency = (None if lat_cfg.kind == LatencyKind.NONE and lat_cfg.drop_prob == 0
                else LatencyProfile(lat_cfg, seed=cfg.seed, vehicles=[v.name for v in world.egos]))
     clock = MonotonicClock()
-    rx: queue.Queue[Any] = queue.Queue(maxsize=4096)  # links' messages and the engine's, one queue
+    began_ns = clock.now_ns()
     mcap_path = out_dir / "run.mcap"
     (out_dir / "config.json").write_text(json.dumps(dump_config(cfg), indent=2, sort_keys=True) + "\n")
     summary_path = out_dir / "summary.json"
@@ -279,33 +248,37 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
             size = len(encode_image(sim.render(sim.egos[0]), cfg.camera)[0])
             sim.close()
             notify(can_preflight(cfg, frame_bytes=int(size * 1.25)))
-        vehicles: list[VehicleRun] = []
-        procs: list[Any] = []  # TargetProcess, or a shared target's handle (anything with close())
+        workers = cfg.engine.render_workers or auto_workers(len(sim.egos))
+        # Beyond 16 vehicles in real time: refuse what this machine cannot render in time.
+        note = capacity.check(cfg, sim, workers=workers, cores=os.cpu_count() or 1)
+        if note:
+            notify(note)
+        n_shards = shard_count(cfg, len(sim.egos))
+        shard_of = assign(len(sim.egos), n_shards)
+        fleet: LocalFleet | ShardedFleet = (
+            LocalFleet(cfg, egos=sim.egos, clock=clock, out_dir=out_dir, session=meta["session"]) if n_shards == 1
+            else ShardedFleet(cfg, world=world, rules=rules, egos=sim.egos, shard_of=shard_of, clock=clock,
+                              out_dir=out_dir, session=meta["session"], latency=latency))
         engine: Engine | None = None
         reserve: Path | None = None
+        affinity: set[int] | None = None
         # One wall-clock anchor for run.mcap's log_time and the CAN log's timestamps.
         anchor = TimeAnchor.capture()
         can_log = open_can_log(cfg, out_dir, offset_ns=anchor.offset_ns, now_ns=clock.now_ns())
+        if isinstance(fleet, LocalFleet) and can_log is not None:
+            fleet.can_tap = can_log.tap  # CAN keeps every vehicle in this process
         try:
             # Physics and render processes start first: their start-up (MuJoCo, EGL,
             # shaders) overlaps the targets'.
             phys_spec, render_spec = engine_specs(cfg, world, rules)
-            engine = Engine(physics=phys_spec, render=render_spec, events=rx,
-                            workers=cfg.engine.render_workers or auto_workers(len(sim.egos)))
-            for i, name in enumerate(sim.egos):
-                link, proc = make_link(cfg, vehicle_id=i, vehicle=name, clock=clock, out_dir=out_dir, rx=rx,
-                                       session=meta["session"], can_tap=None if can_log is None else can_log.tap)
-                if proc is not None:
-                    procs.append(proc)
-                vehicles.append(VehicleRun(name, i, link))
-                try:
-                    link.open(hello_timeout_s=cfg.target.startup_timeout_s)
-                except (TargetError, TransportError) as err:
-                    raise TargetError(f"{name}: {err}{_exit_note(proc)}") from err
-            warmup = {v.name: [s for _ in range(SYNC_WARMUP_SAMPLES)
-                               if (s := v.link.sync_exchange(timeout_s=0.5)) is not None]
-                      for v in vehicles}
-            _check_identity(cfg, vehicles, procs)
+            # The physics's own core (engine.physics_cpu): this process, and so the
+            # render workers and targets it starts, keep off it until the run ends.
+            affinity = keep_off_core(phys_spec.cpu)
+            stall_s = cfg.engine.faults.stall_run_ms / 1e3
+            engine = Engine(physics=phys_spec, render=render_spec, ring_bytes=cfg.engine.ring_kib * 1024,
+                            workers=workers, stall_run=(round(0.5 / cfg.physics_step_s), stall_s) if stall_s else None,
+                            shard_of=shard_of)
+            fleet.start(engine)
             guard = _RecordingGuard()
             reserve = _reserve_disk(out_dir)
             with guard, Recorder(mcap_path, queue_size=cfg.recording.queue_size, compression="zstd", metadata={
@@ -315,34 +288,19 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 cc = cfg.corner_cases
                 rec = CaseRecorder(main_rec, out_dir, run_meta=meta, history_s=cc.history_s, after_s=cc.after_s,
                                    trigger_kinds=set(cc.on_anomalies)) if cc.enabled else main_rec
-                register_all(rec, [v.name for v in vehicles], anchor=anchor)
+                register_all(rec, list(sim.egos), anchor=anchor)
                 # The run's one event bus: recorded on /events first, then the corner cases.
                 bus = EventBus.recording_to(rec)
                 if isinstance(rec, CaseRecorder):
                     bus.subscribe(rec.on_event)
-                from hil.adapters.impair import record_on
-
-                for v in vehicles:  # link faults in real time: each impaired message on /<vehicle>/impairment
-                    record_on(v.link.impairment, rec, f"/{v.name}/impairment")
-                timing = TimingObserver(cfg.timing, [v.name for v in vehicles], recorder=rec, events=bus)
-                detector = (DetectorObserver(cfg.detector, [v.name for v in vehicles], camera=cfg.camera,
-                                             recorder=rec, timing=timing, events=bus)
-                            if cfg.detector.enabled else None)
-                for name, samples in warmup.items():
-                    for s in samples:
-                        rec.write_json(f"/{name}/clock_sync", sync_sample_json(s, warmup=True),
-                                       log_time_ns=s.t4_ns, publish_time_ns=s.t1_ns)
-                        timing.on_sync(name, s)
-                loop = SimLoop(cfg, sim, vehicles, rx, rec, clock, engine=engine, physics=phys_spec,
-                               latency=latency, events=bus)
-                loop.observers.append(timing)
-                if detector is not None:
-                    loop.observers.append(detector)
+                loop = fleet.attach(sim=sim, engine=engine, physics=phys_spec, rec=rec, main_rec=main_rec, bus=bus,
+                                    latency=latency)
                 if on_progress is not None:
                     loop.on_tick = lambda: on_progress(now_ns=clock.now_ns(), sim_time_s=sim.sim_time_ns / 1e9,
-                                                       duration_s=cfg.duration_s, vehicles=vehicles,
-                                                       anomalies=timing.anomaly_count)
+                                                       duration_s=cfg.duration_s,
+                                                       rows=fleet.progress_rows(clock.now_ns()))
                 restore = _install_stop_handlers(loop) if install_signal_handlers else None
+                cpu0 = time.process_time_ns()
                 try:
                     stats = loop.run()
                 finally:
@@ -350,22 +308,24 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                         restore()
                 if main_rec.failure is not None:  # the disk filled: the reserve is for the case rows,
                     reserve.unlink(missing_ok=True)  # the summary and the report, from now on
-                for v in vehicles:
-                    v.link.close()
+                wall_s = wall_seconds(stats)
+                vehicles, camera, shard_cpu, spill = fleet.finish(loop, wall_s=wall_s)
                 if can_log is not None:
                     can_log.close()
-                loop.collect_sync()  # answers that arrived while closing
-                timing.finish()
-                if detector is not None:
-                    detector.finish()
                 if isinstance(rec, CaseRecorder):
                     rec.close()  # writes the cases still open with what was recorded
                 main_rec.flush()
+                stats.run_cpu_ns = time.process_time_ns() - cpu0 + shard_cpu
                 rec_stats = main_rec.stats
-                summary = build_summary(loop=loop, stats=stats, timing=timing, detector=detector, recorder_stats={
+                summary = build_summary(loop=loop, stats=stats, recorder_stats={
                     "written": rec_stats.written, "dropped": rec_stats.dropped, "enqueued": rec_stats.enqueued},
-                    meta=meta)
-                summary["spill"] = spill_summary(vehicles, timing)  # per-frame columns that stayed in memory
+                    meta=meta, vehicles=vehicles, camera=camera)
+                summary["spill"] = spill  # per-frame columns that stayed in memory
+                summary["realtime"]["shards"] = n_shards
+                # Start-up (targets, workers, shards) and the end-of-run work up to this
+                # summary (the report follows it; corner-case windows are cut after).
+                summary["harness_cost"].update(start_s=round((stats.wall_start_ns - began_ns) / 1e9, 3),
+                                               finish_s=round((clock.now_ns() - stats.wall_end_ns) / 1e9, 3))
                 if isinstance(rec, CaseRecorder):
                     summary["corner_cases"] = {"written": rec.cases_written, "errors": list(rec.errors),
                                                "triggers_dropped": rec.triggers_dropped}
@@ -401,14 +361,12 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
             if cfg.recording.rosbag2:  # ROS 2's bag beside run.mcap, cut from it (harness/record/rosbag2.py)
                 summary["rosbag2"] = _write_rosbag2(mcap_path, out_dir)
         finally:
-            for v in vehicles:
-                v.link.close()
+            fleet.close()
             if can_log is not None:
                 can_log.close()
-            for p in procs:
-                p.close()
             if engine is not None:
                 engine.close()
+            restore_affinity(affinity)
             if reserve is not None:
                 reserve.unlink(missing_ok=True)
     batches = _target_batches(out_dir)

@@ -102,7 +102,7 @@ class _Owned:
 
 
 def shared_link(cfg: RunConfig, *, vehicle_id: int, clock: Clock, out_dir: Path,
-                rx: queue.Queue[Received]) -> tuple[Link, _Owned | None]:
+                rx: queue.Queue[Received] | None = None) -> tuple[Link, _Owned | None]:
     """Build (not open) vehicle ``vehicle_id``'s link to the run's shared target,
     starting that target on vehicle 0's call. Returns the link and, on vehicle 0's
     call, the process to close after every link (``close()``), else None.

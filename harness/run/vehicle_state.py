@@ -1,10 +1,12 @@
-"""Per-vehicle bookkeeping of a run: frames in flight, applied estimates, the
-pipeline records and the live statistics shown while the run goes on."""
+"""Per-vehicle bookkeeping of a run: the settled pipeline records' statistics and
+the live ones shown while the run goes on (frames in flight and controls being
+applied are the loop's frame ledger, ``hil.harness.run.ledger``)."""
 
 from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 from hil.adapters.link import Link
 from hil.timing.anomaly import is_sane
@@ -24,14 +26,25 @@ class InFlight:
     t0p_uncertainty_ns: int = 0  # the answer's receipt stamp is known to [t0' - this, t0'] (hil.adapters.wire.receipt)
 
 
+class ProgressRow(NamedTuple):
+    """One vehicle's line of the live display (plain values: a shard in another
+    process sends them)."""
+
+    name: str
+    frames: int
+    fps: float
+    e2e_p50_ms: float | None
+    e2e_p99_ms: float | None
+    dropped: int
+    anomalies: int | None
+
+
 @dataclass
 class VehicleRun:
     name: str
     vehicle_id: int
     link: Link
     next_frame_id: int = 0
-    in_flight: dict[int, InFlight] = field(default_factory=dict)
-    last_applied_frame_id: int = -1
     # Exact statistics in bounded memory: one int64 per stage per applied, sane frame
     # (about 80 bytes a frame), not the records themselves (the MCAP has those),
     # spilled to disk in blocks (``SpillColumn``): memory stays flat however long the run.
@@ -72,3 +85,8 @@ class VehicleRun:
 
     def count(self, status: FrameStatus) -> int:
         return self.counts[status]
+
+    def progress_row(self, now_ns: int, anomalies: int | None = None) -> ProgressRow:
+        return ProgressRow(self.name, self.next_frame_id, self.fps_meter.rate_hz(now_ns),
+                           self.e2e_window.percentile_ms(50), self.e2e_window.percentile_ms(99),
+                           self.count(FrameStatus.DROPPED), anomalies)

@@ -101,6 +101,9 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     add_ci_args(p)
 
 
+MAX_VEHICLES = 64  # multi_vehicle's own limit; beyond 16, real time is measured first (_check_capacity)
+
+
 def cmd(args: argparse.Namespace) -> int:
     """Run the study. Raises ConfigError (exit 2, one line) for bad input, before any run."""
     from hil.harness.report.ci_outputs import check_ci_args, write_ci_outputs
@@ -108,8 +111,8 @@ def cmd(args: argparse.Namespace) -> int:
     check_ci_args(args)
     placements = [Placement(p) for p in dict.fromkeys(args.placement)]
     vehicles = sorted(set(args.vehicles))
-    if vehicles[0] < 1 or vehicles[-1] > 16:
-        raise ConfigError(f"--vehicles: each N must be 1..16 (got {' '.join(map(str, args.vehicles))})")
+    if vehicles[0] < 1 or vehicles[-1] > MAX_VEHICLES:
+        raise ConfigError(f"--vehicles: each N must be 1..{MAX_VEHICLES} (got {' '.join(map(str, args.vehicles))})")
     if args.duration <= 0:
         raise ConfigError(f"--duration: must be > 0 s (got {args.duration:g})")
     base = _load(args.config, [*args.overrides, f"duration_s={args.duration:g}"])
@@ -117,6 +120,7 @@ def cmd(args: argparse.Namespace) -> int:
     points = [Point(pl, n, f) for pl in placements for f in fps_list for n in vehicles]
     for pt in points:  # every point's config must load before anything starts
         _load(args.config, _overrides(args, pt, ns=None))
+    _check_capacity(args, points)
     out = args.out or ROOT / "runs" / f"study-{base.name}-{time.strftime('%Y%m%d-%H%M%S')}"
     out.mkdir(parents=True, exist_ok=True)
     (out / "points").mkdir(exist_ok=True)
@@ -147,6 +151,35 @@ def cmd(args: argparse.Namespace) -> int:
 
     write_ci_outputs(of_study(results, out=out, exit_code=code, wall_s=study_wall_s), args)
     return code
+
+
+def _check_capacity(args: argparse.Namespace, points: list[Point]) -> None:
+    """Beyond 16 vehicles in real time, the largest point must render in time on this
+    machine (``hil.harness.run.capacity``), measured before any point runs.
+
+    Raises:
+        ConfigError: it would not; the message names the measured limit.
+    """
+    from hil.harness.run.capacity import UNMEASURED_VEHICLES
+
+    big = max(points, key=lambda pt: (pt.vehicles * pt.fps, pt.vehicles))
+    cfg = _load(args.config, _overrides(args, big, ns=None))
+    if cfg.mode.value != "realtime" or big.vehicles <= UNMEASURED_VEHICLES:
+        return
+    from hil.scenarios.gl import select_backend
+
+    select_backend()
+    from hil.harness.engine.pool import auto_workers
+    from hil.harness.run import capacity
+    from hil.harness.run.driver import build_world
+    from hil.scenarios.sim import Simulation
+
+    world, rules = build_world(cfg)
+    with Simulation(world, rules=rules) as sim:
+        line = capacity.check(cfg, sim, workers=cfg.engine.render_workers or auto_workers(len(sim.egos)),
+                              cores=os.cpu_count() or 1)
+    if line:
+        print(f"study: {line}", flush=True)
 
 
 def _load(config: str, overrides: Sequence[str]) -> Any:

@@ -14,6 +14,7 @@ from hil.common.errors import ConfigError
 from hil.harness.search.sampling import Past, draw_generation, episode_seed, score
 from hil.harness.search.shard import Shard, parse_shard
 from hil.harness.search.spec import load_spec, resolve_spec
+from hil.scenarios.registry import get as scenario_def
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -58,7 +59,8 @@ def test_default_space_is_the_whole_scenario_and_integers_stay_whole():
     names = [d.name for d in c.dims]
     assert names == ["n_vehicles", "speed_mps", "headway_m", "main_start_m", "cross_start_m", "crossing_share"]
     ns = [d.values["n_vehicles"] for g in range(3) for d in draw_generation(c, g)]
-    assert all(float(n).is_integer() and 1 <= n <= 16 for n in ns) and len(set(ns)) > 5
+    p = next(p for p in scenario_def("multi_vehicle").params if p.name == "n_vehicles")
+    assert all(float(n).is_integer() and p.lo <= n <= p.hi for n in ns) and len(set(ns)) > 5
 
 
 def test_shard_slices_are_disjoint_and_cover_the_campaign():

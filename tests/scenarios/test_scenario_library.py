@@ -68,8 +68,8 @@ def test_unknown_parameter_lists_names_and_ranges() -> None:
 
 @pytest.mark.parametrize(("name", "params", "needle"), [
     ("lead_brake", {"decel_mps2": 12.0}, "scenario.params.decel_mps2: got 12; expected a value in [1, 10] m/s^2"),
-    ("multi_vehicle", {"n_vehicles": 17}, "n_vehicles: got 17; expected an integer in [1, 16]"),
-    ("multi_vehicle", {"n_vehicles": 2.5}, "n_vehicles: got 2.5; expected an integer in [1, 16]"),
+    ("multi_vehicle", {"n_vehicles": 65}, "n_vehicles: got 65; expected an integer in [1, 64]"),
+    ("multi_vehicle", {"n_vehicles": 2.5}, "n_vehicles: got 2.5; expected an integer in [1, 64]"),
     ("curved_road", {"radius_m": float("nan")}, "radius_m: got nan"),
 ])
 def test_out_of_range_values_say_the_range(name: str, params: dict[str, float], needle: str) -> None:
@@ -100,8 +100,8 @@ def test_same_seed_same_world_other_seed_other_world(name: str) -> None:
     assert any(o.realized != a.realized for o in others)
 
 
-def test_multi_vehicle_places_up_to_sixteen_egos_apart() -> None:
-    for n in (1, 2, 5, 16):
+def test_multi_vehicle_places_up_to_sixty_four_egos_apart() -> None:
+    for n in (1, 2, 5, 16, 64):
         w = build("multi_vehicle", {"n_vehicles": n})
         egos = [v for v in w.vehicles if v.ego]
         assert len(egos) == n

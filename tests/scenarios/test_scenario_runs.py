@@ -192,7 +192,7 @@ def test_hil_scenarios_lists_names_params_and_ranges() -> None:
     assert p.returncode == 0, p.stderr
     for name in ("stopped_car", "pedestrian_occluded", "lead_brake", "cut_in", "curved_road", "multi_vehicle"):
         assert f"\n{name}\n" in f"\n{p.stdout}"
-    assert "n_vehicles      [1, 16] (integer)  4" in p.stdout
+    assert "n_vehicles      [1, 64] (integer)  4" in p.stdout
     assert "decel_mps2       [1, 10]    6        m/s^2" in p.stdout
     j = hil("scenarios", "lead_brake", "--json")
     data = json.loads(j.stdout)
@@ -205,9 +205,9 @@ def test_hil_scenarios_lists_names_params_and_ranges() -> None:
 
 def test_hil_run_names_bad_scenario_parameters(tmp_path: Path) -> None:
     p = hil("run", "hil_configs/demo.yaml", "--out", str(tmp_path / "r"), "--set",
-            "scenario={name: multi_vehicle, params: {n_vehicles: 40}}")
+            "scenario={name: multi_vehicle, params: {n_vehicles: 80}}")
     assert p.returncode == 2 and "Traceback" not in p.stderr
-    assert "n_vehicles: got 40; expected an integer in [1, 16]" in p.stderr
+    assert "n_vehicles: got 80; expected an integer in [1, 64]" in p.stderr
     assert "headway_m in [12, 80] m (default 30)" in p.stderr
 
 
