@@ -31,7 +31,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from hil.adapters.wire.messages import Estimate
-from hil.harness.analysis.events import Event, EventBus
+from hil.harness.vocab.events import Event, EventBus
 from hil.harness.config.timing import TimingConfig
 from hil.harness.record.recorder import Recorder
 from hil.scenarios.ground_truth import GroundTruth

@@ -14,7 +14,7 @@ pool (``hil.harness.engine``); this loop is everything between them and the targ
   record is complete and goes to the observers and the recording.
 
 Truth, observers (timing analysis, detector) and recording run on the analysis
-thread (``hil.harness.engine.analysis``); the loop thread only moves world states,
+thread (``hil.harness.engine.analysis_thread``); the loop thread only moves world states,
 frames, estimates and controls, so none of them waits behind analysis.
 
 Real-time mode: the physics process paces itself and never waits for this loop or
@@ -49,10 +49,10 @@ from hil.adapters.process import prioritise_this_thread
 from hil.adapters.wire.messages import CameraInfo, Command, ErrorMsg, Estimate, Heartbeat, ImageEncoding
 from hil.adapters.wire.protocol import ErrorCode
 from hil.common.errors import TransportError
-from hil.harness.analysis.events import Event, EventBus, EventKind
-from hil.harness.analysis.observers import RunObserver
+from hil.harness.vocab.events import Event, EventBus, EventKind
+from hil.harness.vocab.observers import RunObserver
 from hil.harness.config.model import CameraConfig, Encoding, Mode, RunConfig
-from hil.harness.engine.analysis import AnalysisThread
+from hil.harness.engine.analysis_thread import AnalysisThread
 from hil.harness.engine.physics import PhysicsSpec, capture_table, spread_phases
 from hil.harness.engine.pool import Engine
 from hil.harness.engine.render import RenderSpec, encode_image as _encode
