@@ -27,8 +27,8 @@ import time
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 from hil.adapters.wire.messages import Control, DrivingState, Estimate  # noqa: E402
-from hil.harness.analysis.detector_observer import DetectorObserver  # noqa: E402
-from hil.harness.config.cases import DetectorSettings  # noqa: E402
+from hil.harness.cases.detector_observer import DetectorObserver  # noqa: E402
+from hil.harness.config.detector import DetectorSettings  # noqa: E402
 from hil.harness.config.model import CameraConfig  # noqa: E402
 from hil import scenarios  # noqa: E402
 from hil.scenarios.ground_truth import CameraTruth, RefStateRules  # noqa: E402

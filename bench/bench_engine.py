@@ -36,7 +36,7 @@ from hil.scenarios.gl import select_backend
 BACKEND = select_backend()  # before anything imports mujoco
 
 from hil.harness.search.campaign import run_campaign
-from hil.harness.search.engine import DaskEngine, ProcessEngine
+from hil.harness.search.executor import DaskEngine, ProcessEngine
 from hil.harness.search.spec import Campaign, StrategySpec, load_spec
 
 

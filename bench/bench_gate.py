@@ -10,7 +10,7 @@ comparisons of each kind from the pool (seeded):
 * unchanged: BASE = base run i, RUN = base run j (i != j) -> must pass;
 * regressed: BASE = base run i, RUN = slow run j -> must fail;
 
-and judges each pair with the gate (``hil.harness.report.compare``: bootstrap of the per-frame
+and judges each pair with the gate (``hil.harness.check.gate``: bootstrap of the per-frame
 samples in run.mcap, default tolerances and alpha) and, for contrast, with the old
 point comparison of the two summaries (``--point``). It prints the pass counts, the
 checks that failed and how often, the size of the injected regression as measured
@@ -92,7 +92,7 @@ def record(pool: Path, *, runs: int, duration_s: float, delay_ms: float) -> None
 
 def judge(pool: Path, *, pairs: int, seed: int) -> None:
     from hil.harness.record.run_folder import load_summary
-    from hil.harness.report.compare import GateSettings, compare, load_run
+    from hil.harness.check.gate import GateSettings, compare, load_run
 
     base = sorted(p for p in pool.glob("base-*") if (p / "summary.json").is_file())
     slow = sorted(p for p in pool.glob("slow-*") if (p / "summary.json").is_file())
@@ -142,7 +142,7 @@ def judge(pool: Path, *, pairs: int, seed: int) -> None:
 
 def _noise_table(runs: list) -> None:
     """Between-run spread of each stage's figures over the base runs: what the gate's
-    ``noise`` defaults stand for (hil.harness.report.compare_tolerances)."""
+    ``noise`` defaults stand for (hil.harness.check.gate_tolerances)."""
     import numpy as np
 
     from hil.timing.gate import Metric

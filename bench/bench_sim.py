@@ -53,7 +53,7 @@ from hil.harness.config.model import parse_config
 from hil.harness.engine.pool import Engine, auto_workers
 from hil.harness.record.channels import register_all
 from hil.harness.record.recorder import Recorder
-from hil.harness.analysis.events import EventBus
+from hil.harness.vocab.events import EventBus
 from hil.harness.run.assemble import local_loop
 from hil.harness.run.loop import engine_specs
 from hil.harness.run.vehicle_state import VehicleRun

@@ -1,5 +1,5 @@
 """How long the rest of some work will take at the pace so far (``hil train``,
-``hil study``, ``hil compare``: ``hil.harness.cli.progress.WorkProgress``)."""
+``hil study``, ``hil compare``: ``hil.harness.report.progress.WorkProgress``)."""
 
 from __future__ import annotations
 

@@ -11,7 +11,7 @@ from typing import Any
 import jsonschema
 import pytest
 
-from hil.harness.analysis.events import EVENT_SCHEMA
+from hil.harness.vocab.events import EVENT_SCHEMA
 from hil.scenarios.gl import select_backend
 
 GL_BACKEND = select_backend()

@@ -13,7 +13,7 @@ OpenAPI schema it downloads from the cluster's API server (unknown fields, wrong
 types, bad kinds); even a client dry run needs that server. Where kubectl or a
 reachable cluster is missing (this CI machine: kubectl is installed, no cluster), the
 test is skipped with kubectl's own reason. deploy/'s commands are checked against the
-hil command line in tests/harness/test_search.py.
+hil command line in tests/harness/search/test_search.py.
 """
 
 from __future__ import annotations

@@ -131,3 +131,62 @@ def test_harness_modules_live_in_rooms() -> None:
     """harness/ holds rooms (folders), not a flat hall of modules."""
     flat = sorted(p.name for p in (ROOT / "harness").glob("*.py") if p.name != "__init__.py")
     assert flat == []
+
+
+# The harness's rooms, bottom first: a room imports only rooms on a lower floor
+# (DESIGN.md, "Floors inside harness/"). Rooms on one floor do not import each other.
+HARNESS_FLOORS: tuple[tuple[str, ...], ...] = (
+    ("vocab",),  # the run's words: events, observer protocols, the write-only sink, the verdict
+    ("config",),  # the schema and its loading
+    ("engine",),  # the run's processes: physics, render pool, rings, typed messages
+    ("record",),  # MCAP and the run folder
+    ("analysis",),  # timing observers
+    ("cases",),  # the corner-case detector and its casebook
+    ("report",),  # pages people read, CI outputs, progress
+    ("run",),  # one run: driver, loop, shards, its summary
+    ("check", "study", "search"),  # what runs runs: the gate, calibrate, target-check, studies, searches
+    ("cli",),  # the commands
+)
+
+
+def _floor(room: str) -> int:
+    for k, rooms in enumerate(HARNESS_FLOORS):
+        if room in rooms:
+            return k
+    raise AssertionError(f"harness/{room}/ is on no floor: add it to HARNESS_FLOORS")
+
+
+def _upward(root: Path) -> list[str]:
+    """Every import (inside functions too) from a harness room to a room on its own
+    floor or above: ``file:room -> module``."""
+    found = []
+    for p in sorted((root / "harness").rglob("*.py")):
+        parts = p.relative_to(root / "harness").parts
+        if len(parts) < 2:
+            continue
+        here = _floor(parts[0])
+        for m in sorted(_imports(p)):
+            q = m.split(".")
+            if len(q) > 3 and q[:2] == ["hil", "harness"] and q[2] != parts[0] \
+                    and (root / "harness" / q[2]).is_dir() and _floor(q[2]) >= here:
+                found.append(f"{'/'.join(parts)} -> {'.'.join(q[2:4])}")
+    return sorted(set(found))
+
+
+def test_every_harness_room_is_on_a_floor() -> None:
+    rooms = {p.name for p in (ROOT / "harness").iterdir() if (p / "__init__.py").exists()}
+    assert rooms == {r for floor in HARNESS_FLOORS for r in floor}
+
+
+def test_no_harness_room_imports_upward() -> None:
+    assert _upward(ROOT) == []
+
+
+def test_the_floor_check_sees_an_upward_import(tmp_path: Path) -> None:
+    """A lazy import from the vocabulary up to the run is caught."""
+    for room in ("vocab", "run"):
+        (tmp_path / "harness" / room).mkdir(parents=True)
+        (tmp_path / "harness" / room / "__init__.py").write_text("")
+    (tmp_path / "harness" / "vocab" / "words.py").write_text(
+        "def late():\n    from hil.harness.run.driver import execute\n    return execute\n")
+    assert _upward(tmp_path) == ["vocab/words.py -> run.driver"]

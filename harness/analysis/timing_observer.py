@@ -32,7 +32,7 @@ import numpy as np
 
 from hil.adapters.wire.messages import Estimate
 from hil.harness.config.timing import TimingConfig
-from hil.harness.analysis.events import Event, EventBus, JsonSink
+from hil.harness.vocab.events import Event, EventBus, JsonSink
 from hil.scenarios.ground_truth import GroundTruth
 from hil.timing.anomaly import Anomaly, AnomalyDetector
 from hil.timing.histogram import StageHistograms

@@ -1,6 +1,6 @@
 """Corner-case windows cut out of a finished run: ``corner_cases/case-NNNN.mcap``.
 
-A case row (``hil.harness.cases.recorder``) refers to ``run.mcap`` and a window in sim
+A case row (``hil.harness.cases.casebook``) refers to ``run.mcap`` and a window in sim
 time, ``[window_start_ns, window_end_ns]``. :func:`write_case_windows` reads
 ``run.mcap`` once, in file order (a crashed run's file too, up to its last complete
 chunk), and copies into each case's file the messages recorded while the simulation
@@ -33,7 +33,7 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from hil.common.errors import ConfigError
-from hil.harness.cases.recorder import DB_NAME, FOLDER, RUN_MCAP
+from hil.harness.cases.casebook import DB_NAME, FOLDER, RUN_MCAP
 from hil.harness.record.recorder import iter_salvaged_messages
 
 MAX_WINDOWS = 16  # window files written by one call (bounded disk)

@@ -244,7 +244,7 @@ def cmd(args: argparse.Namespace) -> int:
     print(render(cal))
     print(f"calibration.json: {out / 'calibration.json'}", file=sys.stderr)
     code = 0 if cal.passed else 1
-    from hil.harness.report.ci_cases import of_calibrate
+    from hil.harness.check.ci_cases import of_calibrate
 
     write_ci_outputs(of_calibrate(cal, out=out, exit_code=code), args)
     return code

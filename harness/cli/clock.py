@@ -13,7 +13,7 @@ from tempfile import TemporaryDirectory
 from rich.live import Live
 from rich.table import Table
 
-from hil.harness.cli.progress import make_console
+from hil.harness.report.progress import make_console
 from hil.timing.clock import MonotonicClock
 from hil.timing.sync import ClockSync, SyncState
 

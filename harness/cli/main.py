@@ -72,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
     sc = sub.add_parser("scenarios", help="list the scenarios with their parameters, ranges and defaults")
     sc.add_argument("name", nargs="?", default=None, help="show only this scenario")
     sc.add_argument("--json", action="store_true", help="machine-readable output")
-    from hil.harness.cases import command as cases_cmd
+    from hil.harness.cli import cases as cases_cmd
     from hil.harness.cli import clock as clock_cmd
 
     clock_cmd.add_parser(sub)
@@ -86,7 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("target_args", nargs=argparse.REMAINDER, help="options for the target")
     # Each command lives in its own module: add_parser(sub) and cmd(args).
     from hil.harness.check import calibrate
-    from hil.harness.report import compare
+    from hil.harness.check import gate as compare
     from hil.harness.report import run_report as report
     from hil.training import train
 
@@ -106,17 +106,17 @@ def build_parser() -> argparse.ArgumentParser:
     from hil.harness.report import trace
 
     trace.add_parser(sub)
-    from hil.harness.record import rosbag2
+    from hil.harness.report import rosbag2
 
     rosbag2.add_parser(sub)
     return p
 
 
 # Commands whose module has add_parser(sub) and cmd(args), by name.
-COMMANDS = {"report": "hil.harness.report.run_report", "compare": "hil.harness.report.compare",
+COMMANDS = {"report": "hil.harness.report.run_report", "compare": "hil.harness.check.gate",
             "train": "hil.training.train", "calibrate": "hil.harness.check.calibrate",
             "study": "hil.harness.study.study", "trace": "hil.harness.report.trace",
-            "rosbag": "hil.harness.record.rosbag2"}
+            "rosbag": "hil.harness.report.rosbag2"}
 # Example targets by name: module with a main(argv) -> int.
 TARGETS = {"cnn": "hil.targets.cnn.cli", "cv": "hil.targets.cv_baseline", "echo": "hil.targets.echo"}
 
@@ -144,7 +144,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "run":
             return _cmd_run(args)
         if args.command in ("cases", "replay"):
-            from hil.harness.cases import command as cases_cmd
+            from hil.harness.cli import cases as cases_cmd
 
             return cases_cmd.cmd_cases(args) if args.command == "cases" else cases_cmd.cmd_replay(args)
         if args.command == "clock":
@@ -204,7 +204,7 @@ def run_exit_code(summary: dict[str, object]) -> int:
         return EXIT_EARLY
     verdict = summary.get("verdict")
     if isinstance(verdict, dict) and verdict.get("fails_run"):
-        from hil.harness.analysis.verdict import EXIT_VERDICT
+        from hil.harness.vocab.verdict import EXIT_VERDICT
 
         return EXIT_VERDICT
     return EXIT_OK
@@ -255,7 +255,8 @@ def _cmd_scenarios(args: argparse.Namespace) -> int:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from hil.harness.cli.progress import Progress, final_table, make_console
+    from hil.harness.cli.progress import Progress, final_table
+    from hil.harness.report.progress import make_console
     from hil.harness.config.model import load_config
     from hil.harness.report.ci_outputs import check_ci_args, write_ci_outputs
     from hil.harness.run.driver import default_out_dir, execute, prepare_out_dir
@@ -269,7 +270,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
             overrides.append(f"recording.live_address={json.dumps(args.live)}")
     cfg = load_config(args.config, overrides=overrides)
     if args.fail_on:
-        from hil.harness.analysis.verdict import parse_fail_on
+        from hil.harness.vocab.verdict import parse_fail_on
 
         try:
             names = parse_fail_on(args.fail_on)
@@ -327,7 +328,7 @@ def print_verdict(console: Any, summary: dict[str, Any]) -> None:
     missed, with its figures); the checks that fail the run (``--fail-on``) say so."""
     from rich.markup import escape
 
-    from hil.harness.analysis.verdict import verdict_of
+    from hil.harness.vocab.verdict import verdict_of
 
     v = verdict_of(summary)
     by = {c["name"]: c for c in v["checks"]}

@@ -206,7 +206,7 @@ def _run(config: str | os.PathLike[str] | Mapping[str, Any], *, out_dir: Path, o
 def run_properties(result: HilRunResult, prefix: str) -> list[tuple[str, object]]:
     """A run's figures as test properties (names under ``prefix``): its folder, how
     it ended, the verdict and ``hil.harness.report.ci_cases.run_figures``."""
-    from hil.harness.analysis.verdict import verdict_of
+    from hil.harness.vocab.verdict import verdict_of
     from hil.harness.report.ci_cases import run_figures
 
     v = verdict_of(result.summary)

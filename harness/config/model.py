@@ -39,7 +39,7 @@ from pydantic_core import PydanticCustomError
 from hil.adapters.transports import Transport  # how the harness reaches the AI target: one enum, one table
 from hil.adapters.wire.protocol import FRAME_META_SIZE, MAX_PAYLOAD
 from hil.common.errors import ConfigError
-from hil.harness.config.cases import CornerCaseSettings, DetectorSettings
+from hil.harness.config.detector import CornerCaseSettings, DetectorSettings
 from hil.harness.config.target import CanTargetConfig, ImpairConfig, Ros2TargetConfig, TcpTargetConfig, ZenohTargetConfig
 from hil.harness.config.timing import TimingConfig
 from hil.harness.config.types import MODEL_CONFIG, Float, Int
@@ -162,7 +162,7 @@ class RecordingConfig(BaseModel):
     live: bool = False
     can_log: Literal["blf", "asc", "none"] = "blf"
     # Also write rosbag2/ (ROS 2's bag: MCAP, CDR, metadata.yaml) after the run, for
-    # `ros2 bag play` (harness/record/rosbag2.py); run.mcap is unchanged.
+    # `ros2 bag play` (harness/report/rosbag2.py); run.mcap is unchanged.
     rosbag2: bool = False
     live_address: str | None = Field(None, pattern=r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+):[0-9]{1,5}$")
 
@@ -282,7 +282,7 @@ class EngineConfig(BaseModel):
         raise ValueError(f"{' or '.join(repr(w) for w in words)} or a whole number from {low}")
 
 
-# The verdicts a run can fail on (hil.harness.analysis.verdict.CheckName, same values).
+# The verdicts a run can fail on (hil.harness.vocab.verdict.CheckName, same values).
 VerdictName = Literal["realtime", "deadline", "drop", "collision", "mismatch", "anomaly"]
 
 

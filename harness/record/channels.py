@@ -18,7 +18,7 @@ import sys
 from collections.abc import Iterable
 from typing import Any
 
-from hil.harness.analysis.events import EVENT_SCHEMA
+from hil.harness.vocab.events import EVENT_SCHEMA
 from hil.harness.record import foxglove_out
 from hil.harness.record.recorder import Recorder, TimeAnchor
 from hil.timing.sync import SyncSample
@@ -81,7 +81,7 @@ CAMERA_TRUTH = _obj("hil.CameraTruth", {
     "ego": _EGO_TRUTH,
 }, ["vehicle", "frame_id", "sim_time_ns", "boxes", "ego"])
 
-# Every event (hil.harness.analysis.events): the promised fields, then its kind's extras.
+# Every event (hil.harness.vocab.events): the promised fields, then its kind's extras.
 EVENT = _obj("hil.Event", EVENT_SCHEMA["properties"], EVENT_SCHEMA["required"])
 
 

@@ -93,7 +93,7 @@ class ChunkIndexSpill:
 def install(writer: Any, folder: Path) -> ChunkIndexSpill | None:
     """Put a :class:`ChunkIndexSpill` in place of ``writer``'s chunk-index list; None
     (nothing changed) when the writer keeps its indexes elsewhere than mcap 1.6.0 does
-    (tests/harness/test_chunk_index.py fails then, so an upgrade is noticed)."""
+    (tests/harness/record/test_chunk_index.py fails then, so an upgrade is noticed)."""
     current = getattr(writer, _WRITER_ATTR, None)
     if not isinstance(current, list) or current:
         return None

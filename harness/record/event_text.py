@@ -1,7 +1,7 @@
 """Events as people read them: the one-line text of Foxglove's ``/log``, the
 report's event table, its tooltips and the corner cases' evidence.
 
-An ``/events`` message (``hil.harness.analysis.events.Event.to_json``) is made for
+An ``/events`` message (``hil.harness.vocab.events.Event.to_json``) is made for
 programs: a driving state is a number (``measured 2``, ``threshold 1``, unit
 ``state``), times are integer nanoseconds on the monotonic clock, ``None`` and empty
 lists stand for "not known". Here a state is its name (``AI STOP, truth SLOW``), a

@@ -108,7 +108,7 @@ def load_summary(path: str | os.PathLike[str]) -> dict[str, Any]:
 class RecordedEvent:
     """One ``/events`` message as read back from a run folder, any run's (also an older
     harness's, whose kinds may not be ours): ``kind`` as text, the message as ``data``.
-    ``hil.harness.analysis.events.Event.from_json(data)`` gives the typed event where
+    ``hil.harness.vocab.events.Event.from_json(data)`` gives the typed event where
     the kind is ours. ``t_ns``: its publish time (when it happened, harness clock);
     ``vehicles``: those it concerns (empty: the whole run)."""
 

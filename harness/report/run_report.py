@@ -41,12 +41,12 @@ import numpy as np
 
 from hil.common.errors import ConfigError
 from hil.harness import __version__
-from hil.harness.analysis.verdict import verdict_of
+from hil.harness.vocab.verdict import verdict_of
 from hil.harness.record import event_text as et
 from hil.harness.record.run_folder import RecordedEvent, RunData, read_run
 from hil.harness.report import fleet, timeseries
 from hil.harness.report import plots as rp
-from hil.harness.report.cases import case_for_event, cases_section, read_case_rows
+from hil.harness.report.case_section import case_for_event, cases_section, read_case_rows
 from hil.harness.report.distributions import box_chart, histogram
 from hil.harness.report.tables import kv_table, ms, table
 from hil.timing.records import STAGES

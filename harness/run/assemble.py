@@ -8,7 +8,7 @@ from typing import Any
 
 from hil.adapters.wire.messages import CameraInfo
 from hil.harness.config.model import RunConfig
-from hil.harness.engine.analysis import AnalysisThread
+from hil.harness.engine.analysis_thread import AnalysisThread
 from hil.harness.run.loop import SimLoop
 from hil.harness.run.shard import VehicleShard
 from hil.harness.run.tasks import TruthCache, VehicleTasks, WorldTasks

@@ -202,10 +202,10 @@ def _sigterm_interrupts() -> Callable[[], None] | None:
 def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Callable[..., None] | None,
              notify: Callable[[str], None], install_signal_handlers: bool) -> RunResult:
     # Imported here: these pull in mujoco, whose GL backend the caller chose first.
-    from hil.harness.analysis.events import EventBus
-    from hil.harness.analysis.summary import build_summary, wall_seconds
-    from hil.harness.analysis.verdict import parse_fail_on, verdict_json
-    from hil.harness.cases.recorder import CaseRecorder
+    from hil.harness.vocab.events import EventBus
+    from hil.harness.run.summary import build_summary, wall_seconds
+    from hil.harness.vocab.verdict import parse_fail_on, verdict_json
+    from hil.harness.cases.casebook import CaseRecorder
     from hil.harness.config.model import LatencyKind
     from hil.harness.engine.pool import Engine, auto_workers
     from hil.harness.engine.procs import keep_off_core, restore_affinity
@@ -358,7 +358,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                     summary["corner_cases"]["errors"] += write_case_windows(out_dir, limit=cc.windows)
                 except HilError as err:
                     summary["corner_cases"]["errors"].append(str(err))
-            if cfg.recording.rosbag2:  # ROS 2's bag beside run.mcap, cut from it (harness/record/rosbag2.py)
+            if cfg.recording.rosbag2:  # ROS 2's bag beside run.mcap, cut from it (harness/report/rosbag2.py)
                 summary["rosbag2"] = _write_rosbag2(mcap_path, out_dir)
         finally:
             fleet.close()
@@ -379,7 +379,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
 
 def _write_rosbag2(mcap_path: Path, out_dir: Path) -> dict[str, Any]:
     """``rosbag2/`` from the finished ``run.mcap``: what it holds, or why it could not be written."""
-    from hil.harness.record.rosbag2 import export
+    from hil.harness.report.rosbag2 import export
 
     try:
         return export(mcap_path, out_dir / "rosbag2").to_json()

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from hil.common.errors import ConfigError
-from hil.harness.analysis.events import EventBus
+from hil.harness.vocab.events import EventBus
 from hil.harness.config.model import RunConfig, Transport
 from hil.harness.engine.pool import Engine
 from hil.harness.run.assemble import local_loop
@@ -92,7 +92,7 @@ class LocalFleet:
                latency: Any) -> SimLoop:
         """The run's loop, with this fleet's observers on the run's recording and bus."""
         from hil.adapters.impair import record_on
-        from hil.harness.analysis.detector_observer import DetectorObserver
+        from hil.harness.cases.detector_observer import DetectorObserver
         from hil.harness.analysis.timing_observer import TimingObserver
         from hil.harness.record.channels import sync_sample_json
 
@@ -121,8 +121,8 @@ class LocalFleet:
         """After the loop: every vehicle summed up (``vehicle_summary``, camera
         figures), the CPU time spent outside this process (none here), and the
         per-frame columns' spill (``summary.json``'s ``spill``)."""
-        from hil.harness.analysis.spill import spill_summary
-        from hil.harness.analysis.summary import CameraFigures, vehicle_summary
+        from hil.harness.run.spill import spill_summary
+        from hil.harness.run.summary import CameraFigures, vehicle_summary
         from hil.harness.run.target_launch import close_links
 
         close_links([v.link for v in self.vehicles])
@@ -175,7 +175,7 @@ class ShardedFleet:
     def attach(self, *, sim: Any, engine: Engine, physics: Any, rec: Any, main_rec: Any, bus: EventBus,
                latency: Any) -> SimLoop:
         from hil.adapters.impair import IMPAIRMENT_SCHEMA
-        from hil.harness.engine.analysis import AnalysisThread
+        from hil.harness.engine.analysis_thread import AnalysisThread
         from hil.harness.record import foxglove_schemas as fx
         from hil.harness.run.tasks import WorldTasks
 
@@ -199,7 +199,7 @@ class ShardedFleet:
         return [r for sh in self.shards for r in sh.rows]
 
     def finish(self, loop: SimLoop, *, wall_s: float) -> tuple[dict[str, Any], dict[str, Any], int, dict[str, Any]]:
-        from hil.harness.analysis.summary import CameraFigures
+        from hil.harness.run.summary import CameraFigures
 
         vehicles: dict[str, Any] = {}
         camera: dict[str, Any] = {}
@@ -224,7 +224,7 @@ class ShardedFleet:
 
 
 def _merge_spill(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
-    """Two shards' ``spill`` as one (``hil.harness.analysis.spill``)."""
+    """Two shards' ``spill`` as one (``hil.harness.run.spill``)."""
     out = {**b, **a, "failures": a.get("failures", 0) + b.get("failures", 0)}
     if "columns" in a or "columns" in b:
         out["columns"] = {**a.get("columns", {}), **b.get("columns", {})}

@@ -21,7 +21,7 @@ controls to the physics, records — is done by the run's shards
 * at the end drains the shards, lets the physics finish and takes its histogram.
 
 Truth and the shards' analysis run on the analysis thread
-(``hil.harness.engine.analysis``); nothing here waits behind it.
+(``hil.harness.engine.analysis_thread``); nothing here waits behind it.
 """
 
 from __future__ import annotations
@@ -34,9 +34,9 @@ from collections.abc import Callable
 from typing import Any
 
 from hil.adapters.process import prioritise_this_thread
-from hil.harness.analysis.events import Event, EventBus, EventKind
+from hil.harness.vocab.events import Event, EventBus, EventKind
 from hil.harness.config.model import Mode, RunConfig
-from hil.harness.engine.analysis import AnalysisThread
+from hil.harness.engine.analysis_thread import AnalysisThread
 from hil.harness.engine.messages import (Applied, ApplyControl, CameraTruthReady, ChildGone, Done, Finished,
                                          FrameReady, WorkerFailed, WorldState)
 from hil.harness.engine.physics import PhysicsSpec, capture_table

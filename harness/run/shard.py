@@ -28,9 +28,9 @@ from hil.adapters.link import ProtocolFault, Received
 from hil.adapters.wire.messages import CameraInfo, Command, ErrorMsg, Estimate, ImageEncoding
 from hil.adapters.wire.protocol import ErrorCode
 from hil.common.errors import TransportError
-from hil.harness.analysis.events import Event, EventBus, EventKind
+from hil.harness.vocab.events import Event, EventBus, EventKind
 from hil.harness.config.model import Encoding, Mode, RunConfig
-from hil.harness.engine.analysis import AnalysisThread
+from hil.harness.engine.analysis_thread import AnalysisThread
 from hil.harness.engine.messages import Applied, ApplyControl, CameraTruthReady, FrameReady, WorldState
 from hil.harness.run.latency import HeldControls, LatencyProfile
 from hil.harness.run.ledger import Answer, FrameLedger

@@ -21,8 +21,8 @@ from typing import Any
 import orjson
 
 from hil.common.errors import SimulationError, TargetError
-from hil.harness.analysis.events import Event, EventBus
-from hil.harness.engine.analysis import AnalysisThread
+from hil.harness.vocab.events import Event, EventBus
+from hil.harness.engine.analysis_thread import AnalysisThread
 from hil.harness.engine.messages import ApplyControl, WorldState
 from hil.harness.engine.pool import without_main_module
 from hil.harness.engine.procs import end_child

@@ -13,8 +13,8 @@ from pathlib import Path
 from typing import Any
 
 from hil.common.errors import HilError
-from hil.harness.analysis.events import EventBus
-from hil.harness.engine.analysis import AnalysisThread
+from hil.harness.vocab.events import EventBus
+from hil.harness.engine.analysis_thread import AnalysisThread
 from hil.harness.engine.messages import (Applied, ApplyControl, CameraTruthReady, ChildGone, Done, FrameReady,
                                          WorldState)
 from hil.harness.engine.procs import Pump, RingPump
@@ -109,7 +109,7 @@ class ShardHost:
     def _build(self, start: ShardStart, warmup: dict[str, list[Any]]) -> None:
         from hil.adapters.impair import record_on
         from hil.adapters.wire.messages import CameraInfo
-        from hil.harness.analysis.detector_observer import DetectorObserver
+        from hil.harness.cases.detector_observer import DetectorObserver
         from hil.harness.analysis.timing_observer import TimingObserver
         from hil.harness.config.model import dump_config
         from hil.harness.record.channels import register_all, sync_sample_json, views_of
@@ -248,8 +248,8 @@ class ShardHost:
         self.out.send(ShardDrained(tuple(ctls)))
 
     def _finish(self, wall_s: float) -> None:
-        from hil.harness.analysis.spill import spill_summary
-        from hil.harness.analysis.summary import vehicle_summary
+        from hil.harness.run.spill import spill_summary
+        from hil.harness.run.summary import vehicle_summary
 
         self.physics_done.wait(PHYSICS_DONE_TIMEOUT_S)  # its last answers are in the ring before it
         shard = self.shard

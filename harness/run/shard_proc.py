@@ -97,7 +97,7 @@ class ShardDone(NamedTuple):
     analysis_dropped: int
     recorded: int
     record_errors: int
-    spill: dict[str, Any]             # hil.harness.analysis.spill.spill_summary of its vehicles
+    spill: dict[str, Any]             # hil.harness.run.spill.spill_summary of its vehicles
 
 
 # -- run -> shard -----------------------------------------------------------------------------

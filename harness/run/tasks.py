@@ -2,7 +2,7 @@
 
 The loop thread (``hil.harness.run.loop``) moves world states, frames, estimates and
 controls; everything slower runs here, posted to the analysis thread
-(``hil.harness.engine.analysis``) in order: the mirror world's ground truth at each
+(``hil.harness.engine.analysis_thread``) in order: the mirror world's ground truth at each
 camera instant (``/ground_truth`` and the Foxglove scene, collisions as events), each
 frame's settled pipeline record, its estimate, its camera truth and images, the
 clock-sync samples, and the observers' hooks (timing analysis, detector).
@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 
 from hil.adapters.wire.messages import Estimate
-from hil.harness.analysis.events import Event, EventBus, EventKind
-from hil.harness.analysis.observers import RunObserver
+from hil.harness.vocab.events import Event, EventBus, EventKind
+from hil.harness.vocab.observers import RunObserver
 from hil.harness.record import foxglove_out
 from hil.harness.record.channels import sync_sample_json
 from hil.harness.run.ledger import Answer

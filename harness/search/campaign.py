@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from hil.harness.search.db import DB_NAME, CampaignDB, now_text
-from hil.harness.search.engine import ProcessEngine
+from hil.harness.search.executor import ProcessEngine
 from hil.harness.search.episode import EpisodeResult, Status, episode_dirname
 from hil.harness.search.sampling import (
                                          Draw,
@@ -171,7 +171,7 @@ def run_campaign(c: Campaign, *, out: Path, gl_backend: str, shard: Shard | None
         oc.stopped = stop.set
         oc.wall_s = round(time.perf_counter() - t0, 3)
         db.finish_shard(shard_row, wall_s=oc.wall_s, episodes=len(oc.ran))
-    from hil.harness.search.report import write_outputs
+    from hil.harness.search.campaign_page import write_outputs
 
     oc.summary = write_outputs(out)
     return oc

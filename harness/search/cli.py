@@ -112,7 +112,7 @@ def main(argv: Sequence[str]) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     from hil.common.errors import ConfigError
     from hil.harness.search.campaign import run_campaign
-    from hil.harness.search.engine import DaskEngine, EngineKind
+    from hil.harness.search.executor import DaskEngine, EngineKind
     from hil.harness.search.progress import CampaignProgress
     from hil.harness.search.shard import Shard, parse_shard
     from hil.harness.search.spec import load_spec
@@ -157,7 +157,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         console.print("[yellow]some episodes did not finish (see summary.json errors); --resume runs them again"
                       "[/yellow]")
         code = EXIT_INCOMPLETE
-    from hil.harness.report.ci_cases import of_search
+    from hil.harness.search.ci_cases import of_search
     from hil.harness.report.ci_outputs import write_ci_outputs
 
     write_ci_outputs(of_search(oc, exit_code=code), args)
@@ -165,7 +165,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _console() -> Console:
-    from hil.harness.cli.progress import make_console
+    from hil.harness.report.progress import make_console
 
     return make_console()
 
@@ -212,7 +212,7 @@ def _cmd_merge(args: argparse.Namespace) -> int:
 
 def _cmd_report(args: argparse.Namespace) -> int:
     from hil.harness.search.db import open_campaign_db
-    from hil.harness.search.report import write_outputs
+    from hil.harness.search.campaign_page import write_outputs
 
     open_campaign_db(args.campaign).close()
     s = write_outputs(args.campaign)

@@ -172,7 +172,7 @@ def trace_stats(mcap_path: Path) -> tuple[float, str]:
 
 
 def _cases(out: Path) -> list[dict[str, Any]]:
-    from hil.harness.cases.recorder import DB_NAME, read_cases
+    from hil.harness.cases.casebook import DB_NAME, read_cases
 
     if not (out / DB_NAME).is_file():
         return []

@@ -110,7 +110,7 @@ def merge(out: Path, sources: Sequence[Path]) -> MergeResult:
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
         raise
-    from hil.harness.search.report import write_outputs
+    from hil.harness.search.campaign_page import write_outputs
 
     summary = write_outputs(out)
     return MergeResult(out=out, episodes=len(owner), cases=sum(len(x[3]) for x in loaded), linked=linked,

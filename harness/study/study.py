@@ -2,7 +2,7 @@
 
 Sweeps the number of vehicles (and camera fps) of a multi-vehicle configuration, in
 one or both placements, runs each point as a short ``hil run`` of its own, and writes
-a study folder (``harness/study/report.py``): ``report.md`` and ``report.html``
+a study folder (``harness/study/study_page.py``): ``report.md`` and ``report.html``
 opening with a reading of the results, ``results.csv``/``results.json``, and six SVG
 charts against N (total and per-vehicle frames/s with the 10 fps floor, end-to-end
 and inference latency p50/p99/std, physics-step lateness, late physics steps)::
@@ -126,7 +126,7 @@ def cmd(args: argparse.Namespace) -> int:
     (out / "points").mkdir(exist_ok=True)
     results: list[PointResult] = []
     t_start = time.monotonic()
-    from hil.harness.cli.progress import WorkProgress, make_console
+    from hil.harness.report.progress import WorkProgress, make_console
 
     # Points cost about their simulated time: the time left is estimated from the pace so far.
     with WorkProgress(make_console(), what="study", total=len(points), unit="points", live=False) as progress:
@@ -141,13 +141,13 @@ def cmd(args: argparse.Namespace) -> int:
                         results.append(_run_point(args, pt, ns=ns, out=out))
                     progress.advance(note=pt.name)
     study_wall_s = time.monotonic() - t_start
-    from hil.harness.study.report import write_study
+    from hil.harness.study.study_page import write_study
 
     report = write_study(out, results, config=str(args.config), floor_fps=args.floor_fps,
                          study_wall_s=study_wall_s, loadavg=_loadavg())
     print(f"study: {report} ({report.with_suffix('.html').name} beside it)", flush=True)
     code = 0 if all(r.status == "ok" for r in results) else 1
-    from hil.harness.report.ci_cases import of_study
+    from hil.harness.study.ci_cases import of_study
 
     write_ci_outputs(of_study(results, out=out, exit_code=code, wall_s=study_wall_s), args)
     return code
@@ -242,7 +242,7 @@ def _run_point(args: argparse.Namespace, pt: Point, *, ns: _Namespace | None, ou
         tail = (out / "points" / f"{pt.name}.log").read_text(errors="replace").strip().splitlines()[-1:]
         return PointResult(pt, "failed", f"exit {p.returncode}: {tail[0] if tail else 'no output'}",
                            str(run_dir), wall)
-    from hil.harness.study.report import point_metrics
+    from hil.harness.study.study_page import point_metrics
 
     m = point_metrics(run_dir, floor_fps=args.floor_fps)
     print(f"study: {pt.name}: {m['fps_per_vehicle_min']:.1f} fps/vehicle (min), "

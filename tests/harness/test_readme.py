@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from hil.harness.config.model import load_config
-from tests.harness.test_cli import ROOT, hil
+from tests.harness.cli.test_cli import ROOT, hil
 
 README = (ROOT / "README.md").read_text(encoding="utf-8")
 
@@ -132,7 +132,7 @@ def test_the_sdk_is_installed_from_the_wheel_the_build_writes():
 
 
 def test_the_gate_and_study_sentences_say_what_the_code_does():
-    from hil.harness.report.compare_tolerances import Tolerances
+    from hil.harness.check.gate_tolerances import Tolerances
 
     assert "may grow by (default)" not in README  # the allowance is not a hard limit
     tol = Tolerances()

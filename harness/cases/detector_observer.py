@@ -1,0 +1,225 @@
+"""Runs the corner-case detector inside a run (a ``RunObserver`` with the truth hooks).
+
+Truth at ``t0`` comes from the ground truth of the frame's camera instant (every
+entity's position in the camera-ground frame; "visible" from the segmentation boxes;
+the ego's route truth); truth at ``t_apply`` from a snapshot taken when its control
+is applied, of that ego only and of the entities it had in range at ``t0``: the work
+per estimate does not grow with the number of vehicles (``truth_now`` is called with
+``egos=(vehicle,)`` where it takes that keyword). Ground truths are kept by sim time
+(bounded) so that a camera truth rendered late still meets its own instant. A mismatch is written
+to ``/events`` (kind ``mismatch.<kind>``) ``link_delay_s`` after it is found, once
+the timing analysis of its frames is done, with those frames' timing anomalies
+linked; the corner-case recorder picks it up from there.
+"""
+
+from __future__ import annotations
+
+import math
+import inspect
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from hil.adapters.wire.messages import DrivingState, Estimate
+from hil.harness.cases.detector import (CornerCaseDetector, FrameTruth, Mismatch, TruthObject,
+                                           link_anomalies, nearest_point_in_camera_frame)
+from hil.harness.vocab.events import Event, EventBus
+from hil.harness.cases.late_reaction import EgoView
+from hil.harness.analysis.timing_observer import TimingObserver
+from hil.harness.config.detector import DetectorSettings
+from hil.harness.config.model import CameraConfig
+from hil.scenarios.ground_truth import CameraTruth, EntityState, GroundTruth
+from hil.timing.records import FrameStatus, PipelineRecord
+from hil.timing.sync import SyncSample
+
+_KEEP_FRAMES = 200  # truth kept for frames in flight (bounded)
+_KEEP_TRUTHS = 64   # ground truths kept by sim time, for camera truths rendered late (bounded)
+
+
+@dataclass
+class _VehicleJudge:
+    detector: CornerCaseDetector
+    at_t0: dict[int, FrameTruth] = field(default_factory=dict)
+    at_apply: dict[int, FrameTruth] = field(default_factory=dict)
+    # Applied frames whose camera truth has not arrived yet (frame id -> record,
+    # estimate), judged in frame order once it does.
+    waiting: dict[int, tuple[PipelineRecord, Estimate]] = field(default_factory=dict)
+    last_frame: int = -1
+
+
+class DetectorObserver:
+    def __init__(self, cfg: DetectorSettings, vehicles: list[str], *, camera: CameraConfig, recorder: Any,
+                 timing: TimingObserver | None, events: EventBus | None = None, link_delay_s: float = 1.5) -> None:
+        """``events``: the run's bus the mismatches go on (default: one that records
+        them on ``recorder``'s ``/events``)."""
+        self.cfg = cfg
+        self.cam = camera
+        self.events = events if events is not None else EventBus.recording_to(recorder)
+        self.timing = timing
+        self.delay_ns = int(link_delay_s * 1e9)
+        self.v = {name: _VehicleJudge(CornerCaseDetector(name, cfg)) for name in vehicles}
+        self._gts: OrderedDict[int, GroundTruth] = OrderedDict()
+        self._takes_egos: dict[object, bool] = {}
+        self._last_ns = 0  # the latest harness time seen (ns)
+        self._pending: list[tuple[int, Mismatch]] = []
+        self.mismatches: list[Mismatch] = []
+
+    # -- truth ------------------------------------------------------------------
+
+    def _frame_truth(self, vehicle: str, gt: GroundTruth, visible: set[str] | None, *,
+                     only: set[str] | None = None) -> FrameTruth:
+        """``vehicle``'s view of ``gt``: every other entity (or those named in
+        ``only``) in its camera-ground frame, its reference state and route truth."""
+        me = next((e for e in gt.entities if e.name == vehicle), None)
+        ego = next((e for e in gt.egos if e.vehicle == vehicle), None)
+        objs = []
+        if me is not None:
+            for e in gt.entities:
+                if e.name != vehicle and (only is None or e.name in only):
+                    objs.append(self._in_camera(me, e, visible is None or e.name in visible))
+        if ego is None:
+            return FrameTruth(gt.sim_time_ns, tuple(objs), DrivingState.SAFE)
+        view = EgoView(gt.sim_time_ns, ego.gap_m, ego.obstacle, ego.speed_mps, ego.obstacle_speed_mps)
+        return FrameTruth(gt.sim_time_ns, tuple(objs), DrivingState(int(ego.ref_state)), view)
+
+    def _in_camera(self, me: EntityState, e: EntityState, visible: bool) -> TruthObject:
+        x, y = nearest_point_in_camera_frame(
+            ego_x=me.x_m, ego_y=me.y_m, ego_yaw=me.heading_rad, mount_forward_m=self.cam.mount_forward_m,
+            mount_lateral_m=self.cam.mount_lateral_m, camera_yaw=math.radians(self.cam.yaw_deg),
+            x=e.x_m, y=e.y_m, yaw=e.heading_rad, length=e.size_m[0], width=e.size_m[1])
+        return TruthObject(e.name, e.cls, x, y, visible)
+
+    # -- observer hooks ------------------------------------------------------------
+
+    def on_truth(self, gt: GroundTruth, *, t_ns: int) -> None:
+        self._last_ns = max(self._last_ns, t_ns)
+        self._gts[gt.sim_time_ns] = gt
+        while len(self._gts) > _KEEP_TRUTHS:
+            self._gts.popitem(last=False)
+        for e in gt.egos:
+            vj = self.v.get(e.vehicle)
+            if vj is not None:
+                vj.detector.on_ego_truth(EgoView(gt.sim_time_ns, e.gap_m, e.obstacle, e.speed_mps,
+                                                 e.obstacle_speed_mps))
+        for c in gt.collisions:
+            for name in (c.a, c.b):
+                if name in self.v:
+                    vj = self.v[name]
+                    for m in vj.detector.on_collision(other=c.b if name == c.a else c.a, sim_time_ns=c.sim_time_ns,
+                                                      harness_time_ns=t_ns, frame_id=max(vj.last_frame, 0),
+                                                      force_n=c.force_n):
+                        self._pending.append((t_ns + self.delay_ns, m))
+
+    def on_camera_truth(self, vehicle: str, frame_id: int, truth: CameraTruth) -> None:
+        vj = self.v.get(vehicle)
+        gt = self._gts.get(truth.sim_time_ns)
+        if gt is None:  # not its exact instant: the latest one before it
+            gt = next((g for t, g in reversed(self._gts.items()) if t <= truth.sim_time_ns), None)
+        if gt is None or vj is None:
+            return
+        c = self.cfg
+        visible = {b.entity for b in truth.boxes
+                   if b.visible_px >= c.min_visible_px and b.visible_fraction >= c.min_visible_fraction}
+        vj.at_t0[frame_id] = self._frame_truth(vehicle, gt, visible)
+        _trim(vj.at_t0, frame_id)
+        if vj.waiting:
+            self._release(vj, upto=frame_id)
+
+    def on_apply(self, vehicle: str, frame_id: int, truth_now: Callable[..., GroundTruth]) -> None:
+        vj = self.v.get(vehicle)
+        if vj is None:
+            return
+        gt = truth_now(egos=(vehicle,)) if self._accepts_egos(truth_now) else truth_now()
+        # Only what the t0 judgement can compare: the entities it had in range (all of
+        # them while its camera truth is still on its way).
+        t0 = vj.at_t0.get(frame_id)
+        near = None if t0 is None else {o.name for o in t0.objects if o.distance_m <= self.cfg.max_range_m * 1.5}
+        vj.at_apply[frame_id] = self._frame_truth(vehicle, gt, None, only=near)
+        _trim(vj.at_apply, frame_id)
+
+    def _accepts_egos(self, fn: Callable[..., GroundTruth]) -> bool:
+        # Keyed by the code, not the callable: the run makes a new closure per applied
+        # control, and keeping each one (with the world state it holds) leaked ~2 MB/min.
+        func = getattr(fn, "__func__", fn)
+        key = getattr(func, "__code__", func)
+        known = self._takes_egos.get(key)
+        if known is None:
+            try:
+                known = "egos" in inspect.signature(fn).parameters
+            except (TypeError, ValueError):
+                known = False
+            self._takes_egos[key] = known
+        return known
+
+    def on_record(self, vehicle: str, rec: PipelineRecord, estimate: Estimate | None) -> None:
+        vj = self.v.get(vehicle)
+        if vj is None or estimate is None or rec.status != FrameStatus.OK:
+            return
+        vj.last_frame = rec.frame_id
+        if rec.frame_id not in vj.at_t0 or vj.waiting:
+            # Its camera truth (rendered after the frame) is still on its way, or an
+            # earlier frame waits for its own: judged in frame order when they come.
+            vj.waiting[rec.frame_id] = (rec, estimate)
+            while vj.waiting:  # truth never came (truth.visible_boxes off): bounded, oldest out first
+                oldest = next(iter(vj.waiting))
+                if oldest >= rec.frame_id - _KEEP_FRAMES:
+                    break
+                del vj.waiting[oldest]
+            return
+        self._judge(vj, rec, estimate)
+
+    def _release(self, vj: _VehicleJudge, *, upto: int) -> None:
+        """Judge the waiting frames up to ``upto`` in order; one whose camera truth
+        did not come before a later frame's never will (it is skipped)."""
+        for fid in sorted(k for k in vj.waiting if k <= upto):
+            rec, estimate = vj.waiting.pop(fid)
+            if fid in vj.at_t0:
+                self._judge(vj, rec, estimate)
+
+    def _judge(self, vj: _VehicleJudge, rec: PipelineRecord, estimate: Estimate) -> None:
+        t0 = vj.at_t0.pop(rec.frame_id)
+        ta = vj.at_apply.pop(rec.frame_id, None)
+        now = rec.t_apply_ns or rec.t0p_ns or rec.t0_ns
+        self._last_ns = max(self._last_ns, now)
+        lat = rec.t_apply_ns - rec.t0_ns if rec.t_apply_ns is not None else None
+        for m in vj.detector.judge(estimate, at_t0=t0, at_apply=ta, harness_time_ns=now, latency_ns=lat):
+            self._pending.append((now + self.delay_ns, m))
+
+    def on_sync(self, vehicle: str, sample: SyncSample) -> None:
+        pass
+
+    def on_tick(self, *, now_ns: int, sim_time_ns: int) -> None:
+        if self._pending and self._pending[0][0] <= now_ns:
+            self._emit(lambda due: due <= now_ns)
+
+    def finish(self) -> None:
+        for vj in self.v.values():
+            for m in vj.detector.finish(harness_time_ns=self._last_ns):
+                self._pending.append((self._last_ns, m))
+        self._emit(lambda due: True)
+
+    def _emit(self, ready: Callable[[int], bool]) -> None:
+        keep = []
+        for due, m in self._pending:
+            if not ready(due):
+                keep.append((due, m))
+                continue
+            if self.timing is not None:
+                m = link_anomalies(m, self.timing.anomalies_of(m.vehicle))
+            self.mismatches.append(m)
+            self.events.publish(Event.from_mismatch(m))
+        self._pending = keep
+
+    def summary(self, vehicle: str) -> dict[str, Any]:
+        by: dict[str, int] = {}
+        for m in self.mismatches:
+            if m.vehicle == vehicle:
+                key = f"{m.kind.value}/{m.cause.value}"
+                by[key] = by.get(key, 0) + 1
+        return {"mismatches": by}
+
+
+def _trim(d: dict[int, FrameTruth], newest: int) -> None:
+    for k in [k for k in d if k < newest - _KEEP_FRAMES]:
+        del d[k]

@@ -1,0 +1,165 @@
+"""Shards of vehicles in processes of their own (issue 24, engine.shards): one run
+still gives one run folder with today's channels; in lockstep the truth and the
+estimates are the same to the byte, channel by channel, as with every vehicle in the
+run process; events counted by the run's bus equal /events; every process ends."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from hil.common.errors import ConfigError
+from hil.harness.config.model import parse_config
+from hil.harness.run.driver import execute, prepare_out_dir
+from hil.harness.run.fleet import assign, shard_count
+from tests.conftest import GL_BACKEND, read_mcap
+
+ROOT = Path(__file__).resolve().parents[3]
+ECHO = [sys.executable, "-m", "hil.targets.echo", "--throttle", "0.2"]
+
+
+def _cfg(**extra: object) -> dict[str, object]:
+    cfg: dict[str, object] = {
+        "name": "shards", "mode": "lockstep", "duration_s": 1.5, "progress": False, "seed": 4,
+        "camera": {"fps": 10.0},
+        "scenario": {"name": "multi_vehicle", "params": {"n_vehicles": 4}},
+        "target": {"command": ECHO, "estimate_timeout_s": 10.0}}
+    cfg.update(extra)
+    return cfg
+
+
+def _run(tmp: Path, shards: int, **extra: object):
+    cfg = parse_config({**_cfg(**extra), "engine": {"shards": shards}})
+    return execute(cfg, out_dir=prepare_out_dir(tmp / f"s{shards}"), gl_backend=GL_BACKEND,
+                   install_signal_handlers=False)
+
+
+def _children(pid: int) -> set[int]:
+    """Every descendant of ``pid`` but multiprocessing's resource tracker (one per
+    test process, started by the first spawned child, living as long as the tests)."""
+    out = subprocess.run(["ps", "-o", "pid=", "--ppid", str(pid)], capture_output=True, text=True, check=False)
+    kids = {int(x) for x in out.stdout.split()}
+    for k in list(kids):
+        kids |= _children(k)
+    return {k for k in kids if b"resource_tracker" not in _cmdline(k)}
+
+
+def _cmdline(pid: int) -> bytes:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return b""
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory: pytest.TempPathFactory):
+    root = tmp_path_factory.mktemp("shards")
+    before = _children(os.getpid())
+    one, two = _run(root, 1), _run(root, 2)
+    left = _children(os.getpid()) - before
+    return one, two, left
+
+
+def test_two_shards_record_what_one_does_to_the_byte(pair) -> None:
+    one, two, _left = pair
+    assert two.summary["realtime"]["shards"] == 2 and one.summary["realtime"]["shards"] == 1
+    a, b = read_mcap(one.mcap_path), read_mcap(two.mcap_path)
+    assert set(a) == set(b)  # today's channels, one run.mcap
+    timed = ("/events", "/log", "/clock", "/clock_sync")  # what depends on the machine's timing
+    for topic in a:
+        if not topic.endswith(timed):
+            assert len(a[topic]) == len(b[topic]), topic
+        if topic == "/ground_truth" or topic.endswith(("/truth", "/estimate")):
+            assert [m.data for m, _ in a[topic]] == [m.data for m, _ in b[topic]], topic
+    for name in ("ego0", "ego1", "ego2", "ego3"):
+        assert [d["frame_id"] for _, d in b[f"/{name}/pipeline"]] == list(range(15))
+        for cam in (a[f"/{name}/camera"][0][0].data, b[f"/{name}/camera"][0][0].data):  # the same JSON image
+            assert cam.startswith(b'{"timestamp":{"sec":') and b'"format":"jpeg","data":"/9j/' in cam
+        va, vb = one.summary["vehicles"][name], two.summary["vehicles"][name]
+        assert vb["frames_sent"] == va["frames_sent"] == 15 and vb["estimates_applied"] == 15
+        assert vb["outcome"] == va["outcome"]
+        assert {k: n for k, n in vb["events"].items() if k.startswith("mismatch.")} == \
+            {k: n for k, n in va["events"].items() if k.startswith("mismatch.")}  # timing anomalies may differ
+        assert vb["target"]["name"] == "echo"
+    for s in (one.summary, two.summary):  # the bus's counts are exactly what /events holds
+        counts: dict[str, dict[str, int]] = {}
+        for _, d in (read_mcap(one.mcap_path) if s is one.summary else b).get("/events", []):
+            by = counts.setdefault(d["vehicle"] or "", {})
+            by[d["kind"]] = by.get(d["kind"], 0) + 1
+        for name, v in s["vehicles"].items():
+            assert v["events"] == counts.get(name, {}), name
+    assert (two.out_dir / "summary.json").exists() and (two.out_dir / "report.html").exists()
+
+
+def test_shard_processes_and_their_targets_end_with_the_run(pair) -> None:
+    _one, _two, left = pair
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and any(Path(f"/proc/{k}").exists() for k in left):
+        time.sleep(0.1)  # a zombie reaped late is no orphan; wait a little for the reaper
+    assert not [_cmdline(k)[:200] for k in left if Path(f"/proc/{k}").exists()]
+
+
+@pytest.mark.slow
+def test_a_sharded_real_time_run_keeps_every_frame_accounted(tmp_path: Path) -> None:
+    r = _run(tmp_path, 2, mode="realtime", duration_s=2.0)
+    assert r.summary["ended_by"] == "duration"
+    for name, v in r.summary["vehicles"].items():
+        assert v["frames_sent"] >= 15, name
+        assert v["estimates_applied"] + v["dropped"] + v["stale"] == v["frames_sent"], name
+        assert v["latency_ms"]["end_to_end"]["count"] > 0 and v["clock"]["samples_used"] > 0, name
+    assert r.summary["harness_cost"]["run_us_per_frame"] > 0
+
+
+def test_how_many_shards() -> None:
+    cfg = parse_config(_cfg())
+    assert shard_count(cfg, 1, cores=2) == 1  # N=1 never pays for a process
+    assert shard_count(cfg, 16, cores=2) == 1  # 2 cores have none to spare
+    assert shard_count(cfg, 64, cores=16) == 4 and shard_count(cfg, 64, cores=64) == 4
+    assert shard_count(cfg, 8, cores=64) == 1
+    assert shard_count(parse_config({**_cfg(), "engine": {"shards": 3}}), 2) == 2  # at most one per vehicle
+    assert assign(5, 2) == (0, 1, 0, 1, 0) and assign(5, 1) == ()
+    can = parse_config({**_cfg(), "target": {"transport": "can"}, "engine": {"shards": 2}})
+    with pytest.raises(ConfigError, match="engine.shards: 2 .* transport can"):
+        shard_count(can, 4)
+    assert shard_count(parse_config({**_cfg(), "target": {"transport": "can"}}), 64, cores=64) == 1
+
+
+@pytest.mark.slow
+def test_sigterm_ends_a_sharded_run_cleanly(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    env = dict(os.environ, MUJOCO_GL=GL_BACKEND)
+    p = subprocess.Popen([sys.executable, "-m", "hil.harness.cli.main", "run", "hil_configs/scale.yaml", "--no-progress",
+                          "--out", str(out), "--set", "scenario.params.n_vehicles=4", "--set", "duration_s=60",
+                          "--set", "engine.shards=2", "--set", 'target.command=["{python}", "-m", "hil.targets.echo"]'],
+                         cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline and not (out / "run.mcap").exists():
+            time.sleep(0.2)
+        kids = _children(p.pid)
+        shards = [k for k in kids if b"spawn_main" in _cmdline(k)]
+        assert len(shards) >= 4, "physics, render worker and two shards"
+        time.sleep(2.0)  # let frames flow
+        p.send_signal(signal.SIGTERM)
+        code = p.wait(60)
+        err = p.stderr.read()
+        assert code == 1 and "Traceback" not in err, err[-3000:]
+        s = json.loads((out / "summary.json").read_text())
+        assert "SIGTERM" in s["ended_by"] and sum(v["frames_sent"] for v in s["vehicles"].values()) > 0
+        msgs = read_mcap(out / "run.mcap")
+        assert msgs["/ego0/pipeline"] and msgs["/ego3/estimate"]
+        end = time.monotonic() + 10
+        while time.monotonic() < end and any(Path(f"/proc/{k}").exists() for k in kids):
+            time.sleep(0.1)
+        assert not [k for k in kids if Path(f"/proc/{k}").exists()]
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait(10)
