@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import Enum
 
 from hil.adapters.wire import protocol
@@ -77,6 +77,14 @@ class FrameSet:
 
 
 SetInferFn = Callable[[FrameSet], Inference]
+
+
+def on_camera(result: Inference, frame: Frame) -> Inference:
+    """``result`` as the ESTIMATE of one FRAME: its objects name the frame's camera
+    (PROTOCOL.md 4.3, byte +1), whatever the AI put there."""
+    if all(o.camera == frame.camera_index for o in result.objects):
+        return result
+    return replace(result, objects=tuple(replace(o, camera=frame.camera_index) for o in result.objects))
 
 
 def camera_mode(infer: object, cameras: CameraMode | str | None, infer_set: object) -> CameraMode:
@@ -191,4 +199,4 @@ class RigQueue:
         return None if self._partial is None else max(0.0, self._partial.deadline_s - now_s)
 
 
-__all__ = ["SET_TIMEOUT_S", "CameraMode", "FrameSet", "RigQueue", "SetInferFn", "camera_mode"]
+__all__ = ["SET_TIMEOUT_S", "CameraMode", "FrameSet", "RigQueue", "SetInferFn", "camera_mode", "on_camera"]

@@ -36,7 +36,8 @@ from typing import NoReturn, TypeVar, cast
 import numpy as np
 
 from hil.adapters import transports
-from hil.adapters.frame_sets import SET_TIMEOUT_S, CameraMode, FrameSet, RigQueue, SetInferFn, camera_mode
+from hil.adapters.frame_sets import (SET_TIMEOUT_S, CameraMode, FrameSet, RigQueue, SetInferFn, camera_mode,
+                                     on_camera)
 from hil.adapters.wire import protocol
 from hil.adapters.wire.messages import (Auth, AuthStep, Bye, ClockId, Command, ErrorMsg, Estimate, Frame, Hello,
                                         ImageEncoding, Inference, Message, SyncRequest, SyncResponse)
@@ -301,7 +302,7 @@ class Endpoint:
             else:
                 (frame, t_rx), infer = item, self.infer
                 assert infer is not None  # camera_mode: ONE and EACH come with infer
-                ok = self._answer(lambda: infer(frame), frame.vehicle_id, frame.frame_id, t_rx)
+                ok = self._answer(lambda: on_camera(infer(frame), frame), frame.vehicle_id, frame.frame_id, t_rx)
             if not ok:
                 return
 

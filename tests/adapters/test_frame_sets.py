@@ -159,3 +159,13 @@ def test_an_sdk_target_answering_each_camera(tmp_path):
             assert proc.wait(timeout=10) == 0
         finally:
             peer.close()
+
+
+def test_an_estimate_of_one_frame_names_its_camera() -> None:
+    from hil.adapters.frame_sets import on_camera
+    from hil.adapters.wire.messages import Control, DetectedObject, Inference, ObjectClass
+
+    obj = DetectedObject(ObjectClass.VEHICLE, 0.5, (0.0, 0.0, 1.0, 1.0), (5.0, 0.0, 0.0))
+    result = Inference(DrivingState.SAFE, Control(), (obj, obj))
+    assert [o.camera for o in on_camera(result, rig_frame(7, 2, 3, 0)).objects] == [2, 2]
+    assert on_camera(result, rig_frame(7, 0, 0, 0)) is result  # a single camera: nothing to change
