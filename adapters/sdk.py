@@ -15,7 +15,9 @@ The SDK says HELLO, stamps ``t_rx``, ``t_infer_start``, ``t_infer_end`` and
 the reader, never queued behind inference) and sends one ESTIMATE per processed
 frame. When frames arrive faster than ``infer`` runs, only the newest waiting frame
 is processed; the skipped ones are counted (``SdkStats.frames_skipped``) and the
-harness sees them as dropped.
+harness sees them as dropped. A target of a camera rig answers every camera
+(``cameras="each"``) or one ESTIMATE per frame set (``infer_set``, a fusing stack):
+``hil.adapters.frame_sets``.
 
 Needs only numpy and the chosen transport: no simulator, torch or harness code.
 """
@@ -25,6 +27,7 @@ from __future__ import annotations
 import signal
 import socket
 import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -33,6 +36,8 @@ from typing import NoReturn, TypeVar, cast
 import numpy as np
 
 from hil.adapters import transports
+from hil.adapters.frame_sets import (SET_TIMEOUT_S, CameraMode, FrameSet, RigQueue, SetInferFn, camera_mode,
+                                     on_camera)
 from hil.adapters.wire import protocol
 from hil.adapters.wire.messages import (Auth, AuthStep, Bye, ClockId, Command, ErrorMsg, Estimate, Frame, Hello,
                                         ImageEncoding, Inference, Message, SyncRequest, SyncResponse)
@@ -55,6 +60,7 @@ class SdkStats:
     protocol_errors: int = 0
     infer_errors: int = 0
     commands: int = 0
+    sets_incomplete: int = 0  # frame sets handed to infer_set with a camera missing
 
 
 def decode_image(frame: Frame) -> np.ndarray:
@@ -86,15 +92,28 @@ class Endpoint:
     requests at once and runs ``infer`` on a worker thread, newest frame first.
     """
 
-    def __init__(self, infer: InferFn, *, target_name: str, clock: Clock | None = None,
+    def __init__(self, infer: InferFn | None, *, target_name: str, clock: Clock | None = None,
                  clock_id: ClockId = ClockId.MONOTONIC, clock_resolution_ns: int = 1,
-                 on_command: CommandFn | None = None, token: bytes | None = None) -> None:
+                 on_command: CommandFn | None = None, token: bytes | None = None,
+                 cameras: CameraMode | str | None = None, infer_set: SetInferFn | None = None,
+                 set_timeout_s: float = SET_TIMEOUT_S) -> None:
         """``on_command``: handles COMMAND texts (announced in HELLO as
         ``protocol.CAP_COMMANDS``); called on the reader thread, so it must be quick
         and thread-safe; its return value is the reply's text. ``token``: the shared
         secret this target proves when challenged (announced as ``protocol.CAP_AUTH``,
-        PROTOCOL.md 4.8; ``hil.adapters.wire.auth``)."""
+        PROTOCOL.md 4.8; ``hil.adapters.wire.auth``). ``cameras``: ``"each"`` answers
+        every camera of a rig (``CAP_CAMERAS``); ``infer_set`` (``cameras="set"``) is
+        called once per frame set instead of ``infer``, a set incomplete
+        ``set_timeout_s`` after its first frame given up (``hil.adapters.frame_sets``).
+
+        Raises:
+            ConfigError: ``cameras`` without the function it calls.
+        """
+        self.cameras = camera_mode(infer, cameras, infer_set)
         self.infer = infer
+        self.infer_set = infer_set
+        self.set_timeout_s = set_timeout_s
+        self._rig = RigQueue(self.cameras, timeout_s=set_timeout_s) if self.cameras is not CameraMode.ONE else None
         self.on_command = on_command
         self.clock = clock or MonotonicClock()
         self.stats = SdkStats()
@@ -127,7 +146,7 @@ class Endpoint:
         """This endpoint's HELLO (capabilities: ``CAP_COMMANDS`` with ``on_command``,
         ``CAP_AUTH`` with a token)."""
         caps = (protocol.CAP_COMMANDS if self.on_command is not None else 0) | (
-            protocol.CAP_AUTH if self.token else 0)
+            protocol.CAP_AUTH if self.token else 0) | self.cameras.capabilities
         return Hello(self.target_name, protocol.VERSION, self.clock_id, self.clock_resolution_ns, caps)
 
     @property
@@ -201,11 +220,18 @@ class Endpoint:
         elif isinstance(item, Frame):
             self._vehicle_id = item.vehicle_id
             self.stats.frames_received += 1
+            error = None
             with self._cv:
-                if self._pending is not None:
-                    self.stats.frames_skipped += 1
-                self._pending = (item, t_rx)
+                if self._rig is not None:
+                    skipped, error = self._rig.put(item, t_rx, time.monotonic())
+                    self.stats.frames_skipped += skipped
+                else:
+                    if self._pending is not None:
+                        self.stats.frames_skipped += 1
+                    self._pending = (item, t_rx)
                 self._cv.notify()
+            if error is not None:  # a frame that contradicts its set: dropped, reported
+                self.on_message(error, t_rx)
         elif isinstance(item, Command):
             self._on_command(item)
         elif isinstance(item, Auth):
@@ -254,31 +280,56 @@ class Endpoint:
             item, self._pending = self._pending, None
             return item
 
+    def _next_rig(self) -> tuple[Frame, int] | FrameSet | None:
+        """A multi-camera target's next frame or frame set; None once stopped."""
+        assert self._rig is not None
+        with self._cv:
+            while not self._stopped.is_set():
+                now = time.monotonic()
+                if (item := self._rig.take(now)) is not None:
+                    if isinstance(item, FrameSet) and item.missing:
+                        self.stats.sets_incomplete += 1
+                    return item
+                self._cv.wait(self._rig.wait_s(now))
+            return None
+
     def _work(self) -> None:
-        while True:
-            if (item := self._next_frame()) is None:
+        while (item := self._next_frame() if self._rig is None else self._next_rig()) is not None:
+            if isinstance(item, FrameSet):
+                fs, infer_set = item, self.infer_set
+                assert infer_set is not None  # camera_mode: SET comes with infer_set
+                ok = self._answer(lambda: infer_set(fs), fs.vehicle_id, fs.set_id, fs.t_rx_ns)
+            else:
+                (frame, t_rx), infer = item, self.infer
+                assert infer is not None  # camera_mode: ONE and EACH come with infer
+                ok = self._answer(lambda: on_camera(infer(frame), frame), frame.vehicle_id, frame.frame_id, t_rx)
+            if not ok:
                 return
-            frame, t_rx = item
-            t_start = self.clock.now_ns()
-            try:
-                result = self.infer(frame)
-            except Exception as err:  # the AI's bug must not kill the session
-                self.stats.infer_errors += 1
-                self.send(ErrorMsg(frame.vehicle_id, protocol.ErrorCode.TARGET_FAILURE,
-                                   f"infer failed: {type(err).__name__}: {err}"[:1000]))
-                continue
-            t_end = self.clock.now_ns()
-            try:
-                self.send_stamped(lambda t_reply: Estimate(frame.vehicle_id, frame.frame_id, result.state,
-                                                           result.control, tuple(result.objects), t_rx, t_start,
-                                                           t_end, t_reply))
-            except (OSError, TransportError):
-                return
-            self.stats.estimates_sent += 1
+
+    def _answer(self, run: Callable[[], Inference], vehicle_id: int, frame_id: int, t_rx: int) -> bool:
+        """Run the AI and send its ESTIMATE for ``frame_id`` (a frame's, or a set's id);
+        False once the transport is gone."""
+        t_start = self.clock.now_ns()
+        try:
+            result = run()
+        except Exception as err:  # the AI's bug must not kill the session
+            self.stats.infer_errors += 1
+            self.send(ErrorMsg(vehicle_id, protocol.ErrorCode.TARGET_FAILURE,
+                               f"infer failed: {type(err).__name__}: {err}"[:1000]))
+            return True
+        t_end = self.clock.now_ns()
+        try:
+            self.send_stamped(lambda t_reply: Estimate(vehicle_id, frame_id, result.state, result.control,
+                                                       tuple(result.objects), t_rx, t_start, t_end, t_reply))
+        except (OSError, TransportError):
+            return False
+        self.stats.estimates_sent += 1
+        return True
 
 
 CAPABILITY_NAMES = ((0x0000_0001, "SHM_FRAMES"),  # hil.adapters.local.shm.SHM_FRAMES (local transport only)
-                    (protocol.CAP_COMMANDS, "COMMANDS"), (protocol.CAP_AUTH, "AUTH"))
+                    (protocol.CAP_COMMANDS, "COMMANDS"), (protocol.CAP_AUTH, "AUTH"),
+                    (protocol.CAP_CAMERAS, "CAMERAS"), (protocol.CAP_FRAME_SETS, "FRAME_SETS"))
 
 
 def announce_line(ep: Endpoint, *, transport: str, where: str, access: str, keep_serving: bool,
@@ -316,7 +367,8 @@ def fresh_endpoint(base: Endpoint, done: Endpoint) -> Endpoint:
     clock, command handler and token (``done``'s counters added into ``base``'s)."""
     add_stats(base, done)
     return Endpoint(base.infer, target_name=base.target_name, clock=base.clock, clock_id=base.clock_id,
-                    clock_resolution_ns=base.clock_resolution_ns, on_command=base.on_command, token=base.token)
+                    clock_resolution_ns=base.clock_resolution_ns, on_command=base.on_command, token=base.token,
+                    cameras=base.cameras, infer_set=base.infer_set, set_timeout_s=base.set_timeout_s)
 
 
 @contextmanager
@@ -428,9 +480,11 @@ from hil.adapters.sdk_args import run_target as run_target  # noqa: E402
 from hil.adapters.sdk_args import transport_options as transport_options  # noqa: E402
 
 
-def serve(infer: InferFn, *, target_name: str, transport: str | transports.Transport = "local",
+def serve(infer: InferFn | None = None, *, target_name: str, transport: str | transports.Transport = "local",
           clock: Clock | None = None, clock_id: ClockId = ClockId.MONOTONIC, clock_resolution_ns: int = 1,
-          on_command: CommandFn | None = None, **transport_options: object) -> SdkStats:
+          on_command: CommandFn | None = None, cameras: CameraMode | str | None = None,
+          infer_set: SetInferFn | None = None, set_timeout_s: float = SET_TIMEOUT_S,
+          **transport_options: object) -> SdkStats:
     """Serve ``infer`` until the harness says BYE or the connection ends.
 
     Args:
@@ -440,6 +494,9 @@ def serve(infer: InferFn, *, target_name: str, transport: str | transports.Trans
         clock: the clock to stamp with (default: this host's monotonic clock).
         on_command: optional handler of COMMAND messages (text in, reply text out),
             for control software that takes commands during a run (model swaps).
+        cameras, infer_set, set_timeout_s: a camera rig's target (``Endpoint``):
+            ``cameras="each"`` answers every camera with ``infer``; ``infer_set``
+            answers once per frame set (``hil.adapters.frame_sets.FrameSet``).
         transport_options: passed to the transport's ``serve_endpoint`` (its package's
             ``target`` module): ``options``, its options model (e.g. a ``ZenohOptions``,
             ``hil.adapters.zenoh.options``), and ``vehicle_id``, ``keep_serving``;
@@ -452,9 +509,11 @@ def serve(infer: InferFn, *, target_name: str, transport: str | transports.Trans
         TransportError: unknown transport, or it cannot be used (for example
             ``HIL_LOCAL_FD`` is not set because the program was not started by the
             harness).
+        ConfigError: ``cameras`` without the function it calls.
     """
     ep = Endpoint(infer, target_name=target_name, clock=clock, clock_id=clock_id,
-                  clock_resolution_ns=clock_resolution_ns, on_command=on_command)
+                  clock_resolution_ns=clock_resolution_ns, on_command=on_command, cameras=cameras,
+                  infer_set=infer_set, set_timeout_s=set_timeout_s)
     kind = transports.transport_of(transport)
     if kind is transports.Transport.LOCAL and transport_options:
         raise TransportError(f"the local transport takes no options; got {sorted(transport_options)}")

@@ -3,6 +3,11 @@ busy inference time. It is the floor for transport benchmarks and the known-late
 target of timing tests (it never looks at the image).
 
     python -m hil.targets.echo --infer-ms 20 --throttle 0.1
+    python -m hil.targets.echo --cameras set     # a fusing stack: one ESTIMATE per frame set
+
+With ``--cameras set`` it answers each frame set with one object per camera that came
+(UNKNOWN, its ``camera`` the camera's index), SLOW when a camera is missing, else SAFE:
+what the SDK handed it, on the wire for tests of rigs.
 """
 
 from __future__ import annotations
@@ -12,8 +17,13 @@ import os
 import time
 from collections.abc import Sequence
 
-from hil.adapters.wire.messages import Control, DrivingState, Frame, Inference
+from typing import TYPE_CHECKING
+
+from hil.adapters.wire.messages import Control, DetectedObject, DrivingState, Frame, Inference, ObjectClass
 from hil.timing.clock import Clock, MonotonicClock, OffsetClock
+
+if TYPE_CHECKING:
+    from hil.adapters.frame_sets import FrameSet
 
 
 class Echo:
@@ -26,6 +36,13 @@ class Echo:
         self.result = Inference(DrivingState.SAFE, Control(0.0, throttle, brake))
         self.exit_after_frames = exit_after_frames
         self.frames = 0
+
+    def infer_set(self, frames: FrameSet) -> Inference:
+        """A frame set: one object per camera that came, SLOW when one is missing."""
+        result = self.infer(frames.frames[-1])
+        seen = tuple(DetectedObject(ObjectClass.UNKNOWN, 1.0, (0.0, 0.0, 1.0, 1.0), (0.0, 0.0, 0.0), f.camera_index)
+                     for f in frames.frames)
+        return Inference(DrivingState.SAFE if frames.complete else DrivingState.SLOW, result.control, seen)
 
     def infer(self, frame: Frame) -> Inference:
         del frame
@@ -84,11 +101,17 @@ def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.target
     p.add_argument("--clock-skew-ppm", type=float, default=0.0, help="... running this much fast (ppm)")
     p.add_argument("--bad-stamps", choices=("zero", "future", "backwards"), default=None,
                    help="stamp with a broken clock: for tests of absurd timestamps")
+    p.add_argument("--cameras", choices=("one", "each", "set"), default="one",
+                   help="a camera rig: one ESTIMATE per camera (each) or per frame set (set); one: a single camera")
+    p.add_argument("--set-timeout-ms", type=float, default=100.0,
+                   help="--cameras set: give up an incomplete frame set this long after its first frame (ms)")
     add_transport_args(p)
     a = p.parse_args(argv)
     echo = Echo(infer_ms=a.infer_ms, throttle=a.throttle, brake=a.brake, exit_after_frames=a.exit_after_frames)
-    return run_target(prog, lambda: serve(echo.infer, target_name=a.name, transport=a.transport, clock=_clock(a),
-                                          **transport_options(a)))
+    sets = a.cameras == "set"
+    return run_target(prog, lambda: serve(None if sets else echo.infer, target_name=a.name, transport=a.transport,
+                                          clock=_clock(a), cameras=a.cameras, infer_set=echo.infer_set if sets else None,
+                                          set_timeout_s=a.set_timeout_ms / 1e3, **transport_options(a)))
 
 
 if __name__ == "__main__":

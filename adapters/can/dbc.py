@@ -173,8 +173,8 @@ class HilCan:
 
     def _encode_estimate(self, e: Estimate) -> list[CanFrame] | None:
         steering_raw = round(e.control.steering_rad * _STEERING_SCALE)
-        if (e.frame_id > _U32 or len(e.objects) > MAX_DBC_OBJECTS
-                or not _I32_MIN <= steering_raw <= _I32_MAX):
+        if (e.frame_id > _U32 or len(e.objects) > MAX_DBC_OBJECTS or any(o.camera for o in e.objects)
+                or not _I32_MIN <= steering_raw <= _I32_MAX):  # an object's camera has no signal: ISO-TP
             return None
         frames = self._frames("HIL_ESTIMATE", FrameId=e.frame_id, State=int(e.state), NObjects=len(e.objects),
                               SteeringAngle=steering_raw / _STEERING_SCALE,

@@ -79,7 +79,9 @@ class Hello:
 class Frame:
     """One camera image, stamped by the harness.
 
-    ``t0_ns`` is the capture instant (render finished) and ``t_tx_ns`` the hand-off
+    ``camera_index`` is the camera of the vehicle's rig it came from (0: the first or
+    only camera) and ``camera_count`` the cameras of its frame set, the images of one
+    capture instant (0: a single camera, not a set; PROTOCOL.md 4.2). ``t0_ns`` is the capture instant (render finished) and ``t_tx_ns`` the hand-off
     to the transport, both on the harness clock; ``sim_time_ns`` is the simulated
     instant the image shows. ``ego_speed_mps`` is the vehicle's own speed signal
     (as a wheel-speed sensor would report it).
@@ -96,6 +98,15 @@ class Frame:
     camera: CameraInfo
     ego_speed_mps: float
     data: bytes
+    camera_index: int = 0
+    camera_count: int = 0
+
+    @property
+    def set_id(self) -> int:
+        """The frame set this frame belongs to (PROTOCOL.md 4.2): the ``frame_id`` of its
+        set's camera 0, which a fusing target's ESTIMATE answers; a single camera's frame
+        (``camera_count`` 0) is a set of its own, ``frame_id``."""
+        return self.frame_id - self.camera_index
 
 
 @dataclass(frozen=True)
@@ -107,6 +118,7 @@ class DetectedObject:
     confidence: float
     box_px: tuple[float, float, float, float]
     position_m: tuple[float, float, float]
+    camera: int = 0  # the camera whose image ``box_px`` is in (a fusing target's estimate of a frame set)
 
 
 @dataclass(frozen=True)

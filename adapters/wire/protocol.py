@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
 
+from hil.adapters.wire.cameras import check_camera, check_object_camera
 from hil.adapters.wire.messages import (Auth, AuthStep, Bye, CameraInfo, ClockId, Command, Control, DetectedObject,
                                         DrivingState, ErrorMsg, Estimate, Frame, Heartbeat, Hello, ImageEncoding,
                                         Message, MsgType, ObjectClass, SyncRequest, SyncResponse)
@@ -40,6 +41,8 @@ MAX_REASON_LEN = 256  # bytes of UTF-8
 MAX_COMMAND_LEN = 256  # bytes of UTF-8
 CAP_COMMANDS = 0x0000_0002  # HELLO capability bit 1: the target accepts COMMAND messages
 CAP_AUTH = 0x0000_0004  # HELLO capability bit 2: the target answers an AUTH challenge (section 4.8)
+CAP_CAMERAS = 0x0000_0008  # HELLO capability bit 3: the target takes FRAMEs of a frame set (section 4.2)
+CAP_FRAME_SETS = 0x0000_0010  # HELLO capability bit 4: ... and answers one ESTIMATE per set, not per camera
 AUTH_DATA_SIZE = 32  # bytes of an AUTH challenge or proof
 MAX_IMAGE_SIDE = 4096  # pixels
 FLAG_PAYLOAD_CRC = 0x0001
@@ -73,9 +76,9 @@ _HEADER_BODY = struct.Struct("<4sBBHIIQqqqqI")  # bytes 0..59, covered by header
 _U32 = struct.Struct("<I")
 _F32 = struct.Struct("<f")
 _HELLO = struct.Struct("<BBHII")
-_FRAME_META = struct.Struct("<HHB3s7fI")
+_FRAME_META = struct.Struct("<HHBBBB7fI")
 _ESTIMATE = struct.Struct("<BBHfff")
-_OBJECT = struct.Struct("<B3s8f")
+_OBJECT = struct.Struct("<BB2s8f")
 _ERROR = struct.Struct("<HH")
 _BYE = struct.Struct("<H")
 _COMMAND = struct.Struct("<H")
@@ -189,7 +192,8 @@ def _enc_frame(f: Frame) -> _Parts:
     if encoding in _RAW_ENCODINGS and image.nbytes != width * height * 3:
         raise ProtocolError(f"{encoding.name} image of {width}x{height} px needs "
                             f"{width * height * 3} bytes, data has {image.nbytes}", offset=_P + 36)
-    meta = _FRAME_META.pack(width, height, encoding, b"\0\0\0", *floats, image.nbytes)
+    index, count = check_camera(f.camera_index, f.camera_count, _int(f.frame_id, 0, _U64_MAX, "frame_id", 16))
+    meta = _FRAME_META.pack(width, height, encoding, index, count, 0, *floats, image.nbytes)
     ts = (_i64(f.t0_ns, "t0_ns", 24), _i64(f.sim_time_ns, "sim_time_ns", 32),
           _i64(f.t_tx_ns, "t_tx_ns", 40), 0)
     return f.vehicle_id, f.frame_id, ts, [meta, image]
@@ -205,7 +209,7 @@ def _enc_object(o: DetectedObject, at: int) -> bytes:
         raise ProtocolError(f"position_m needs 3 values (x, y, z), got {len(pos)}", offset=at + 24)
     names = _BOX_NAMES + _POS_NAMES
     floats = [_f32(v, n, at + 8 + 4 * i) for i, (n, v) in enumerate(zip(names, box + pos))]
-    return _OBJECT.pack(cls, b"\0\0\0", conf, *floats)
+    return _OBJECT.pack(cls, check_object_camera(o.camera, at), b"\0\0", conf, *floats)
 
 
 def _enc_estimate(e: Estimate) -> _Parts:
@@ -426,12 +430,13 @@ def _dec_hello(mv: memoryview, h: Header) -> Hello:
 
 def _dec_frame(mv: memoryview, h: Header) -> Frame:
     _need(h, FRAME_META_SIZE)
-    width, height, enc, reserved, *floats, image_len = _FRAME_META.unpack_from(mv, _P)
+    width, height, enc, index, count, reserved, *floats, image_len = _FRAME_META.unpack_from(mv, _P)
     for value, name, at in ((width, "width", _P), (height, "height", _P + 2)):
         if not 1 <= value <= MAX_IMAGE_SIDE:
             raise ProtocolError(f"{name} {value} px is outside 1..{MAX_IMAGE_SIDE}", offset=at)
     encoding = _enum_in(ImageEncoding, enc, "image encoding", _P + 4)
-    _reserved(reserved, _P + 5)
+    index, count = check_camera(index, count, h.frame_id)
+    _reserved(reserved, _P + 7)
     for i, (name, value) in enumerate(zip(_FRAME_FLOATS, floats)):
         _finite(value, name, _P + 8 + 4 * i)
     if image_len != h.payload_len - FRAME_META_SIZE:
@@ -445,7 +450,7 @@ def _dec_frame(mv: memoryview, h: Header) -> Frame:
     return Frame(vehicle_id=h.vehicle_id, frame_id=h.frame_id, sim_time_ns=h.ts[1],
                  t0_ns=h.ts[0], t_tx_ns=h.ts[2], width=width, height=height, encoding=encoding,
                  camera=CameraInfo(fx, fy, cx, cy, mount, pitch), ego_speed_mps=speed,
-                 data=bytes(mv[start:start + image_len]))
+                 data=bytes(mv[start:start + image_len]), camera_index=index, camera_count=count)
 
 
 def _dec_estimate(mv: memoryview, h: Header) -> Estimate:
@@ -464,13 +469,14 @@ def _dec_estimate(mv: memoryview, h: Header) -> Estimate:
     objects = []
     for i in range(n):
         at = _P + ESTIMATE_FIXED_SIZE + OBJECT_SIZE * i
-        cls, reserved3, conf, *floats = _OBJECT.unpack_from(mv, at)
+        cls, camera, reserved2, conf, *floats = _OBJECT.unpack_from(mv, at)
         obj_cls = _enum_in(ObjectClass, cls, f"class of object {i}", at)
-        _reserved(reserved3, at + 1)
+        check_object_camera(camera, at)
+        _reserved(reserved2, at + 2)
         _finite(conf, f"confidence of object {i}", at + 4, unit=True)
         for k, (name, value) in enumerate(zip(_BOX_NAMES + _POS_NAMES, floats)):
             _finite(value, f"{name} of object {i}", at + 8 + 4 * k)
-        objects.append(DetectedObject(obj_cls, conf, tuple(floats[:4]), tuple(floats[4:])))
+        objects.append(DetectedObject(obj_cls, conf, tuple(floats[:4]), tuple(floats[4:]), camera))
     return Estimate(vehicle_id=h.vehicle_id, frame_id=h.frame_id, state=driving_state,
                     control=control, objects=tuple(objects), t_rx_target_ns=h.ts[0],
                     t_infer_start_target_ns=h.ts[1], t_infer_end_target_ns=h.ts[2],
@@ -589,7 +595,7 @@ def decode(buf: bytes | bytearray | memoryview, *, header: Header | None = None)
 
 
 __all__ = [
-    "AUTH_DATA_SIZE", "CAP_AUTH", "CAP_COMMANDS", "ESTIMATE_FIXED_SIZE", "FLAG_PAYLOAD_CRC", "FRAME_META_SIZE",
+    "AUTH_DATA_SIZE", "CAP_AUTH", "CAP_CAMERAS", "CAP_COMMANDS", "CAP_FRAME_SETS", "ESTIMATE_FIXED_SIZE", "FLAG_PAYLOAD_CRC", "FRAME_META_SIZE",
     "HEADER_SIZE", "HELLO_FIXED_SIZE", "KNOWN_FLAGS", "MAGIC", "MAX_ERROR_LEN", "MAX_IMAGE_SIDE",
     "MAX_COMMAND_LEN", "MAX_NAME_LEN", "MAX_OBJECTS", "MAX_PAYLOAD", "MAX_REASON_LEN", "OBJECT_SIZE",
     "STREAM_BUFFER_LIMIT", "SUPPORTED_VERSIONS", "VERSION", "ErrorCode", "Header",

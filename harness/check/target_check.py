@@ -14,7 +14,7 @@ token in that environment variable, PROTOCOL.md 4.8); a clock-sync burst; one FR
 of each encoding (RGB8, BGR8, JPEG); a HEARTBEAT; malformed messages (bad header CRC,
 bad version, bad payload CRC, ``payload_crc`` without its flag, bytes without a
 magic, the same garbage split over two writes); a COMMAND if the target announces
-``CAP_COMMANDS``; BYE. Each check prints one row: PASS or FAIL, the PROTOCOL.md section, and what was
+``CAP_COMMANDS``; frame sets if it announces ``CAP_CAMERAS`` (``target_rig``); BYE. Each check prints one row: PASS or FAIL, the PROTOCOL.md section, and what was
 wrong with the byte offsets of the fields concerned. Exit 0 when all pass, 1 when
 any fails, 2 for a bad endpoint or option.
 """
@@ -39,12 +39,13 @@ from hil.adapters.wire.messages import Bye, Command, ErrorMsg, Estimate, Heartbe
 from hil.adapters.zenoh.options import ZenohOptions
 from hil.common.errors import HilError, ProtocolError, TransportError
 from hil.harness.check.target_faults import CAM, _still_alive, check_malformed
+from hil.harness.check.target_rig import check_cameras
 from hil.harness.check.target_session import Check, Session
 from hil.timing.clock import MonotonicClock
 
 EXIT_PASS, EXIT_FAIL, EXIT_USAGE = 0, 1, 2
 W, H = 320, 240
-KNOWN_CAPS = 0x0000_0007  # SHM_FRAMES | CAP_COMMANDS | CAP_AUTH
+KNOWN_CAPS = 0x0000_001F  # SHM_FRAMES | CAP_COMMANDS | CAP_AUTH | CAP_CAMERAS | CAP_FRAME_SETS
 
 
 def parse_endpoint(endpoint: str, command: list[str], *, vehicle_id: int,
@@ -261,6 +262,7 @@ def run_checks(link: Link, *, timeout_s: float, token_env: str | None = None) ->
         check_auth(s, hello, token_env)
         sync = check_sync(s)
         check_frames(s, sync)
+        check_cameras(s)
         check_heartbeat(s)
         check_malformed(s)
         check_command(s)

@@ -19,13 +19,20 @@
  * that starts the target sets) it announces CAP_AUTH and answers the harness's AUTH
  * challenge (PROTOCOL.md 4.8), so the harness knows this is its target.
  *
+ * A camera rig (PROTOCOL.md 4.2.1): it announces CAP_CAMERAS and answers every camera of
+ * a frame set, or with --frame-sets (CAP_FRAME_SETS) one ESTIMATE per set, whose
+ * frame_id is the set id: STOP when any camera's centre is dark, SLOW when a camera is
+ * missing (given up when a later set begins or 100 ms after the set's first frame),
+ * else SAFE (rig.c collects the set).
+ *
  *   hil_target [--transport local|tcp] [--listen HOST:PORT | --connect HOST:PORT]
  *              [--name NAME] [--clock monotonic|realtime] [--dark LUMA] [--token-env NAME]
- *              [--once | --keep-serving] [--verbose]
+ *              [--frame-sets] [--once | --keep-serving] [--verbose]
  */
 #define _POSIX_C_SOURCE 200809L
 #include "hilp.h"
 #include "net.h"
+#include "rig.h"
 
 #include <errno.h>
 #include <poll.h>
@@ -44,6 +51,7 @@
 
 #define BUF_START (256u * 1024u)
 #define HEARTBEAT_IDLE_NS 1000000000LL /* send a HEARTBEAT after 1 s without sending */
+#define SET_TIMEOUT_NS 100000000LL /* give up a frame set 100 ms after its first frame */
 
 static volatile sig_atomic_t g_term; /* SIGTERM or SIGINT: say BYE, serve no further run */
 
@@ -59,6 +67,9 @@ typedef struct {
     const char *name;
     unsigned dark_luma;
     int verbose;
+    int frame_sets; /* --frame-sets: one ESTIMATE per frame set (CAP_FRAME_SETS) */
+    hil_rig rig;    /* the frame set being collected */
+    unsigned last_camera; /* camera_index of the last FRAME */
     const uint8_t *token; /* the shared secret proven to the harness (AUTH), or NULL */
     size_t token_len;
     uint32_t vehicle_id; /* of the last FRAME, SYNC_REQUEST or AUTH challenge; 0 before */
@@ -72,15 +83,17 @@ typedef struct {
     int skipping; /* lost sync after a bad header: skip to the next magic silently */
     /* counters */
     unsigned long frames, estimates, dark, syncs, heartbeats, errors_sent, errors_received, bad, commands;
+    unsigned long sets, sets_incomplete, frames_late; /* frame sets answered, of them incomplete; frames too late */
     unsigned long kernel_stamps; /* reads stamped with the kernel's receive time */
     uint8_t out[HILP_HEADER + 1100]; /* every message this target sends fits */
 } session;
 
-static int64_t now_ns(const session *s) {
+static int64_t clock_ns(clockid_t clock) {
     struct timespec ts;
-    clock_gettime(s->clock, &ts);
+    clock_gettime(clock, &ts);
     return (int64_t)ts.tv_sec * 1000000000LL + ts.tv_nsec;
 }
+static int64_t now_ns(const session *s) { return clock_ns(s->clock); }
 
 /* Writes one whole message (loops on short writes); -1 when the peer is gone. */
 static int send_msg(session *s, hilp_header *h) {
@@ -134,7 +147,8 @@ static void send_hello(session *s) {
     p[1] = 0;
     hilp_put16(p + 2, (uint16_t)n);
     hilp_put32(p + 4, (uint32_t)(res.tv_sec * 1000000000L + res.tv_nsec));
-    hilp_put32(p + 8, HILP_CAP_COMMANDS | (s->token ? HILP_CAP_AUTH : 0u));
+    hilp_put32(p + 8, HILP_CAP_COMMANDS | HILP_CAP_CAMERAS | (s->frame_sets ? HILP_CAP_FRAME_SETS : 0u) |
+                          (s->token ? HILP_CAP_AUTH : 0u));
     memcpy(p + 12, s->name, n);
     h.payload_len = (uint32_t)(12 + n);
     send_msg(s, &h);
@@ -156,23 +170,17 @@ static int centre_is_dark(const session *s, const hilp_frame *f) {
     return n > 0 && sum < (unsigned long long)s->dark_luma * n;
 }
 
-static void on_frame(session *s, const uint8_t *m, const hilp_header *fh, int64_t t_rx) {
-    hilp_frame f;
-    hilp_frame_view(m, &f);
-    s->frames++;
-    s->vehicle_id = fh->vehicle_id;
-    int64_t t_start = now_ns(s);
-    int dark = centre_is_dark(s, &f);
-    int64_t t_end = now_ns(s);
-    s->dark += (unsigned long)dark;
+/* One ESTIMATE: STOP when dark, else SLOW (a frame set missing a camera) or SAFE. */
+static void send_estimate(session *s, uint32_t vehicle_id, uint64_t frame_id, int dark, int slow, int64_t t_rx,
+                          int64_t t_start, int64_t t_end) {
     hilp_header h;
-    header_init(&h, HILP_ESTIMATE, fh->vehicle_id);
-    h.frame_id = fh->frame_id;
+    header_init(&h, HILP_ESTIMATE, vehicle_id);
+    h.frame_id = frame_id;
     uint8_t *p = s->out + HILP_HEADER;
-    float steering = 0.0f, throttle = dark ? 0.0f : 0.3f, brake = dark ? 1.0f : 0.0f;
+    float steering = 0.0f, throttle = dark ? 0.0f : slow ? 0.1f : 0.3f, brake = dark ? 1.0f : 0.0f;
     uint32_t u;
     memset(p, 0, 16);
-    p[0] = dark ? HILP_STOP : HILP_SAFE;
+    p[0] = dark ? HILP_STOP : slow ? HILP_SLOW : HILP_SAFE;
     memcpy(&u, &steering, 4); hilp_put32(p + 4, u);
     memcpy(&u, &throttle, 4); hilp_put32(p + 8, u);
     memcpy(&u, &brake, 4); hilp_put32(p + 12, u);
@@ -184,6 +192,54 @@ static void on_frame(session *s, const uint8_t *m, const hilp_header *fh, int64_
     if (send_msg(s, &h) == 0) s->estimates++;
 }
 
+/* The open frame set's ESTIMATE (frame_id: the set id; t_rx: its last frame's). Each
+ * camera's centre was measured as it came; the fusion is the stamped inference. */
+static void answer_set(session *s, const char *given_up) {
+    hil_rig *r = &s->rig;
+    int complete = rig_complete(r);
+    int64_t t_start = now_ns(s);
+    int dark = r->dark;
+    int64_t t_end = now_ns(s);
+    s->sets++;
+    s->sets_incomplete += (unsigned long)!complete;
+    if (s->verbose && !complete) {
+        char missing[160];
+        rig_missing(r, missing, sizeof missing);
+        fprintf(stderr, "hil_target: frame set %llu without camera(s) %s: %s\n", (unsigned long long)r->set_id,
+                missing, given_up);
+    }
+    send_estimate(s, r->vehicle_id, r->set_id, dark, !complete, r->last_t_rx, t_start, t_end);
+    rig_close(r);
+}
+
+static void on_frame(session *s, const uint8_t *m, const hilp_header *fh, int64_t t_rx) {
+    hilp_frame f;
+    hilp_frame_view(m, &f);
+    s->frames++;
+    s->vehicle_id = fh->vehicle_id;
+    s->last_camera = f.camera_index;
+    uint64_t set_id = fh->frame_id - f.camera_index; /* PROTOCOL.md 4.2.1; hilp_check_message saw index <= frame_id */
+    if (s->frame_sets && rig_later(&s->rig, set_id)) answer_set(s, "a later set began");
+    int64_t t_start = now_ns(s);
+    int dark = centre_is_dark(s, &f);
+    int64_t t_end = now_ns(s);
+    s->dark += (unsigned long)dark;
+    if (!s->frame_sets || f.camera_count == 0) { /* one ESTIMATE per FRAME */
+        send_estimate(s, fh->vehicle_id, fh->frame_id, dark, 0, t_rx, t_start, t_end);
+        return;
+    }
+    hilp_err e;
+    switch (rig_add(&s->rig, set_id, fh, &f, t_rx, clock_ns(CLOCK_MONOTONIC), dark, &e)) {
+    case RIG_TOO_LATE: s->frames_late++; break;
+    case RIG_CONTRADICTS:
+        s->bad++;
+        send_error(s, e.code, e.text);
+        break;
+    case RIG_COMPLETE: answer_set(s, ""); break;
+    default: break;
+    }
+}
+
 static void on_command(session *s, const uint8_t *m, const hilp_header *ch) {
     char text[HILP_MAX_COMMAND + 1], reply[HILP_MAX_COMMAND + 1];
     size_t n = hilp_get16(m + 64);
@@ -192,8 +248,10 @@ static void on_command(session *s, const uint8_t *m, const hilp_header *ch) {
     s->commands++;
     unsigned v;
     if (strcmp(text, "status") == 0)
-        snprintf(reply, sizeof reply, "ok frames=%lu estimates=%lu dark=%lu syncs=%lu bad=%lu dark_luma=%u",
-                 s->frames, s->estimates, s->dark, s->syncs, s->bad, s->dark_luma);
+        snprintf(reply, sizeof reply, "ok frames=%lu estimates=%lu dark=%lu syncs=%lu bad=%lu dark_luma=%u "
+                 "answers=%s last_camera=%u sets=%lu incomplete_sets=%lu late_frames=%lu", s->frames, s->estimates,
+                 s->dark, s->syncs, s->bad, s->dark_luma, s->frame_sets ? "per-set" : "per-camera", s->last_camera,
+                 s->sets, s->sets_incomplete, s->frames_late);
     else if (sscanf(text, "dark %u", &v) == 1 && v <= 255) {
         s->dark_luma = v;
         snprintf(reply, sizeof reply, "ok dark_luma=%u", v);
@@ -399,8 +457,17 @@ static void serve(session *s, char *ended, size_t ended_size) {
             snprintf(ended, ended_size, "stopped (SIGTERM)");
             return;
         }
+        int wait_ms = 250;
+        if (s->rig.open) { /* a frame set still incomplete: given up SET_TIMEOUT_NS after its first frame */
+            int64_t left = s->rig.first_mono_ns + SET_TIMEOUT_NS - clock_ns(CLOCK_MONOTONIC);
+            if (left <= 0) {
+                answer_set(s, "timed out after 100 ms");
+                continue;
+            }
+            if (left / 1000000 + 1 < wait_ms) wait_ms = (int)(left / 1000000 + 1);
+        }
         struct pollfd pfd = {s->fd, POLLIN, 0};
-        int r = poll(&pfd, 1, 250);
+        int r = poll(&pfd, 1, wait_ms);
         if (r < 0 && errno == EINTR) continue;
         if (r < 0) break;
         if (r == 0) {
@@ -431,7 +498,7 @@ static void serve(session *s, char *ended, size_t ended_size) {
 static int usage(const char *why) {
     fprintf(stderr, "hil_target: %s\nusage: hil_target [--transport local|tcp] [--listen HOST:PORT | "
                     "--connect HOST:PORT] [--name NAME] [--clock monotonic|realtime] [--dark LUMA] "
-                    "[--token-env NAME] [--once | --keep-serving] [--verbose]\n",
+                    "[--token-env NAME] [--frame-sets] [--once | --keep-serving] [--verbose]\n",
             why);
     return 2;
 }
@@ -463,6 +530,7 @@ static void reset(session *s, int fd) {
     s->name = keep.name;
     s->dark_luma = keep.dark_luma;
     s->verbose = keep.verbose;
+    s->frame_sets = keep.frame_sets;
     s->token = keep.token;
     s->token_len = keep.token_len;
     s->buf = keep.buf;
@@ -482,6 +550,7 @@ int main(int argc, char **argv) {
     for (int i = 1; i < argc; i++) {
         const char *a = argv[i], *v = i + 1 < argc ? argv[i + 1] : NULL;
         if (strcmp(a, "--verbose") == 0) { s.verbose = 1; continue; }
+        if (strcmp(a, "--frame-sets") == 0) { s.frame_sets = 1; continue; }
         if (strcmp(a, "--once") == 0) { keep = 0; continue; }
         if (strcmp(a, "--keep-serving") == 0) { keep = 1; continue; }
         if (!v) return usage("an option is missing its value");
@@ -538,9 +607,11 @@ int main(int argc, char **argv) {
     if (!s.buf) return 1;
     struct timespec res;
     clock_getres(s.clock, &res);
-    fprintf(stderr, "%s: %s target %s, clock %s (%ld ns), protocol v%d, capabilities: COMMANDS%s, access: %s%s; %s\n",
+    fprintf(stderr, "%s: %s target %s, clock %s (%ld ns), protocol v%d, capabilities: COMMANDS%s, CAMERAS%s, "
+            "access: %s%s; %s\n",
             s.name, tcp ? "tcp" : "local", where, s.clock_id == HILP_CLOCK_MONOTONIC ? "MONOTONIC" : "REALTIME",
             (long)(res.tv_sec * 1000000000L + res.tv_nsec), HILP_VERSION, s.token ? ", AUTH" : "",
+            s.frame_sets ? ", FRAME_SETS" : "",
             s.token ? "proves the token in $" : "no token: a harness that requires one refuses this target",
             s.token ? token_env : "", keep ? "serving run after run until Ctrl-C/SIGTERM" : "serving one run");
     totals t;

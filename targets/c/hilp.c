@@ -153,7 +153,18 @@ static int check_frame(const uint8_t *m, const hilp_header *h, hilp_err *e) {
     if (w < 1 || w > HILP_MAX_SIDE) return fail(e, HILP_E_MALFORMED, 64, "width %u px is outside 1..%u", w, HILP_MAX_SIDE);
     if (ht < 1 || ht > HILP_MAX_SIDE) return fail(e, HILP_E_MALFORMED, 66, "height %u px is outside 1..%u", ht, HILP_MAX_SIDE);
     if (m[68] > HILP_JPEG) return fail(e, HILP_E_MALFORMED, 68, "unknown image encoding %u", (unsigned)m[68]);
-    if (check_reserved(m, 69, 3, e)) return -1;
+    unsigned ci = m[69], cc = m[70];
+    if (cc == 1 || cc > HILP_MAX_CAMERAS)
+        return fail(e, HILP_E_MALFORMED, 70, "camera_count=%u: 0 for a single camera, 2..%u for a frame set", cc,
+                    HILP_MAX_CAMERAS);
+    if (cc == 0 && ci)
+        return fail(e, HILP_E_MALFORMED, 69, "camera_index=%u with camera_count 0: a single camera is camera 0", ci);
+    if (cc && ci >= cc)
+        return fail(e, HILP_E_MALFORMED, 69, "camera_index=%u is outside 0..%u (camera_count %u)", ci, cc - 1, cc);
+    if (ci > h->frame_id)
+        return fail(e, HILP_E_MALFORMED, 69, "camera_index=%u exceeds frame_id %llu: the set id would be negative", ci,
+                    (unsigned long long)h->frame_id);
+    if (check_reserved(m, 71, 1, e)) return -1;
     for (uint32_t i = 0; i < 7; i++)
         if (check_finite(m, 72 + 4 * i, names[i], 0, e)) return -1;
     uint32_t image_len = hilp_get32(m + 100);
@@ -182,7 +193,10 @@ static int check_estimate(const uint8_t *m, const hilp_header *h, hilp_err *e) {
     for (uint32_t i = 0; i < n; i++) {
         uint32_t at = 80 + 36 * i;
         if (m[at] > 3) return fail(e, HILP_E_MALFORMED, at, "unknown class %u of object %u", (unsigned)m[at], (unsigned)i);
-        if (check_reserved(m, at + 1, 3, e) || check_finite(m, at + 4, "confidence", 1, e)) return -1;
+        if (m[at + 1] >= HILP_MAX_CAMERAS)
+            return fail(e, HILP_E_MALFORMED, at + 1, "object camera=%u is outside 0..%u", (unsigned)m[at + 1],
+                        HILP_MAX_CAMERAS - 1);
+        if (check_reserved(m, at + 2, 2, e) || check_finite(m, at + 4, "confidence", 1, e)) return -1;
         for (uint32_t k = 0; k < 7; k++)
             if (check_finite(m, at + 8 + 4 * k, "box/position", 0, e)) return -1;
     }
@@ -238,6 +252,8 @@ void hilp_frame_view(const uint8_t *m, hilp_frame *f) {
     f->width = hilp_get16(m + 64);
     f->height = hilp_get16(m + 66);
     f->encoding = m[68];
+    f->camera_index = m[69];
+    f->camera_count = m[70];
     f->fx = f32_at(m + 72);
     f->fy = f32_at(m + 76);
     f->cx = f32_at(m + 80);

@@ -14,6 +14,9 @@
 #define HILP_CAP_SHM_FRAMES 0x00000001u
 #define HILP_CAP_COMMANDS 0x00000002u
 #define HILP_CAP_AUTH 0x00000004u
+#define HILP_CAP_CAMERAS 0x00000008u    /* takes the FRAMEs of a frame set (PROTOCOL.md 4.2.1) */
+#define HILP_CAP_FRAME_SETS 0x00000010u /* ... and answers one ESTIMATE per set */
+#define HILP_MAX_CAMERAS 32u            /* cameras in one frame set */
 #define HILP_AUTH_LEN 36u /* AUTH payload: step, 3 reserved bytes, 32 bytes of challenge or proof */
 #define HILP_MIN_TOKEN 16u
 #define HILP_MAX_NAME 64u
@@ -59,6 +62,8 @@ typedef struct {
 typedef struct {
     uint16_t width, height;
     uint8_t encoding;
+    uint8_t camera_index; /* byte 69: the camera of the vehicle's rig */
+    uint8_t camera_count; /* byte 70: cameras of its frame set; 0: a single camera */
     float fx, fy, cx, cy, mount_height_m, pitch_rad, ego_speed_mps;
     uint32_t image_len;
     const uint8_t *image;

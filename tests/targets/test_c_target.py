@@ -97,7 +97,8 @@ def test_session_over_transport(transport, tmp_path):
         hello = link.hello
         assert hello is not None and hello.target_name == "c-reference"
         assert hello.clock_id == ClockId.MONOTONIC and hello.clock_resolution_ns >= 1
-        assert hello.capabilities == protocol.CAP_COMMANDS  # no SHM_FRAMES: it reads frames inline
+        # no SHM_FRAMES: it reads frames inline; CAP_CAMERAS: it answers every camera of a rig
+        assert hello.capabilities == protocol.CAP_COMMANDS | protocol.CAP_CAMERAS
         frame(link, 1, value=10)  # dark centre: brake
         dark = next_of(link, Estimate)
         frame(link, 2, value=200, encoding=ImageEncoding.BGR8)
@@ -141,13 +142,13 @@ def _header(raw: bytearray) -> bytes:
 def test_bad_messages_are_reported_with_offsets_and_the_session_goes_on(tmp_path):
     bad_reserved = bytearray(protocol.encode(Frame(4, 8, 0, 1, 2, W, H, ImageEncoding.RGB8, CAM, 1.0,
                                                    bytes(W * H * 3))))
-    bad_reserved[70] = 1  # FRAME reserved byte 69..71
+    bad_reserved[71] = 1  # FRAME reserved byte 71 (69 and 70 are the camera: test_c_rig.py)
     bad_reserved = bytearray(_header(bad_reserved[:64]) + bytes(bad_reserved[64:]))
     estimate_to_target = protocol.encode(Estimate(4, 5, DrivingState.SAFE, Control(), (), 1, 2, 3, 4))
     cases = [
         (b"\x00garbage" + b"HILP" + bytes(60), 2, "at byte offset 4"),  # bad magic, then version 0
         (_payload_crc_broken(), 1, "payload CRC mismatch (at byte offset 64)"),
-        (bytes(bad_reserved), 1, "reserved byte is 1, must be 0 (at byte offset 70)"),
+        (bytes(bad_reserved), 1, "reserved byte is 1, must be 0 (at byte offset 71)"),
         (estimate_to_target, 3, "(at byte offset 5)"),
     ]
     with c_link("tcp", tmp_path) as (link, _log):

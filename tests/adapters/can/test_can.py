@@ -10,6 +10,7 @@ import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -121,7 +122,9 @@ def test_control_is_quantized_to_the_signal_resolution():
     Hello("n" * 53, 1, ClockId.MONOTONIC, 1),
     ErrorMsg(0, 1, "x" * 61),
     SyncRequest(0, 1, 1),  # the target never sends one
-], ids=["9-objects", "64-bit-frame-id", "steering-range", "vehicle-id", "long-name", "long-text", "direction"])
+    Estimate(0, 1, DrivingState.SAFE, Control(), (replace(OBJ, camera=2),), 1, 2, 3, 4),  # no signal for it
+], ids=["9-objects", "64-bit-frame-id", "steering-range", "vehicle-id", "long-name", "long-text", "direction",
+        "object-camera"])
 def test_what_dbc_frames_cannot_carry_goes_over_isotp(msg):
     assert HilCan(role=Role.TARGET, vehicle_id=0).encode(msg) is None
 

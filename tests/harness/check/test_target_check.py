@@ -37,8 +37,9 @@ def test_c_target_passes_over_local(clock, capsys, monkeypatch):
     out = capsys.readouterr().out
     assert code == 0, out
     rows = _rows(out)
-    assert len(rows) == 16 and set(rows.values()) == {"PASS"}, out
-    assert "command 'status'" in rows and "16 of 16 checks passed" in out
+    assert len(rows) == 18 and set(rows.values()) == {"PASS"}, out
+    assert "command 'status'" in rows and "18 of 18 checks passed" in out
+    assert "one ESTIMATE per camera (CAP_CAMERAS): frame_id 2000..2002" in out  # PROTOCOL.md 4.2.1
     assert {"payload_crc without its flag", "garbage reported once"} <= set(rows)  # PROTOCOL.md 2 and 8
     assert f"clock {clock.upper()}" in out  # its own clock: the frame checks map it through clock sync
 
@@ -114,3 +115,64 @@ def test_unreachable_target_is_a_failed_check(capsys):
     assert target_check.main([f"tcp://127.0.0.1:{free_port()}", "--timeout", "0.5"]) == 1
     out = capsys.readouterr().out
     assert "FAIL" in out and "cannot connect to the target" in out
+
+
+@pytest.mark.parametrize(("cameras", "says"), [
+    ("set", "one ESTIMATE per set (CAP_FRAME_SETS): the set without camera 1 answered as set 2003 once set 2006 began"),
+    ("each", "one ESTIMATE per camera (CAP_CAMERAS): the set without camera 1 answered for the cameras that came"),
+    ("one", "skipped: the target announces no CAP_CAMERAS"),
+])
+def test_sdk_rig_targets_pass_as_their_hello_declares(cameras, says, capsys, tmp_path):
+    """PROTOCOL.md 4.2.1: an SDK target answering per set, per camera, or a single
+    camera's target (which gets no set) passes the rig checks, in a real process."""
+    address = f"127.0.0.1:{free_port()}"
+    env = {k: v for k, v in os.environ.items() if k != "HIL_SESSION_TOKEN"}
+    with tcp_echo(tmp_path / "t.log", ["--cameras", cameras, "--once"], listen=address, env=env):
+        code = target_check.main([f"tcp://{address}", "--timeout", "3"])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert says in out, out
+
+
+@needs_cc
+def test_c_target_answering_per_set_passes(capsys, monkeypatch):
+    for k, v in c_build.SAN_ENV.items():
+        monkeypatch.setenv(k, v)
+    code = target_check.main(["local", "--", str(c_build.build().asan), "--frame-sets"])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "one ESTIMATE per set (CAP_FRAME_SETS): frame_id 2000" in out, out
+
+
+def test_a_target_whose_answers_break_its_hello_fails_in_one_line(capsys):
+    """A target that declares CAP_FRAME_SETS but answers every camera fails the rig
+    rows, each in one line naming the frame_ids and offset 16."""
+    import threading
+
+    from hil.adapters.sdk import Endpoint
+    from hil.adapters.tcp.options import TcpOptions
+    from hil.adapters.tcp.target import serve_endpoint
+    from hil.adapters.wire import protocol
+    from hil.adapters.wire.messages import Control, DrivingState, Hello, Inference
+
+    class Liar(Endpoint):
+        def hello(self) -> Hello:
+            h = super().hello()
+            return Hello(h.target_name, h.protocol_version, h.clock_id, h.clock_resolution_ns,
+                         h.capabilities | protocol.CAP_FRAME_SETS)
+
+    address = f"127.0.0.1:{free_port()}"
+    ep = Liar(lambda f: Inference(DrivingState.SAFE, Control()), target_name="liar", cameras="each")
+    t = threading.Thread(target=serve_endpoint, args=(ep,), kwargs={"options": TcpOptions(listen=address)},
+                         daemon=True)
+    t.start()
+    try:
+        code = target_check.main([f"tcp://{address}", "--timeout", "2"])
+    finally:
+        ep.stop()
+        t.join(timeout=10)
+    out = capsys.readouterr().out
+    rows = _rows(out)
+    assert code == 1 and rows["frame set of 3 cameras"] == "FAIL" and rows["frame set missing a camera"] == "FAIL", out
+    line = next(ln for ln in out.splitlines() if ln.startswith("frame set of 3 cameras"))
+    assert "an ESTIMATE with frame_id 2001 (offset 16), expected [2000]" in line, line
