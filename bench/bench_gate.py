@@ -57,7 +57,7 @@ def record(pool: Path, *, runs: int, duration_s: float, delay_ms: float) -> None
     from hil.scenarios.gl import select_backend
 
     backend = select_backend()
-    from hil.harness.config.model import load_config
+    from hil.harness.config.loading import load_config
     from hil.harness.run.driver import execute, prepare_out_dir
 
     from hil.common.errors import HilError

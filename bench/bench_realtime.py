@@ -67,7 +67,7 @@ def floor(seconds: float, *, priority: int | None = None, nice: int = 0) -> dict
     from hil.scenarios import gl
 
     gl.select_backend()
-    from hil.harness.config.model import load_config
+    from hil.harness.config.loading import load_config
     from hil.harness.engine.messages import Done, Exit, Finished, PhysicsReady, Start, decode
     from hil.harness.engine.physics import PhysicsOutputs, PhysicsSpec, physics_main
     from hil.harness.engine.rings import Ring

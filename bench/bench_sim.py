@@ -49,7 +49,7 @@ import numpy as np
 
 from hil.adapters.link import LinkStats, Received
 from hil.adapters.wire.messages import Control, DrivingState, Estimate
-from hil.harness.config.model import parse_config
+from hil.harness.config.loading import parse_config
 from hil.harness.engine.pool import Engine, auto_workers
 from hil.harness.record.channels import register_all
 from hil.harness.record.recorder import Recorder

@@ -27,7 +27,8 @@ from typing import Any
 from hil.common.errors import ConfigError
 from hil.harness.check.calibrate_checks import Check, RunData, clock_checks, duration_checks, load_truth, overhead
 from hil.harness.check.calibrate_faults import Cause, FaultCheck, Other, fault_checks, kind_table
-from hil.harness.config.model import RunConfig, Transport, dump_config, load_config, parse_config
+from hil.harness.config.loading import dump_config, load_config, parse_config
+from hil.harness.config.model import RunConfig, Transport
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "hil_configs" / "calibrate.yaml"
 TRUTH_FILE = "reference_truth.jsonl"

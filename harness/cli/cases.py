@@ -87,7 +87,7 @@ def cmd_cases(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from hil.harness.config.model import parse_config
+    from hil.harness.config.loading import parse_config
     from hil.harness.run.driver import execute, prepare_out_dir
     from hil.scenarios.gl import select_backend
 

@@ -42,7 +42,7 @@ def _table(rows: dict[str, tuple[SyncState, int, int]]) -> Table:
 
 def cmd(args: argparse.Namespace) -> int:
     from hil.adapters.link import Received
-    from hil.harness.config.model import load_config
+    from hil.harness.config.loading import load_config
     from hil.harness.run.target_launch import TargetProcess, make_link
     from hil import scenarios
     from hil.scenarios.world import CameraSpec

@@ -257,7 +257,7 @@ def _cmd_scenarios(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     from hil.harness.cli.progress import Progress, final_table
     from hil.harness.report.progress import make_console
-    from hil.harness.config.model import load_config
+    from hil.harness.config.loading import load_config
     from hil.harness.report.ci_outputs import check_ci_args, write_ci_outputs
     from hil.harness.run.driver import default_out_dir, execute, prepare_out_dir
     from hil.scenarios.gl import select_backend

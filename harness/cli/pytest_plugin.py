@@ -182,7 +182,7 @@ def _run(config: str | os.PathLike[str] | Mapping[str, Any], *, out_dir: Path, o
     from hil.scenarios.gl import select_backend
 
     backend = select_backend()  # before anything imports mujoco
-    from hil.harness.config.model import load_config, parse_config
+    from hil.harness.config.loading import load_config, parse_config
     from hil.harness.run.driver import execute, prepare_out_dir
 
     overrides = ["progress=false", *overrides]

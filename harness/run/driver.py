@@ -23,7 +23,8 @@ from typing import Any
 
 from hil.common.errors import ConfigError, HilError, RecordingError, TargetError, TransportError
 from hil.harness import __version__
-from hil.harness.config.model import RunConfig, Transport, config_hash, dump_config
+from hil.harness.config.loading import config_hash, dump_config
+from hil.harness.config.model import RunConfig, Transport
 from hil.harness.engine.heap import fix_mmap_threshold
 from hil.timing.clock import MonotonicClock
 

@@ -111,7 +111,7 @@ class ShardHost:
         from hil.adapters.wire.messages import CameraInfo
         from hil.harness.cases.detector_observer import DetectorObserver
         from hil.harness.analysis.timing_observer import TimingObserver
-        from hil.harness.config.model import dump_config
+        from hil.harness.config.loading import dump_config
         from hil.harness.record.channels import register_all, sync_sample_json, views_of
         from hil.harness.record.producer import EncodingRecorder
         from hil.harness.run.shard import VehicleShard

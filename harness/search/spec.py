@@ -48,14 +48,8 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, Field, ValidationError
 
-from hil.harness.config.model import (
-                                      LatencyConfig,
-                                      LatencyKind,
-                                      RunConfig,
-                                      dump_config,
-                                      load_config,
-                                      parse_config,
-                                      )
+from hil.harness.config.loading import dump_config, load_config, parse_config
+from hil.harness.config.model import LatencyConfig, LatencyKind, RunConfig
 from hil.common.errors import ConfigError
 from hil.harness.config.types import MODEL_CONFIG, Float, Int
 

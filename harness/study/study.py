@@ -183,7 +183,7 @@ def _check_capacity(args: argparse.Namespace, points: list[Point]) -> None:
 
 
 def _load(config: str, overrides: Sequence[str]) -> Any:
-    from hil.harness.config.model import load_config
+    from hil.harness.config.loading import load_config
 
     cfg = load_config(config, overrides=overrides)
     from hil import scenarios

@@ -94,7 +94,7 @@ def test_fresh_venv_has_the_sdk_and_nothing_heavy(fresh_python, tmp_path):
 
 @pytest.mark.slow
 def test_fresh_venv_serves_a_real_run(fresh_python, tmp_path):
-    from hil.harness.config.model import load_config
+    from hil.harness.config.loading import load_config
     from hil.harness.run.driver import execute, prepare_out_dir
     from tests.conftest import GL_BACKEND
 

@@ -27,8 +27,8 @@ def test_every_transport_has_a_row_and_its_halves_resolve() -> None:
 
 
 def test_the_config_takes_the_same_enum() -> None:
+    from hil.harness.config.loading import parse_config
     from hil.harness.config.model import Transport as ConfigTransport
-    from hil.harness.config.model import parse_config
 
     assert ConfigTransport is Transport
     assert parse_config({"target": {"transport": "tcp", "command": ["x"]}}).target.transport is Transport.TCP

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from hil.harness.config.model import load_config
+from hil.harness.config.loading import load_config
 from tests.harness.cli.test_cli import ROOT, hil
 
 README = (ROOT / "README.md").read_text(encoding="utf-8")

@@ -205,7 +205,7 @@ def test_real_run(transport, tmp_path, monkeypatch):
     """A whole harness run against the sanitized C target, raw frames (its AI looks
     at them): every frame accounted for, target times in order, clock synced, no
     anomalies, and a clean sanitizer log."""
-    from hil.harness.config.model import load_config
+    from hil.harness.config.loading import load_config
     from hil.harness.run.driver import execute, prepare_out_dir
     from tests.conftest import GL_BACKEND, read_mcap
 

@@ -103,7 +103,7 @@ def test_a_target_without_commands_is_not_sent_any(tmp_path: Path):
 @pytest.mark.slow
 def test_short_run_reports_inference_time_from_the_targets_stamps(tmp_path: Path):
     pytest.importorskip("torch")
-    from hil.harness.config.model import load_config
+    from hil.harness.config.loading import load_config
     from hil.harness.run.driver import execute, prepare_out_dir
     from tests.conftest import GL_BACKEND
 
@@ -159,7 +159,7 @@ def test_a_configured_swap_is_recorded_in_the_run(tmp_path: Path):
     # target.commands sends "swap detector cv" at 1 s of sim time; the command and the
     # target's reply both land in the run's /events.
     pytest.importorskip("torch")
-    from hil.harness.config.model import load_config
+    from hil.harness.config.loading import load_config
     from hil.harness.run.driver import execute, prepare_out_dir
     from tests.conftest import GL_BACKEND, read_mcap
 

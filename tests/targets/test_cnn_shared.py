@@ -272,7 +272,7 @@ def test_one_local_process_serves_every_vehicle_on_its_own_socket(tmp_path: Path
 
 def test_shared_target_config_needs_local_or_zenoh():
     from hil.common.errors import ConfigError
-    from hil.harness.config.model import load_config, parse_config
+    from hil.harness.config.loading import load_config, parse_config
 
     with pytest.raises(ConfigError, match="target.shared"):
         parse_config({"target": {"transport": "tcp", "shared": True}})
@@ -342,7 +342,7 @@ def test_shared_zenoh_target_one_session_each_vehicles_keys(tmp_path: Path):
     (started once), every vehicle's link on the same endpoint under its own keys."""
     import queue
 
-    from hil.harness.config.model import parse_config
+    from hil.harness.config.loading import parse_config
     from hil.harness.run.shared_target import BATCH_LOG_NAME, LOG_NAME
     from hil.harness.run.target_launch import make_link
     from hil.timing.clock import MonotonicClock
@@ -396,7 +396,7 @@ def test_link_faults_apply_to_each_vehicle_of_a_shared_target(tmp_path: Path):
     """``target.impair`` with ``target.shared``: each vehicle's link gets its stage."""
     import queue
 
-    from hil.harness.config.model import parse_config
+    from hil.harness.config.loading import parse_config
     from hil.harness.run.target_launch import make_link
     from hil.timing.clock import MonotonicClock
 

@@ -325,7 +325,8 @@ def test_sdk_serve_dispatches_mixed():
 
 
 def test_run_config_with_mixed_builds_a_mixed_link(tmp_path):
-    from hil.harness.config.model import Transport, load_config
+    from hil.harness.config.loading import load_config
+    from hil.harness.config.model import Transport
     from hil.harness.run.target_launch import make_link
 
     cfg = load_config(ROOT / "hil_configs/can.yaml", overrides=[
@@ -346,7 +347,7 @@ def test_run_config_with_mixed_builds_a_mixed_link(tmp_path):
 def test_mixed_link_takes_the_zenoh_half_s_authentication(monkeypatch):
     """The Zenoh half is the Zenoh link's own (ZenohHalf): user/password reaches the
     session config, as the config's target.zenoh.auth promises for mixed too."""
-    from hil.harness.config.model import parse_config
+    from hil.harness.config.loading import parse_config
     from hil.harness.run.link_options import zenoh_options
 
     monkeypatch.setenv("HIL_ZENOH_PASSWORD", "s3cret")
@@ -359,7 +360,7 @@ def test_mixed_link_takes_the_zenoh_half_s_authentication(monkeypatch):
 
 
 def test_whole_run_against_a_mixed_device(tmp_path):
-    from hil.harness.config.model import load_config
+    from hil.harness.config.loading import load_config
     from hil.harness.run.driver import execute, prepare_out_dir
     from tests.conftest import GL_BACKEND, read_mcap
 

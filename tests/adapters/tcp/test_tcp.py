@@ -221,7 +221,7 @@ def test_t0p_does_not_wait_for_the_reader_thread(stamps, tmp_path):
 
 def test_config_address_is_checked_before_the_run():
     from hil.common.errors import ConfigError
-    from hil.harness.config.model import load_config
+    from hil.harness.config.loading import load_config
 
     root = Path(__file__).resolve().parents[3]
     cfg = load_config(root / "hil_configs" / "tcp.yaml", overrides=["target.tcp.mode=listen",

@@ -54,7 +54,7 @@ def test_nothing_listening_is_not_a_refusal():
 
 
 def test_auth_config_takes_the_password_from_the_environment(monkeypatch):
-    from hil.harness.config.model import parse_config
+    from hil.harness.config.loading import parse_config
 
     cfg = parse_config({"target": {"transport": "zenoh", "command": [], "zenoh": {"auth": {"user": "hil"}}}})
     monkeypatch.delenv("HIL_ZENOH_PASSWORD", raising=False)

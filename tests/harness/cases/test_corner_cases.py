@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from hil.harness.cases.windows import write_case_windows
-from hil.harness.config.model import parse_config
+from hil.harness.config.loading import parse_config
 from hil.harness.run.driver import execute, prepare_out_dir
 from tests.conftest import GL_BACKEND, read_mcap
 

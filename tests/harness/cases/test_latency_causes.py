@@ -19,7 +19,7 @@ import pytest
 
 from hil.harness.cases.detector import Cause, MismatchKind
 from hil.harness.cases.casebook import read_cases
-from hil.harness.config.model import parse_config
+from hil.harness.config.loading import parse_config
 from hil.harness.run.driver import execute, prepare_out_dir
 from tests.conftest import GL_BACKEND, read_mcap
 from tests.harness.cases.test_detector_causes import cause_from_evidence

@@ -12,7 +12,7 @@ import pytest
 from hil.harness.cases.casebook import read_cases
 from hil.harness.cases.replayable import Reproducibility, reproducibility
 from hil.harness.cli.main import main as hil_main
-from hil.harness.config.model import parse_config
+from hil.harness.config.loading import parse_config
 from hil.harness.run.driver import execute, prepare_out_dir
 from tests.conftest import GL_BACKEND
 

@@ -18,7 +18,8 @@ import pytest
 from hil.harness.check.calibrate import TRUTH_FILE, Calibration, calibrate, calibration_config
 from hil.harness.check.calibrate_checks import RunData, Truth, load_truth, quantile_checks
 from hil.harness.check.calibrate_faults import Cause, fault_checks, kind_table
-from hil.harness.config.model import Transport, load_config
+from hil.harness.config.loading import load_config
+from hil.harness.config.model import Transport
 from tests.conftest import GL_BACKEND, read_mcap
 from hil.common.errors import ConfigError
 

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from hil.harness.cli.main import main as hil_main
-from hil.harness.config.model import parse_config
+from hil.harness.config.loading import parse_config
 from hil.harness.check.gate import Method, Tolerance, Tolerances, Verdict, compare, load_run, parse_tolerances
 from hil.harness.check.gate_samples import RunSamples, VehicleSamples
 from hil.harness.run.driver import execute, prepare_out_dir

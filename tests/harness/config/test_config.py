@@ -8,16 +8,8 @@ from pathlib import Path
 import pydantic
 import pytest
 
-from hil.harness.config.model import (
-                                      Encoding,
-                                      Mode,
-                                      RunConfig,
-                                      Transport,
-                                      config_hash,
-                                      dump_config,
-                                      load_config,
-                                      parse_config,
-                                      )
+from hil.harness.config.loading import config_hash, dump_config, load_config, parse_config
+from hil.harness.config.model import Encoding, Mode, RunConfig, Transport
 from hil.common.errors import ConfigError, HilError
 
 DEMO = Path(__file__).resolve().parents[3] / "hil_configs" / "demo.yaml"

@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[3]
 SCRIPT = """
 import sys
 from pathlib import Path
-from hil.harness.config.model import parse_config
+from hil.harness.config.loading import parse_config
 from hil.harness.run.driver import execute, prepare_out_dir
 print("script body ran", flush=True)
 cfg = parse_config({"name": "script", "mode": "lockstep", "duration_s": 0.5, "progress": False,

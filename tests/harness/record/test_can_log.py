@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from hil.harness.config.model import load_config
+from hil.harness.config.loading import load_config
 from hil.harness.run.driver import execute, prepare_out_dir
 from tests.adapters.can.pair import can_target
 from tests.conftest import GL_BACKEND

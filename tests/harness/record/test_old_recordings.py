@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from hil.harness.cli.main import main as hil_main
-from hil.harness.config.model import parse_config
+from hil.harness.config.loading import parse_config
 from hil.harness.record.run_folder import read_run
 from hil.harness.report.run_report import write_report
 from hil.harness.run.driver import execute, prepare_out_dir

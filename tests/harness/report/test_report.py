@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from hil.harness.cli.main import main as hil_main
-from hil.harness.config.model import parse_config
+from hil.harness.config.loading import parse_config
 from hil.harness.record.recorder import Recorder
 from hil.harness.record.run_folder import RecordedEvent, read_run
 from hil.harness.report import plots as rp

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from hil.harness.cli.main import main as hil_main
-from hil.harness.config.model import parse_config
+from hil.harness.config.loading import parse_config
 from hil.harness.record.run_folder import RecordedEvent, RunData, read_run
 from hil.harness.report.timeline import RecordedClock, build_timeline
 from hil.harness.report.trace import TRACE_NAME, write_trace

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from hil.common.errors import ConfigError
-from hil.harness.config.model import parse_config
+from hil.harness.config.loading import parse_config
 from hil.harness.run import capacity
 from hil.harness.run.driver import build_world
 from hil.scenarios.sim import Simulation

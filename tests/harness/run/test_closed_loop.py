@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from hil.harness.config.model import parse_config
+from hil.harness.config.loading import parse_config
 from hil.harness.run.driver import execute, prepare_out_dir
 from tests.conftest import GL_BACKEND, read_mcap
 
@@ -106,7 +106,7 @@ def test_target_dying_mid_run_keeps_the_recording(tmp_path):
 
 @pytest.mark.slow
 def test_demo_stops_before_the_car(tmp_path):
-    from hil.harness.config.model import load_config
+    from hil.harness.config.loading import load_config
 
     cfg = load_config("hil_configs/demo.yaml", overrides=["progress=false"])
     result = execute(cfg, out_dir=prepare_out_dir(tmp_path / "demo"), gl_backend=GL_BACKEND,

@@ -21,7 +21,7 @@ from hil.adapters.tcp.options import TcpOptions
 from hil.adapters.transports import Transport
 from hil.adapters.wire.auth import ENV_TOKEN
 from hil.adapters.zenoh.options import AUTH_ENV, PREFIX_ENV, ZenohOptions
-from hil.harness.config.model import parse_config
+from hil.harness.config.loading import parse_config
 from hil.harness.run.link_options import LINK_OPTIONS, link_options
 from hil.timing.clock import MonotonicClock
 

@@ -13,7 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from hil.harness.config.model import SEED_MAX, parse_config
+from hil.harness.config.loading import parse_config
+from hil.harness.config.model import SEED_MAX
 from hil.harness.record.out_dir import LOCK_NAME, PROBE_BYTES, held_claims, release_out_dir
 from hil.harness.run.driver import prepare_out_dir
 from tests.harness.cli.test_cli import ROOT, assert_one_line_error, hil

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from hil.common.errors import ConfigError
-from hil.harness.config.model import parse_config
+from hil.harness.config.loading import parse_config
 from hil.harness.run.driver import execute, prepare_out_dir
 from hil.harness.run.fleet import assign, shard_count
 from tests.conftest import GL_BACKEND, read_mcap

@@ -137,7 +137,7 @@ def test_the_tcp_token_of_a_run(monkeypatch):
     in target.tcp.token_env (checked before the run: unset or short is one clear line,
     never the value); auth: none asks none."""
     from hil.common.errors import ConfigError
-    from hil.harness.config.model import load_config
+    from hil.harness.config.loading import load_config
     from hil.harness.run.link_options import tcp_options
 
     def tcp_token(cfg):

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from hil.common.errors import ConfigError
-from hil.harness.config.model import load_config
+from hil.harness.config.loading import load_config
 from hil.harness.run.driver import execute, prepare_out_dir
 from tests.adapters.can.pair import can_target
 from tests.conftest import GL_BACKEND, read_mcap

@@ -12,7 +12,7 @@ import pytest
 
 from hil.harness.cases.detector import Cause, Mismatch, MismatchKind
 from hil.harness.vocab.events import EVENT_SCHEMA, Event, EventBus, EventKind
-from hil.harness.config.model import load_config
+from hil.harness.config.loading import load_config
 from hil.harness.run.driver import execute, prepare_out_dir
 from hil.timing.anomaly import Anomaly, AnomalyKind, Severity
 from tests.conftest import GL_BACKEND, read_mcap

@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 from hil.harness.vocab.verdict import CheckName, checks, parse_fail_on, stage_budgets, verdict_json
-from hil.harness.config.model import VerdictName, parse_config
+from hil.harness.config.loading import parse_config
+from hil.harness.config.model import VerdictName
 from tests.conftest import GL_BACKEND, read_mcap
 
 ROOT = Path(__file__).resolve().parents[3]
