@@ -48,6 +48,23 @@ def _live_address(text: str) -> str:
     return text
 
 
+def _live_before_config(argv: list[str]) -> list[str]:
+    """``hil run --live CONFIG``: ``--live`` takes an optional HOST:PORT, so argparse
+    would take the config for the address; a word after ``--live`` that names a
+    config (an existing file, or ``*.yaml``/``*.yml``), where none came before, is
+    left for the positional."""
+    if argv[:1] != ["run"]:
+        return argv
+    out = list(argv)
+    def config_like(word: str) -> bool:
+        return word.endswith((".yaml", ".yml")) or Path(word).is_file()
+
+    for k, word in enumerate(out[:-1]):
+        if word == "--live" and config_like(out[k + 1]) and not any(config_like(w) for w in out[1:k]):
+            out[k] = "--live="
+    return out
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="hil", description="Hardware-in-the-loop timing harness for autonomous-driving AI.")
     p.add_argument("--version", action="version", version=f"hil {__version__}")
@@ -139,7 +156,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         from hil.harness.search import cli as search_cli
 
         return search_cli.main(argv[1:])
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(_live_before_config(argv))
     try:
         if args.command == "run":
             return _cmd_run(args)

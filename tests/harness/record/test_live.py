@@ -262,6 +262,17 @@ def test_live_address_mistakes_are_one_line(capsys: pytest.CaptureFixture[str]) 
         assert "--live" in err and "HOST:PORT" in err and "Traceback" not in err
 
 
+def test_live_before_the_config_serves_on_a_free_port() -> None:
+    """``hil run --live CONFIG``: the config is the run's, not the live address."""
+    from hil.harness.cli.main import _live_before_config, build_parser
+
+    for argv in (["run", "--live", "hil_configs/demo.yaml"], ["run", "--live", "mine.yaml", "--no-progress"]):
+        args = build_parser().parse_args(_live_before_config(argv))
+        assert args.config == argv[2] and args.live == ""
+    args = build_parser().parse_args(_live_before_config(["run", "--live", "127.0.0.1:0", "hil_configs/demo.yaml"]))
+    assert args.config == "hil_configs/demo.yaml" and args.live == "127.0.0.1:0"
+
+
 def test_failed_says_the_recording_had_begun(tmp_path: Path) -> None:
     # Killed while closing, a run used to leave FAILED saying "interrupted before the
     # run started" although every frame was in run.mcap.
