@@ -324,6 +324,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
     warning = realtime_warning(s["realtime"], sim_steps=round(s["sim_time_s"] / cfg.physics_step_s))
     if warning is not None:
         console.print(f"[yellow]warning: {warning}[/yellow]", markup=True, highlight=False)
+    from rich.markup import escape
+
+    for line in refused_warnings(s):
+        console.print(f"[yellow]warning: {escape(line)}[/yellow]", markup=True, highlight=False)
     console.print(f"run.mcap:     {result.mcap_path}")
     console.print(f"summary.json: {result.summary_path}")
     console.print(f"report.html:  {result.out_dir / 'report.html'}")
@@ -338,6 +342,21 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     write_ci_outputs(of_run(s, run_dir=result.out_dir, exit_code=code), args)
     return code
+
+
+def refused_warnings(summary: dict[str, Any]) -> list[str]:
+    """One line per vehicle whose link refused connections that were not its target
+    (``vehicles.<name>.link.connections_refused`` and ``refused``): a squatter on the
+    port or a rogue dialling in was kept out, and the user should know it tried."""
+    out = []
+    for name, v in summary.get("vehicles", {}).items():
+        link = v.get("link") or {}
+        n = link.get("connections_refused") or 0
+        if n:
+            named = "; ".join(link.get("refused") or [])
+            out.append(f"{name}: {n} connection{'s' * (n > 1)} refused, not the run's target"
+                       + (f" ({named})" if named else "") + f" (summary.json vehicles.{name}.link.refused)")
+    return out
 
 
 def print_verdict(console: Any, summary: dict[str, Any]) -> None:

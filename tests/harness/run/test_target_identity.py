@@ -127,6 +127,10 @@ def test_a_rogue_dialling_a_listening_harness_first_is_never_measured(tmp_path):
         assert v["target"]["name"] == "own" and v["estimates_applied"] > 0
         assert v["link"]["connections_refused"] >= 1, v["link"]
         assert any("'rogue' does not announce CAP_AUTH" in r for r in v["link"]["refused"]), v["link"]
+        # The terminal says so too, with the summary's count.
+        n = v["link"]["connections_refused"]
+        warned = [ln for ln in p.stdout.splitlines() if "refused, not the run's target" in ln]
+        assert len(warned) == 1 and f"ego0: {n} connection" in warned[0] and "rogue" in warned[0], p.stdout
     finally:
         os.killpg(rogue.pid, signal.SIGTERM)
         rogue.wait(10)
