@@ -37,8 +37,10 @@ def engine_specs(cfg: RunConfig, world: Any, rules: Any) -> tuple[PhysicsSpec, R
                           late_tolerance_ns=int(eng.late_tolerance_ms * 1e6),
                           realtime_priority=eng.realtime_priority if realtime else 0,
                           fallback_nice=eng.fallback_nice if realtime else 0,
-                          cpu=physics_core(eng.physics_cpu) if realtime else None)
-    render = RenderSpec(world=world, vehicles=egos, shm={}, slot_bytes=cam.width * cam.height * 3 + 65536,
+                          cpu=physics_core(eng.physics_cpu) if realtime else None, offsets=cfg.rig_offset_steps)
+    rig = cam.cameras()
+    most = max((c.width or cam.width) * (c.height or cam.height) for c in rig)
+    render = RenderSpec(world=world, vehicles=egos, shm={}, slot_bytes=most * 3 + 65536, cameras=len(rig),
                         jpeg=cam.encoding == Encoding.JPEG, jpeg_quality=cam.jpeg_quality,
                         visible_boxes=cfg.truth.visible_boxes, min_visible_px=cfg.truth.min_visible_px,
                         delay_ns=int(eng.faults.render_delay_ms * 1e6), delay_every=eng.faults.render_delay_every)
