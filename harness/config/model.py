@@ -260,6 +260,9 @@ class EngineFaults(BaseModel):
     # The run process stops reading the physics's ring this long, once, half a second
     # into the run, as a stuck consumer would: the physics must not wait for it.
     stall_run_ms: Float = Field(0.0, ge=0, le=60_000)
+    # This camera of the rig (its name) never triggers, as a camera whose frames fail:
+    # its frame ids in each frame set stay unused (PROTOCOL.md 4.2.1).
+    drop_camera: str | None = None
 
 
 class EngineConfig(BaseModel):
@@ -373,6 +376,10 @@ class RunConfig(BaseModel):
                                       f"MiB; use camera.encoding: jpeg or a smaller image",
                                       {"loc": ("camera", "width"), "got": cam.width})
         _check_rig(cam, self.physics_step_s)
+        drop = self.engine.faults.drop_camera
+        if drop is not None and drop not in [c.name for c in cam.cameras()]:
+            raise PydanticCustomError(_RULE_ERROR, "the name of a camera of camera.rig: " + ", ".join(
+                c.name for c in cam.cameras()), {"loc": ("engine", "faults", "drop_camera"), "got": drop})
         lat = self.lockstep.latency
         if (lat.kind != LatencyKind.NONE or lat.drop_prob > 0) and self.mode != Mode.LOCKSTEP:
             raise PydanticCustomError(_RULE_ERROR, "mode: lockstep (a latency profile delays control in "

@@ -53,18 +53,23 @@ class PhysicsSpec:
     fallback_nice: int = 0          # asked for where SCHED_FIFO is refused (engine.fallback_nice)
     cpu: int | None = None          # the core the physics keeps to itself (engine.physics_cpu)
     offsets: tuple[int, ...] = (0,)  # each rig camera's trigger after camera 0 (steps); (0,): one camera
+    dropped: int = 0                # bit mask of rig cameras that never trigger (engine.faults.drop_camera)
 
 
 Captures = tuple[tuple[int, ...], tuple[int, ...]]  # (egos, the bit mask of each one's cameras that capture)
 
 
-def capture_table(period_steps: int, phases: tuple[int, ...], offsets: tuple[int, ...] = (0,)) -> dict[int, Captures]:
+def capture_table(period_steps: int, phases: tuple[int, ...], offsets: tuple[int, ...] = (0,),
+                  dropped: int = 0) -> dict[int, Captures]:
     """Step-in-period -> the egos (indices) that capture at that step and, for each,
     the bit mask of its rig's cameras that do (camera k triggers ``offsets[k]``
-    steps after the ego's phase; one camera: mask 1)."""
+    steps after the ego's phase; one camera: mask 1; the cameras of ``dropped``
+    never)."""
     out: dict[int, dict[int, int]] = {}
     for vi, p in enumerate(phases):
         for k, off in enumerate(offsets):
+            if dropped >> k & 1:
+                continue
             at = out.setdefault((p + off) % period_steps, {})
             at[vi] = at.get(vi, 0) | (1 << k)
     return {step: (tuple(m), tuple(m.values())) for step, m in out.items()}
@@ -163,7 +168,7 @@ class _Keeper:
         self.conn, self.run, self.jobs, self.sim, self.spec = conn, run, jobs, sim, spec
         self.shards, self.shard_of = shards, shard_of
         self.egos: tuple[str, ...] = sim.egos
-        self.table = capture_table(spec.period_steps, spec.phases, spec.offsets)
+        self.table = capture_table(spec.period_steps, spec.phases, spec.offsets, spec.dropped)
         self.hist = LatenessHistogram(tolerance_ns=spec.late_tolerance_ns)
         self.halted = False
         self.exiting = False

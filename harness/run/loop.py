@@ -83,7 +83,7 @@ class SimLoop:
         self.on_tick = on_tick
         self.frame_tolerance_ns = cfg.frame_late_tolerance_ns
         self.period = cfg.camera_period_steps
-        self.table = capture_table(self.period, physics.phases, physics.offsets)
+        self.table = capture_table(self.period, physics.phases, physics.offsets, physics.dropped)
         self._cv = threading.Condition()
         self._sim_steps = 0
         self._state_seen = -1

@@ -67,10 +67,11 @@ class VehicleShard:
         self.by_name = {v.name: v for v in vehicles}
         self.step_ns = step_ns
         self.cams = cams  # the rig's cameras, camera 0 first (one: a single camera)
-        self.rig = {v.vehicle_id: RigNumbering(cfg.rig_offset_steps, step_ns) for v in vehicles}
         self.tasks, self.analysis, self.events = tasks, analysis, events
         self._frame_bytes, self._send_control, self._on_stop, self._wake = frame_bytes, send_control, on_stop, wake
         self.lockstep = cfg.mode == Mode.LOCKSTEP
+        offsets = cfg.rig_offset_steps if not self.lockstep else tuple(0 for _ in cams)  # as the physics triggers
+        self.rig = {v.vehicle_id: RigNumbering(offsets, step_ns) for v in vehicles}
         self.latency = latency if self.lockstep and latency is not None else None
         self.held = None if self.latency is None else HeldControls(self.latency, step_ns=step_ns)
         self.timeout_ns = int(cfg.target.estimate_timeout_s * 1e9)

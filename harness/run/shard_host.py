@@ -109,7 +109,7 @@ class ShardHost:
         from hil.adapters.impair import record_on
         from hil.harness.run.rig_frames import rig_cams
         from hil.harness.cases.detector_observer import DetectorObserver
-        from hil.harness.analysis.timing_observer import TimingObserver
+        from hil.harness.analysis.timing_observer import TimingObserver, rig_of
         from hil.harness.config.model import dump_config
         from hil.harness.record.channels import register_all, sync_sample_json, views_of
         from hil.harness.record.producer import EncodingRecorder
@@ -125,7 +125,7 @@ class ShardHost:
         bus.subscribe(lambda ev, log_ns: enc.write_event(ev.to_json(), log_ns))
         for v in self.vehicles:
             record_on(v.link.impairment, enc, f"/{v.name}/impairment")
-        self.timing = TimingObserver(cfg.timing, names, recorder=enc, events=bus)
+        self.timing = TimingObserver(cfg.timing, names, recorder=enc, events=bus, rig=rig_of(cfg))
         self.detector = (DetectorObserver(cfg.detector, names, camera=cfg.camera, recorder=enc,
                                           timing=self.timing, events=bus) if cfg.detector.enabled else None)
         for name, samples in warmup.items():
