@@ -25,7 +25,7 @@ by a set without them (as ``hil.timing.anomaly`` does):
 
 from __future__ import annotations
 
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -36,6 +36,7 @@ from hil.timing.records import FrameStatus, PipelineRecord
 from hil.timing.stats import SpillColumn, summarize_ns
 
 MAX_PENDING_SETS = 256  # sets awaiting their records; beyond, the oldest is settled as it stands
+SETTLED_MEMORY = 4096   # settled set ids remembered (a late record of one is not a new set)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -76,7 +77,10 @@ class RigTracker:
         self.skew_max_ns = 0
         self._spread, self._from_first, self._from_last = SpillColumn(), SpillColumn(), SpillColumn()
         self._desync = self._missing = False
-        self._settled_upto = -1
+        # Sets settled lately: a record of one of them is not a new set. A set whose
+        # every frame was dropped comes whole after later ones: a set of its own.
+        self._settled: set[int] = set()
+        self._settled_order: deque[int] = deque()
 
     def on_record(self, rec: PipelineRecord) -> list[Anomaly]:
         """A settled record; the anomalies of the sets this settles."""
@@ -84,7 +88,7 @@ class RigTracker:
             return []
         self._count(rec)
         set_id = rec.frame_id - rec.camera
-        if set_id <= self._settled_upto:  # its set was settled without it (a drop's record comes late)
+        if set_id in self._settled:  # its set was settled without it (a drop's record comes late)
             return []
         self._pending.setdefault(set_id, {})[rec.camera] = rec
         out: list[Anomaly] = []
@@ -95,7 +99,6 @@ class RigTracker:
             if len(recs) < self.n and now - first <= self.th.horizon_ns and len(self._pending) <= MAX_PENDING_SETS:
                 break
             del self._pending[sid]
-            self._settled_upto = max(self._settled_upto, sid)
             out += self._settle(sid, recs)
         return out
 
@@ -104,7 +107,6 @@ class RigTracker:
         out: list[Anomaly] = []
         while self._pending:
             sid, recs = self._pending.popitem(last=False)
-            self._settled_upto = max(self._settled_upto, sid)
             out += self._settle(sid, recs)
         return out
 
@@ -121,6 +123,10 @@ class RigTracker:
 
     def _settle(self, set_id: int, recs: dict[int, PipelineRecord]) -> list[Anomaly]:
         self.sets += 1
+        self._settled.add(set_id)
+        self._settled_order.append(set_id)
+        if len(self._settled_order) > SETTLED_MEMORY:
+            self._settled.discard(self._settled_order.popleft())
         ok = {k: r for k, r in recs.items() if r.status == FrameStatus.OK and r.t0p_ns is not None}
         states = [r.t_state_ns if r.t_state_ns is not None else r.t0_ns for r in recs.values()]
         skew = max(states) - min(states)

@@ -108,3 +108,12 @@ def test_records_of_a_single_camera_are_not_a_rig() -> None:
     tr = tracker()
     assert tr.on_record(r) == [] and tr.finish() == [] and tr.summary()["rig"]["sets"] == 0
     assert "camera" not in r.to_json() and rec(0, 1).to_json()["camera"] == 1
+
+
+def test_a_set_whose_every_frame_was_dropped_is_still_one_set_when_its_records_come_late() -> None:
+    tr = tracker(horizon_ns=3 * PERIOD)
+    recs = [rec(0, k) for k in range(3)] + [rec(s, k) for s in range(2, 9) for k in range(3)]
+    recs += [rec(1, k, status=FrameStatus.DROPPED) for k in range(3)]  # after their timeout
+    assert feed(tr, recs) == []  # wholly dropped: the dropped_frame anomalies say so, not camera_missing
+    rig = tr.summary()["rig"]
+    assert (rig["sets"], rig["complete"]) == (9, 8)
