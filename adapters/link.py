@@ -204,15 +204,17 @@ class Link(ABC):
 
     def send_frame(self, *, frame_id: int, sim_time_ns: int, t0_ns: int, width: int, height: int,
                    encoding: ImageEncoding, camera: CameraInfo,
-                   ego_speed_mps: float, data: bytes) -> int:
+                   ego_speed_mps: float, data: bytes, camera_index: int = 0, camera_count: int = 0) -> int:
         """Stamp ``t_tx`` (harness clock, ns), encode and send one frame; returns t_tx.
+        ``camera_index``/``camera_count``: its camera and frame set (PROTOCOL.md
+        4.2.1; 0, 0: a single camera).
 
         Raises:
             TransportError: the peer is gone or the write failed.
         """
         t_tx = self.clock.now_ns()
         frame = Frame(self.vehicle_id, frame_id, sim_time_ns, t0_ns, t_tx, width, height,
-                      encoding, camera, ego_speed_mps, data)
+                      encoding, camera, ego_speed_mps, data, camera_index=camera_index, camera_count=camera_count)
         buf = protocol.encode(frame)
         self._send_checked(buf)
         self.stats.frames_sent += 1

@@ -56,6 +56,7 @@ class SceneRenderer:
         self._seg_opt.geomgroup[ROAD_GROUP] = 0
         self._cams: dict[int, mujoco.MjvCamera] = {}
         self._raw = np.empty((height, width, 3), np.uint8)
+        self._raws: dict[tuple[int, int], np.ndarray] = {}  # smaller cameras' read-back buffers
         self._geom_entity = (np.full(model.ngeom, BACKGROUND, np.int32) if geom_entity is None
                              else np.asarray(geom_entity, np.int32))
         self._lut = np.full(256 * 256, BACKGROUND, np.int32)
@@ -78,10 +79,19 @@ class SceneRenderer:
         self._gl.make_current()
         mujoco.mjv_updateScene(self.model, data, self._opt, None, self._camera(cam_id),
                                mujoco.mjtCatBit.mjCAT_ALL.value, self._scene)
-        mujoco.mjr_render(self._rect, self._scene, self._ctx)
-        mujoco.mjr_readPixels(self._raw, None, self._rect, self._ctx)
-        np.copyto(out, self._raw[::-1])  # OpenGL's first row is the bottom one
+        rect, raw = self._view(out)
+        mujoco.mjr_render(rect, self._scene, self._ctx)
+        mujoco.mjr_readPixels(raw, None, rect, self._ctx)
+        np.copyto(out, raw[::-1])  # OpenGL's first row is the bottom one
         return out
+
+    def _view(self, out: np.ndarray) -> tuple[mujoco.MjrRect, np.ndarray]:
+        """The viewport and read-back buffer of an image of ``out``'s size: a smaller
+        camera of a rig draws into the bottom-left of the buffer."""
+        h, w = out.shape[:2]
+        if (h, w) == (self.height, self.width):
+            return self._rect, self._raw
+        return mujoco.MjrRect(0, 0, w, h), self._raws.setdefault((h, w), np.empty((h, w, 3), np.uint8))
 
     def segment(self, data: mujoco.MjData, cam_id: int, out: np.ndarray) -> np.ndarray:
         """Entity index of every pixel of camera ``cam_id`` into ``out`` (height x width
@@ -92,8 +102,9 @@ class SceneRenderer:
         scn = self._seg_scene
         mujoco.mjv_updateScene(self.model, data, self._seg_opt, None, self._camera(cam_id),
                                mujoco.mjtCatBit.mjCAT_ALL.value, scn)
-        mujoco.mjr_render(self._rect, scn, self._ctx)
-        mujoco.mjr_readPixels(self._raw, None, self._rect, self._ctx)
+        rect, raw = self._view(out)
+        mujoco.mjr_render(rect, scn, self._ctx)
+        mujoco.mjr_readPixels(raw, None, rect, self._ctx)
         # Segment id + 1 is encoded in the colour (red = low byte, green = high byte);
         # 0 is background. Map each to the entity of its geom.
         lut = self._lut
@@ -103,7 +114,7 @@ class SceneRenderer:
             g = scn.geoms[i]
             if g.segid >= 0 and g.objtype == mujoco.mjtObj.mjOBJ_GEOM:
                 lut[g.segid + 1] = self._geom_entity[g.objid]
-        raw = self._raw[::-1]
+        raw = raw[::-1]
         if n + 1 < 256:
             np.take(lut, raw[:, :, 0], out=out)
         else:

@@ -99,7 +99,10 @@ class Simulation:
         for g in range(m.ngeom):
             if self._geom_entity[g] >= 0:
                 self._entity_geoms[int(self._geom_entity[g])].append(g)
-        self._cam_id = {n: int(m.camera(camera_name(n)).id) for n in self.egos}
+        self.mounts = world.camera.mounts()  # the cameras of every ego, camera 0 first
+        self._cam_ids = {n: [int(m.camera(camera_name(n, k)).id) for k in range(len(self.mounts))]
+                         for n in self.egos}
+        self._cam_id = {n: ids[0] for n, ids in self._cam_ids.items()}
         self._active_contacts: set[tuple[str, str]] = set()
         self._new_collisions: list[Collision] = []
         self._kin_step = -1
@@ -117,7 +120,7 @@ class Simulation:
         self._states_step = -1
         self._states_cache: _States | None = None
         self._qvel_before = np.zeros(m.nv)
-        self._rgb: dict[str, np.ndarray] = {}
+        self._rgb: dict[tuple[str, int], np.ndarray] = {}
         self._seg: np.ndarray | None = None
         for i, name in enumerate(self.egos):  # start headings and speeds
             yaw = self._specs[name].yaw_rad
@@ -275,8 +278,9 @@ class Simulation:
 
     # -- cameras -------------------------------------------------------------
 
-    def intrinsics(self) -> Intrinsics:
-        cam = self.world.camera
+    def intrinsics(self, camera: int = 0) -> Intrinsics:
+        """Pinhole intrinsics (px) of camera ``camera`` of the egos' rig."""
+        cam = self.mounts[camera]
         fy = (cam.height / 2) / math.tan(math.radians(cam.fovy_deg) / 2)
         return Intrinsics(fx=fy, fy=fy, cx=cam.width / 2, cy=cam.height / 2)
 
@@ -288,19 +292,21 @@ class Simulation:
         """
         if self._renderer is not None:
             return
-        cam = self.world.camera
-        self._renderer = SceneRenderer(self.model, width=cam.width, height=cam.height, shadows=self.world.shadows,
+        width, height = max(m.width for m in self.mounts), max(m.height for m in self.mounts)
+        self._renderer = SceneRenderer(self.model, width=width, height=height, shadows=self.world.shadows,
                                        reflections=self.world.reflections, geom_entity=self._geom_entity)
-        self._rgb = {n: np.empty((cam.height, cam.width, 3), np.uint8) for n in self.egos}
-        self._seg = np.empty((cam.height, cam.width), np.int32)
+        self._rgb = {(n, k): np.empty((m.height, m.width, 3), np.uint8) for n in self.egos
+                     for k, m in enumerate(self.mounts)}
+        self._seg = np.empty((self.mounts[0].height, self.mounts[0].width), np.int32)
 
-    def render(self, vehicle: str) -> np.ndarray:
-        """RGB8 image (height x width x 3) of ``vehicle``'s camera; the array is
-        reused by the next render of the same camera."""
+    def render(self, vehicle: str, camera: int = 0) -> np.ndarray:
+        """RGB8 image (height x width x 3) of ``vehicle``'s camera ``camera`` (its
+        rig's; 0: the first or only one); the array is reused by the next render of
+        the same camera."""
         self.open_renderer()
         assert self._renderer is not None
         self._sync_kinematics()
-        return self._renderer.rgb(self.data, self._cam_id[vehicle], self._rgb[vehicle])
+        return self._renderer.rgb(self.data, self._cam_ids[vehicle][camera], self._rgb[(vehicle, camera)])
 
     def segmentation(self, vehicle: str) -> np.ndarray:
         """Entity id of each pixel of ``vehicle``'s camera (-1: road, sky, verge); the
@@ -324,7 +330,7 @@ class Simulation:
         s_m, lat_m = self._path_coords(vehicle, seen)
         cam = self._cam_id[vehicle]
         intr = self.intrinsics()
-        w, h = self.world.camera.width, self.world.camera.height
+        w, h = self.mounts[0].width, self.mounts[0].height
         boxes = []
         for k, (e, box) in enumerate(zip(seen, pixel_boxes(seg, seen))):
             area, truncated = 0.0, False

@@ -118,6 +118,33 @@ class CameraSpec:
     pitch_rad: float = 0.0
     mount_lateral_m: float = 0.0
     yaw_rad: float = 0.0
+    # A rig of several cameras (camera 0 first); empty: the one camera above.
+    rig: tuple[RigMount, ...] = ()
+
+    def mounts(self) -> tuple[RigMount, ...]:
+        """Every camera of an ego, camera 0 first."""
+        if self.rig:
+            return self.rig
+        return (RigMount("front", self.mount_forward_m, self.mount_lateral_m, self.mount_height_m, self.yaw_rad,
+                         self.pitch_rad, 0.0, self.fovy_deg, self.width, self.height),)
+
+
+@dataclass(frozen=True)
+class RigMount:
+    """One camera of a rig: mount from the vehicle centre (m: forward, left, up),
+    yaw (rad, positive looks left), pitch (rad, positive looks down), roll about the
+    optical axis (rad), vertical field of view (deg) and image size (px)."""
+
+    name: str
+    forward_m: float
+    lateral_m: float
+    height_m: float
+    yaw_rad: float
+    pitch_rad: float
+    roll_rad: float
+    fovy_deg: float
+    width: int
+    height: int
 
 
 @dataclass(frozen=True)
@@ -184,20 +211,22 @@ def _boxes_overlap(a: VehicleSpec, b: VehicleSpec) -> bool:
     return True
 
 
-def camera_name(vehicle: str) -> str:
-    return f"{vehicle}/camera"
+def camera_name(vehicle: str, index: int = 0) -> str:
+    """The MJCF name of ``vehicle``'s camera ``index`` (0: the first or only one)."""
+    return f"{vehicle}/camera" if index == 0 else f"{vehicle}/camera{index}"
 
 
 def build_mjcf(world: WorldSpec) -> str:
     """Return the MJCF XML of ``world``."""
     cam = world.camera
+    width, height = max(m.width for m in cam.mounts()), max(m.height for m in cam.mounts())
     reflect = "0.2" if world.reflections else "0"
     parts: list[str] = [
         '<mujoco model="hil_world">',
         '  <compiler angle="radian"/>',  # every euler in this file is radians (fovy stays degrees)
         f'  <option timestep="{world.physics_step_s:.9g}" integrator="implicitfast" gravity="0 0 -9.81"/>',
         "  <visual>",
-        f'    <global offwidth="{max(640, cam.width)}" offheight="{max(480, cam.height)}"/>',
+        f'    <global offwidth="{max(640, width)}" offheight="{max(480, height)}"/>',
         '    <headlight ambient="0.45 0.45 0.45" diffuse="0.55 0.55 0.55" specular="0 0 0"/>',
         f'    <quality shadowsize="{4096 if world.shadows else 0}"/>',
         # znear/zfar are multiples of the extent: clip at 0.1 m and 1 km.
@@ -271,12 +300,21 @@ def _entity_xml(v: VehicleSpec, cam: CameraSpec) -> list[str]:
             f'size="{length / 2:.3f} {width / 2:.3f} {height / 2:.3f}" rgba="{_rgba(v.paint)}" mass="1500" {g}/>'
         )
     if v.ego:
-        s, c = math.sin(cam.pitch_rad), math.cos(cam.pitch_rad)
-        sy, cy = math.sin(cam.yaw_rad), math.cos(cam.yaw_rad)
-        body.append(
-            f'      <camera name="{camera_name(v.name)}" pos="{cam.mount_forward_m:.3f} {cam.mount_lateral_m:.3f} '
-            f'{cam.mount_height_m:.3f}" xyaxes="{sy:.6f} {-cy:.6f} 0 {s * cy:.6f} {s * sy:.6f} {c:.6f}" '
-            f'fovy="{cam.fovy_deg:.4f}"/>'
-        )
+        for k, m in enumerate(cam.mounts()):
+            body.append(_camera_xml(camera_name(v.name, k), m))
     body.append("    </body>")
     return body
+
+
+def _camera_xml(name: str, m: RigMount) -> str:
+    s, c = math.sin(m.pitch_rad), math.cos(m.pitch_rad)
+    sy, cy = math.sin(m.yaw_rad), math.cos(m.yaw_rad)
+    x, y = [sy, -cy, 0.0], [s * cy, s * sy, c]  # image right, image up (world axes of the body)
+    if m.roll_rad:  # turned about the optical axis
+        sr, cr = math.sin(m.roll_rad), math.cos(m.roll_rad)
+        x, y = [cr * a + sr * b for a, b in zip(x, y)], [cr * b - sr * a for a, b in zip(x, y)]
+        axes = " ".join(f"{a:.6f}" for a in (*x, *y))
+    else:
+        axes = f"{sy:.6f} {-cy:.6f} 0 {s * cy:.6f} {s * sy:.6f} {c:.6f}"
+    return (f'      <camera name="{name}" pos="{m.forward_m:.3f} {m.lateral_m:.3f} {m.height_m:.3f}" '
+            f'xyaxes="{axes}" fovy="{m.fovy_deg:.4f}"/>')

@@ -31,8 +31,10 @@ class Echo:
     duration is exact) then returns SAFE with the given control."""
 
     def __init__(self, *, infer_ms: float = 0.0, throttle: float = 0.0, brake: float = 0.0,
-                 exit_after_frames: int | None = None) -> None:
+                 exit_after_frames: int | None = None, camera_delay: tuple[int, float] | None = None) -> None:
+        """``camera_delay``: (camera index, ms) spent more on that camera's frames."""
         self.infer_ns = int(infer_ms * 1e6)
+        self.camera_delay = None if camera_delay is None else (camera_delay[0], int(camera_delay[1] * 1e6))
         self.result = Inference(DrivingState.SAFE, Control(0.0, throttle, brake))
         self.exit_after_frames = exit_after_frames
         self.frames = 0
@@ -45,13 +47,15 @@ class Echo:
         return Inference(DrivingState.SAFE if frames.complete else DrivingState.SLOW, result.control, seen)
 
     def infer(self, frame: Frame) -> Inference:
-        del frame
         self.frames += 1
         if self.exit_after_frames is not None and self.frames > self.exit_after_frames:
             # Die abruptly, like a crashed device: no BYE, no flush.
             os._exit(3)
-        if self.infer_ns:
-            end = time.monotonic_ns() + self.infer_ns
+        busy = self.infer_ns
+        if self.camera_delay is not None and frame.camera_index == self.camera_delay[0]:
+            busy += self.camera_delay[1]
+        if busy:
+            end = time.monotonic_ns() + busy
             while time.monotonic_ns() < end:
                 pass
         return self.result
@@ -86,6 +90,17 @@ def _clock(a: argparse.Namespace) -> Clock:
     return MonotonicClock()
 
 
+def _camera_delay(text: str) -> tuple[int, float]:
+    index, sep, ms = text.partition(":")
+    try:
+        k, d = int(index), float(ms)
+    except ValueError:
+        k, d = -1, -1.0
+    if not sep or not 0 <= k < 32 or not 0 <= d <= 60_000:
+        raise argparse.ArgumentTypeError(f"{text!r}: INDEX:MS, a camera 0..31 and 0..60000 ms, e.g. 5:30")
+    return k, d
+
+
 def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.targets.echo") -> int:
     from hil.adapters.sdk import TargetArgumentParser, add_transport_args, run_target, serve, transport_options
 
@@ -105,9 +120,12 @@ def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.target
                    help="a camera rig: one ESTIMATE per camera (each) or per frame set (set); one: a single camera")
     p.add_argument("--set-timeout-ms", type=float, default=100.0,
                    help="--cameras set: give up an incomplete frame set this long after its first frame (ms)")
+    p.add_argument("--camera-delay-ms", type=_camera_delay, default=None, metavar="INDEX:MS",
+                   help="spend MS more on camera INDEX's frames: a rig with one slow camera, for tests")
     add_transport_args(p)
     a = p.parse_args(argv)
-    echo = Echo(infer_ms=a.infer_ms, throttle=a.throttle, brake=a.brake, exit_after_frames=a.exit_after_frames)
+    echo = Echo(infer_ms=a.infer_ms, throttle=a.throttle, brake=a.brake, exit_after_frames=a.exit_after_frames,
+                camera_delay=a.camera_delay_ms)
     sets = a.cameras == "set"
     return run_target(prog, lambda: serve(None if sets else echo.infer, target_name=a.name, transport=a.transport,
                                           clock=_clock(a), cameras=a.cameras, infer_set=echo.infer_set if sets else None,

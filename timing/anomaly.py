@@ -53,6 +53,10 @@ class AnomalyKind(str, Enum):
     SKEW_LIMIT = "skew_limit"
     SYNC_LOST = "sync_lost"
     CAUSALITY = "causality"
+    # a camera rig's frame sets (hil.timing.rig)
+    RIG_DESYNC = "rig_desync"
+    CAMERA_MISSING = "camera_missing"
+    CAMERA_LATE = "camera_late"
 
 
 class Severity(str, Enum):

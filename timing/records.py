@@ -62,6 +62,9 @@ class PipelineRecord:
     # How much earlier than t0' the estimate's last byte may have arrived (the reader
     # found it already waiting, hil.adapters.wire.receipt): the truth is in [t0' - this, t0'].
     t0p_uncertainty_ns: int = 0
+    # The camera of the vehicle's rig the frame came from (None: a rig of one camera,
+    # and the record has no such key); its frame set is ``frame_id - camera``.
+    camera: int | None = None
 
     def stages_ns(self) -> dict[str, int]:
         """Stage durations (ns) that this record can give, keyed by ``STAGES`` names."""
@@ -103,7 +106,7 @@ class PipelineRecord:
 
     def to_json(self) -> dict[str, object]:
         """A JSON-able dict: every timestamp plus the stage durations in ns."""
-        d: dict[str, object] = {k: v for k, v in self.__dict__.items()}
+        d: dict[str, object] = {k: v for k, v in self.__dict__.items() if k != "camera" or v is not None}
         d["status"] = self.status.value
         d["stages_ns"] = self.stages_ns()
         return d

@@ -31,6 +31,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from hil.adapters.wire.messages import Estimate
+from hil.harness.config.model import RunConfig
 from hil.harness.config.timing import TimingConfig
 from hil.harness.vocab.events import Event, EventBus, JsonSink
 from hil.scenarios.ground_truth import GroundTruth
@@ -38,6 +39,7 @@ from hil.timing.anomaly import Anomaly, AnomalyDetector
 from hil.timing.histogram import StageHistograms
 from hil.timing.pipeline import Split, causality_violations, split_stages
 from hil.timing.records import PipelineRecord
+from hil.timing.rig import RigThresholds, RigTracker
 from hil.timing.stats import SpillColumn, summarize_ns
 from hil.timing.sync import ClockSync, SyncEvent, SyncEventKind, SyncSample, SyncState
 
@@ -111,17 +113,32 @@ class _VehicleTiming:
     anomaly_causes: dict[str, dict[str, int]] = field(default_factory=dict)  # side -> kind -> count
     sync_events: dict[str, int] = field(default_factory=dict)
     sim_time_ns: int = 0
+    rig: RigTracker | None = None  # a rig of several cameras: its frame sets
+
+
+def rig_of(cfg: RunConfig) -> tuple[tuple[str, ...], RigThresholds] | None:
+    """A run's rig as its timing analysis needs it (None: one camera)."""
+    cams = cfg.camera.cameras()
+    if len(cams) < 2:
+        return None
+    r, period_ms = cfg.timing.rig, 1e3 / cfg.camera.fps
+    return tuple(c.name for c in cams), RigThresholds(
+        skew_ms=r.skew_ms, spread_ms=r.spread_ms if r.spread_ms is not None else period_ms, late_ms=r.late_ms,
+        late_sets=r.late_sets, horizon_ns=int((cfg.target.estimate_timeout_s * 1e3 + 2 * period_ms) * 1e6),
+        frame_late_tolerance_ns=cfg.frame_late_tolerance_ns)
 
 
 class TimingObserver:
     """A ``RunObserver``; ``summary()`` gives the per-vehicle timing figures."""
 
     def __init__(self, cfg: TimingConfig, vehicles: list[str], *, recorder: JsonSink,
-                 events: EventBus | None = None, handoff_margin_ns: int = HANDOFF_MARGIN_NS) -> None:
+                 events: EventBus | None = None, handoff_margin_ns: int = HANDOFF_MARGIN_NS,
+                 rig: tuple[tuple[str, ...], RigThresholds] | None = None) -> None:
         """``events``: the run's bus the anomalies go on (default: one that records
         them on ``recorder``'s ``/events``). ``handoff_margin_ns``: the longest the
         loop takes to hand a received estimate over; frame-rate windows closer to now
-        than that are judged only once a record has shown them complete."""
+        than that are judged only once a record has shown them complete. ``rig``: the
+        names of a rig's cameras and its limits (``rig_of``), for its frame sets."""
         self.cfg = cfg
         self.handoff_margin_ns = handoff_margin_ns
         self.rec = recorder
@@ -131,6 +148,9 @@ class TimingObserver:
         self.v: dict[str, _VehicleTiming] = {
             name: _VehicleTiming(ClockSync(sync_cfg), AnomalyDetector(name, cfg.thresholds_for(name)))
             for name in vehicles}
+        if rig is not None:
+            for name, vt in self.v.items():
+                vt.rig = RigTracker(name, rig[0], rig[1])
         self._next_tick_ns = 0
         self._ticks: deque[tuple[int, int]] = deque(maxlen=TICK_MEMORY)  # (harness ns, sim ns)
 
@@ -158,6 +178,8 @@ class TimingObserver:
 
     def on_record(self, vehicle: str, rec: PipelineRecord, estimate: Estimate | None) -> None:
         vt = self.v[vehicle]
+        if vt.rig is not None:
+            self._emit(vehicle, vt, vt.rig.on_record(rec))
         vt.pending.append(rec)
         if rec.t0p_ns is not None:
             vt.last_handed_t0p_ns = max(vt.last_handed_t0p_ns or 0, rec.t0p_ns)
@@ -262,6 +284,8 @@ class TimingObserver:
         """Analyse what is still pending (end of run)."""
         for name, vt in self.v.items():
             self._flush(name, vt, now_ns=0, force=True)
+            if vt.rig is not None:
+                self._emit(name, vt, vt.rig.finish())
 
     def anomaly_count(self, vehicle: str) -> int:
         return sum(self.v[vehicle].anomaly_counts.values())
@@ -312,6 +336,7 @@ class TimingObserver:
             "anomalies": counts,
             "anomaly_causes": {side: dict(by) for side, by in sorted(vt.anomaly_causes.items())},
             "records_excluded": vt.detector.excluded,
+            **(vt.rig.summary() if vt.rig is not None else {}),
         }
 
 

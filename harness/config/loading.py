@@ -156,7 +156,7 @@ _MESSAGE_REWRITES = (
 def _format_validation_error(
     err: ValidationError, source: str, applied: Sequence[tuple[tuple[str, ...], str]]
 ) -> str:
-    errors = err.errors(include_url=False)
+    errors = _untag_rig(err.errors(include_url=False))
     first = errors[0]
     loc = tuple(first["loc"])
     if first["type"] == "extra_forbidden":
@@ -188,6 +188,24 @@ def _format_validation_error(
         more = ", ..." if len(errors) > 6 else ""
         message += f" (+{len(errors) - 1} more: {others}{more})"
     return _one_line(message)
+
+
+_RIG_TAGS = ("str", "list[RigCamera]")
+
+
+def _untag_rig(errors: list[Any]) -> list[Any]:
+    """``camera.rig`` is a preset's name or a list: pydantic tries both and names each
+    try in the location; keep the errors of the kind that was given, untagged."""
+    def tag(e: Any) -> str | None:
+        loc = tuple(e["loc"])
+        return loc[2] if loc[:2] == ("camera", "rig") and len(loc) > 2 and loc[2] in _RIG_TAGS else None
+
+    if not any(tag(e) for e in errors):
+        return errors
+    given = next((e["input"] for e in errors if tag(e) == "str"), None)
+    keep = "str" if isinstance(given, str) else "list[RigCamera]"
+    out = [{**e, "loc": (*tuple(e["loc"])[:2], *tuple(e["loc"])[3:])} for e in errors if tag(e) in (None, keep)]
+    return out or errors
 
 
 def _expected(msg: str) -> str:

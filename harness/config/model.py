@@ -26,6 +26,7 @@ from pydantic_core import PydanticCustomError
 from hil.adapters.transports import Transport  # how the harness reaches the AI target: one enum, one table
 from hil.adapters.wire.protocol import FRAME_META_SIZE, MAX_PAYLOAD
 from hil.harness.config.detector import CornerCaseSettings, DetectorSettings
+from hil.harness.config.rig import MAX_RIG_CAMERAS, PRESETS, RigCamera, preset
 from hil.harness.config.target import CanTargetConfig, ImpairConfig, Ros2TargetConfig, TcpTargetConfig, ZenohTargetConfig
 from hil.harness.config.timing import TimingConfig
 from hil.harness.config.types import MODEL_CONFIG, Float, Int
@@ -88,6 +89,28 @@ class CameraConfig(BaseModel):
     mount_lateral_m: Float = Field(0.0, ge=-3, le=3)  # left of the vehicle centre line
     pitch_deg: Float = Field(0.0, ge=-45, le=45)  # positive looks down
     yaw_deg: Float = Field(0.0, ge=-180, le=180)  # positive looks left
+    # The cameras on each ego (harness/config/rig.py): a preset's name or a list.
+    # "front" is this section's one camera, as before rigs.
+    rig: str | list[RigCamera] = "front"
+
+    @field_validator("rig", mode="before")
+    @classmethod
+    def _known_rig(cls, v: object) -> object:
+        if isinstance(v, str) and v not in PRESETS:
+            raise ValueError(f"a preset ({', '.join(PRESETS)}) or a list of cameras")
+        if isinstance(v, list) and not 1 <= len(v) <= MAX_RIG_CAMERAS:
+            raise ValueError(f"1 to {MAX_RIG_CAMERAS} cameras")
+        return v
+
+    def cameras(self) -> tuple[RigCamera, ...]:
+        """The rig's cameras in camera order, with this section's size and field of
+        view where a camera leaves them unset."""
+        cams = (preset(self.rig, forward_m=self.mount_forward_m, lateral_m=self.mount_lateral_m,
+                       height_m=self.mount_height_m, pitch_deg=self.pitch_deg, yaw_deg=self.yaw_deg,
+                       fovy_deg=self.fovy_deg) if isinstance(self.rig, str) else tuple(self.rig))
+        return tuple(c.model_copy(update={"fovy_deg": c.fovy_deg if c.fovy_deg is not None else self.fovy_deg,
+                                          "width": c.width or self.width, "height": c.height or self.height})
+                     for c in cams)
 
 
 class TargetCommand(BaseModel):
@@ -222,6 +245,9 @@ class EngineFaults(BaseModel):
     # The run process stops reading the physics's ring this long, once, half a second
     # into the run, as a stuck consumer would: the physics must not wait for it.
     stall_run_ms: Float = Field(0.0, ge=0, le=60_000)
+    # This camera of the rig (its name) never triggers, as a camera whose frames fail:
+    # its frame ids in each frame set stay unused (PROTOCOL.md 4.2.1).
+    drop_camera: str | None = None
 
 
 class EngineConfig(BaseModel):
@@ -334,6 +360,11 @@ class RunConfig(BaseModel):
                                       f"but {cam.width}x{cam.height} needs {3 * cam.width * cam.height / 2**20:.1f} "
                                       f"MiB; use camera.encoding: jpeg or a smaller image",
                                       {"loc": ("camera", "width"), "got": cam.width})
+        _check_rig(cam, self.physics_step_s)
+        drop = self.engine.faults.drop_camera
+        if drop is not None and drop not in [c.name for c in cam.cameras()]:
+            raise PydanticCustomError(_RULE_ERROR, "the name of a camera of camera.rig: " + ", ".join(
+                c.name for c in cam.cameras()), {"loc": ("engine", "faults", "drop_camera"), "got": drop})
         lat = self.lockstep.latency
         if (lat.kind != LatencyKind.NONE or lat.drop_prob > 0) and self.mode != Mode.LOCKSTEP:
             raise PydanticCustomError(_RULE_ERROR, "mode: lockstep (a latency profile delays control in "
@@ -369,6 +400,11 @@ class RunConfig(BaseModel):
         return round(1.0 / (self.camera.fps * self.physics_step_s))
 
     @property
+    def rig_offset_steps(self) -> tuple[int, ...]:
+        """Each rig camera's trigger offset after camera 0, in physics steps."""
+        return tuple(round(c.offset_ms / (self.physics_step_s * 1e3)) for c in self.camera.cameras())
+
+    @property
     def frame_late_tolerance_ns(self) -> int:
         """A frame handed to its link later than this after its camera instant is late
         (``engine.frame_late_tolerance_ms``; default one camera period)."""
@@ -377,6 +413,37 @@ class RunConfig(BaseModel):
 
 
 # --- camera period / physics step -----------------------------------------------
+
+
+def _check_rig(cam: CameraConfig, step_s: float) -> None:
+    """Names unique; each camera's frame within the wire's limit; trigger offsets whole
+    physics steps, within the camera period and not decreasing in camera order (a
+    set's frames go out in camera order)."""
+    cams = cam.cameras()
+    period_ms = 1e3 / cam.fps
+    names: set[str] = set()
+    for k, c in enumerate(cams):
+        loc = ("camera", "rig", k)
+        if c.name in names:
+            raise PydanticCustomError(_RULE_ERROR, "a name no other camera of the rig has",
+                                      {"loc": (*loc, "name"), "got": c.name})
+        names.add(c.name)
+        w, h = c.width or cam.width, c.height or cam.height
+        if cam.encoding == Encoding.RAW and 3 * w * h + FRAME_META_SIZE > MAX_PAYLOAD:
+            raise PydanticCustomError(_RULE_ERROR, "a raw frame within the wire's payload limit; use "
+                                      "camera.encoding: jpeg or a smaller image", {"loc": (*loc, "width"), "got": w})
+        steps = c.offset_ms / (step_s * 1e3)
+        if not math.isclose(steps, round(steps), rel_tol=1e-9, abs_tol=1e-9):
+            raise PydanticCustomError(_RULE_ERROR, f"a whole number of physics steps ({step_s * 1e3:g} ms)",
+                                      {"loc": (*loc, "offset_ms"), "got": c.offset_ms})
+        if c.offset_ms >= period_ms:
+            raise PydanticCustomError(_RULE_ERROR, f"below the camera period ({period_ms:g} ms)",
+                                      {"loc": (*loc, "offset_ms"), "got": c.offset_ms})
+        if k and c.offset_ms < cams[k - 1].offset_ms:
+            raise PydanticCustomError(_RULE_ERROR, f"at least camera {k - 1}'s ({cams[k - 1].offset_ms:g}): "
+                                      "offsets do not decrease in camera order",
+                                      {"loc": (*loc, "offset_ms"), "got": c.offset_ms})
+
 
 
 def _period_fits(fps: float, step_s: float, *, rel_tol: float = _PERIOD_REL_TOL) -> bool:

@@ -71,12 +71,28 @@ class ThresholdsConfig(BaseModel):
         return dataclasses.replace(base, **changes)
 
 
+class RigSettings(BaseModel):
+    """A camera rig's anomalies (``hil.timing.rig``): ``rig_desync`` when a frame set's
+    capture skew is over ``skew_ms`` (default 1 ms: a shared trigger line gives 0) or
+    its arrival spread (its frames' hand-offs to the link) over ``spread_ms`` (default:
+    one camera period); ``camera_late`` when a camera's end-to-end is over its set's
+    median by more than ``late_ms`` in ``late_sets`` sets running."""
+
+    model_config = MODEL_CONFIG
+
+    skew_ms: Float = Field(1.0, ge=0, le=60_000)
+    spread_ms: Float | None = Field(None, ge=0, le=60_000)
+    late_ms: Float = Field(20.0, ge=0, le=60_000)
+    late_sets: Int = Field(5, ge=1, le=100_000)
+
+
 class TimingConfig(BaseModel):
     model_config = MODEL_CONFIG
 
     sync: SyncSettings = Field(default_factory=SyncSettings)
     thresholds: ThresholdsConfig = Field(default_factory=ThresholdsConfig)
     vehicles: dict[str, ThresholdsConfig] = Field(default_factory=dict)
+    rig: RigSettings = Field(default_factory=RigSettings)
 
     def thresholds_for(self, vehicle: str) -> Thresholds:
         """The run's thresholds with ``vehicle``'s overrides applied."""

@@ -89,6 +89,11 @@ class WorldState(NamedTuple):
     qvel: np.ndarray
     collisions: tuple[Any, ...]  # hil.scenarios.ground_truth.Collision
     unrendered: tuple[int, ...] = ()
+    masks: tuple[int, ...] = ()  # of each of ``vis``: the bit mask of its rig's cameras that capture (empty: 1 each)
+
+    def cameras(self, i: int) -> int:
+        """The camera bit mask of ``vis[i]``."""
+        return self.masks[i] if self.masks else 1
 
 
 class Applied(NamedTuple):
@@ -132,6 +137,7 @@ class RenderJob(NamedTuple):
     qvel: np.ndarray
     vis: tuple[int, ...]
     t_state_ns: int
+    masks: tuple[int, ...] = ()  # of each of ``vis``: its rig's cameras to render (bit k: camera k; empty: 1 each)
 
 
 # -- render worker <-> run ------------------------------------------------------------------
@@ -154,6 +160,7 @@ class FrameReady(NamedTuple):
     slot: int
     nbytes: int
     encoding: int
+    camera: int = 0  # the camera of the vehicle's rig (0: the first or only one)
 
 
 class CameraTruthReady(NamedTuple):
@@ -184,9 +191,9 @@ class ChildGone(NamedTuple):
 # -- the ring codec -----------------------------------------------------------------------------
 
 _KIND = struct.Struct("<B")
-_STATE = struct.Struct("<BqqHHHIH")    # kind, t_state_ns, steps, len(vis), nq, nv, len(collisions), len(unrendered)
+_STATE = struct.Struct("<BqqHHHIHB")   # kind, t_state_ns, steps, len(vis), nq, nv, len(collisions), len(unrendered), masks?
 _APPLIED = struct.Struct("<BiqqqHH")   # kind, vi, frame_id, t_apply_ns, steps, nq, nv
-_JOB = struct.Struct("<BqqHHH")        # kind, t_state_ns, steps, len(vis), nq, nv
+_JOB = struct.Struct("<BqqHHHB")       # kind, t_state_ns, steps, len(vis), nq, nv, masks?
 _FINISHED = struct.Struct("<Bq")       # kind, steps
 _DONE = struct.Struct("<BqHHII")       # kind, steps, nq, nv, len(lateness JSON), len(collisions JSON)
 _K_STATE, _K_APPLIED, _K_JOB, _K_FINISHED, _K_DONE = 1, 2, 3, 4, 5
@@ -214,16 +221,17 @@ def encode(msg: WorldState | Applied | RenderJob | Finished | Done) -> bytes:
         case WorldState():
             coll = _collisions_json(msg.collisions)
             return b"".join((_STATE.pack(_K_STATE, msg.t_state_ns, msg.steps, len(msg.vis), msg.qpos.size,
-                                         msg.qvel.size, len(coll), len(msg.unrendered)),
-                             np.asarray(msg.vis + msg.unrendered, "<u2").tobytes(), _f64(msg.qpos), _f64(msg.qvel),
-                             coll))
+                                         msg.qvel.size, len(coll), len(msg.unrendered), bool(msg.masks)),
+                             np.asarray(msg.vis + msg.unrendered, "<u2").tobytes(), _masks(msg.masks),
+                             _f64(msg.qpos), _f64(msg.qvel), coll))
         case Applied():
             return b"".join((_APPLIED.pack(_K_APPLIED, msg.vi, msg.frame_id, msg.t_apply_ns, msg.steps,
                                            msg.qpos.size, msg.qvel.size), _f64(msg.qpos), _f64(msg.qvel)))
         case RenderJob():
             return b"".join((_JOB.pack(_K_JOB, msg.t_state_ns, msg.steps, len(msg.vis), msg.qpos.size,
-                                       msg.qvel.size),
-                             np.asarray(msg.vis, "<u2").tobytes(), _f64(msg.qpos), _f64(msg.qvel)))
+                                       msg.qvel.size, bool(msg.masks)),
+                             np.asarray(msg.vis, "<u2").tobytes(), _masks(msg.masks), _f64(msg.qpos),
+                             _f64(msg.qvel)))
         case Finished():
             return _FINISHED.pack(_K_FINISHED, msg.steps)
         case Done():
@@ -232,6 +240,17 @@ def encode(msg: WorldState | Applied | RenderJob | Finished | Done) -> bytes:
             return b"".join((_DONE.pack(_K_DONE, msg.steps, msg.qpos.size, msg.qvel.size, len(lat), len(coll)),
                              _f64(msg.qpos), _f64(msg.qvel), lat, coll))
     raise TypeError(f"no ring encoding for {type(msg).__name__}")
+
+
+def _masks(masks: tuple[int, ...]) -> bytes:
+    return np.asarray(masks, "<u4").tobytes()
+
+
+def _read_masks(b: bytes, at: int, n: int, present: int) -> tuple[tuple[int, ...], int]:
+    """The camera masks of ``n`` egos at ``at`` (when ``present``), and where they end."""
+    if not present:
+        return (), at
+    return tuple(np.frombuffer(b, "<u4", n, at).tolist()), at + 4 * n
 
 
 def _vectors(b: bytes, at: int, nq: int, nv: int) -> tuple[np.ndarray, np.ndarray, int]:
@@ -249,21 +268,23 @@ def decode(b: bytes) -> WorldState | Applied | RenderJob | Finished | Done:
     """
     kind = b[0]
     if kind == _K_STATE:
-        _, t_state, steps, n_vis, nq, nv, n_coll, n_un = _STATE.unpack_from(b)
+        _, t_state, steps, n_vis, nq, nv, n_coll, n_un, has_masks = _STATE.unpack_from(b)
         at = _STATE.size
         ids = np.frombuffer(b, "<u2", n_vis + n_un, at).tolist()
-        qpos, qvel, at = _vectors(b, at + 2 * (n_vis + n_un), nq, nv)
+        masks, at = _read_masks(b, at + 2 * (n_vis + n_un), n_vis, has_masks)
+        qpos, qvel, at = _vectors(b, at, nq, nv)
         return WorldState(tuple(ids[:n_vis]), t_state, steps, qpos, qvel, _collisions(b[at:at + n_coll]),
-                          tuple(ids[n_vis:]))
+                          tuple(ids[n_vis:]), masks)
     if kind == _K_APPLIED:
         _, vi, frame_id, t_apply, steps, nq, nv = _APPLIED.unpack_from(b)
         qpos, qvel, _ = _vectors(b, _APPLIED.size, nq, nv)
         return Applied(vi, frame_id, t_apply, steps, qpos, qvel)
     if kind == _K_JOB:
-        _, t_state, steps, n_vis, nq, nv = _JOB.unpack_from(b)
+        _, t_state, steps, n_vis, nq, nv, has_masks = _JOB.unpack_from(b)
         vis = tuple(np.frombuffer(b, "<u2", n_vis, _JOB.size).tolist())
-        qpos, qvel, _ = _vectors(b, _JOB.size + 2 * n_vis, nq, nv)
-        return RenderJob(steps, qpos, qvel, vis, t_state)
+        masks, at = _read_masks(b, _JOB.size + 2 * n_vis, n_vis, has_masks)
+        qpos, qvel, _ = _vectors(b, at, nq, nv)
+        return RenderJob(steps, qpos, qvel, vis, t_state, masks)
     if kind == _K_FINISHED:
         return Finished(_FINISHED.unpack_from(b)[1])
     if kind == _K_DONE:

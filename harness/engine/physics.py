@@ -52,14 +52,27 @@ class PhysicsSpec:
     spin_ns: int = SPIN_NS          # busy-wait this long before each due instant (sleep overshoots)
     fallback_nice: int = 0          # asked for where SCHED_FIFO is refused (engine.fallback_nice)
     cpu: int | None = None          # the core the physics keeps to itself (engine.physics_cpu)
+    offsets: tuple[int, ...] = (0,)  # each rig camera's trigger after camera 0 (steps); (0,): one camera
+    dropped: int = 0                # bit mask of rig cameras that never trigger (engine.faults.drop_camera)
 
 
-def capture_table(period_steps: int, phases: tuple[int, ...]) -> dict[int, tuple[int, ...]]:
-    """Step-in-period -> the egos (indices) whose camera captures at that step."""
-    out: dict[int, list[int]] = {}
+Captures = tuple[tuple[int, ...], tuple[int, ...]]  # (egos, the bit mask of each one's cameras that capture)
+
+
+def capture_table(period_steps: int, phases: tuple[int, ...], offsets: tuple[int, ...] = (0,),
+                  dropped: int = 0) -> dict[int, Captures]:
+    """Step-in-period -> the egos (indices) that capture at that step and, for each,
+    the bit mask of its rig's cameras that do (camera k triggers ``offsets[k]``
+    steps after the ego's phase; one camera: mask 1; the cameras of ``dropped``
+    never)."""
+    out: dict[int, dict[int, int]] = {}
     for vi, p in enumerate(phases):
-        out.setdefault(p % period_steps, []).append(vi)
-    return {k: tuple(v) for k, v in out.items()}
+        for k, off in enumerate(offsets):
+            if dropped >> k & 1:
+                continue
+            at = out.setdefault((p + off) % period_steps, {})
+            at[vi] = at.get(vi, 0) | (1 << k)
+    return {step: (tuple(m), tuple(m.values())) for step, m in out.items()}
 
 
 def spread_phases(n: int, period_steps: int) -> tuple[int, ...]:
@@ -155,7 +168,7 @@ class _Keeper:
         self.conn, self.run, self.jobs, self.sim, self.spec = conn, run, jobs, sim, spec
         self.shards, self.shard_of = shards, shard_of
         self.egos: tuple[str, ...] = sim.egos
-        self.table = capture_table(spec.period_steps, spec.phases)
+        self.table = capture_table(spec.period_steps, spec.phases, spec.offsets, spec.dropped)
         self.hist = LatenessHistogram(tolerance_ns=spec.late_tolerance_ns)
         self.halted = False
         self.exiting = False
@@ -202,19 +215,21 @@ class _Keeper:
         while ready := self._ready(0):
             self._serve(ready)
 
-    def _publish(self, vis: tuple[int, ...], t_state_ns: int) -> None:
+    def _publish(self, caps: Captures, t_state_ns: int) -> None:
         """A camera instant: the state to the render workers first (capture latency),
         then to the run process (truth)."""
+        vis, masks = caps
         steps, qpos, qvel = self.sim.state()
         by_worker: dict[int, list[int]] = {}
-        for vi in vis:
-            by_worker.setdefault(self.spec.assign[vi], []).append(vi)
+        for i, vi in enumerate(vis):
+            by_worker.setdefault(self.spec.assign[vi], []).append(i)
         unrendered: list[int] = []
         for w, mine in by_worker.items():
-            if not self.jobs[w].write(encode(RenderJob(steps, qpos, qvel, tuple(mine), t_state_ns))):
-                unrendered += mine  # that worker is behind: these frames will not come
+            job = RenderJob(steps, qpos, qvel, tuple(vis[i] for i in mine), t_state_ns, tuple(masks[i] for i in mine))
+            if not self.jobs[w].write(encode(job)):
+                unrendered += job.vis  # that worker is behind: these frames will not come
         collisions = tuple(self.sim.take_collisions())
-        state = encode(WorldState(vis, t_state_ns, steps, qpos, qvel, collisions, tuple(unrendered)))
+        state = encode(WorldState(vis, t_state_ns, steps, qpos, qvel, collisions, tuple(unrendered), masks))
         self.run.write(state)
         if self.shards:
             wanted = (range(len(self.shards)) if collisions or not self.spec.realtime
@@ -292,4 +307,4 @@ class _Keeper:
                 sim.step()
             if sim.steps >= spec.total_steps:
                 return
-            self._publish(self.table.get(sim.steps % spec.period_steps, ()), time.monotonic_ns())
+            self._publish(self.table.get(sim.steps % spec.period_steps, ((), ())), time.monotonic_ns())

@@ -63,6 +63,7 @@ class ShardIO:
     frames: tuple[Connection, ...]
     shm: dict[str, str]
     slot_bytes: int
+    cameras: int = 1
 
 
 class Engine:
@@ -89,7 +90,7 @@ class Engine:
         names = render.vehicles
         n_shards = max(shard_of, default=-1) + 1
         try:
-            self.slots = {v: FrameSlots(slot_bytes=render.slot_bytes) for v in names}
+            self.slots = {v: FrameSlots(slot_bytes=render.slot_bytes, cameras=render.cameras) for v in names}
             shm = {v: s.shm.name for v, s in self.slots.items()}
             self.workers = max(1, min(workers, len(names)))
             self.assign = {v: i % self.workers for i, v in enumerate(names)}
@@ -142,7 +143,7 @@ class Engine:
             self._shard_ends = [ShardIO(ring=shard_rings[k].consumer_spec(), control=controls[k][1],
                                         frames=tuple(frames[w][k][0] for w in range(self.workers)),
                                         shm={v: shm[v] for i, v in enumerate(names) if shard_of[i] == k},
-                                        slot_bytes=render.slot_bytes)
+                                        slot_bytes=render.slot_bytes, cameras=render.cameras)
                                 for k in range(n_shards)]
             self._procs.append(p)
             self._physics = pc

@@ -58,18 +58,26 @@ class RenderSpec:
     delay_ns: int = 0              # injected fault: hold a frame this long before t0 ...
     delay_every: int = 1           # ... every this many frames of a camera (engine.faults)
     out_of: dict[str, int] | None = None  # vehicle -> its shard's pipe (index into render_main's ``outs``)
+    cameras: int = 1               # cameras of each vehicle's rig
+
+
+def slot_of(frame: int, camera: int, cameras: int) -> int:
+    """The slot of a camera's ``frame``-th image in its vehicle's ring (``SLOTS``
+    images of each of the rig's ``cameras``)."""
+    return (frame % SLOTS) * cameras + camera
 
 
 class FrameSlots:
-    """One vehicle's ring of ``SLOTS`` image slots in shared memory (run side owns
-    and unlinks it)."""
+    """One vehicle's ring of ``SLOTS`` image slots per camera in shared memory (run
+    side owns and unlinks it)."""
 
-    def __init__(self, *, slot_bytes: int, name: str | None = None) -> None:
+    def __init__(self, *, slot_bytes: int, name: str | None = None, cameras: int = 1) -> None:
         self.slot_bytes = slot_bytes
         create = name is None
-        self.shm = shared_memory.SharedMemory(name=name, create=create, size=slot_bytes * SLOTS if create else 0)
+        n = SLOTS * cameras
+        self.shm = shared_memory.SharedMemory(name=name, create=create, size=slot_bytes * n if create else 0)
         self.owner = create
-        self.buf = np.ndarray((SLOTS, slot_bytes), np.uint8, buffer=self.shm.buf)
+        self.buf = np.ndarray((n, slot_bytes), np.uint8, buffer=self.shm.buf)
 
     def write(self, slot: int, data: bytes | np.ndarray) -> int:
         flat = np.frombuffer(data, np.uint8) if isinstance(data, (bytes, bytearray)) else data.reshape(-1)
@@ -126,14 +134,16 @@ def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, parent_pid: 
         # The first render compiles shaders and the first encode sets the encoder up:
         # both happen here, not on the run's first frame.
         for name in spec.vehicles:
-            encode_image(sim.render(name), jpeg=spec.jpeg, quality=spec.jpeg_quality)
+            for k in range(spec.cameras):
+                encode_image(sim.render(name, k), jpeg=spec.jpeg, quality=spec.jpeg_quality)
             if spec.visible_boxes:
                 sim.camera_truth(name, min_visible_px=spec.min_visible_px)
-        slots = {v: FrameSlots(slot_bytes=spec.slot_bytes, name=spec.shm[v]) for v in spec.vehicles}
+        slots = {v: FrameSlots(slot_bytes=spec.slot_bytes, name=spec.shm[v], cameras=spec.cameras)
+                 for v in spec.vehicles}
     except Exception as err:  # noqa: BLE001 - reported to the run, which raises SimulationError
         conn.send(WorkerFailed(f"render worker could not start: {err}"))
         os._exit(1)
-    counter = {v: 0 for v in spec.vehicles}
+    counter = {(v, k): 0 for v in spec.vehicles for k in range(spec.cameras)}
     ring = Ring.open(jobs, producer=False)
     to = {v: outs[spec.out_of[v]] if spec.out_of else conn for v in spec.vehicles}
     conn.send(WorkerReady(os.getpid()))
@@ -158,23 +168,30 @@ def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, parent_pid: 
 
 
 def _render_job(job: RenderJob, to: dict[str, Connection], sim: Any, slots: dict[str, FrameSlots],
-                counter: dict[str, int], spec: RenderSpec) -> None:
-    """Render, stamp, encode and hand over the frames of one job; then their camera
-    truth (segmentation), which adds no capture latency there."""
+                counter: dict[tuple[str, int], int], spec: RenderSpec) -> None:
+    """Render, stamp, encode and hand over the frames of one job (each vehicle's rig
+    cameras of the job in camera order); then the camera truth (segmentation) of the
+    vehicles whose camera 0 was among them, which adds no capture latency there."""
     steps = job.steps
     sim.load_state(steps, job.qpos, job.qvel)
     names = [sim.egos[vi] for vi in job.vis]
-    for name in names:
-        rgb = sim.render(name)
-        if spec.delay_ns and counter[name] % spec.delay_every == 0:
-            _hold(spec.delay_ns)
-        t0 = time.monotonic_ns()
-        data, enc = encode_image(rgb, jpeg=spec.jpeg, quality=spec.jpeg_quality)
-        slot = counter[name] % SLOTS
-        counter[name] += 1
-        n = slots[name].write(slot, data)
-        to[name].send(FrameReady(name, steps, job.t_state_ns, sim.speed_mps(name), t0, time.monotonic_ns(), slot, n,
-                                 enc))
+    masks = job.masks or (1,) * len(names)
+    for name, mask in zip(names, masks):
+        for k in range(spec.cameras):
+            if not mask >> k & 1:
+                continue
+            rgb = sim.render(name, k)
+            i = counter[(name, k)]
+            if spec.delay_ns and i % spec.delay_every == 0:
+                _hold(spec.delay_ns)
+            t0 = time.monotonic_ns()
+            data, enc = encode_image(rgb, jpeg=spec.jpeg, quality=spec.jpeg_quality)
+            slot = slot_of(i, k, spec.cameras)
+            counter[(name, k)] = i + 1
+            n = slots[name].write(slot, data)
+            to[name].send(FrameReady(name, steps, job.t_state_ns, sim.speed_mps(name), t0, time.monotonic_ns(), slot,
+                                     n, enc, k))
     if spec.visible_boxes:
-        for name in names:
-            to[name].send(CameraTruthReady(name, steps, sim.camera_truth(name, min_visible_px=spec.min_visible_px)))
+        for name, mask in zip(names, masks):
+            if mask & 1:
+                to[name].send(CameraTruthReady(name, steps, sim.camera_truth(name, min_visible_px=spec.min_visible_px)))

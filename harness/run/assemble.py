@@ -3,13 +3,12 @@ the engine's pumps and the links' readers."""
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
-from hil.adapters.wire.messages import CameraInfo
 from hil.harness.config.model import RunConfig
 from hil.harness.engine.analysis_thread import AnalysisThread
 from hil.harness.run.loop import SimLoop
+from hil.harness.run.rig_frames import rig_cams
 from hil.harness.run.shard import VehicleShard
 from hil.harness.run.tasks import TruthCache, VehicleTasks, WorldTasks
 
@@ -19,13 +18,10 @@ def local_loop(cfg: RunConfig, sim: Any, vehicles: list[Any], *, engine: Any, ph
     """The loop of a run whose vehicles all live in this process: one shard, whose
     handlers the engine's pumps and the links' readers call directly."""
     analysis = AnalysisThread()
-    intr = sim.intrinsics()
-    cam = cfg.camera
-    camera_info = CameraInfo(intr.fx, intr.fy, intr.cx, intr.cy, cam.mount_height_m, math.radians(cam.pitch_deg))
     cache = TruthCache()  # the world's truth of an instant serves the detector's at t_apply (lockstep)
     tasks = VehicleTasks(sim, rec, clock, cache=cache, render_worker=engine.assign)
     box: list[Any] = []  # the loop, once built (the shard's callbacks reach it)
-    shard = VehicleShard(cfg, vehicles, egos=sim.egos, step_ns=sim.step_ns, camera_info=camera_info, tasks=tasks,
+    shard = VehicleShard(cfg, vehicles, egos=sim.egos, step_ns=sim.step_ns, cams=rig_cams(sim), tasks=tasks,
                          analysis=analysis, events=bus, clock=clock, frame_bytes=engine.frame_bytes,
                          send_control=engine.control, on_stop=lambda why: box[0].request_stop(why),
                          wake=lambda: box[0].wake(), latency=latency)

@@ -101,16 +101,22 @@ def build_world(cfg: RunConfig) -> tuple[Any, Any]:
     """
     from hil import scenarios
     from hil.scenarios.ground_truth import RefStateRules
-    from hil.scenarios.world import CameraSpec
+    from hil.scenarios.world import CameraSpec, RigMount
 
     sdef = scenarios.get(cfg.scenario.name)
     params = sdef.resolve(cfg.scenario.params)
     cam = cfg.camera
+    # The "front" preset is the one camera of before rigs: no rig, the same world.
+    rig = () if cam.rig == "front" else tuple(
+        RigMount(c.name, c.forward_m, c.lateral_m, c.height_m, math.radians(c.yaw_deg), math.radians(c.pitch_deg),
+                 math.radians(c.roll_deg), float(c.fovy_deg or cam.fovy_deg), int(c.width or cam.width),
+                 int(c.height or cam.height)) for c in cam.cameras())
     world = sdef.build(params=params, seed=cfg.seed, physics_step_s=cfg.physics_step_s,
                        camera=CameraSpec(width=cam.width, height=cam.height, fovy_deg=cam.fovy_deg,
                                          mount_forward_m=cam.mount_forward_m,
                                          mount_height_m=cam.mount_height_m, mount_lateral_m=cam.mount_lateral_m,
-                                         pitch_rad=math.radians(cam.pitch_deg), yaw_rad=math.radians(cam.yaw_deg)),
+                                         pitch_rad=math.radians(cam.pitch_deg), yaw_rad=math.radians(cam.yaw_deg),
+                                         rig=rig),
                        shadows=cam.shadows, reflections=cam.reflections)
     t = cfg.truth
     rules = RefStateRules(comfort_decel_mps2=t.comfort_decel_mps2, stop_margin_m=t.stop_margin_m,

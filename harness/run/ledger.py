@@ -25,12 +25,15 @@ from hil.harness.run.vehicle_state import InFlight, VehicleRun
 
 
 class Answer(NamedTuple):
-    """A frame in flight and the estimate that answered it, received at ``t0p_ns``."""
+    """A frame in flight and the estimate that answered it, received at ``t0p_ns``;
+    ``rest``: the other frames of its frame set the same ESTIMATE answered (a target
+    that answers per set), settled with it."""
 
     v: VehicleRun
     fl: InFlight
     m: Estimate
     t0p_ns: int
+    rest: tuple[InFlight, ...] = ()
 
 
 Task = tuple[Callable[..., None], tuple[Any, ...]]  # an analysis task: fn(*args)
@@ -43,8 +46,8 @@ class FrameLedger:
         # (vi, steps) of frames whose camera instant came and whose FrameReady did not
         # yet, and of frames ready before their instant's world state (the worker has
         # the job from the physics directly; its pipe may overtake the physics's ring).
-        self._rendering: set[tuple[int, int]] = set()
-        self._ready_early: set[tuple[int, int]] = set()
+        self._rendering: set[tuple[int, int, int]] = set()  # (vi, steps, camera)
+        self._ready_early: set[tuple[int, int, int]] = set()
         self.lockstep_controls: list[ApplyControl] = []
         self._in_flight: dict[int, dict[int, InFlight]] = {}
         self._n_in_flight = 0
@@ -55,13 +58,14 @@ class FrameLedger:
 
     # -- rendering -------------------------------------------------------------------
 
-    def capturing(self, steps: int, vis: list[int]) -> None:
-        """The world state of camera instant ``steps``: egos ``vis`` are rendering.
-        States come in order, so a frame ready early for an instant before this one
-        never meets its state (lost on a full ring): forgotten."""
+    def capturing(self, steps: int, caps: list[tuple[int, int]]) -> None:
+        """The world state of camera instant ``steps``: cameras ``caps`` (ego ``vi``,
+        camera of its rig) are rendering. States come in order, so a frame ready early
+        for an instant before this one never meets its state (lost on a full ring):
+        forgotten."""
         early = self._ready_early
-        for vi in vis:
-            key = (vi, steps)
+        for vi, cam in caps:
+            key = (vi, steps, cam)
             if key in early:
                 early.discard(key)
             else:
@@ -69,9 +73,9 @@ class FrameLedger:
         if early:
             self._ready_early = {k for k in early if k[1] > steps}
 
-    def rendered(self, vi: int, steps: int) -> None:
-        """Ego ``vi``'s frame of instant ``steps`` is ready."""
-        key = (vi, steps)
+    def rendered(self, vi: int, steps: int, cam: int = 0) -> None:
+        """Ego ``vi``'s frame of instant ``steps`` (camera ``cam`` of its rig) is ready."""
+        key = (vi, steps, cam)
         if key in self._rendering:
             self._rendering.discard(key)
         else:
@@ -90,6 +94,16 @@ class FrameLedger:
         if fl is not None:
             self._n_in_flight -= 1
         return fl
+
+    def answer_set(self, vi: int, set_id: int, cameras: int) -> list[InFlight]:
+        """The in-flight frames of the frame set ``set_id`` (frame ids ``set_id`` ..
+        ``set_id + cameras - 1``) one ESTIMATE answers, taken out in camera order."""
+        mine = self._in_flight.get(vi)
+        if not mine:
+            return []
+        out = [fl for fid in range(set_id, set_id + cameras) if (fl := mine.pop(fid, None)) is not None]
+        self._n_in_flight -= len(out)
+        return out
 
     def receipt_uncertainty(self, vi: int, frame_id: int, ns: int) -> None:
         """The answer to an in-flight frame was stamped to within ``ns`` (a span)."""

@@ -83,7 +83,7 @@ class SimLoop:
         self.on_tick = on_tick
         self.frame_tolerance_ns = cfg.frame_late_tolerance_ns
         self.period = cfg.camera_period_steps
-        self.table = capture_table(self.period, physics.phases)
+        self.table = capture_table(self.period, physics.phases, physics.offsets, physics.dropped)
         self._cv = threading.Condition()
         self._sim_steps = 0
         self._state_seen = -1
@@ -154,8 +154,9 @@ class SimLoop:
         shards (a camera truth of the instant must find its truth there first)."""
         steps = ws.steps
         self._sim_steps = max(self._sim_steps, steps)
-        if ws.vis or ws.collisions:
-            names = tuple(self.egos[i] for i in ws.vis)
+        # The truth of an instant is its camera 0's (a rig's trigger-offset cameras add none).
+        names = tuple(self.egos[vi] for i, vi in enumerate(ws.vis) if ws.cameras(i) & 1)
+        if names or ws.collisions:
             self.analysis.post(self.world.truth, steps, ws.qpos, ws.qvel, ws.collisions, names)
         for sh in self.shards:
             sh.on_state(ws)

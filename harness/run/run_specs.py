@@ -3,7 +3,7 @@ loop starts, and what the loop hands back."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -31,14 +31,22 @@ def engine_specs(cfg: RunConfig, world: Any, rules: Any) -> tuple[PhysicsSpec, R
     phases = (spread_phases(len(egos), period) if realtime and eng.capture_phase == "spread"
               else tuple(0 for _ in egos))
     cam = cfg.camera
+    # A rig's trigger offsets, in real time; lockstep triggers every camera at camera
+    # 0's instant (as it aligns every vehicle's phase): it waits for each set's answer.
+    offsets = cfg.rig_offset_steps if realtime else tuple(0 for _ in cfg.rig_offset_steps)
     physics = PhysicsSpec(world=world, rules=rules, realtime=realtime,
                           total_steps=round(cfg.duration_s * 1e9 / step_ns),
                           wall_per_step_ns=step_ns / cfg.realtime_factor, period_steps=period, phases=phases,
                           late_tolerance_ns=int(eng.late_tolerance_ms * 1e6),
                           realtime_priority=eng.realtime_priority if realtime else 0,
                           fallback_nice=eng.fallback_nice if realtime else 0,
-                          cpu=physics_core(eng.physics_cpu) if realtime else None)
-    render = RenderSpec(world=world, vehicles=egos, shm={}, slot_bytes=cam.width * cam.height * 3 + 65536,
+                          cpu=physics_core(eng.physics_cpu) if realtime else None, offsets=offsets)
+    rig = cam.cameras()
+    drop = eng.faults.drop_camera
+    if drop is not None:
+        physics = replace(physics, dropped=1 << [c.name for c in rig].index(drop))
+    most = max((c.width or cam.width) * (c.height or cam.height) for c in rig)
+    render = RenderSpec(world=world, vehicles=egos, shm={}, slot_bytes=most * 3 + 65536, cameras=len(rig),
                         jpeg=cam.encoding == Encoding.JPEG, jpeg_quality=cam.jpeg_quality,
                         visible_boxes=cfg.truth.visible_boxes, min_visible_px=cfg.truth.min_visible_px,
                         delay_ns=int(eng.faults.render_delay_ms * 1e6), delay_every=eng.faults.render_delay_every)

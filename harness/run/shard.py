@@ -25,7 +25,7 @@ from collections.abc import Callable
 from typing import Any
 
 from hil.adapters.link import ProtocolFault, Received
-from hil.adapters.wire.messages import CameraInfo, Command, ErrorMsg, Estimate, ImageEncoding
+from hil.adapters.wire.messages import Command, ErrorMsg, Estimate, ImageEncoding
 from hil.adapters.wire.protocol import ErrorCode
 from hil.common.errors import TransportError
 from hil.harness.vocab.events import Event, EventBus, EventKind
@@ -34,6 +34,7 @@ from hil.harness.engine.analysis_thread import AnalysisThread
 from hil.harness.engine.messages import Applied, ApplyControl, CameraTruthReady, FrameReady, WorldState
 from hil.harness.run.latency import HeldControls, LatencyProfile
 from hil.harness.run.ledger import Answer, FrameLedger
+from hil.harness.run.rig_frames import RigCam, RigNumbering, target_mode
 from hil.harness.run.tasks import VehicleTasks, pipeline_record
 from hil.harness.run.vehicle_state import InFlight, VehicleRun
 from hil.timing.clock import Clock
@@ -57,7 +58,7 @@ class VehicleShard:
     """
 
     def __init__(self, cfg: RunConfig, vehicles: list[VehicleRun], *, egos: tuple[str, ...], step_ns: int,
-                 camera_info: CameraInfo, tasks: VehicleTasks, analysis: AnalysisThread, events: EventBus,
+                 cams: tuple[RigCam, ...], tasks: VehicleTasks, analysis: AnalysisThread, events: EventBus,
                  clock: Clock, frame_bytes: FrameBytes, send_control: SendControl,
                  on_stop: Callable[[str], None], wake: Callable[[], None] = lambda: None,
                  latency: LatencyProfile | None = None) -> None:
@@ -65,10 +66,12 @@ class VehicleShard:
         self.by_id = {v.vehicle_id: v for v in vehicles}
         self.by_name = {v.name: v for v in vehicles}
         self.step_ns = step_ns
-        self.camera_info = camera_info
+        self.cams = cams  # the rig's cameras, camera 0 first (one: a single camera)
         self.tasks, self.analysis, self.events = tasks, analysis, events
         self._frame_bytes, self._send_control, self._on_stop, self._wake = frame_bytes, send_control, on_stop, wake
         self.lockstep = cfg.mode == Mode.LOCKSTEP
+        offsets = cfg.rig_offset_steps if not self.lockstep else tuple(0 for _ in cams)  # as the physics triggers
+        self.rig = {v.vehicle_id: RigNumbering(offsets, step_ns) for v in vehicles}
         self.latency = latency if self.lockstep and latency is not None else None
         self.held = None if self.latency is None else HeldControls(self.latency, step_ns=step_ns)
         self.timeout_ns = int(cfg.target.estimate_timeout_s * 1e9)
@@ -105,7 +108,9 @@ class VehicleShard:
                 self._camera_truth(ct)
             if self.stopping:
                 return
-            self.ledger.capturing(steps, [vi for vi in mine if vi not in ws.unrendered])
+            self.ledger.capturing(steps, [(vi, k) for i, vi in enumerate(ws.vis) if vi in self.by_id
+                                          and vi not in ws.unrendered for k in range(len(self.cams))
+                                          if ws.cameras(i) >> k & 1])
             for vi in mine:
                 v = self.by_id[vi]
                 if not v.link.alive:
@@ -211,7 +216,8 @@ class VehicleShard:
             if self.held is not None:
                 for h in self.held.pop_all():  # never applied: pending
                     a: Answer = h.item  # type: ignore[assignment]
-                    self._add_record(a.v, pipeline_record(a.v, a.fl, FrameStatus.PENDING, a.m, a.t0p_ns), a.m)
+                    for fl in (a.fl, *a.rest):
+                        self._add_record(a.v, pipeline_record(a.v, fl, FrameStatus.PENDING, a.m, a.t0p_ns), a.m)
             ctls, self.ledger.lockstep_controls = self.ledger.lockstep_controls, []
             return ctls
 
@@ -245,31 +251,49 @@ class VehicleShard:
         finally:
             # Rendering ends once the frame is in flight (or not sent): the shard is
             # never seen idle in between, by a loop that reads ``busy`` unlocked.
-            self.ledger.rendered(v.vehicle_id, f.steps)
+            self.ledger.rendered(v.vehicle_id, f.steps, f.camera)
 
     def _send(self, v: VehicleRun, f: FrameReady) -> None:
         if self.stopping:
             return
+        rig = self._rig(v)
+        at, v.next_frame_id = rig.number(v.next_frame_id, f.steps, f.camera)
+        if at is None:  # another camera of a rig this target does not take
+            return
         data = self._frame_bytes(f.vehicle, f.slot, f.nbytes)
-        cam = self.cfg.camera
-        frame_id = v.next_frame_id
-        v.next_frame_id += 1
-        if self._boxes:
+        cam = self.cams[f.camera]
+        frame_id = at.frame_id
+        if self._boxes and f.camera == 0:
             self._frame_of[(f.vehicle, f.steps)] = frame_id
-        sim_time_ns = f.steps * self.step_ns
         try:
-            t_tx = v.link.send_frame(frame_id=frame_id, sim_time_ns=sim_time_ns, t0_ns=f.t0_ns, width=cam.width,
-                                     height=cam.height, encoding=ImageEncoding(f.encoding), camera=self.camera_info,
-                                     ego_speed_mps=f.speed_mps, data=data)
+            t_tx = v.link.send_frame(frame_id=frame_id, sim_time_ns=at.sim_time_ns, t0_ns=f.t0_ns, width=cam.width,
+                                     height=cam.height, encoding=ImageEncoding(f.encoding), camera=cam.info,
+                                     ego_speed_mps=f.speed_mps, data=data, camera_index=at.camera_index,
+                                     camera_count=at.camera_count)
         except TransportError as err:
             self._on_stop(f"target of {v.name} is gone: {err}")
             return
-        self.ledger.sent(v.vehicle_id, InFlight(frame_id, sim_time_ns, f.t0_ns, t_tx, f.t_state_ns))
+        self.ledger.sent(v.vehicle_id, InFlight(frame_id, at.sim_time_ns, f.t0_ns, t_tx, f.t_state_ns,
+                                                camera=f.camera if len(self.cams) > 1 else None))
         v.frame_out(t_tx - f.t_state_ns, tolerance_ns=self.frame_tolerance_ns)
-        v.fps_meter.add(f.t0_ns)
-        if self._images:
+        if f.camera == 0:
+            v.fps_meter.add(f.t0_ns)
+        if self._images and f.camera == 0:  # the rig's camera 0 is the vehicle's /camera
             self.analysis.post(functools.partial(self.tasks.image, v.name, data, f.t0_ns, jpeg=self._jpeg,
                                                  width=cam.width, height=cam.height))
+
+    def _rig(self, v: VehicleRun) -> RigNumbering:
+        """The vehicle's frame numbering, knowing how its target takes a rig (its
+        HELLO); a rig of several cameras to a target that takes one is said once."""
+        rig = self.rig[v.vehicle_id]
+        if rig.mode is None:
+            rig.mode = target_mode(v.link.hello.capabilities if v.link.hello is not None else 0)
+            if len(self.cams) > 1 and not rig.sends_sets():
+                self._event(Event.of(EventKind.RIG_CAMERA_ZERO_ONLY, self.clock.now_ns(), vehicle=v.name,
+                                     sim_time_ns=self._sim_ns, detail=f"the target of {v.name} did not announce "
+                                     f"CAP_CAMERAS: it gets camera 0 ({self.cams[0].name}) only, as a single camera",
+                                     extra={"cameras": len(self.cams)}))
+        return rig
 
     def _camera_truth(self, ct: CameraTruthReady) -> None:
         """Camera truth goes to the analysis after its instant's ground truth (the
@@ -349,7 +373,13 @@ class VehicleShard:
             pass
 
     def _on_estimate(self, v: VehicleRun, m: Estimate, t0p: int) -> None:
-        fl = self.ledger.answer(v.vehicle_id, m.frame_id)
+        rig = self.rig[v.vehicle_id]
+        rest: tuple[InFlight, ...] = ()
+        if rig.answers_sets():  # one ESTIMATE answers every frame of its set
+            fls = self.ledger.answer_set(v.vehicle_id, m.frame_id, rig.cameras)
+            fl, rest = (fls[0], tuple(fls[1:])) if fls else (None, ())
+        else:
+            fl = self.ledger.answer(v.vehicle_id, m.frame_id)
         if fl is None:
             # Already counted as dropped (late) or never sent (a confused target).
             late = m.frame_id < v.next_frame_id
@@ -360,7 +390,7 @@ class VehicleShard:
             self._event(Event.of(EventKind.LATE_ESTIMATE if late else EventKind.UNKNOWN_ESTIMATE, t0p,
                                  vehicle=v.name, frame_ids=(m.frame_id,), extra={"t0p_ns": t0p}))
             return
-        a = Answer(v, fl, m, t0p)
+        a = Answer(v, fl, m, t0p, rest)
         if self.held is not None:  # lockstep latency profile: applied when sim time comes
             self._hold(a)
             return
@@ -394,7 +424,8 @@ class VehicleShard:
         v, fl = a.v, a.fl
         d = self.latency.delay(v.vehicle_id, fl.frame_id)
         if d.latency_ns is None:  # the replayed run lost (or discarded) this frame: so does the replay
-            self._add_record(v, pipeline_record(v, fl, d.status, a.m, a.t0p_ns), a.m)
+            for x in (fl, *a.rest):
+                self._add_record(v, pipeline_record(v, x, d.status, a.m, a.t0p_ns), a.m)
             self._event(Event.of(EventKind("replayed_" + d.status.value), fl.t0_ns, vehicle=v.name,
                                  frame_ids=(fl.frame_id,), sim_time_ns=fl.sim_time_ns), a.t0p_ns)
             return

@@ -3,7 +3,6 @@ shard, and the loop that keeps its time and answers the run process."""
 
 from __future__ import annotations
 
-import math
 import os
 import signal
 import threading
@@ -108,9 +107,9 @@ class ShardHost:
 
     def _build(self, start: ShardStart, warmup: dict[str, list[Any]]) -> None:
         from hil.adapters.impair import record_on
-        from hil.adapters.wire.messages import CameraInfo
+        from hil.harness.run.rig_frames import rig_cams
         from hil.harness.cases.detector_observer import DetectorObserver
-        from hil.harness.analysis.timing_observer import TimingObserver
+        from hil.harness.analysis.timing_observer import TimingObserver, rig_of
         from hil.harness.config.loading import dump_config
         from hil.harness.record.channels import register_all, sync_sample_json, views_of
         from hil.harness.record.producer import EncodingRecorder
@@ -126,7 +125,7 @@ class ShardHost:
         bus.subscribe(lambda ev, log_ns: enc.write_event(ev.to_json(), log_ns))
         for v in self.vehicles:
             record_on(v.link.impairment, enc, f"/{v.name}/impairment")
-        self.timing = TimingObserver(cfg.timing, names, recorder=enc, events=bus)
+        self.timing = TimingObserver(cfg.timing, names, recorder=enc, events=bus, rig=rig_of(cfg))
         self.detector = (DetectorObserver(cfg.detector, names, camera=cfg.camera, recorder=enc,
                                           timing=self.timing, events=bus) if cfg.detector.enabled else None)
         for name, samples in warmup.items():
@@ -140,12 +139,9 @@ class ShardHost:
         if self.detector is not None:
             self.tasks.observers.append(self.detector)
         self.analysis = AnalysisThread()
-        self.slots = {v: FrameSlots(slot_bytes=io.slot_bytes, name=n) for v, n in io.shm.items()}
-        intr = self.sim.intrinsics()
-        cam = cfg.camera
-        camera_info = CameraInfo(intr.fx, intr.fy, intr.cx, intr.cy, cam.mount_height_m, math.radians(cam.pitch_deg))
+        self.slots = {v: FrameSlots(slot_bytes=io.slot_bytes, name=n, cameras=io.cameras) for v, n in io.shm.items()}
         self.shard = VehicleShard(cfg, self.vehicles, egos=self.sim.egos, step_ns=self.sim.step_ns,
-                                  camera_info=camera_info, tasks=self.tasks, analysis=self.analysis, events=bus,
+                                  cams=rig_cams(self.sim), tasks=self.tasks, analysis=self.analysis, events=bus,
                                   clock=self.clock, frame_bytes=self._frame_bytes, send_control=self._control,
                                   on_stop=self._ask_stop, wake=self.bell.ring, latency=self.spec.latency)
         self.mine = {v.vehicle_id: v.name for v in self.vehicles}
@@ -160,7 +156,7 @@ class ShardHost:
     def _on_physics(self, msg: object) -> None:
         match msg:
             case WorldState():
-                names = tuple(self.mine[vi] for vi in msg.vis if vi in self.mine)
+                names = tuple(self.mine[vi] for i, vi in enumerate(msg.vis) if vi in self.mine and msg.cameras(i) & 1)
                 if names or msg.collisions:
                     assert self.analysis is not None
                     self.analysis.post(self.tasks.truth, msg.steps, msg.qpos, msg.qvel, msg.collisions, names)

@@ -33,10 +33,11 @@ def pipeline_record(v: VehicleRun, fl: InFlight, status: FrameStatus, m: Estimat
     """The one place a frame's pipeline record is built."""
     if m is None:
         return PipelineRecord(v.name, fl.frame_id, fl.sim_time_ns, fl.t0_ns, fl.t_tx_ns, status,
-                              t_state_ns=fl.t_state_ns)
+                              t_state_ns=fl.t_state_ns, camera=fl.camera)
     return PipelineRecord(v.name, fl.frame_id, fl.sim_time_ns, fl.t0_ns, fl.t_tx_ns, status,
                           m.t_rx_target_ns, m.t_infer_start_target_ns, m.t_infer_end_target_ns,
-                          m.t_reply_target_ns, t0p, t_apply, sim_apply, fl.t_state_ns, fl.t0p_uncertainty_ns)
+                          m.t_reply_target_ns, t0p, t_apply, sim_apply, fl.t_state_ns, fl.t0p_uncertainty_ns,
+                          fl.camera)
 
 
 def estimate_json(m: Estimate) -> dict[str, Any]:
@@ -182,7 +183,8 @@ class VehicleTasks:
                  sim_apply: int | None = None) -> None:
         """An answered frame's record (applied, or stale) and its estimate."""
         v, m = a.v, a.m
-        self.record(v, pipeline_record(v, a.fl, status, m, a.t0p_ns, t_apply, sim_apply), m)
+        for fl in (a.fl, *a.rest):  # a set's ESTIMATE answers each of its frames
+            self.record(v, pipeline_record(v, fl, status, m, a.t0p_ns, t_apply, sim_apply), m)
         self.rec.write_json(f"/{v.name}/estimate", estimate_json(m), log_time_ns=a.t0p_ns,
                             publish_time_ns=a.t0p_ns if m.t_reply_target_ns is None else m.t_reply_target_ns)
 

@@ -24,6 +24,7 @@ class InFlight:
     t_tx_ns: int
     t_state_ns: int | None = None  # the camera instant: when the physics reached sim_time_ns
     t0p_uncertainty_ns: int = 0  # the answer's receipt stamp is known to [t0' - this, t0'] (hil.adapters.wire.receipt)
+    camera: int | None = None  # the camera of the vehicle's rig (None: a rig of one camera)
 
 
 class ProgressRow(NamedTuple):

@@ -48,6 +48,11 @@ class EventKind(str, Enum):
     SKEW_LIMIT = "skew_limit"
     SYNC_LOST = "sync_lost"
     CAUSALITY = "causality"
+    # a vehicle's camera rig (harness/analysis/rig_observer.py), each flagged once at the
+    # frame set where it begins
+    RIG_DESYNC = "rig_desync"          # capture skew or arrival spread of a set over its threshold
+    CAMERA_MISSING = "camera_missing"  # a set settled without one of its cameras
+    CAMERA_LATE = "camera_late"        # one camera's end-to-end persistently above the rest of the rig's
     # state mismatches against ground truth (hil.harness.cases.detector.MismatchKind)
     POSITION_ERROR = "mismatch.position_error"
     MISSED_OBJECT = "mismatch.missed_object"
@@ -74,6 +79,8 @@ class EventKind(str, Enum):
     REPLAYED_PENDING = "replayed_pending"
     # the harness itself: a process that could not keep up with the physics's rings
     CONSUMER_BEHIND = "consumer_behind"
+    # a rig of several cameras whose target did not announce CAP_CAMERAS: camera 0 only
+    RIG_CAMERA_ZERO_ONLY = "rig_camera_zero_only"
 
     @property
     def is_mismatch(self) -> bool:
@@ -95,7 +102,7 @@ _FAMILY: Mapping[EventKind, str] = {
     EventKind.TARGET_COMMAND_FAILED: "command",
     EventKind.PROTOCOL_ERROR: "protocol", EventKind.TARGET_ERROR: "target",
     **{k: "replay" for k in EventKind if k.value.startswith("replayed_")},
-    EventKind.CONSUMER_BEHIND: "harness",
+    EventKind.CONSUMER_BEHIND: "harness", EventKind.RIG_CAMERA_ZERO_ONLY: "target",
 }
 
 # Severity of the kinds that do not carry their own (anomalies and mismatches do).
@@ -110,6 +117,10 @@ DEFAULT_SEVERITY: Mapping[EventKind, Severity] = {
     EventKind.REPLAYED_STALE: Severity.WARNING,
     EventKind.REPLAYED_PENDING: Severity.WARNING,
     EventKind.CONSUMER_BEHIND: Severity.WARNING,
+    EventKind.RIG_CAMERA_ZERO_ONLY: Severity.WARNING,
+    EventKind.RIG_DESYNC: Severity.WARNING,
+    EventKind.CAMERA_MISSING: Severity.WARNING,
+    EventKind.CAMERA_LATE: Severity.WARNING,
 }
 
 

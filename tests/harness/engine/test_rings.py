@@ -80,7 +80,8 @@ def test_every_message_the_physics_sends_survives_the_codec() -> None:
     q, v = np.linspace(0, 1, 37), np.linspace(-1, 0, 30)
     hit = Collision(12_000_000, "ego0", "van1", 812.5, 3.25, "ego0")
     for msg in (WorldState((0, 2), 5, 6, q, v, (hit,), (2,)), Applied(3, 7, 8, 9, q, v),
-                RenderJob(4, q, v, (1, 3), 11), Finished(12),
+                WorldState((1, 4), 5, 6, q, v, (), (4,), (0b111111, 2**31 + 1)),  # a rig's camera masks
+                RenderJob(4, q, v, (1, 3), 11), RenderJob(4, q, v, (1, 3), 11, (1, 6)), Finished(12),
                 Done({"steps": 5, "behind": {"run": 2}}, 13, q, v, (hit,))):
         back = decode(encode(msg))
         assert type(back) is type(msg)
