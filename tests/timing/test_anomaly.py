@@ -9,14 +9,14 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from hil.common.errors import ConfigError
 from hil.timing.anomaly import Anomaly, AnomalyDetector, AnomalyKind, Severity, Thresholds, is_sane
 from hil.timing.clock import ManualClock, OffsetClock
 from hil.timing.histogram import StageHistograms
-from hil.timing.pipeline import split_stages
+from hil.timing.pipeline import causality_violations, split_stages
 from hil.timing.records import FrameStatus, PipelineRecord
 from hil.timing.sync import ClockSync, SyncEvent, SyncEventKind, SyncSample, SyncState
 
@@ -331,6 +331,10 @@ stamp = st.one_of(st.none(), st.integers(-2**63, 2**63 - 1), st.integers(0, 2 * 
 
 
 @settings(max_examples=300, deadline=None)
+# Found by the search: a sane record whose turnaround is 1 ns longer than the round
+# trip (within two clocks' tolerance), mapped across a clock 1 s apart.
+@example(t0=1, t_tx=1, rx=1, s=None, e=None, reply=2, t0p=1, apply=None, sim=0, status=FrameStatus.OK)
+@example(t0=1, t_tx=1, rx=1, s=None, e=None, reply=1, t0p=1, apply=None, sim=0, status=FrameStatus.OK)
 @given(t0=st.integers(-2**63, 2**63 - 1), t_tx=st.integers(-2**63, 2**63 - 1), rx=stamp, s=stamp,
        e=stamp, reply=stamp, t0p=stamp, apply=stamp, sim=st.integers(-2**63, 2**63 - 1),
        status=st.sampled_from(list(FrameStatus)))
@@ -343,8 +347,17 @@ def test_any_record_never_crashes_and_never_yields_negative_stats(t0, t_tx, rx, 
     det.on_tick(10**15)
     ok, _ = is_sane(rec)
     if ok:
-        assert all(v >= 0 for v in rec.stages_ns().values() if v is not None)
-        assert all(sp.value_ns >= 0 for sp in split_stages(rec, mapper).values())
+        # Sane: every sync-free stage is >= 0, but transport (the harness round trip
+        # less the target's own turnaround, two clocks) may be below 0 by the
+        # tolerance is_sane grants two clocks' resolution and skew.
+        th = Thresholds()
+        stages = rec.stages_ns()
+        slack = th.clock_tolerance_ns + th.max_skew_ppm * 1e-6 * stages.get("target_total", 0)
+        assert all(v >= (-slack if k == "transport" else 0) for k, v in stages.items())
+        # Cross-clock splits are signed: below 0 by more than their bound only where
+        # the record breaks causality under the mapping, which is flagged as such.
+        if not causality_violations(rec, mapper):
+            assert all(sp.value_ns + sp.uncertainty_ns >= 0 for sp in split_stages(rec, mapper).values())
     hist = StageHistograms()
     hist.record_record(rec)
     assert all(hist.percentiles_ms(x).get("min_ms", 0) >= 0 for x in hist.stages())
