@@ -298,7 +298,8 @@ class TimingObserver:
 
     def live_p(self, vehicle: str, q: float) -> float | None:
         p = self.v[vehicle].hist.percentiles_ms("end_to_end")
-        return p.get(f"p{q:g}_ms") if p.get("count") else None  # type: ignore[return-value]
+        v = p.get(f"p{q:g}_ms") if p.get("count") else None
+        return None if v is None else float(v)
 
     def splits(self, vehicle: str) -> dict[str, list[SplitRow]]:
         """Every reported cross-clock split of ``vehicle``, in analysis order."""
