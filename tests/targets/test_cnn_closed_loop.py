@@ -98,9 +98,9 @@ def _drive(scenario: str, seed: int) -> Drive | tuple[bool, dict[str, float], Dr
 @pytest.fixture(scope="module")
 def drives() -> tuple[Drive, list[tuple[bool, dict[str, float], Drive]]]:
     """The 60 s curved road and the ten ``stopped_car`` seeds, as many at once as there
-    are cores: each drive is lockstep on one torch thread, nothing in it reads a clock,
-    so a child process computes the very drive this one would (the tests' time, 57 s
-    one after the other on 2 cores, is what is saved)."""
+    are cores: each drive is lockstep on one torch thread and nothing it is judged on
+    reads a clock, so a child process computes the very drive this one would (57 s
+    one after the other on a 2-core machine, the lane drive a third of it)."""
     from tests.conftest import in_child_processes
 
     lane, *seeds = in_child_processes(_drive, [("curved_road", 0)] + [("stopped_car", seed) for seed in range(10)])

@@ -58,10 +58,10 @@ def run_and_events(out: Path, scenario: str, latency_ms: int) -> SimpleNamespace
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
-    # Lockstep runs, as many at once as there are cores: each waits for every estimate
-    # and reads no clock for what it records on the sim side, so a run beside another
-    # is the run alone (test_the_same_cases_in_a_second_run checks one against a run of
-    # its own); the loop's 20 s on 2 cores is what is saved.
+    # Lockstep runs, as many at once as there are cores (each keeps about one busy):
+    # a run waits for every estimate and reads no clock for what it records on the sim
+    # side, so a run beside another is the run alone (test_the_same_cases_in_a_second_run
+    # checks one against a run of its own).
     root = tmp_path_factory.mktemp("latency")
     keys = [(s, ms) for s in SCENARIOS for ms in LATENCIES_MS]
     return dict(zip(keys, in_child_processes(run_and_events, [(root / f"{s}-{ms}", s, ms) for s, ms in keys])))
