@@ -62,12 +62,23 @@ def campaign(spec_file, tmp_path_factory):
 @pytest.fixture(scope="module")
 def shards(spec_file, tmp_path_factory):
     """The same campaign as two shards, run as a Kubernetes pod would: the CLI."""
+    # Both at once, as two pods would: the episodes are lockstep, so neither shard's
+    # result depends on the other's load.
     root = tmp_path_factory.mktemp("shards")
-    for i in (0, 1):
-        p = hil("search", str(spec_file), "--shard", f"{i}/2", "--out", str(root / f"shard-{i}"), "--workers", "1",
-                "--no-progress")
-        assert p.returncode == 0, (p.stdout, p.stderr)
-        assert "2 episodes (shard " in p.stdout
+    procs = [subprocess.Popen([sys.executable, "-m", "hil.harness.cli.main", "search", str(spec_file), "--shard",
+                               f"{i}/2", "--out", str(root / f"shard-{i}"), "--workers", "1", "--no-progress"],
+                              cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              env=dict(os.environ, MUJOCO_GL=GL_BACKEND)) for i in (0, 1)]
+    try:
+        for p in procs:
+            stdout, stderr = p.communicate(timeout=300)
+            assert p.returncode == 0, (stdout, stderr)
+            assert "2 episodes (shard " in stdout
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
     return root
 
 
