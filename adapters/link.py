@@ -105,6 +105,12 @@ class Link(ABC):
         self._impair: LinkImpairment | None = None
         self._deliver: Callable[[Received], None] | None = None
         self._started = False
+        self._give_up: Callable[[], str | None] | None = None
+
+    def give_up_when(self, why: Callable[[], str | None] | None) -> None:
+        """While ``open`` waits for HELLO, stop as soon as ``why()`` gives a reason
+        (e.g. the target process the run started has exited), not at the timeout."""
+        self._give_up = why
 
     def set_impairment(self, stage: LinkImpairment) -> None:
         """Put a link-fault stage (adapters/impair.py) on the send and receive paths;
@@ -153,6 +159,8 @@ class Link(ABC):
                     raise TargetError(self._no_hello_reason(hello_timeout_s)) from None
                 if self._closed:  # closed from another thread (the run is being ended)
                     raise TargetError("the link was closed while waiting for the target's hello") from None
+                if self._give_up is not None and (why := self._give_up()):
+                    raise TargetError(f"stopped waiting for the target's hello: {why}") from None
                 continue
             if r.link_vehicle_id != self.vehicle_id:
                 self._rx.put(r)  # another link's message: give it back

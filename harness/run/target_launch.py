@@ -124,6 +124,7 @@ def make_link(cfg: RunConfig, *, vehicle_id: int, vehicle: str, clock: Clock, ou
         if proc is not None:
             proc.close()
         raise
+    link.give_up_when(_exited(proc))  # a started target that died will never say hello
     impair(cfg, link, vehicle_id=vehicle_id, clock=clock)
     return link, proc
 

@@ -52,11 +52,13 @@ def test_a_leftover_target_on_the_port_is_never_measured(tmp_path):
             time.sleep(0.1)
         p = _hil("run", "hil_configs/remote.yaml", "--no-progress", "--out", str(tmp_path / "run"),
                  "--set", f"target.zenoh.base_port={port}", "--set", "duration_s=2",
-                 "--set", "target.startup_timeout_s=8")
+                 "--set", "target.startup_timeout_s=60")
         assert p.returncode == 2, (p.returncode, p.stdout[-1500:], p.stderr[-1500:])
         err = [ln for ln in p.stderr.splitlines() if ln.strip()]
         assert len(err) == 1 and "Traceback" not in p.stderr, p.stderr
         assert "exited" in err[0] and "in use" in err[0].lower(), err[0]  # the clash, from the target's own log
+        # Stopped when the started target died, not at the 60 s hello timeout.
+        assert "stopped waiting for the target's hello" in err[0] and "within 60" not in err[0], err[0]
         assert not (tmp_path / "run" / "summary.json").exists()  # nothing measured
     finally:
         os.killpg(leftover.pid, signal.SIGTERM)
