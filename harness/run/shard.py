@@ -278,9 +278,10 @@ class VehicleShard:
         v.frame_out(t_tx - f.t_state_ns, tolerance_ns=self.frame_tolerance_ns)
         if f.camera == 0:
             v.fps_meter.add(f.t0_ns)
-        if self._images and f.camera == 0:  # the rig's camera 0 is the vehicle's /camera
+        if self._images:  # camera 0 on the vehicle's /camera, a rig's others on /camera/<name>
             self.analysis.post(functools.partial(self.tasks.image, v.name, data, f.t0_ns, jpeg=self._jpeg,
-                                                 width=cam.width, height=cam.height))
+                                                 width=cam.width, height=cam.height,
+                                                 camera=cam.name if f.camera else None))
 
     def _rig(self, v: VehicleRun) -> RigNumbering:
         """The vehicle's frame numbering, knowing how its target takes a rig (its
