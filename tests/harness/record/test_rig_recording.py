@@ -115,3 +115,20 @@ def test_the_report_has_the_rig_table_agreeing_with_the_summary(surround: Any) -
     assert rig["sets"] == 10 == rig["complete"]
     assert f"<tr><th>frame sets</th><td>{rig['sets']}</td></tr>" in html
     assert f"<td>{rig['e2e_from_last_capture_ms_p50']:.3f}</td>" in html
+
+
+def test_the_shipped_rig_layout_is_current_and_names_topics_the_rig_run_writes(surround: Any) -> None:
+    pytest.importorskip("foxglove.layouts")
+    import json
+    import re
+
+    from hil.harness.record.foxglove_layout import build_layout
+
+    _r, m = surround
+    root = Path(__file__).resolve().parents[3]
+    shipped = json.loads((root / "hil_configs" / "foxglove_layout_surround6.json").read_text())
+    assert shipped == json.loads(build_layout(["ego0"], rig_cameras=SURROUND[1:])), (
+        "regenerate: python -m hil.harness.record.foxglove_layout --rig surround6 ego0")
+    named = set(re.findall(r'"(/[a-z0-9_/]+?)(?:\.[a-z_.]+)?"', json.dumps(shipped)))
+    assert {f"/ego0/camera/{n}" for n in SURROUND[1:]} <= named
+    assert named - {"/log"} <= set(m), named - set(m)  # /log: the clean run has no event
