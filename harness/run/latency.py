@@ -14,8 +14,11 @@ Profiles (``lockstep.latency.kind`` in the config):
   ``k`` always gets the ``k``-th draw of a generator seeded with ``(seed, i)``, so the
   order in which answers arrive never changes the run;
 * ``recorded``: the per-frame latencies of a recorded run (its ``/<vehicle>/pipeline``
-  records), matched by vehicle name and frame id and repeated cyclically past its
-  end. ``stage: sim_apply`` replays ``sim_time_apply - sim_time`` (what that run's
+  records), matched by vehicle name and frame order and repeated cyclically past its
+  end. A camera rig's records (they carry ``camera``) are replayed camera by camera:
+  a rig's camera ``k`` at frame set ``s`` gets the recorded camera ``k``'s ``s``-th
+  frame (camera 0's where the recording has no camera ``k``), a single camera gets
+  camera 0's in order. ``stage: sim_apply`` replays ``sim_time_apply - sim_time`` (what that run's
   simulation saw); ``to_apply``/``end_to_end`` replay wall-clock stages times that
   run's real-time factor. A frame that run dropped (or answered stale) is dropped
   (stale) again.
@@ -60,7 +63,7 @@ class LatencyProfile:
         self._seed = seed
         self._vehicles = list(vehicles)
         self._blocks: dict[int, np.ndarray] = {}
-        self._recorded: dict[str, list[tuple[int, Delay]]] = {}
+        self._recorded: dict[str, dict[int, list[Delay]]] = {}  # vehicle -> camera -> frame order
         if cfg.kind == LatencyKind.RECORDED:
             self._recorded = _read_recorded(cfg, self._vehicles)
 
@@ -79,12 +82,19 @@ class LatencyProfile:
             out |= {"path": c.path, "stage": c.stage.value}
         return out
 
-    def delay(self, vehicle_index: int, frame_id: int) -> Delay:
-        """The delay of frame ``frame_id`` of the ``vehicle_index``-th vehicle."""
+    def delay(self, vehicle_index: int, frame_id: int, *, camera: int | None = None,
+              frame_set: int | None = None) -> Delay:
+        """The delay of frame ``frame_id`` of the ``vehicle_index``-th vehicle; a rig's
+        frame names its ``camera`` and the index of its ``frame_set`` (the replay of a
+        recorded rig is per camera)."""
         c = self.cfg
         if c.kind == LatencyKind.RECORDED:
-            seq = self._recorded[self._vehicles[vehicle_index]]
-            return seq[frame_id % len(seq)][1]
+            cams = self._recorded[self._vehicles[vehicle_index]]
+            first = cams[min(cams)]  # camera 0 (a single camera's records are its)
+            if camera is None or frame_set is None:
+                return first[frame_id % len(first)]
+            seq = cams.get(camera, first)
+            return seq[frame_set % len(seq)]
         if c.drop_prob > 0:
             rng = np.random.default_rng([self._seed, vehicle_index, frame_id, 0xD0])
             if rng.random() < c.drop_prob:
@@ -154,8 +164,9 @@ class HeldControls:
         return out
 
 
-def _read_recorded(cfg: LatencyConfig, vehicles: Sequence[str]) -> dict[str, list[tuple[int, Delay]]]:
-    """Per vehicle: (frame_id, Delay) from a recorded run's pipeline records.
+def _read_recorded(cfg: LatencyConfig, vehicles: Sequence[str]) -> dict[str, dict[int, list[Delay]]]:
+    """Per vehicle and camera (0 for records without one): the Delays of a recorded
+    run's pipeline records in frame order.
 
     Raises:
         ConfigError: the file is missing or unreadable, or lacks a vehicle's records.
@@ -181,14 +192,16 @@ def _read_recorded(cfg: LatencyConfig, vehicles: Sequence[str]) -> dict[str, lis
                 recs[channel.topic[1:].rsplit("/", 1)[0]][int(d["frame_id"])] = d
     except (OSError, ValueError, KeyError) as err:
         raise ConfigError(f"lockstep.latency.path: cannot read pipeline records from {path}: {err}") from err
-    out: dict[str, list[tuple[int, Delay]]] = {}
+    out: dict[str, dict[int, list[Delay]]] = {}
     for v in vehicles:
         if not recs[v]:
             raise ConfigError(f"lockstep.latency.path: {path} has no pipeline records for vehicle {v!r}")
-        seq = []
+        cams: dict[int, list[Delay]] = {}
         for fid in sorted(recs[v]):
-            seq.append((fid, _delay_of(recs[v][fid], cfg.stage, factor)))
-        out[v] = seq
+            d = recs[v][fid]
+            camera = d.get("camera")
+            cams.setdefault(camera if isinstance(camera, int) else 0, []).append(_delay_of(d, cfg.stage, factor))
+        out[v] = cams
     return out
 
 

@@ -423,7 +423,8 @@ class VehicleShard:
     def _hold(self, a: Answer) -> None:
         assert self.held is not None and self.latency is not None
         v, fl = a.v, a.fl
-        d = self.latency.delay(v.vehicle_id, fl.frame_id)
+        d = self.latency.delay(v.vehicle_id, fl.frame_id, camera=fl.camera,  # lockstep: a set's one instant
+                               frame_set=fl.sim_time_ns // (self.step_ns * self.cfg.camera_period_steps))
         if d.latency_ns is None:  # the replayed run lost (or discarded) this frame: so does the replay
             for x in (fl, *a.rest):
                 self._add_record(v, pipeline_record(v, x, d.status, a.m, a.t0p_ns), a.m)
