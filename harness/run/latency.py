@@ -18,10 +18,14 @@ Profiles (``lockstep.latency.kind`` in the config):
   end. A camera rig's records (they carry ``camera``) are replayed camera by camera:
   a rig's camera ``k`` at frame set ``s`` gets the recorded camera ``k``'s ``s``-th
   frame (camera 0's where the recording has no camera ``k``), a single camera gets
-  camera 0's in order. ``stage: sim_apply`` replays ``sim_time_apply - sim_time`` (what that run's
-  simulation saw); ``to_apply``/``end_to_end`` replay wall-clock stages times that
-  run's real-time factor. A frame that run dropped (or answered stale) is dropped
-  (stale) again.
+  camera 0's in order. ``stage: sim_apply`` replays ``sim_time_apply - sim_time``
+  (what that run's simulation saw); ``to_apply``/``end_to_end`` replay wall-clock
+  stages times that run's real-time factor. A frame that run dropped (or answered
+  stale) is dropped (stale) again.
+
+On top of any profile, ``camera_ms`` and ``camera_drop_prob`` make a named camera of
+the rig slower, or lose its frames (seeded per vehicle and frame), as ``hil search``
+draws them; a single camera is camera 0.
 
 Held controls are queued by due sim time (a bounded heap: at most one entry per frame
 in flight, which lockstep already bounds).
@@ -57,8 +61,12 @@ class Delay:
 class LatencyProfile:
     """Per-frame latencies of one run's vehicles."""
 
-    def __init__(self, cfg: LatencyConfig, *, seed: int, vehicles: Sequence[str]) -> None:
+    def __init__(self, cfg: LatencyConfig, *, seed: int, vehicles: Sequence[str],
+                 cameras: Sequence[str] = ()) -> None:
+        """``cameras``: the rig's camera names, camera 0 first (``camera_ms`` and
+        ``camera_drop_prob`` name them)."""
         self.cfg = cfg
+        self._cameras = list(cameras)
         self.kind = cfg.kind
         self._seed = seed
         self._vehicles = list(vehicles)
@@ -80,13 +88,27 @@ class LatencyProfile:
             out |= {"median_ms": c.ms, "sigma": c.sigma, "min_ms": c.min_ms, "max_ms": c.max_ms}
         elif c.kind == LatencyKind.RECORDED:
             out |= {"path": c.path, "stage": c.stage.value}
+        for group in ("camera_ms", "camera_drop_prob"):
+            if any(getattr(c, group).values()):
+                out[group] = dict(getattr(c, group))
         return out
 
     def delay(self, vehicle_index: int, frame_id: int, *, camera: int | None = None,
               frame_set: int | None = None) -> Delay:
         """The delay of frame ``frame_id`` of the ``vehicle_index``-th vehicle; a rig's
         frame names its ``camera`` and the index of its ``frame_set`` (the replay of a
-        recorded rig is per camera)."""
+        recorded rig is per camera), with the camera's own share (a single camera: camera 0's)."""
+        d = self._profile(vehicle_index, frame_id, camera=camera, frame_set=frame_set)
+        k = camera or 0
+        name = self._cameras[k] if k < len(self._cameras) else None
+        if name is None or d.latency_ns is None:
+            return d
+        p = self.cfg.camera_drop_prob.get(name, 0.0)
+        if p > 0 and np.random.default_rng([self._seed, vehicle_index, frame_id, 0xCA]).random() < p:
+            return Delay(None, FrameStatus.DROPPED)
+        return Delay(d.latency_ns + round(self.cfg.camera_ms.get(name, 0.0) * 1e6))
+
+    def _profile(self, vehicle_index: int, frame_id: int, *, camera: int | None, frame_set: int | None) -> Delay:
         c = self.cfg
         if c.kind == LatencyKind.RECORDED:
             cams = self._recorded[self._vehicles[vehicle_index]]
