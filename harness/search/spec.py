@@ -44,6 +44,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import yaml
@@ -59,7 +60,8 @@ LATENCY_PREFIX = "latency."
 # probability joins the list once lockstep.latency supports one).
 LATENCY_DIMS = ("ms", "std_ms", "sigma", "min_ms", "max_ms", "drop_prob", "drop_rate")
 # A rig camera's own share, searched as "<group>.<camera name>" (bounds of one value).
-CAMERA_DIMS = {"camera_ms": (0.0, 60_000.0), "camera_drop_prob": (0.0, 1.0)}
+CAMERA_DIMS: Mapping[str, tuple[float, float]] = MappingProxyType(
+    {"camera_ms": (0.0, 60_000.0), "camera_drop_prob": (0.0, 1.0)})
 _LATENCY_KINDS = (LatencyKind.CONSTANT, LatencyKind.NORMAL, LatencyKind.LOGNORMAL)
 
 
