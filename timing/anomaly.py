@@ -18,6 +18,13 @@ once per *episode*, on entering it, and re-armed only after recovery:
 * mapped-timestamp causality (bad sync) — re-armed by a consistent record.
 
 So a single injected spike is flagged exactly once and a clean run flags nothing.
+
+A camera rig's records (``PipelineRecord.camera`` set) are judged camera by camera:
+every per-frame baseline and episode above (order, deadline, spike, jitter,
+causality) is the camera's own, so cameras that differ steadily (a wider image, a
+slower camera) never read as jitter or spikes of one stream; the frame-rate floor
+counts frame sets answered (``frame_id - camera``), one per trigger of the rig as
+one estimate per frame is for a single camera.
 Records that fail ``is_sane`` are flagged and kept out of every baseline. The
 detector expects records in completion order (the order estimates arrived or
 timed out). Durations are integer ns in, milliseconds in the anomalies.
@@ -238,6 +245,20 @@ class _Seen:
     flagged: bool
 
 
+class _Stream:
+    """The per-frame baselines and episodes of one camera (or of the one camera)."""
+
+    def __init__(self, t: Thresholds) -> None:
+        self.e2e: deque[int] = deque(maxlen=t.jitter_window)
+        self.base: dict[str, deque[int]] = {s: deque(maxlen=t.spike_window) for s in t.spike_stages}
+        self.in_spike: dict[str, bool] = {}
+        self.in_miss: dict[str, bool] = {}
+        self.in_jitter = self.in_causal = False
+        self.recent: dict[int, _Seen] = {}
+        self.max_frame: int | None = None
+        self.parts: dict[str, deque[int]] = {p: deque(maxlen=_PART_WINDOW) for p in (*_PARTS["to_apply"], *_PARTS)}
+
+
 class AnomalyDetector:
     """Flags timing anomalies of one vehicle's records, sync events and ticks.
     ``counts`` tallies the anomalies by kind; ``excluded`` the insane records."""
@@ -247,18 +268,32 @@ class AnomalyDetector:
         self.thresholds = t = thresholds or Thresholds()
         self.counts: dict[AnomalyKind, int] = {}
         self.excluded = 0
-        self._e2e: deque[int] = deque(maxlen=t.jitter_window)
-        self._base: dict[str, deque[int]] = {s: deque(maxlen=t.spike_window) for s in t.spike_stages}
-        self._in_spike: dict[str, bool] = {}
-        self._in_miss: dict[str, bool] = {}
-        self._in_jitter = self._in_floor = self._in_causal = False
+        self._in_floor = False
         self._arrivals: list[int] = []  # t0' of estimates not yet out of every window, sorted
         self._start_ns: int | None = None
         self._next_judge_ns: int | None = None
-        self._recent: dict[int, _Seen] = {}
-        self._max_frame: int | None = None
-        self._parts: dict[str, deque[int]] = {p: deque(maxlen=_PART_WINDOW)
-                                              for p in (*_PARTS["to_apply"], *_PARTS)}
+        self._streams: dict[int | None, _Stream] = {}  # by camera of a rig (None: one camera)
+        self._s = self._stream(None)  # the stream of the record being judged
+        self._sets: dict[int, None] = {}  # a rig's recent frame sets with an arrival (insertion order)
+
+    def _stream(self, camera: int | None) -> _Stream:
+        s = self._streams.get(camera)
+        if s is None:
+            s = self._streams[camera] = _Stream(self.thresholds)
+        return s
+
+    def _arrived(self, rec: PipelineRecord) -> bool:
+        """Whether ``rec``'s ``t0'`` counts for the frame rate: every estimate of one
+        camera, the first of each frame set of a rig."""
+        if rec.camera is None:
+            return True
+        set_id = rec.frame_id - rec.camera
+        if set_id in self._sets:
+            return False
+        self._sets[set_id] = None
+        while len(self._sets) > self.thresholds.order_memory:
+            del self._sets[next(iter(self._sets))]
+        return True
 
     def _make(self, kind: AnomalyKind, where: _Where, *, measured: float, threshold: float,
               unit: str, stage: str | None = None, detail: str = "") -> Anomaly:
@@ -275,7 +310,8 @@ class AnomalyDetector:
         anomaly and is left out of every baseline (counted in ``excluded``)."""
         ok, why = is_sane(rec, self.thresholds)
         at = rec.t0p_ns if rec.t0p_ns is not None else rec.t_tx_ns
-        if rec.t0p_ns is not None and rec.t0p_ns > 0:
+        self._s = self._stream(rec.camera)
+        if rec.t0p_ns is not None and rec.t0p_ns > 0 and self._arrived(rec):
             insort(self._arrivals, rec.t0p_ns)  # it arrived, whatever its target stamps say
             if len(self._arrivals) > MAX_ARRIVALS:  # never ticked: keep memory bounded
                 del self._arrivals[:MAX_ARRIVALS // 2]
@@ -306,7 +342,7 @@ class AnomalyDetector:
         self._spikes(values, mk, out, skip=missed, late=late)
         self._jitter(values.get("end_to_end"), mk, out)
         out[n:] = [self._blame(a, values) for a in out[n:]]
-        for part, q in self._parts.items():
+        for part, q in self._s.parts.items():
             if part in values:
                 q.append(values[part].value_ns)
         return out
@@ -336,7 +372,7 @@ class AnomalyDetector:
         return replace(a, cause=side, detail=f"{a.detail}; {why}" if a.detail else why)
 
     def _median(self, part: str) -> int:
-        q = self._parts[part]
+        q = self._s.parts[part]
         return int(np.median(np.fromiter(q, np.int64, len(q)))) if q else 0
 
     def on_sync_events(self, events: Iterable[SyncEvent], *,
@@ -398,14 +434,15 @@ class AnomalyDetector:
         """Stale, duplicate and out-of-order estimates, each frame flagged once."""
         assert rec.t0p_ns is not None
         t0p, fid, out = rec.t0p_ns, rec.frame_id, []
-        newest = self._max_frame
+        st = self._s
+        newest = st.max_frame
         unit = "frames"
         if rec.status is FrameStatus.STALE:
             behind = float(max((newest or fid) - fid, 0))
             out.append(self._make(AnomalyKind.STALE_ESTIMATE, _Where((fid,), rec.sim_time_ns, t0p),
                                   measured=behind, threshold=0.0, unit=unit,
                                   detail="estimate arrived after a newer one was applied"))
-        elif fid in self._recent:
+        elif fid in st.recent:
             out.append(self._make(AnomalyKind.OUT_OF_ORDER, _Where((fid,), rec.sim_time_ns, t0p),
                                   measured=0.0, threshold=0.0, unit=unit, detail="duplicate estimate"))
         elif newest is not None and fid < newest:
@@ -413,21 +450,21 @@ class AnomalyDetector:
                                   measured=float(newest - fid), threshold=0.0, unit=unit,
                                   detail=f"arrived after frame {newest}'s estimate"))
         else:  # records handed over in frame order: did this one overtake older ones?
-            for f, entry in self._recent.items():
+            for f, entry in st.recent.items():
                 if f < fid and not entry.flagged and entry.t0p_ns > t0p:
                     entry.flagged = True
                     out.append(self._make(
                         AnomalyKind.OUT_OF_ORDER, _Where((f, fid), rec.sim_time_ns, t0p),
                         measured=float(fid - f), threshold=0.0, unit=unit,
                         detail=f"overtaken by frame {fid}'s estimate"))
-        self._recent[fid] = _Seen(t0p, bool(out))
-        while len(self._recent) > self.thresholds.order_memory:
-            del self._recent[next(iter(self._recent))]
-        self._max_frame = fid if newest is None else max(newest, fid)
+        st.recent[fid] = _Seen(t0p, bool(out))
+        while len(st.recent) > self.thresholds.order_memory:
+            del st.recent[next(iter(st.recent))]
+        st.max_frame = fid if newest is None else max(newest, fid)
         return out
 
     def _causality(self, violations: list[Violation], mk: _Where) -> list[Anomaly]:
-        was, self._in_causal = self._in_causal, bool(violations)
+        was, self._s.in_causal = self._s.in_causal, bool(violations)
         if not violations or was:
             return []
         v = max(violations, key=lambda x: x.by_ns - x.uncertainty_ns)
@@ -446,16 +483,16 @@ class AnomalyDetector:
             miss = lo_ms > limit_ms
             if miss:
                 missed.add(stage)
-                if not self._in_miss.get(stage, False):
+                if not self._s.in_miss.get(stage, False):
                     out.append(self._make(AnomalyKind.DEADLINE_MISS, mk, measured=lo_ms,
                                           threshold=limit_ms, unit="ms", stage=stage))
-            self._in_miss[stage] = miss
+            self._s.in_miss[stage] = miss
         return missed
 
     def _spikes(self, values: Mapping[str, Split], mk: _Where, out: list[Anomaly], *,
                 skip: set[str], late: bool) -> None:
         t = self.thresholds
-        for stage, base in self._base.items():
+        for stage, base in self._s.base.items():
             sp = values.get(stage)
             if sp is None:
                 continue
@@ -467,27 +504,28 @@ class AnomalyDetector:
                 mad = float(np.median(np.abs(a - med)))
                 limit = med + max(t.spike_k * 1.4826 * mad, t.spike_floor_ms * 1e6)
                 spike = v > limit
-                if spike and not self._in_spike.get(stage, False) and stage not in skip and not late:
+                if spike and not self._s.in_spike.get(stage, False) and stage not in skip and not late:
                     out.append(self._make(
                         AnomalyKind.LATENCY_SPIKE, mk, measured=v / 1e6, threshold=limit / 1e6,
                         unit="ms", stage=stage,
                         detail=f"baseline median {med / 1e6:.3f} ms, MAD {mad / 1e6:.3f} ms"))
-            self._in_spike[stage] = spike
+            self._s.in_spike[stage] = spike
             base.append(sp.value_ns)
 
     def _jitter(self, e2e: Split | None, mk: _Where, out: list[Anomaly]) -> None:
         t = self.thresholds
         if e2e is None:
             return
-        self._e2e.append(e2e.value_ns)
-        if len(self._e2e) < t.jitter_window:
+        st = self._s
+        st.e2e.append(e2e.value_ns)
+        if len(st.e2e) < t.jitter_window:
             return
-        a = np.fromiter(self._e2e, np.int64, len(self._e2e))
+        a = np.fromiter(st.e2e, np.int64, len(st.e2e))
         jitter_ms = 1.4826 * float(np.median(np.abs(a - np.median(a)))) / 1e6
-        if self._in_jitter:
-            self._in_jitter = jitter_ms >= t.jitter_ms * t.jitter_rearm
+        if st.in_jitter:
+            st.in_jitter = jitter_ms >= t.jitter_ms * t.jitter_rearm
         elif jitter_ms > t.jitter_ms:
-            self._in_jitter = True
+            st.in_jitter = True
             out.append(self._make(AnomalyKind.JITTER, mk, measured=jitter_ms, threshold=t.jitter_ms,
                                   unit="ms", stage="end_to_end",
                                   detail=f"robust std over the last {t.jitter_window} frames"))

@@ -12,7 +12,7 @@ import math
 from collections.abc import Callable
 from enum import Enum
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import (
     BaseModel,
@@ -223,6 +223,17 @@ class LatencyConfig(BaseModel):
     # Each frame's control is lost on the link with this probability (seeded per
     # vehicle and frame; constant/normal/lognormal profiles): a dropped frame.
     drop_prob: Float = Field(0.0, ge=0, le=1)
+    # A camera of the rig, by name, on top of the profile: its frames' controls come
+    # camera_ms later, and each is lost with camera_drop_prob (seeded per vehicle and
+    # frame): a slow or lossy camera, as hil search draws one.
+    camera_ms: dict[str, Annotated[Float, Field(ge=0, le=60_000)]] = Field(default_factory=dict)
+    camera_drop_prob: dict[str, Annotated[Float, Field(ge=0, le=1)]] = Field(default_factory=dict)
+
+    @property
+    def active(self) -> bool:
+        """Whether the profile delays or drops any control (else lockstep applies each at once)."""
+        return (self.kind != LatencyKind.NONE or self.drop_prob > 0 or any(self.camera_ms.values())
+                or any(self.camera_drop_prob.values()))
 
 
 class CapturePhase(str, Enum):
@@ -366,7 +377,13 @@ class RunConfig(BaseModel):
             raise PydanticCustomError(_RULE_ERROR, "the name of a camera of camera.rig: " + ", ".join(
                 c.name for c in cam.cameras()), {"loc": ("engine", "faults", "drop_camera"), "got": drop})
         lat = self.lockstep.latency
-        if (lat.kind != LatencyKind.NONE or lat.drop_prob > 0) and self.mode != Mode.LOCKSTEP:
+        for group in ("camera_ms", "camera_drop_prob"):
+            unknown = [n for n in getattr(lat, group) if n not in [c.name for c in cam.cameras()]]
+            if unknown:
+                raise PydanticCustomError(_RULE_ERROR, "the name of a camera of camera.rig: " + ", ".join(
+                    c.name for c in cam.cameras()), {"loc": ("lockstep", "latency", group, unknown[0]),
+                                                     "got": unknown[0]})
+        if lat.active and self.mode != Mode.LOCKSTEP:
             raise PydanticCustomError(_RULE_ERROR, "mode: lockstep (a latency profile delays control in "
                                       "lockstep only; in realtime the target's own latency applies)",
                                       {"loc": ("lockstep", "latency", "kind"), "got": lat.kind.value})

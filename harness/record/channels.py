@@ -1,10 +1,11 @@
 """The JSON-schema channels of ``run.mcap``: one place that names every topic.
 
-Topics per vehicle ``V``: ``/V/camera`` (foxglove.CompressedImage or RawImage),
+Topics per vehicle ``V``: ``/V/camera`` (foxglove.CompressedImage or RawImage; a rig's
+other cameras ``/V/camera/<name>``, :mod:`hil.harness.record.rig_views`),
 ``/V/estimate``, ``/V/pipeline``, ``/V/clock_sync``, ``/V/truth`` (the camera's
 visible boxes); shared: ``/ground_truth`` and ``/events``; and the Foxglove views
-of :mod:`hil.harness.record.foxglove_out` (``/scene``, ``/tf``, ``/log``, ``/V/camera_info``,
-``/V/annotations``, ``/V/estimate_scene``, ``/V/latency``). ``log_time`` is always
+of :mod:`hil.harness.record.foxglove_out` (``/scene``, ``/tf``, ``/log``, ``/V/camera_info``
+and a rig's ``/V/camera_info/<name>``, ``/V/annotations``, ``/V/estimate_scene``, ``/V/latency``). ``log_time`` is always
 the harness clock (receipt or capture), shifted onto the wall clock by the
 recorder's time anchor (metadata ``time_anchor``);
 ``publish_time`` the source's time (``t0`` for frames and records, the target's
@@ -21,6 +22,7 @@ from typing import Any
 from hil.harness.vocab.events import EVENT_SCHEMA
 from hil.harness.record import foxglove_out
 from hil.harness.record.recorder import Recorder, TimeAnchor
+from hil.harness.record.rig_views import rig_views
 from hil.timing.sync import SyncSample
 
 
@@ -147,7 +149,8 @@ def views_of(cfg: dict[str, Any], vehicles: list[str], *, offset_ns: int) -> fox
     cam = cfg.get("camera")
     ok = isinstance(cam, dict) and all(k in cam for k in ("width", "height", "fovy_deg"))
     return foxglove_out.FoxgloveViews(vehicles, camera=cam if ok else None, offset_ns=offset_ns,
-                                      deadline_ms=_deadlines(cfg, vehicles))
+                                      deadline_ms=_deadlines(cfg, vehicles),
+                                      rig=rig_views(cam) if isinstance(cam, dict) else None)
 
 
 def _deadlines(cfg: dict[str, Any], vehicles: list[str]) -> dict[str, float]:

@@ -36,6 +36,7 @@ import numpy as np
 
 from hil.harness.record import foxglove_schemas as fx
 from hil.harness.record.event_text import event_line
+from hil.harness.record.rig_views import RigView, calibration, calibration_topic, camera_topic
 from hil.scenarios.ground_truth import GroundTruth
 
 # Colours by class (RGBA 0..1); ego vehicles blue as in the render.
@@ -135,10 +136,12 @@ class FoxgloveViews:
         offset_ns: the recorder's wall-clock offset (ns).
         deadline_ms: each vehicle's end-to-end deadline (ms), written beside its
             latencies (``/V/latency.deadline_ms``) so a plot can draw it.
+        rig: a camera rig's cameras, camera 0 first (:func:`hil.harness.record.rig_views.rig_views`):
+            each one's calibration and mount in place of ``camera``'s (None: the one camera).
     """
 
     def __init__(self, vehicles: Iterable[str], *, camera: Mapping[str, Any] | None, offset_ns: int,
-                 deadline_ms: Mapping[str, float] | None = None) -> None:
+                 deadline_ms: Mapping[str, float] | None = None, rig: tuple[RigView, ...] | None = None) -> None:
         self.vehicles = set(vehicles)
         self.deadline_ms = dict(deadline_ms or {})
         self.offset_ns = offset_ns
@@ -146,14 +149,9 @@ class FoxgloveViews:
         self._t0: dict[str, OrderedDict[int, int]] = {v: OrderedDict() for v in self.vehicles}
         self._calib: dict[str, Any] | None = None
         self._mount: tuple[float, float, float, float] | None = None
-        if camera is not None:
-            w, h = int(camera["width"]), int(camera["height"])
-            f = (h / 2) / math.tan(math.radians(float(camera["fovy_deg"])) / 2)
-            cx, cy = w / 2, h / 2
-            self._calib = {"width": w, "height": h, "distortion_model": "plumb_bob", "D": [0.0] * 5,
-                           "K": [f, 0.0, cx, 0.0, f, cy, 0.0, 0.0, 1.0],
-                           "R": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-                           "P": [f, 0.0, cx, 0.0, 0.0, f, cy, 0.0, 0.0, 0.0, 1.0, 0.0]}
+        self.rig = rig
+        if camera is not None and rig is None:
+            self._calib = calibration(int(camera["width"]), int(camera["height"]), float(camera["fovy_deg"]))
             self._mount = (float(camera.get("mount_forward_m", 0.0)), float(camera.get("mount_lateral_m", 0.0)),
                            float(camera.get("mount_height_m", 0.0)), math.radians(float(camera.get("pitch_deg", 0.0))))
 
@@ -162,6 +160,9 @@ class FoxgloveViews:
         rec.add_derivation("/events", self.on_event)
         rec.add_derivation("/ground_truth", self.on_ground_truth)
         for v in sorted(self.vehicles):
+            for cam in (self.rig or ())[1:]:
+                rec.register_json_channel(calibration_topic(v, cam.name), fx.CAMERA_CALIBRATION,
+                                          fx.camera_calibration_schema())
             rec.add_derivation(f"/{v}/truth", self.on_truth)
             rec.add_derivation(f"/{v}/pipeline", self.on_pipeline)
             rec.add_derivation(f"/{v}/estimate", lambda m, lt, pt, v=v: self.on_estimate(v, m, lt, pt))
@@ -177,6 +178,8 @@ class FoxgloveViews:
         return [("/log", log, log_ns, pub_ns)]
 
     def on_ground_truth(self, gt: Mapping[str, Any], log_ns: int, pub_ns: int) -> list[tuple[str, Any, int, int]]:
+        if self.rig is not None:
+            return self._rig_views(gt, log_ns, pub_ns)
         if self._calib is None or self._mount is None:
             return []
         fwd, lat, height, pitch = self._mount
@@ -195,6 +198,21 @@ class FoxgloveViews:
                                 "rotation": dict(zip("xyzw", q))}, log_ns, pub_ns))
             out.append((f"/{v}/camera_info", {"timestamp": ts, "frame_id": f"{v}/camera", **self._calib},
                         log_ns, pub_ns))
+        return out
+
+    def _rig_views(self, gt: Mapping[str, Any], log_ns: int, pub_ns: int) -> list[tuple[str, Any, int, int]]:
+        """Each rig camera's mount on ``/tf`` and its calibration, per vehicle."""
+        ts = self._ts(log_ns)
+        out: list[tuple[str, Any, int, int]] = []
+        for e in gt.get("egos", ()):
+            v = e.get("vehicle")
+            if v not in self.vehicles:
+                continue
+            for cam in self.rig or ():
+                out.extend(("/tf", tf, log_ns, pub_ns) for tf in cam.transforms(v, ts))
+                frame = camera_topic(v, cam.name)[1:]  # the optical frame is named as the image topic
+                out.append((calibration_topic(v, cam.name), {"timestamp": ts, "frame_id": frame, **cam.calib},
+                            log_ns, pub_ns))
         return out
 
     def on_truth(self, ct: Mapping[str, Any], log_ns: int, pub_ns: int) -> list[tuple[str, Any, int, int]]:

@@ -8,7 +8,8 @@ nothing from anywhere. Sections:
   health, recorder counters, per-vehicle counters;
 * latency per vehicle and stage: exact p50/p90/p99/max (ms) from the per-frame
   ``/V/pipeline`` records (frames whose estimate was applied, as ``summary.json``),
-  box plots and histograms;
+  box plots and histograms; a vehicle with a camera rig, its cameras and frame sets
+  (:mod:`hil.harness.report.rig_section`);
 * end-to-end latency over time per vehicle, with every ``/events`` kind marked
   under it (coloured by ``severity`` when the event has one);
 * frames sent and estimates applied per second over time, in bins of whole camera
@@ -48,6 +49,7 @@ from hil.harness.report import fleet, timeseries
 from hil.harness.report import plots as rp
 from hil.harness.report.case_section import case_for_event, cases_section, read_case_rows
 from hil.harness.report.distributions import box_chart, histogram
+from hil.harness.report.rig_section import rig_html
 from hil.harness.report.tables import kv_table, ms, table
 from hil.timing.records import STAGES
 from hil.timing.stats import summarize_ns
@@ -225,6 +227,7 @@ def _latency_section(d: RunData) -> str:
         rows = [[escape(stage)] + [str(st.get("count", 0)) if k == "count" else ms(st.get(k)) for k in keys]
                 for stage, st in stats.items()]
         out.append(table(head, rows) if rows else "<p>no latency samples</p>")
+        out.append(rig_html(((d.summary or {}).get("vehicles", {}) or {}).get(vehicle) or {}))
         if values:
             in_ms = {k: v / 1e6 for k, v in values.items()}
             out.append(box_chart(list(in_ms.items()), x_label="ms", title=f"{vehicle}: latency per stage"))

@@ -213,7 +213,6 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     from hil.harness.run.summary import build_summary, wall_seconds
     from hil.harness.vocab.verdict import parse_fail_on, verdict_json
     from hil.harness.cases.casebook import CaseRecorder
-    from hil.harness.config.model import LatencyKind
     from hil.harness.engine.pool import Engine, auto_workers
     from hil.harness.engine.procs import keep_off_core, restore_affinity
     from hil.harness.record.can_log import open_can_log
@@ -231,8 +230,8 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     world, rules = build_world(cfg)
     params = scenarios.get(cfg.scenario.name).resolve(cfg.scenario.params)
     lat_cfg = cfg.lockstep.latency
-    latency = (None if lat_cfg.kind == LatencyKind.NONE and lat_cfg.drop_prob == 0
-               else LatencyProfile(lat_cfg, seed=cfg.seed, vehicles=[v.name for v in world.egos]))
+    latency = (LatencyProfile(lat_cfg, seed=cfg.seed, vehicles=[v.name for v in world.egos],
+                              cameras=[c.name for c in cfg.camera.cameras()]) if lat_cfg.active else None)
     clock = MonotonicClock()
     began_ns = clock.now_ns()
     mcap_path = out_dir / "run.mcap"

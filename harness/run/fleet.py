@@ -177,12 +177,15 @@ class ShardedFleet:
         from hil.adapters.impair import IMPAIRMENT_SCHEMA
         from hil.harness.engine.analysis_thread import AnalysisThread
         from hil.harness.record import foxglove_schemas as fx
+        from hil.harness.record.rig_views import camera_topic
         from hil.harness.run.tasks import WorldTasks
 
         cfg = self.cfg
         image = fx.COMPRESSED_IMAGE if cfg.camera.encoding.value == "jpeg" else fx.RAW_IMAGE
+        cams = [c.name for c in cfg.camera.cameras()]
         for name in self.egos:  # what the shards write, registered with the one writer
-            main_rec.register_json_channel(f"/{name}/camera", image, fx.schema_for(image))
+            for k, cam in enumerate(cams):  # camera 0 on /camera, a rig's others on /camera/<name>
+                main_rec.register_json_channel(camera_topic(name, cam if k else None), image, fx.schema_for(image))
             if cfg.target.impair.active:
                 main_rec.register_json_channel(f"/{name}/impairment", "hil.Impairment", IMPAIRMENT_SCHEMA)
         analysis = AnalysisThread()

@@ -14,11 +14,18 @@ Profiles (``lockstep.latency.kind`` in the config):
   ``k`` always gets the ``k``-th draw of a generator seeded with ``(seed, i)``, so the
   order in which answers arrive never changes the run;
 * ``recorded``: the per-frame latencies of a recorded run (its ``/<vehicle>/pipeline``
-  records), matched by vehicle name and frame id and repeated cyclically past its
-  end. ``stage: sim_apply`` replays ``sim_time_apply - sim_time`` (what that run's
-  simulation saw); ``to_apply``/``end_to_end`` replay wall-clock stages times that
-  run's real-time factor. A frame that run dropped (or answered stale) is dropped
-  (stale) again.
+  records), matched by vehicle name and frame order and repeated cyclically past its
+  end. A camera rig's records (they carry ``camera``) are replayed camera by camera:
+  a rig's camera ``k`` at frame set ``s`` gets the recorded camera ``k``'s ``s``-th
+  frame (camera 0's where the recording has no camera ``k``), a single camera gets
+  camera 0's in order. ``stage: sim_apply`` replays ``sim_time_apply - sim_time``
+  (what that run's simulation saw); ``to_apply``/``end_to_end`` replay wall-clock
+  stages times that run's real-time factor. A frame that run dropped (or answered
+  stale) is dropped (stale) again.
+
+On top of any profile, ``camera_ms`` and ``camera_drop_prob`` make a named camera of
+the rig slower, or lose its frames (seeded per vehicle and frame), as ``hil search``
+draws them; a single camera is camera 0.
 
 Held controls are queued by due sim time (a bounded heap: at most one entry per frame
 in flight, which lockstep already bounds).
@@ -54,13 +61,17 @@ class Delay:
 class LatencyProfile:
     """Per-frame latencies of one run's vehicles."""
 
-    def __init__(self, cfg: LatencyConfig, *, seed: int, vehicles: Sequence[str]) -> None:
+    def __init__(self, cfg: LatencyConfig, *, seed: int, vehicles: Sequence[str],
+                 cameras: Sequence[str] = ()) -> None:
+        """``cameras``: the rig's camera names, camera 0 first (``camera_ms`` and
+        ``camera_drop_prob`` name them)."""
         self.cfg = cfg
+        self._cameras = list(cameras)
         self.kind = cfg.kind
         self._seed = seed
         self._vehicles = list(vehicles)
         self._blocks: dict[int, np.ndarray] = {}
-        self._recorded: dict[str, list[tuple[int, Delay]]] = {}
+        self._recorded: dict[str, dict[int, list[Delay]]] = {}  # vehicle -> camera -> frame order
         if cfg.kind == LatencyKind.RECORDED:
             self._recorded = _read_recorded(cfg, self._vehicles)
 
@@ -77,14 +88,35 @@ class LatencyProfile:
             out |= {"median_ms": c.ms, "sigma": c.sigma, "min_ms": c.min_ms, "max_ms": c.max_ms}
         elif c.kind == LatencyKind.RECORDED:
             out |= {"path": c.path, "stage": c.stage.value}
+        for group in ("camera_ms", "camera_drop_prob"):
+            if any(getattr(c, group).values()):
+                out[group] = dict(getattr(c, group))
         return out
 
-    def delay(self, vehicle_index: int, frame_id: int) -> Delay:
-        """The delay of frame ``frame_id`` of the ``vehicle_index``-th vehicle."""
+    def delay(self, vehicle_index: int, frame_id: int, *, camera: int | None = None,
+              frame_set: int | None = None) -> Delay:
+        """The delay of frame ``frame_id`` of the ``vehicle_index``-th vehicle; a rig's
+        frame names its ``camera`` and the index of its ``frame_set`` (the replay of a
+        recorded rig is per camera), with the camera's own share (a single camera: camera 0's)."""
+        d = self._profile(vehicle_index, frame_id, camera=camera, frame_set=frame_set)
+        k = camera or 0
+        name = self._cameras[k] if k < len(self._cameras) else None
+        if name is None or d.latency_ns is None:
+            return d
+        p = self.cfg.camera_drop_prob.get(name, 0.0)
+        if p > 0 and np.random.default_rng([self._seed, vehicle_index, frame_id, 0xCA]).random() < p:
+            return Delay(None, FrameStatus.DROPPED)
+        return Delay(d.latency_ns + round(self.cfg.camera_ms.get(name, 0.0) * 1e6))
+
+    def _profile(self, vehicle_index: int, frame_id: int, *, camera: int | None, frame_set: int | None) -> Delay:
         c = self.cfg
         if c.kind == LatencyKind.RECORDED:
-            seq = self._recorded[self._vehicles[vehicle_index]]
-            return seq[frame_id % len(seq)][1]
+            cams = self._recorded[self._vehicles[vehicle_index]]
+            first = cams[min(cams)]  # camera 0 (a single camera's records are its)
+            if camera is None or frame_set is None:
+                return first[frame_id % len(first)]
+            seq = cams.get(camera, first)
+            return seq[frame_set % len(seq)]
         if c.drop_prob > 0:
             rng = np.random.default_rng([self._seed, vehicle_index, frame_id, 0xD0])
             if rng.random() < c.drop_prob:
@@ -154,8 +186,9 @@ class HeldControls:
         return out
 
 
-def _read_recorded(cfg: LatencyConfig, vehicles: Sequence[str]) -> dict[str, list[tuple[int, Delay]]]:
-    """Per vehicle: (frame_id, Delay) from a recorded run's pipeline records.
+def _read_recorded(cfg: LatencyConfig, vehicles: Sequence[str]) -> dict[str, dict[int, list[Delay]]]:
+    """Per vehicle and camera (0 for records without one): the Delays of a recorded
+    run's pipeline records in frame order.
 
     Raises:
         ConfigError: the file is missing or unreadable, or lacks a vehicle's records.
@@ -181,14 +214,16 @@ def _read_recorded(cfg: LatencyConfig, vehicles: Sequence[str]) -> dict[str, lis
                 recs[channel.topic[1:].rsplit("/", 1)[0]][int(d["frame_id"])] = d
     except (OSError, ValueError, KeyError) as err:
         raise ConfigError(f"lockstep.latency.path: cannot read pipeline records from {path}: {err}") from err
-    out: dict[str, list[tuple[int, Delay]]] = {}
+    out: dict[str, dict[int, list[Delay]]] = {}
     for v in vehicles:
         if not recs[v]:
             raise ConfigError(f"lockstep.latency.path: {path} has no pipeline records for vehicle {v!r}")
-        seq = []
+        cams: dict[int, list[Delay]] = {}
         for fid in sorted(recs[v]):
-            seq.append((fid, _delay_of(recs[v][fid], cfg.stage, factor)))
-        out[v] = seq
+            d = recs[v][fid]
+            camera = d.get("camera")
+            cams.setdefault(camera if isinstance(camera, int) else 0, []).append(_delay_of(d, cfg.stage, factor))
+        out[v] = cams
     return out
 
 

@@ -278,9 +278,10 @@ class VehicleShard:
         v.frame_out(t_tx - f.t_state_ns, tolerance_ns=self.frame_tolerance_ns)
         if f.camera == 0:
             v.fps_meter.add(f.t0_ns)
-        if self._images and f.camera == 0:  # the rig's camera 0 is the vehicle's /camera
+        if self._images:  # camera 0 on the vehicle's /camera, a rig's others on /camera/<name>
             self.analysis.post(functools.partial(self.tasks.image, v.name, data, f.t0_ns, jpeg=self._jpeg,
-                                                 width=cam.width, height=cam.height))
+                                                 width=cam.width, height=cam.height,
+                                                 camera=cam.name if f.camera else None))
 
     def _rig(self, v: VehicleRun) -> RigNumbering:
         """The vehicle's frame numbering, knowing how its target takes a rig (its
@@ -422,7 +423,8 @@ class VehicleShard:
     def _hold(self, a: Answer) -> None:
         assert self.held is not None and self.latency is not None
         v, fl = a.v, a.fl
-        d = self.latency.delay(v.vehicle_id, fl.frame_id)
+        d = self.latency.delay(v.vehicle_id, fl.frame_id, camera=fl.camera,  # lockstep: a set's one instant
+                               frame_set=fl.sim_time_ns // (self.step_ns * self.cfg.camera_period_steps))
         if d.latency_ns is None:  # the replayed run lost (or discarded) this frame: so does the replay
             for x in (fl, *a.rest):
                 self._add_record(v, pipeline_record(v, x, d.status, a.m, a.t0p_ns), a.m)

@@ -19,6 +19,7 @@ from hil.harness.vocab.events import Event, EventBus, EventKind
 from hil.harness.vocab.observers import RunObserver
 from hil.harness.record import foxglove_out
 from hil.harness.record.channels import sync_sample_json
+from hil.harness.record.rig_views import camera_topic
 from hil.harness.run.ledger import Answer
 from hil.harness.run.vehicle_state import InFlight, VehicleRun
 from hil.scenarios.ground_truth import GroundTruth, StateChanges
@@ -205,12 +206,15 @@ class VehicleTasks:
         self.rec.write_json(f"/{name}/clock_sync", sync_sample_json(s), log_time_ns=s.t4_ns,
                             publish_time_ns=s.t1_ns)
 
-    def image(self, name: str, data: bytes, t0: int, *, jpeg: bool, width: int, height: int) -> None:
-        topic = f"/{name}/camera"
+    def image(self, name: str, data: bytes, t0: int, *, jpeg: bool, width: int, height: int,
+              camera: str | None = None) -> None:
+        """A frame's image on ``/<name>/camera`` (camera 0), or a rig camera's on
+        ``/<name>/camera/<camera>``; its frame id is the optical frame of that topic."""
+        topic = camera_topic(name, camera)
+        frame = topic[1:]
         if jpeg:
-            self.rec.write_image(topic, data, fmt="jpeg", frame_id=f"{name}/camera", log_time_ns=t0,
-                                 publish_time_ns=t0)
+            self.rec.write_image(topic, data, fmt="jpeg", frame_id=frame, log_time_ns=t0, publish_time_ns=t0)
         else:
             rgb = np.frombuffer(data, np.uint8).reshape(height, width, 3)
-            self.rec.write_raw_image(topic, rgb, encoding="rgb8", frame_id=f"{name}/camera", log_time_ns=t0,
+            self.rec.write_raw_image(topic, rgb, encoding="rgb8", frame_id=frame, log_time_ns=t0,
                                      publish_time_ns=t0)

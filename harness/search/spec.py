@@ -14,6 +14,7 @@ A spec is a YAML mapping (``hil_configs/search.yaml``)::
       kind: normal               #   constant | normal | lognormal (default: normal when std_ms
       ms: [0, 300]               #   is searched, else constant)
       std_ms: [0, 50]
+      camera_ms.back: [0, 200]   #   a rig camera's own delay / loss (camera_drop_prob.<name>)
     strategy: {kind: cem, generation: 8, elite_frac: 0.25, explore: 0.25, sigma: 0.1}
     score: {near_miss_m: 5}
 
@@ -43,6 +44,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import yaml
@@ -57,6 +59,9 @@ LATENCY_PREFIX = "latency."
 # Latency fields a search may draw (whichever of these LatencyConfig has: a drop
 # probability joins the list once lockstep.latency supports one).
 LATENCY_DIMS = ("ms", "std_ms", "sigma", "min_ms", "max_ms", "drop_prob", "drop_rate")
+# A rig camera's own share, searched as "<group>.<camera name>" (bounds of one value).
+CAMERA_DIMS: Mapping[str, tuple[float, float]] = MappingProxyType(
+    {"camera_ms": (0.0, 60_000.0), "camera_drop_prob": (0.0, 1.0)})
 _LATENCY_KINDS = (LatencyKind.CONSTANT, LatencyKind.NORMAL, LatencyKind.LOGNORMAL)
 
 
@@ -184,7 +189,10 @@ class Campaign:
             lat["kind"] = self.latency_kind
         for d in self.dims:
             v = values[d.name]
-            if d.is_latency:
+            if d.is_latency and "." in d.field:  # a rig camera's: camera_ms.<name>
+                group, camera = d.field.split(".", 1)
+                lat.setdefault(group, {})[camera] = v
+            elif d.is_latency:
                 lat[d.field] = v
                 if d.field == "max_ms":
                     lat["min_ms"] = min(float(lat.get("min_ms", 0.0)), v)
@@ -345,16 +353,18 @@ def _latency_dims(spec: SpecModel, source: str) -> list[Dim]:
     for key, given in spec.latency.items():
         if key == "kind":
             continue
-        if key not in allowed:
+        group = key.split(".", 1)[0] if "." in key else None
+        if key not in allowed and group not in CAMERA_DIMS:
             hint = " (link drops are searched as drop_prob)" if "drop" in key else ""
             raise ConfigError(f"{source}: latency.{key}: not a searchable latency field; valid: kind, "
-                              f"{', '.join(allowed)}{hint}")
+                              f"{', '.join(allowed)}, " + ", ".join(f"{g}.<camera>" for g in CAMERA_DIMS) + hint)
         if given is not None and not (isinstance(given, list) and all(
                 isinstance(x, (int, float)) and not isinstance(x, bool) for x in given)):
             raise ConfigError(f"{source}: latency.{key}: got {given!r}; expected a range [lo, hi]")
-        lo, hi = _field_bounds(fields[key])
-        r = _range(source, f"latency.{key}", given, lo, hi, "ms" if key.endswith("ms") else "")
-        dims.append(Dim(LATENCY_PREFIX + key, r[0], r[1], "ms" if key.endswith("ms") else ""))
+        lo, hi = CAMERA_DIMS[group] if group is not None else _field_bounds(fields[key])
+        unit = "ms" if (group or key).endswith("ms") else ""
+        r = _range(source, f"latency.{key}", given, lo, hi, unit)
+        dims.append(Dim(LATENCY_PREFIX + key, r[0], r[1], unit))
     return dims
 
 
@@ -370,6 +380,7 @@ def _field_bounds(info: Any) -> tuple[float, float]:
 
 def _latency_kind(spec: SpecModel, run: RunConfig, dims: list[Dim], source: str) -> str | None:
     lat_fields = {d.field for d in dims if d.is_latency}
+    profile_fields = {f for f in lat_fields if "." not in f}  # a camera's share needs no profile kind
     given = spec.latency.get("kind")
     if given is not None:
         valid = [k.value for k in _LATENCY_KINDS]
@@ -379,11 +390,11 @@ def _latency_kind(spec: SpecModel, run: RunConfig, dims: list[Dim], source: str)
             raise ConfigError(f"{source}: latency.kind: {given!r} without a latency field to search; "
                               f"set the profile in the run config's lockstep.latency instead")
         return str(given)
-    if not lat_fields:
+    if not profile_fields:
         return None
     if run.lockstep.latency.kind in _LATENCY_KINDS:
         return run.lockstep.latency.kind.value
-    return "normal" if lat_fields & {"std_ms", "min_ms", "max_ms"} else "constant"
+    return "normal" if profile_fields & {"std_ms", "min_ms", "max_ms"} else "constant"
 
 
-__all__ = ["Campaign", "Dim", "ScoreSpec", "StrategyKind", "StrategySpec", "load_spec", "resolve_spec"]
+__all__ = ["CAMERA_DIMS", "Campaign", "Dim", "ScoreSpec", "StrategyKind", "StrategySpec", "load_spec", "resolve_spec"]
