@@ -55,10 +55,11 @@ def _live_before_config(argv: list[str]) -> list[str]:
     left for the positional."""
     if argv[:1] != ["run"]:
         return argv
-    out = list(argv)
+
     def config_like(word: str) -> bool:
         return word.endswith((".yaml", ".yml")) or Path(word).is_file()
 
+    out = list(argv)
     for k, word in enumerate(out[:-1]):
         if word == "--live" and config_like(out[k + 1]) and not any(config_like(w) for w in out[1:k]):
             out[k] = "--live="
