@@ -178,6 +178,10 @@ class TimingObserver:
 
     def on_record(self, vehicle: str, rec: PipelineRecord, estimate: Estimate | None) -> None:
         vt = self.v[vehicle]
+        if vt.rig is not None and rec.camera is None and not vt.rig.sets:
+            # A rig whose target takes one camera gets camera 0 as a single camera
+            # (the run said so once, rig_camera_zero_only): no frame sets to judge.
+            vt.rig = None
         if vt.rig is not None:
             self._emit(vehicle, vt, vt.rig.on_record(rec))
         vt.pending.append(rec)

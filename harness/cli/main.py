@@ -327,7 +327,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         console.print(f"[yellow]warning: {warning}[/yellow]", markup=True, highlight=False)
     from rich.markup import escape
 
-    for line in refused_warnings(s):
+    for line in link_warnings(s, rig_cameras=len(cfg.camera.cameras())):
         console.print(f"[yellow]warning: {escape(line)}[/yellow]", markup=True, highlight=False)
     console.print(f"run.mcap:     {result.mcap_path}")
     console.print(f"summary.json: {result.summary_path}")
@@ -345,10 +345,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return code
 
 
-def refused_warnings(summary: dict[str, Any]) -> list[str]:
-    """One line per vehicle whose link refused connections that were not its target
-    (``vehicles.<name>.link.connections_refused`` and ``refused``): a squatter on the
-    port or a rogue dialling in was kept out, and the user should know it tried."""
+def link_warnings(summary: dict[str, Any], *, rig_cameras: int = 1) -> list[str]:
+    """What a user should know of each vehicle's link, one line each, from
+    ``summary.json``: connections refused that were not its target
+    (``vehicles.<name>.link.connections_refused``, ``refused``: a squatter on the port
+    or a rogue dialling in was kept out), and a rig of ``rig_cameras`` cameras whose
+    target takes one camera, so it got camera 0 only (``events.rig_camera_zero_only``)."""
     out = []
     for name, v in summary.get("vehicles", {}).items():
         link = v.get("link") or {}
@@ -357,6 +359,9 @@ def refused_warnings(summary: dict[str, Any]) -> list[str]:
             named = "; ".join(link.get("refused") or [])
             out.append(f"{name}: {n} connection{'s' * (n > 1)} refused, not the run's target"
                        + (f" ({named})" if named else "") + f" (summary.json vehicles.{name}.link.refused)")
+        if (v.get("events") or {}).get("rig_camera_zero_only"):
+            out.append(f"{name}: its target did not announce CAP_CAMERAS, so it got camera 0 only of the "
+                       f"{rig_cameras}-camera rig, as a single camera (PROTOCOL.md 4.2.1)")
     return out
 
 

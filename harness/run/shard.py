@@ -274,7 +274,7 @@ class VehicleShard:
             self._on_stop(f"target of {v.name} is gone: {err}")
             return
         self.ledger.sent(v.vehicle_id, InFlight(frame_id, at.sim_time_ns, f.t0_ns, t_tx, f.t_state_ns,
-                                                camera=f.camera if len(self.cams) > 1 else None))
+                                                camera=f.camera if rig.sends_sets() else None))
         v.frame_out(t_tx - f.t_state_ns, tolerance_ns=self.frame_tolerance_ns)
         if f.camera == 0:
             v.fps_meter.add(f.t0_ns)
