@@ -68,25 +68,32 @@ def check_cameras(s: Session) -> None:
     a, b, c = BASE, BASE + CAMERAS, BASE + 2 * CAMERAS
     s.drain()
     p: list[str] = []
-    s.link.send_raw(b"".join(_frame(s, a + k, k, 10_000) for k in range(CAMERAS)))
+    _send(s, *(_frame(s, a + k, k, 10_000) for k in range(CAMERAS)))
     _answers(s, {a} if per_set else {a, a + 1, a + 2}, p, {a: {0, 1, 2}} if per_set else {a + k: {k} for k in range(3)},
              quiet_s=0.2)  # a camera answered on its own as well shows up meanwhile
     s.add(f"frame set of {CAMERAS} cameras", "4.2.1", p[:3], f"{how}: frame_id {a}" + ("" if per_set else
           f"..{a + 2}"))
     p = []
-    missing = _frame(s, b, 0, 20_000) + _frame(s, b + 2, 2, 20_000)
+    missing = (_frame(s, b, 0, 20_000), _frame(s, b + 2, 2, 20_000))
     if per_set:  # the next set's first frame gives set b up; its other cameras wait for b's answer
-        s.link.send_raw(missing + _frame(s, c, 0, 30_000))
+        _send(s, *missing, _frame(s, c, 0, 30_000))
         _answers(s, {b}, p, {b: {0, 2}})
-        s.link.send_raw(_frame(s, c + 1, 1, 30_000) + _frame(s, c + 2, 2, 30_000))
+        _send(s, _frame(s, c + 1, 1, 30_000), _frame(s, c + 2, 2, 30_000))
         _answers(s, {c}, p, {c: {0, 1, 2}}, quiet_s=0.3)
     else:  # per camera the newest frame of a camera may replace an unanswered one: wait in between
-        s.link.send_raw(missing)
+        _send(s, *missing)
         _answers(s, {b, b + 2}, p, {b: {0}, b + 2: {2}})
-        s.link.send_raw(b"".join(_frame(s, c + k, k, 30_000) for k in range(CAMERAS)))
+        _send(s, *(_frame(s, c + k, k, 30_000) for k in range(CAMERAS)))
         _answers(s, {c, c + 1, c + 2}, p, {c + k: {k} for k in range(CAMERAS)}, quiet_s=0.3)
     s.add("frame set missing a camera", "4.2.1", p[:3], f"{how}: the set without camera 1 answered "
           + (f"as set {b} once set {c} began" if per_set else "for the cameras that came"))
+
+
+def _send(s: Session, *frames: bytes) -> None:
+    """The frames one after another, each its own message: a packet transport
+    (local) takes one message a packet, a stream one its bytes in order."""
+    for f in frames:
+        s.link.send_raw(f)
 
 
 __all__ = ["check_cameras"]

@@ -134,6 +134,15 @@ def test_sdk_rig_targets_pass_as_their_hello_declares(cameras, says, capsys, tmp
     assert says in out, out
 
 
+def test_an_sdk_rig_target_passes_over_the_local_transport(capsys):
+    """Over local (one message a packet) each frame of a set goes as its own message:
+    three frames sent as one write were one packet with 18,640 trailing bytes."""
+    code = target_check.main(["local", "--", sys.executable, "-m", "hil.targets.echo", "--cameras", "set"])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "one ESTIMATE per set (CAP_FRAME_SETS): frame_id 2000" in out, out
+
+
 @needs_cc
 def test_c_target_answering_per_set_passes(capsys, monkeypatch):
     for k, v in c_build.SAN_ENV.items():
