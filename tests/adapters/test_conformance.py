@@ -45,13 +45,16 @@ def test_frame_round_trip_is_stamped(pair):
 
 def test_inference_time_is_measured_on_the_target(pair):
     # The echo target spins exactly 20 ms; preemption on a busy machine can only
-    # lengthen a frame, so the best of five shows the measurement's own accuracy.
+    # lengthen a frame, so the best frame shows the measurement's own accuracy: at
+    # least five, and up to twenty while a loaded machine lengthened every one.
     with pair(["--infer-ms", "20"]) as link:
-        measured = []
-        for i in range(5):
+        measured: list[float] = []
+        for i in range(20):
             send_frame(link, i)
             est, t0p = next_estimate(link)
             measured.append((est.t_infer_end_target_ns - est.t_infer_start_target_ns) / 1e6)
+            if len(measured) >= 5 and min(measured) < 20.5:
+                break
         assert all(m >= 20.0 for m in measured)
         assert min(measured) < 20.5, measured
 
