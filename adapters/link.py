@@ -28,7 +28,7 @@ from hil.adapters.impair import LinkImpairment
 from hil.adapters.wire import protocol
 from hil.adapters.wire.messages import (Bye, CameraInfo, Command, ErrorMsg, Estimate, Frame, Hello, ImageEncoding,
                                         Message, SyncRequest, SyncResponse)
-from hil.adapters.wire.receipt import Receipt
+from hil.adapters.wire.receipt import Receipt, StreamReader
 from hil.adapters.wire.stream import StreamDecoder
 from hil.common.errors import ProtocolError, TargetError, TransportError
 from hil.timing.clock import Clock
@@ -347,6 +347,23 @@ class Link(ABC):
         self.stats.bytes_received += r.nbytes
         for item in r.items:
             self._dispatch(item, r.t_rx_ns, r.uncertainty_ns)
+
+    def _read_stream(self, reader: StreamReader[NoReturn], *, failed: Callable[[OSError], str],
+                     ended: Callable[[], str]) -> None:
+        """A stream transport's reader loop: every message as it is read, until the
+        peer ends the stream (``ended()``: why) or the read fails (``failed(err)``:
+        why, unless the link was closed)."""
+        while True:
+            try:
+                r = reader.next()
+            except OSError as err:
+                if not self._closed:
+                    self._mark_gone(failed(err))
+                break
+            if r is None:
+                self._mark_gone(ended())
+                break
+            self._on_receipt(r)
 
     def _on_message_bytes(self, data: bytes, t_rx_ns: int) -> None:
         """Reader-thread entry for message transports (one message per call)."""

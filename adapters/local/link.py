@@ -164,17 +164,7 @@ class LocalLink(Link):
         prioritise_this_thread()  # receipt stamps must not wait behind analysis or recording
         reader: StreamReader[NoReturn] = StreamReader(self._sock, self.clock, stats=self.receipt_stats,
                                                       not_before_ns=self._opened_ns)  # a message a read
-        while True:
-            try:
-                r = reader.next()
-            except OSError as err:
-                if not self._closed:
-                    self._mark_gone(f"socket error: {err}")
-                break
-            if r is None:
-                self._mark_gone(self._exit_reason())
-                break
-            self._on_receipt(r)
+        self._read_stream(reader, failed=lambda err: f"socket error: {err}", ended=self._exit_reason)
 
     def _exit_reason(self) -> str:
         proc = self._proc

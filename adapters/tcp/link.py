@@ -298,17 +298,8 @@ class TcpLink(Link):
             self._beater = beater
         reader = StreamReader(sock, self.clock, decoder=cand.decoder, kernel_stamps=self.kernel_stamps,
                               stats=self.tcp_stats, not_before_ns=cand.opened_ns)
-        while True:
-            try:
-                r = reader.next()
-            except OSError as err:
-                if not self._closed:
-                    self._mark_gone(f"tcp: connection failed: {err}")
-                break
-            if r is None:
-                self._mark_gone("tcp: the target closed the connection")
-                break
-            self._on_receipt(r)
+        self._read_stream(reader, failed=lambda err: f"tcp: connection failed: {err}",
+                          ended=lambda: "tcp: the target closed the connection")
 
     def _beat(self) -> None:
         while not self._stop.wait(self.heartbeat_idle_s / 2):
