@@ -48,7 +48,7 @@ class EventKind(str, Enum):
     SKEW_LIMIT = "skew_limit"
     SYNC_LOST = "sync_lost"
     CAUSALITY = "causality"
-    # a vehicle's camera rig (harness/analysis/rig_observer.py), each flagged once at the
+    # a vehicle's camera rig (hil.timing.rig.RigTracker), each flagged once at the
     # frame set where it begins
     RIG_DESYNC = "rig_desync"          # capture skew or arrival spread of a set over its threshold
     CAMERA_MISSING = "camera_missing"  # a set settled without one of its cameras
