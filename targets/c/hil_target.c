@@ -393,10 +393,34 @@ static void drain(session *s, int64_t t_rx) {
     s->len -= pos;
 }
 
+#ifdef SCM_TIMESTAMPNS
+#define MAX_BRACKET_NS 20000 /* a wider bracket (the reader was preempted) gives no mapping */
+
+/* *offset: this clock minus CLOCK_REALTIME (ns), from a reading of the realtime clock
+ * between two of this clock's, the tightest bracket of three, so that a reader
+ * preempted between two reads (a loaded host) does not shift the mapping by half the
+ * time it waited; *now: this clock's latest reading. 0 when no bracket was within
+ * MAX_BRACKET_NS (then the caller keeps its own after-the-read stamp, never early). */
+static int realtime_offset(const session *s, int64_t *offset, int64_t *now) {
+    int64_t width = INT64_MAX;
+    for (int i = 0; i < 3 && width > 2000; i++) {
+        struct timespec r;
+        int64_t a = now_ns(s);
+        clock_gettime(CLOCK_REALTIME, &r);
+        int64_t b = now_ns(s);
+        *now = b;
+        if (b - a < width) {
+            width = b - a;
+            *offset = a + (b - a) / 2 - ((int64_t)r.tv_sec * 1000000000LL + r.tv_nsec);
+        }
+    }
+    return width <= MAX_BRACKET_NS;
+}
+#endif
+
 /* Reads at most `want` bytes into the buffer; *t_rx is when the bytes arrived on this
  * target's clock: the kernel's receive time (SO_TIMESTAMPNS, CLOCK_REALTIME) mapped
- * with a paired reading of both clocks where the socket gives one, else the clock
- * after the read. */
+ * with realtime_offset where the socket gives one, else the clock after the read. */
 static ssize_t read_stamped(session *s, size_t want, int64_t *t_rx) {
     struct iovec iov = {s->buf + s->len, want < s->cap - s->len ? want : s->cap - s->len};
     union {
@@ -415,14 +439,13 @@ static ssize_t read_stamped(session *s, size_t want, int64_t *t_rx) {
 #ifdef SCM_TIMESTAMPNS
     for (struct cmsghdr *c = CMSG_FIRSTHDR(&mh); n > 0 && c; c = CMSG_NXTHDR(&mh, c)) {
         if (c->cmsg_level != SOL_SOCKET || c->cmsg_type != SCM_TIMESTAMPNS) continue;
-        struct timespec k, r;
+        struct timespec k;
         memcpy(&k, CMSG_DATA(c), sizeof k);
-        clock_gettime(CLOCK_REALTIME, &r);
-        int64_t b = now_ns(s);
-        int64_t real = (int64_t)r.tv_sec * 1000000000LL + r.tv_nsec;
+        int64_t b = 0, offset = 0;
+        int ok = realtime_offset(s, &offset, &b);
         int64_t kernel = (int64_t)k.tv_sec * 1000000000LL + k.tv_nsec;
-        int64_t mapped = kernel + (a + (b - a) / 2 - real);
-        if (kernel > 0 && mapped <= b) {
+        int64_t mapped = kernel + offset;
+        if (ok && kernel > 0 && mapped <= b) {
             *t_rx = mapped;
             s->kernel_stamps++;
         }

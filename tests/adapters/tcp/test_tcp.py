@@ -113,6 +113,32 @@ def test_mapping_follows_the_links_clock():
     assert abs(now - (time.time_ns() + offset)) < 1_000_000  # realtime + offset is that clock
 
 
+class _PreemptedOnce(MonotonicClock):
+    """The monotonic clock, whose second reading comes 5 ms late once: the reader
+    preempted between two reads of a mapping's bracket (real time passes)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.reads = 0
+
+    def now_ns(self) -> int:
+        self.reads += 1
+        if self.reads == 2:
+            time.sleep(0.005)
+        return super().now_ns()
+
+
+def test_a_preempted_bracket_does_not_shift_the_mapping():
+    """A 5 ms gap inside the first bracket would put the realtime reading 2.5 ms off its
+    midpoint; the mapping takes the tightest of its brackets instead (a kernel stamp
+    mapped early made a frame arrive before it was sent: a causality anomaly)."""
+    clock = _PreemptedOnce()
+    _now, offset = RealtimeMapper(clock).now_pair()
+    truth = min((MonotonicClock().now_ns() - time.time_ns() for _ in range(5)), key=abs)
+    assert clock.reads > 2  # it took another bracket
+    assert abs(offset - truth) < 200_000, (offset - truth) / 1e6
+
+
 def test_idle_harness_sends_heartbeats():
     with socket.create_server(("127.0.0.1", 0)) as server:
         port = server.getsockname()[1]
