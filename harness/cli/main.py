@@ -341,7 +341,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     code = run_exit_code(s)
     from hil.harness.report.ci_cases import of_run
 
-    write_ci_outputs(of_run(s, run_dir=result.out_dir, exit_code=code), args)
+    from hil.harness.vocab.figures import RunFigures
+
+    write_ci_outputs(of_run(RunFigures.from_json(s), run_dir=result.out_dir, exit_code=code), args)
     return code
 
 
