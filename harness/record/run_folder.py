@@ -451,4 +451,5 @@ def _num(d: dict[str, Any], key: str) -> bool:
 
 
 __all__ = ["CONFIG_NAME", "ClockPoint", "RecordedEvent", "RunData", "camera_images", "is_finalized_mcap",
-           "load_figures", "load_summary", "meta_from_config", "pipeline_record", "read_run", "run_dir_of", "summary_path_of"]
+           "load_figures", "load_summary", "meta_from_config", "pipeline_record", "read_run", "run_dir_of",
+           "summary_path_of"]
