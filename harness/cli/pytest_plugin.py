@@ -13,7 +13,8 @@ fixture (elsewhere: ``pytest -p hil.harness.cli.pytest_plugin``)::
 path, relative to the working directory, else to pytest's rootdir, else to the
 checkout holding the package's ``hil_configs/``; or a mapping)
 in a fresh folder under the test's ``tmp_path`` and returns a :class:`HilRunResult`
-(``.summary``, ``.run_dir``, ``.mcap_path``). A config mistake or a target that
+(``.summary`` as written, ``.figures`` typed: :class:`hil.harness.vocab.figures.RunFigures`,
+``.run_dir``, ``.mcap_path``). A config mistake or a target that
 cannot start fails the test with the one-line error, no traceback; a run that
 ended early (its target died) fails it unless ``require_complete=False``.
 
