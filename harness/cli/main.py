@@ -12,10 +12,13 @@ import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from hil.common.errors import ConfigError, HilError
 from hil.harness import __version__
+
+if TYPE_CHECKING:
+    from hil.harness.vocab.figures import RunFigures
 
 EXIT_OK, EXIT_EARLY, EXIT_USAGE = 0, 1, 2
 
@@ -320,14 +323,17 @@ def _cmd_run(args: argparse.Namespace) -> int:
             return EXIT_EARLY
         raise
     s = result.summary
-    print_verdict(console, s)
+    from hil.harness.vocab.figures import RunFigures
+
+    figures = RunFigures.from_json(s)
+    print_verdict(console, figures)
     console.print(final_table(s))
     warning = realtime_warning(s["realtime"], sim_steps=round(s["sim_time_s"] / cfg.physics_step_s))
     if warning is not None:
         console.print(f"[yellow]warning: {warning}[/yellow]", markup=True, highlight=False)
     from rich.markup import escape
 
-    for line in link_warnings(s, rig_cameras=len(cfg.camera.cameras())):
+    for line in link_warnings(figures, rig_cameras=len(cfg.camera.cameras())):
         console.print(f"[yellow]warning: {escape(line)}[/yellow]", markup=True, highlight=False)
     console.print(f"run.mcap:     {result.mcap_path}")
     console.print(f"summary.json: {result.summary_path}")
@@ -341,50 +347,46 @@ def _cmd_run(args: argparse.Namespace) -> int:
     code = run_exit_code(s)
     from hil.harness.report.ci_cases import of_run
 
-    write_ci_outputs(of_run(s, run_dir=result.out_dir, exit_code=code), args)
+    write_ci_outputs(of_run(figures, run_dir=result.out_dir, exit_code=code), args)
     return code
 
 
-def link_warnings(summary: dict[str, Any], *, rig_cameras: int = 1) -> list[str]:
+def link_warnings(figures: RunFigures, *, rig_cameras: int = 1) -> list[str]:
     """What a user should know of each vehicle's link, one line each, from
     ``summary.json``: connections refused that were not its target
     (``vehicles.<name>.link.connections_refused``, ``refused``: a squatter on the port
     or a rogue dialling in was kept out), and a rig of ``rig_cameras`` cameras whose
     target takes one camera, so it got camera 0 only (``events.rig_camera_zero_only``)."""
     out = []
-    for name, v in summary.get("vehicles", {}).items():
-        link = v.get("link") or {}
-        n = link.get("connections_refused") or 0
+    for name, v in figures.vehicles.items():
+        n = v.link.connections_refused
         if n:
-            named = "; ".join(link.get("refused") or [])
+            named = "; ".join(v.link.refused)
             out.append(f"{name}: {n} connection{'s' * (n > 1)} refused, not the run's target"
                        + (f" ({named})" if named else "") + f" (summary.json vehicles.{name}.link.refused)")
-        if (v.get("events") or {}).get("rig_camera_zero_only"):
+        if v.events.get("rig_camera_zero_only"):
             out.append(f"{name}: its target did not announce CAP_CAMERAS, so it got camera 0 only of the "
                        f"{rig_cameras}-camera rig, as a single camera (PROTOCOL.md 4.2.1)")
     return out
 
 
-def print_verdict(console: Any, summary: dict[str, Any]) -> None:
+def print_verdict(console: Any, figures: RunFigures) -> None:
     """The verdict first: a banner for a collision, then one line per check (met or
     missed, with its figures); the checks that fail the run (``--fail-on``) say so."""
     from rich.markup import escape
 
-    from hil.harness.vocab.verdict import verdict_of
-
-    v = verdict_of(summary)
-    by = {c["name"]: c for c in v["checks"]}
-    col = by.get("collision")
-    if col is not None and not col["ok"]:
-        console.print(f"[bold white on red] COLLISION [/bold white on red] [bold red]{escape(col['headline'])}"
+    v = figures.verdict
+    col = v.check("collision")
+    if col is not None and not col.ok:
+        console.print(f"[bold white on red] COLLISION [/bold white on red] [bold red]{escape(col.headline)}"
                       "[/bold red]")
-    fails = set(v.get("fails_run") or [])
-    head = "all checks passed" if v["passed"] else f"{len(v['failed'])} check(s) failed: {', '.join(v['failed'])}"
+    fails = set(v.fails_run)
+    head = "all checks passed" if v.passed else f"{len(v.failed)} check(s) failed: {', '.join(v.failed)}"
     console.print(f"[bold]verdict:[/bold] {escape(head)}")
-    for c in v["checks"]:
-        mark = "[green]ok  [/green]" if c["ok"] else ("[bold red]FAIL[/bold red]" if c["name"] in fails
-                                                       else "[yellow]warn[/yellow]")
-        console.print(f"  {mark} {c['name']:<9} {escape(c['headline'])}", highlight=False)
+    for c in v.checks:
+        mark = "[green]ok  [/green]" if c.ok else ("[bold red]FAIL[/bold red]" if c.name in fails
+                                                    else "[yellow]warn[/yellow]")
+        console.print(f"  {mark} {c.name:<9} {escape(c.headline)}", highlight=False)
     if fails:
         console.print(f"[bold red]the run fails on: {', '.join(sorted(fails))} (--fail-on): exit 3[/bold red]")
 

@@ -13,7 +13,8 @@ fixture (elsewhere: ``pytest -p hil.harness.cli.pytest_plugin``)::
 path, relative to the working directory, else to pytest's rootdir, else to the
 checkout holding the package's ``hil_configs/``; or a mapping)
 in a fresh folder under the test's ``tmp_path`` and returns a :class:`HilRunResult`
-(``.summary``, ``.run_dir``, ``.mcap_path``). A config mistake or a target that
+(``.summary`` as written, ``.figures`` typed: :class:`hil.harness.vocab.figures.RunFigures`,
+``.run_dir``, ``.mcap_path``). A config mistake or a target that
 cannot start fails the test with the one-line error, no traceback; a run that
 ended early (its target died) fails it unless ``require_complete=False``.
 
@@ -29,22 +30,27 @@ after the GL backend is chosen (``hil.scenarios.gl.select_backend``).
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 import shutil
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pytest
+
+if TYPE_CHECKING:
+    from hil.harness.vocab.figures import RunFigures, StageFigures
 
 _BUDGET_KEYS = ("p50_ms", "p90_ms", "p99_ms", "max_ms", "mean_ms", "std_ms")
 
 
 @dataclass(frozen=True)
 class HilRunResult:
-    """A finished run: its folder and parsed ``summary.json``."""
+    """A finished run: its folder and parsed ``summary.json`` (``summary``, as
+    written; ``figures``: typed, what the assertions read)."""
 
     run_dir: Path
     summary: dict[str, Any]
@@ -53,8 +59,19 @@ class HilRunResult:
     def mcap_path(self) -> Path:
         return self.run_dir / "run.mcap"
 
+    @functools.cached_property
+    def figures(self) -> RunFigures:
+        """The summary as :class:`hil.harness.vocab.figures.RunFigures`.
+
+        Raises:
+            hil.common.errors.ConfigError: a malformed field, named.
+        """
+        from hil.harness.vocab.figures import RunFigures
+
+        return RunFigures.from_json(self.summary)
+
     def _vehicles(self, vehicle: str | None) -> list[str]:
-        known = list(self.summary.get("vehicles", {}))
+        known = list(self.figures.vehicles)
         if vehicle is None:
             return known
         if vehicle not in known:
@@ -69,14 +86,18 @@ class HilRunResult:
             AssertionError: no such vehicle or stage, or no samples.
         """
         __tracebackhide__ = True
+        return self._stage(vehicle, stage).to_json()
+
+    def _stage(self, vehicle: str, stage: str) -> StageFigures:
+        __tracebackhide__ = True
         (v,) = self._vehicles(vehicle)
-        stages = self.summary["vehicles"][v].get("latency_ms", {})
+        stages = self.figures.vehicles[v].latency_ms
         st = stages.get(stage)
-        if not st or not st.get("count"):
+        if st is None or not st.count:
             raise AssertionError(f"no latency samples for {v} {stage} (stages with samples: "
-                                 f"{', '.join(k for k, s in stages.items() if s.get('count')) or 'none'}); "
+                                 f"{', '.join(k for k, s in stages.items() if s.count) or 'none'}); "
                                  f"run folder {self.run_dir}")
-        return dict(st)
+        return st
 
     def assert_budget(self, *, vehicle: str | None = None, stage: str = "end_to_end",
                       p50_ms: float | None = None, p90_ms: float | None = None, p99_ms: float | None = None,
@@ -95,13 +116,13 @@ class HilRunResult:
             raise TypeError("assert_budget needs at least one budget, e.g. p99_ms=80")
         over = []
         for v in self._vehicles(vehicle):
-            st = self.latency(v, stage)
+            st = self._stage(v, stage)
             for key, budget in budgets.items():
-                measured = st.get(key)
+                measured = st.figure(key)
                 if measured is not None and measured > budget:
                     pct = f"{(measured / budget - 1) * 100:+.1f} %, " if budget > 0 else ""
                     over.append(f"  {v} {stage} {key[:-3]} = {measured:.3f} ms > budget {budget:.3f} ms "
-                                f"(over by {measured - budget:.3f} ms, {pct}{st.get('count')} frames)")
+                                f"(over by {measured - budget:.3f} ms, {pct}{st.count} frames)")
         if over:
             raise AssertionError("latency budget exceeded:\n" + "\n".join(over)
                                  + f"\nrun folder: {self.run_dir} (see report.html / run.mcap)")
@@ -115,10 +136,10 @@ class HilRunResult:
         __tracebackhide__ = True
         over = []
         for v in self._vehicles(vehicle):
-            s = self.summary["vehicles"][v]
-            rate = float(s.get("drop_rate", 0.0))
+            s = self.figures.vehicles[v]
+            rate = 0.0 if s.drop_rate is None else float(s.drop_rate)
             if rate > max_rate:
-                over.append(f"  {v}: {s.get('dropped')} of {s.get('frames_sent')} frames dropped "
+                over.append(f"  {v}: {s.dropped} of {s.frames_sent} frames dropped "
                             f"(rate {rate:.4f} > {max_rate:.4f})")
         if over:
             raise AssertionError("dropped frames:\n" + "\n".join(over) + f"\nrun folder: {self.run_dir}")
@@ -172,7 +193,7 @@ def run_config(config: str | os.PathLike[str] | Mapping[str, Any], *, out_dir: P
 
 
 def _check_complete(result: HilRunResult, require_complete: bool) -> None:
-    ended = result.summary.get("ended_by")
+    ended = result.figures.ended_by
     if require_complete and ended != "duration":
         raise AssertionError(f"hil run ended early: {ended}; run folder {result.run_dir}")
 
@@ -206,13 +227,12 @@ def _run(config: str | os.PathLike[str] | Mapping[str, Any], *, out_dir: Path, o
 def run_properties(result: HilRunResult, prefix: str) -> list[tuple[str, object]]:
     """A run's figures as test properties (names under ``prefix``): its folder, how
     it ended, the verdict and ``hil.harness.report.ci_cases.run_figures``."""
-    from hil.harness.vocab.verdict import verdict_of
     from hil.harness.report.ci_cases import run_figures
 
-    v = verdict_of(result.summary)
-    props: dict[str, object] = {"run_dir": str(result.run_dir), "ended_by": result.summary.get("ended_by"),
-                                "verdict.passed": v["passed"], "verdict.failed": ",".join(v["failed"]),
-                                **run_figures(result.summary)}
+    v = result.figures.verdict
+    props: dict[str, object] = {"run_dir": str(result.run_dir), "ended_by": result.figures.ended_by,
+                                "verdict.passed": v.passed, "verdict.failed": ",".join(v.failed),
+                                **run_figures(result.figures)}
     return [(f"{prefix}.{k}", "" if x is None else x) for k, x in props.items()]
 
 

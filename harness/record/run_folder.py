@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from hil.common.errors import ConfigError
+from hil.harness.vocab.figures import RunFigures
 from hil.timing.records import FrameStatus, PipelineRecord
 
 SUMMARY_NAME = "summary.json"
@@ -79,12 +80,26 @@ def summary_path_of(path: str | os.PathLike[str]) -> Path:
 
 
 def load_summary(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Read and check a ``summary.json`` (or the one in a run folder).
+    """Read and check a ``summary.json`` (or the one in a run folder), as written.
 
     Raises:
-        ConfigError: missing, unreadable, not JSON (truncated, binary, text), or
-            JSON that is not a run summary (no ``vehicles`` mapping).
+        ConfigError: missing, unreadable, not JSON (truncated, binary, text), JSON
+            that is not a run summary (no ``vehicles`` mapping), or a field of the
+            wrong type (:meth:`hil.harness.vocab.figures.RunFigures.from_json` names it).
     """
+    return _load(path)[0]
+
+
+def load_figures(path: str | os.PathLike[str]) -> RunFigures:
+    """A ``summary.json`` (or the one in a run folder) as the run's typed figures.
+
+    Raises:
+        ConfigError: as :func:`load_summary`.
+    """
+    return _load(path)[1]
+
+
+def _load(path: str | os.PathLike[str]) -> tuple[dict[str, Any], RunFigures]:
     p = summary_path_of(path)
     try:
         text = p.read_bytes().decode("utf-8")
@@ -101,7 +116,10 @@ def load_summary(path: str | os.PathLike[str]) -> dict[str, Any]:
                           f"({err.msg})") from err
     if not isinstance(data, dict) or not isinstance(data.get("vehicles"), dict):
         raise ConfigError(f"{p}: not a run summary: JSON without a 'vehicles' mapping")
-    return data
+    try:
+        return data, RunFigures.from_json(data)
+    except ConfigError as err:
+        raise ConfigError(f"{p}: not a run summary: {err}") from err
 
 
 @dataclass(frozen=True)
@@ -143,10 +161,11 @@ class RunData:
     time of its sync sample; its index among the file's messages);
     ``pipeline_positions``: the same index of each ``pipeline`` record (the file's
     order is the order the run's analysis wrote them in); ``sync_exchanges``: every
-    ``/V/clock_sync`` message as written."""
+    ``/V/clock_sync`` message as written. ``summary``: the run's ``summary.json`` as
+    its typed figures (``None``: the run has none)."""
 
     run_dir: Path
-    summary: dict[str, Any] | None
+    summary: RunFigures | None
     summary_problem: str | None
     meta: dict[str, Any]
     mcap_present: bool
@@ -166,7 +185,7 @@ class RunData:
 
     @property
     def vehicles(self) -> list[str]:
-        names = list((self.summary or {}).get("vehicles", {}))
+        names = [] if self.summary is None else list(self.summary.vehicles)
         names += [v for v in sorted(set(self.pipeline) | set(self.camera_times)) if v not in names]
         return names
 
@@ -241,10 +260,10 @@ def read_run(path: str | os.PathLike[str]) -> RunData:
 
     run_dir = run_dir_of(path)
     mcap_path = run_dir / MCAP_NAME
-    summary: dict[str, Any] | None = None
+    summary: RunFigures | None = None
     problem: str | None = None
     if (run_dir / SUMMARY_NAME).is_file():
-        summary = load_summary(run_dir / SUMMARY_NAME)
+        summary = load_figures(run_dir / SUMMARY_NAME)
     else:
         problem = f"no {SUMMARY_NAME} (the run did not finish normally)"
     data = RunData(run_dir=run_dir, summary=summary, summary_problem=problem, meta={},
@@ -432,4 +451,5 @@ def _num(d: dict[str, Any], key: str) -> bool:
 
 
 __all__ = ["CONFIG_NAME", "ClockPoint", "RecordedEvent", "RunData", "camera_images", "is_finalized_mcap",
-           "load_summary", "meta_from_config", "pipeline_record", "read_run", "run_dir_of", "summary_path_of"]
+           "load_figures", "load_summary", "meta_from_config", "pipeline_record", "read_run", "run_dir_of",
+           "summary_path_of"]

@@ -67,12 +67,13 @@ def e2e_rules(d: RunData, vehicles: list[str]) -> list[rp.Rule]:
     budgets: dict[float, list[int]] = {}
     timeouts: set[float] = set()
     for v in vehicles:
-        b = ((((d.summary or {}).get("vehicles") or {}).get(v) or {}).get("budgets") or {}).get("end_to_end")
+        vf = None if d.summary is None else d.summary.vehicles.get(v)
+        b = None if vf is None or vf.budgets is None else vf.budgets.get("end_to_end")
         lim = limits(d.run_dir, v)
-        if isinstance(b, dict) and isinstance(b.get("budget_ms"), (int, float)):
-            counts = budgets.setdefault(float(b["budget_ms"]), [0, 0])
-            counts[0] += int(b.get("over") or 0)
-            counts[1] += int(b.get("frames") or 0)
+        if b is not None:
+            counts = budgets.setdefault(float(b.budget_ms), [0, 0])
+            counts[0] += b.over
+            counts[1] += b.frames
         elif "deadline.end_to_end" in lim:
             budgets.setdefault(lim["deadline.end_to_end"], [])
         if "timeout" in lim:
@@ -102,19 +103,19 @@ def fleet_section(d: RunData, *, left: int = 0) -> str:
         return "".join(out) + "<p>no vehicles recorded</p>"
     colours = vehicle_colours(d.vehicles)
     series, boxes, rows = [], [], []
-    vs = (d.summary or {}).get("vehicles") or {}
+    vs = {} if d.summary is None else d.summary.vehicles
     for v in d.vehicles:
         x, y = e2e(d, v)
         series.append(rp.Series(f"{v} end-to-end (ms)", x, y, colours[v], "points"))
         if y.size:
             boxes.append((v, y))
-        s = vs.get(v) or {}
+        s = vs.get(v)
         p50 = float(np.percentile(y, 50)) if y.size else None
         p99 = float(np.percentile(y, 99)) if y.size else None
-        drop = s.get("drop_rate")
+        drop = None if s is None else s.drop_rate
         rows.append([f'<span style="color:{colours[v]}">■</span> <a href="#latency-{escape(v)}">{escape(v)}</a>',
-                     str(y.size), ms(p50, 1), ms(p99, 1), ms(s.get("frames_per_s"), 1),
-                     ms(s.get("estimates_per_s"), 1), "–" if not isinstance(drop, (int, float)) else f"{drop:.1%}"])
+                     str(y.size), ms(p50, 1), ms(p99, 1), ms(None if s is None else s.frames_per_s, 1),
+                     ms(None if s is None else s.estimates_per_s, 1), "–" if drop is None else f"{drop:.1%}"])
     rules = e2e_rules(d, d.vehicles)
     out.append('<p class="muted">End-to-end latency (t0′−t0, ms) of every applied frame of every vehicle, '
                "on an axis scaled to the data; dashed lines: the end-to-end deadline (with the frames over it) and "

@@ -8,40 +8,33 @@ vehicle with one camera (no ``rig`` in its summary).
 from __future__ import annotations
 
 from html import escape
-from typing import Any
 
 from hil.harness.report.tables import kv_table, ms, table
+from hil.harness.vocab.figures import VehicleFigures
 
 _CAMERA_HEAD = ["camera", "frames", "late frames", "sets without it", "render p50 (ms)",
                 "capture→send p50 (ms)", "end-to-end p50 (ms)"]
 
 
-def rig_html(vehicle: dict[str, Any]) -> str:
+def rig_html(vehicle: VehicleFigures | None) -> str:
     """The per-camera table and the frame-set figures of one vehicle's summary
     (``summary.json``'s ``vehicles.<V>``); ``""`` without a rig."""
-    rig, cameras = vehicle.get("rig"), vehicle.get("cameras")
-    if not isinstance(rig, dict) or not isinstance(cameras, dict):
+    rig = None if vehicle is None else vehicle.rig
+    if vehicle is None or rig is None:
         return ""
-    rows = [[escape(str(name)), _count(c.get("frames")), _count(c.get("late_frames")),
-             _count(c.get("missing_in_sets")), ms(c.get("render_p50_ms")), ms(c.get("capture_to_send_p50_ms")),
-             ms(c.get("end_to_end_p50_ms"))] for name, c in cameras.items() if isinstance(c, dict)]
-    th = rig.get("thresholds") or {}
-    sets = [("frame sets", _count(rig.get("sets"))),
-            ("complete (every camera answered)", _count(rig.get("complete"))),
-            ("desynced", _count(rig.get("desynced"))),
-            ("capture skew max (ms)", f"{ms(rig.get('capture_skew_ms_max'))} (limit {ms(th.get('skew_ms'))})"),
-            ("arrival spread p50 / max (ms)", f"{ms(rig.get('arrival_spread_ms_p50'))} / "
-                                              f"{ms(rig.get('arrival_spread_ms_max'))} "
+    rows = [[escape(name), str(c.frames), str(c.late_frames), str(c.missing_in_sets),
+             ms(c.stage_p50_ms.get("render")), ms(c.stage_p50_ms.get("capture_to_send")),
+             ms(c.stage_p50_ms.get("end_to_end"))] for name, c in vehicle.cameras.items()]
+    th = rig.thresholds
+    sets = [("frame sets", str(rig.sets)), ("complete (every camera answered)", str(rig.complete)),
+            ("desynced", str(rig.desynced)),
+            ("capture skew max (ms)", f"{ms(rig.capture_skew_ms_max)} (limit {ms(th.get('skew_ms'))})"),
+            ("arrival spread p50 / max (ms)", f"{ms(rig.arrival_spread_ms_p50)} / {ms(rig.arrival_spread_ms_max)} "
                                               f"(limit {ms(th.get('spread_ms'))})"),
-            ("end-to-end from first capture p50 (ms)", ms(rig.get("e2e_from_first_capture_ms_p50"))),
-            ("end-to-end from last capture p50 (ms)", ms(rig.get("e2e_from_last_capture_ms_p50")))]
+            ("end-to-end from first capture p50 (ms)", ms(rig.e2e_from_first_capture_ms_p50)),
+            ("end-to-end from last capture p50 (ms)", ms(rig.e2e_from_last_capture_ms_p50))]
     return ('<h4>Camera rig</h4><p class="muted">Each camera\'s frames (late: handed to the link later than the '
             "frame tolerance after its capture) and stage medians; a frame set is one trigger of every camera, "
             "measured on the harness clock alone.</p>" + table(_CAMERA_HEAD, rows) + kv_table(sets))
-
-
-def _count(v: Any) -> str:
-    return str(v) if isinstance(v, int) and not isinstance(v, bool) else "–"
-
 
 __all__ = ["rig_html"]

@@ -42,7 +42,7 @@ import numpy as np
 
 from hil.common.errors import ConfigError
 from hil.harness import __version__
-from hil.harness.vocab.verdict import verdict_of
+from hil.harness.vocab.figures import RealtimeFigures, RecorderFigures, StageFigures
 from hil.harness.record import event_text as et
 from hil.harness.record.run_folder import RecordedEvent, RunData, read_run
 from hil.harness.report import fleet, timeseries
@@ -75,7 +75,7 @@ svg{max-width:100%;height:auto}:target{background:#fff8d0}
 
 
 def _notes(d: RunData) -> list[str]:
-    s = d.summary or {}
+    s = d.summary
     notes = []
     if d.truncated:
         notes.append(("bad", (f"run.mcap is truncated (no MCAP footer: the run was killed or the disk filled). "
@@ -86,40 +86,43 @@ def _notes(d: RunData) -> list[str]:
         notes.append(("bad", "run.mcap is missing: only the figures of summary.json are shown."))
     if d.summary_problem:
         notes.append(("warn", f"{d.summary_problem}: run details and counters come from run.mcap alone."))
-    ended = s.get("ended_by")
+    ended = None if s is None else s.ended_by
     if ended is not None and ended != "duration":
         notes.append(("bad", f"The run ended early: {ended}."))
-    dropped = (s.get("recorder") or {}).get("dropped")
+    dropped = None if s is None or s.recorder is None else s.recorder.dropped
     if dropped:
         notes.append(("warn", f"The recorder dropped {dropped} messages (queue full): run.mcap misses them."))
     return [f'<div class="note {c}">{escape(t)}</div>' for c, t in notes]
 
 
-def _recorder_text(rec: dict[str, Any], in_file: int | None) -> str:
+def _recorder_text(rec: RecorderFigures | None, in_file: int | None) -> str:
     """The recorder's counters in words: every message written (the Foxglove views among
     them), drops, bytes; ``in_file``: the messages of the complete ``run.mcap``, when
     they differ (a harness before the count included the views)."""
-    if "written" not in rec:
-        return ", ".join(f"{k} {v}" for k, v in rec.items()) or "–"
-    if "derived" not in rec and in_file is not None and in_file != rec["written"]:
-        return (f"{rec['written']} messages counted, {rec.get('dropped', '?')} dropped; run.mcap holds {in_file}: "
-                "the harness that wrote it did not count the Foxglove views derived from the hil channels")
-    parts = [f"{rec['written']} messages written"
-             + (f" ({rec['derived']} of them Foxglove views derived from the hil channels)" if rec.get("derived")
-                else "")]
-    if "dropped" in rec:
-        parts.append(f"{rec['dropped']} dropped (queue full)")
-    if isinstance(rec.get("bytes_written"), (int, float)):
-        parts.append(f"{rec['bytes_written'] / 1e6:.2f} MB")
+    if rec is None or rec.written is None:
+        known = {} if rec is None else {k: v for k, v in (("derived", rec.derived), ("enqueued", rec.enqueued),
+                                                          ("dropped", rec.dropped),
+                                                          ("bytes_written", rec.bytes_written)) if v is not None}
+        return ", ".join(f"{k} {v}" for k, v in {**known, **(rec.extra if rec else {})}.items()) or "–"
+    if rec.derived is None and in_file is not None and in_file != rec.written:
+        return (f"{rec.written} messages counted, {'?' if rec.dropped is None else rec.dropped} dropped; run.mcap "
+                f"holds {in_file}: the harness that wrote it did not count the Foxglove views derived from the hil "
+                "channels")
+    parts = [f"{rec.written} messages written"
+             + (f" ({rec.derived} of them Foxglove views derived from the hil channels)" if rec.derived else "")]
+    if rec.dropped is not None:
+        parts.append(f"{rec.dropped} dropped (queue full)")
+    if rec.bytes_written is not None:
+        parts.append(f"{rec.bytes_written / 1e6:.2f} MB")
     return ", ".join(parts)
 
 
 def _run_section(d: RunData) -> str:
-    s = d.summary or {}
-    meta = {**d.meta, **s}
+    s = d.summary
 
-    def get(key: str) -> Any:
-        return meta.get(key, "unknown")
+    def get(key: str) -> Any:  # what ran: the summary's, else the recording's metadata
+        v = None if s is None else getattr(s, key)
+        return d.meta.get(key, "unknown") if v is None else v
 
     params = get("scenario_params")
     params_text = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in params.items()) \
@@ -127,42 +130,24 @@ def _run_section(d: RunData) -> str:
     rows = [("name", escape(str(get("name")))), ("scenario", escape(str(get("scenario")))),
             ("parameters", escape(params_text)), ("seed", escape(str(get("seed")))),
             ("config hash", f"<code>{escape(str(get('config_hash')))}</code>"),
-            ("ended by", escape(str(s.get("ended_by", "unknown (no summary.json)"))))]
-    if d.meta.get("meta_source") and not s:
+            ("ended by", escape(str("unknown (no summary.json)" if s is None or s.ended_by is None
+                                    else s.ended_by)))]
+    if d.meta.get("meta_source") and s is None:
         rows.insert(0, ("read from", escape(f"{d.meta['meta_source']} (run.mcap holds no run metadata: the run "
                                             "did not finish)")))
-    if s:
-        rt = s.get("realtime") or {}
-        kept = rt.get("kept_realtime")
-        lagging = rt.get("lagging")
-        badge = ('<span class="ok">kept</span>' if kept else '<span class="nok">NOT kept</span>'
-                 + (f" ({escape(', '.join(lagging))} lagged)" if lagging else ""))
-        cam = rt.get("camera") or {}
-        rows += [("simulated / wall time", f"{ms(s.get('sim_time_s'), 2)} s / {ms(s.get('wall_time_s'), 2)} s"),
-                 ("mode", escape(str(rt.get("mode")))),
-                 ("real-time health", (f"{badge}: physics factor {rt.get('achieved_factor')} of "
-                                       f"{rt.get('requested_factor')}, late steps {rt.get('late_steps')}, "
-                                       f"max lateness {rt.get('max_lateness_ms')} ms"
-                                       + (f"; camera frames late {cam.get('late_frames')} of {cam.get('frames')} "
-                                          f"(over {cam.get('tolerance_ms')} ms after their instant, worst "
-                                          f"{cam.get('worst_lag_ms')} ms)" if cam else "")))]
-        lat = rt.get("lateness_ms") or {}
-        if lat:
-            rows.append(("physics-step lateness", escape(
-                f"p50 {ms(lat.get('p50'))} ms, p99 {ms(lat.get('p99'))} ms, p99.9 {ms(lat.get('p999'))} ms, "
-                f"max {ms(rt.get('max_lateness_ms'))} ms; {rt.get('late_steps')} steps over "
-                f"{rt.get('late_tolerance_ms')} ms, {rt.get('steps_over_10ms')} over 10 ms")))
-            rows.append(("processes", escape(
-                f"physics: {rt.get('physics_scheduling', '?')}; render workers: {rt.get('render_workers', '?')}")))
-        cost = s.get("harness_cost") or {}
-        if cost:
+    if s is not None:
+        rows.append(("simulated / wall time", f"{ms(s.sim_time_s, 2)} s / {ms(s.wall_time_s, 2)} s"))
+        if s.realtime is not None:
+            rows += _realtime_rows(s.realtime)
+        cost = s.harness_cost
+        if cost is not None:
             rows.append(("harness cost per frame", escape(
-                f"loop thread {cost.get('loop_thread_us_per_frame')} µs, analysis thread "
-                f"{cost.get('analysis_thread_us_per_frame')} µs (CPU), analysis tasks dropped "
-                f"{cost.get('analysis_tasks_dropped')}")))
-        rows.append(("recorder", escape(_recorder_text(s.get("recorder") or {},
+                f"loop thread {cost.loop_thread_us_per_frame} µs, analysis thread "
+                f"{cost.analysis_thread_us_per_frame} µs (CPU), analysis tasks dropped "
+                f"{cost.analysis_tasks_dropped}")))
+        rows.append(("recorder", escape(_recorder_text(s.recorder,
                                                        None if d.truncated or not d.mcap_present else d.messages))))
-        rows.append(("collisions", str(len(s.get("collisions") or []))))
+        rows.append(("collisions", str(len(s.collisions))))
     rows.append(("run.mcap", f"{d.mcap_bytes / 1e6:.2f} MB, {d.messages} messages"
                              + (' <span class="nok">(truncated)</span>' if d.truncated else "")))
     rows.append(("GL backend", escape(str(get("gl_backend")))))
@@ -170,25 +155,46 @@ def _run_section(d: RunData) -> str:
     if isinstance(vers, dict):
         rows.append(("versions", escape(", ".join(f"{k} {v}" for k, v in vers.items()))))
     out = ['<h2 id="run">Run</h2>', kv_table(rows)]
-    vs = s.get("vehicles") or {}
+    vs = {} if s is None else s.vehicles
     if vs:
         head = ["vehicle", "frames sent", "applied", "dropped", "stale", "late", "drop rate (%)", "frames/s",
                 "order violations", "target (clock)", "min gap (m)", "final speed (m/s)", "collisions"]
         rows2 = []
         for name, v in vs.items():
-            o = v.get("outcome") or {}
-            t = v.get("target") or {}
-            drop = v.get("drop_rate")
-            fps = v.get("frames_per_s")
-            rows2.append([escape(name)] + [escape(str(v.get(k, "–"))) for k in
-                                           ("frames_sent", "estimates_applied", "dropped", "stale",
-                                            "late_estimates")]
-                         + ["–" if not isinstance(drop, (int, float)) else f"{drop:.1%}", ms(fps, 1),
-                            escape(str(v.get("order_violations", "–")))]
-                         + [escape(f"{t.get('name', '?')} ({t.get('clock', '?')})"), ms(o.get("min_gap_m"), 2),
-                            ms(o.get("final_speed_mps"), 2), escape(str(o.get("collisions", "–")))])
+            o, t = v.outcome, v.target
+            rows2.append([escape(name)] + [escape(str(n)) for n in
+                                           (v.frames_sent, v.estimates_applied, v.dropped, v.stale, v.late_estimates)]
+                         + ["–" if v.drop_rate is None else f"{v.drop_rate:.1%}", ms(v.frames_per_s, 1),
+                            escape(str(v.order_violations))]
+                         + [escape("? (?)" if t is None else f"{t.name} ({t.clock})"),
+                            ms(None if o is None else o.min_gap_m, 2), ms(None if o is None else o.final_speed_mps, 2),
+                            escape("–" if o is None else str(o.collisions))])
         out += ["<h3>Vehicles</h3>", table(head, rows2)]
     return "".join(out)
+
+
+def _realtime_rows(rt: RealtimeFigures) -> list[tuple[str, str]]:
+    """The run table's real-time rows: mode, health (physics and cameras), lateness, processes."""
+    badge = ('<span class="ok">kept</span>' if rt.kept_realtime else '<span class="nok">NOT kept</span>'
+             + (f" ({escape(', '.join(rt.lagging))} lagged)" if rt.lagging else ""))
+    cam = rt.camera
+    rows = [("mode", escape(rt.mode)),
+            ("real-time health", (f"{badge}: physics factor {rt.achieved_factor} of "
+                                  f"{rt.requested_factor}, late steps {rt.late_steps}, "
+                                  f"max lateness {rt.max_lateness_ms} ms"
+                                  + (f"; camera frames late {cam.late_frames} of {cam.frames} "
+                                     f"(over {cam.tolerance_ms} ms after their instant, worst "
+                                     f"{cam.worst_lag_ms} ms)" if cam is not None else "")))]
+    lat = rt.lateness_ms
+    if lat:
+        rows.append(("physics-step lateness", escape(
+            f"p50 {ms(lat.get('p50'))} ms, p99 {ms(lat.get('p99'))} ms, p99.9 {ms(lat.get('p999'))} ms, "
+            f"max {ms(rt.max_lateness_ms)} ms; {rt.late_steps} steps over "
+            f"{rt.late_tolerance_ms} ms, {rt.steps_over_10ms} over 10 ms")))
+        rows.append(("processes", escape(
+            f"physics: {'?' if rt.physics_scheduling is None else rt.physics_scheduling}; render workers: "
+            f"{'?' if rt.render_workers is None else rt.render_workers}")))
+    return rows
 
 
 # --- latency ------------------------------------------------------------------------
@@ -220,14 +226,15 @@ def _latency_section(d: RunData) -> str:
     for vehicle in d.vehicles:
         out.append(f'<h3 id="latency-{escape(vehicle)}">{escape(vehicle)}</h3>')
         values = _stage_values(d.pipeline.get(vehicle, []))
+        figures = None if d.summary is None else d.summary.vehicles.get(vehicle)
         if values:
-            stats = {k: summarize_ns(v.tolist()) for k, v in values.items()}
+            stats = {k: StageFigures.of(summarize_ns(v.tolist())) for k, v in values.items()}
         else:  # no records (no run.mcap): the summary's figures
-            stats = ((d.summary or {}).get("vehicles", {}).get(vehicle, {}) or {}).get("latency_ms", {})
-        rows = [[escape(stage)] + [str(st.get("count", 0)) if k == "count" else ms(st.get(k)) for k in keys]
+            stats = {} if figures is None else dict(figures.latency_ms)
+        rows = [[escape(stage)] + [str(st.count) if k == "count" else ms(st.figure(k)) for k in keys]
                 for stage, st in stats.items()]
         out.append(table(head, rows) if rows else "<p>no latency samples</p>")
-        out.append(rig_html(((d.summary or {}).get("vehicles", {}) or {}).get(vehicle) or {}))
+        out.append(rig_html(figures))
         if values:
             in_ms = {k: v / 1e6 for k, v in values.items()}
             out.append(box_chart(list(in_ms.items()), x_label="ms", title=f"{vehicle}: latency per stage"))
@@ -274,24 +281,22 @@ def _events_section(d: RunData) -> str:
 def _verdict_section(d: RunData) -> str:
     """The first screen: a collision banner, then every check, met or missed, with its
     figures (``summary.json``'s ``verdict``, or one rebuilt from its figures)."""
-    if not d.summary:
+    if d.summary is None:
         return ""
-    v = verdict_of(d.summary)
+    v = d.summary.verdict
     out = ['<h2 id="verdict">Verdict</h2>']
-    by = {c["name"]: c for c in v["checks"]}
-    col = by.get("collision")
-    if col is not None and not col["ok"]:
-        out.append(f'<div class="note bad banner"><b>COLLISION</b> — {escape(col["headline"])}</div>')
-    fails = set(v.get("fails_run") or [])
-    head = ("all checks passed" if v["passed"]
-            else f"{len(v['failed'])} check{'s' if len(v['failed']) != 1 else ''} failed: {', '.join(v['failed'])}")
-    out.append(f'<p class="{"ok" if v["passed"] else "nok"}">{escape(head)}</p>')
+    col = v.check("collision")
+    if col is not None and not col.ok:
+        out.append(f'<div class="note bad banner"><b>COLLISION</b> — {escape(col.headline)}</div>')
+    head = ("all checks passed" if v.passed
+            else f"{len(v.failed)} check{'s' if len(v.failed) != 1 else ''} failed: {', '.join(v.failed)}")
+    out.append(f'<p class="{"ok" if v.passed else "nok"}">{escape(head)}</p>')
     rows = []
-    for c in v["checks"]:
-        mark = ('<span class="ok">met</span>' if c["ok"] else
-                '<span class="nok">FAILED (fails the run)</span>' if c["name"] in fails else
+    for c in v.checks:
+        mark = ('<span class="ok">met</span>' if c.ok else
+                '<span class="nok">FAILED (fails the run)</span>' if c.name in v.fails_run else
                 '<span class="nok">missed</span>')
-        rows.append([escape(c["name"]), mark, escape(c["headline"])])
+        rows.append([escape(c.name), mark, escape(c.headline)])
     out.append(table(["check", "verdict", "what the figures say"], rows, numeric_from=99))
     return "".join(out)
 
@@ -303,7 +308,7 @@ def build_report(d: RunData, *, page_dir: Path | None = None) -> str:
     """The whole HTML page for ``d``; its links to the run's files (the corner cases'
     recordings) are relative to ``page_dir``, the folder the page is written to
     (default: the run folder)."""
-    name = (d.summary or {}).get("name") or d.meta.get("name") or d.run_dir.name
+    name = (None if d.summary is None else d.summary.name) or d.meta.get("name") or d.run_dir.name
     parts = [_run_section(d), fleet.fleet_section(d, left=fleet.chart_left(d, timeseries.strips)), _latency_section(d)]
     if d.mcap_present:
         parts += [timeseries.timeline_section(d), timeseries.fps_section(d), timeseries.clock_section(d),

@@ -22,6 +22,7 @@ from hil.harness.record.run_folder import CONFIG_NAME, ClockPoint, RecordedEvent
 from hil.harness.report import fleet
 from hil.harness.report import plots as rp
 from hil.harness.report.tables import ms, table
+from hil.harness.vocab.figures import ClockFigures
 
 
 def event_title(e: RecordedEvent, t_s: float) -> str:
@@ -151,15 +152,15 @@ def fps_section(d: RunData) -> str:
 # --- the target clock ---------------------------------------------------------------------
 
 
-def skew_ppm(points: list[ClockPoint], given: dict[str, Any] | None = None) -> tuple[float, float | None] | None:
+def skew_ppm(points: list[ClockPoint], given: ClockFigures | None = None) -> tuple[float, float | None] | None:
     """The target clock's skew (ppm) and its bound (± ppm, ``None`` where the source
     gave none): the summary's final fit (``given``: ``vehicles.<name>.clock``), else the
     newest ``/V/clock`` estimate, else a fit over the samples whose uncertainty is within
     twice the smallest (a minimum-delay filter), bounded by the first and last of them
     (their uncertainties over the time between them)."""
-    if given and isinstance(given.get("skew_ppm"), (int, float)):
-        unc = given.get("skew_uncertainty_ppm")
-        return float(given["skew_ppm"]), float(unc) if isinstance(unc, (int, float)) else None
+    if given is not None and given.skew_ppm is not None:
+        unc = given.skew_uncertainty_ppm
+        return float(given.skew_ppm), None if unc is None else float(unc)
     told = [p for p in points if p.skew_ppm is not None]
     if told:
         return float(told[-1].skew_ppm or 0.0), told[-1].skew_uncertainty_ppm
@@ -194,7 +195,7 @@ def clock_section(d: RunData) -> str:
         return "".join(out) + "<p>no clock samples recorded</p>"
     t0 = d.t_start_ns
     rows = []
-    vs = (d.summary or {}).get("vehicles") or {}
+    vs = {} if d.summary is None else d.summary.vehicles
     for vehicle in d.vehicles + sorted(v for v in d.clock if v not in d.vehicles):
         pts = d.clock.get(vehicle)
         if not pts:
@@ -210,11 +211,11 @@ def clock_section(d: RunData) -> str:
                                  x_label="time since first frame (s)", y_label="µs", y_zero=False,
                                  title=f"{vehicle} ({d.clock_source.get(vehicle, '?')})", height=200,
                                  left=fleet.chart_left(d, strips), x_range=time_span(d)))
-        given = (vs.get(vehicle) or {}).get("clock")
+        vf = vs.get(vehicle)
         rows.append([escape(vehicle), escape(d.clock_source.get(vehicle, "?")), str(len(pts)),
                      f"{med / 1e6:.3f}", ms(float(u.min()), 1), ms(float(np.median(u)), 1),
                      ms(float(np.ptp(y)), 1),
-                     escape(_skew_text(skew_ppm(pts, given if isinstance(given, dict) else None)))])
+                     escape(_skew_text(skew_ppm(pts, None if vf is None else vf.clock)))])
     out.append(table(["vehicle", "source", "samples", "median offset (ms)", "min uncertainty (µs)",
                       "median uncertainty (µs)", "offset spread (µs)", "skew (ppm)"], rows, numeric_from=2))
     return "".join(out)

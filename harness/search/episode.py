@@ -29,6 +29,7 @@ from typing import Any
 from hil.common.errors import ConfigError, HilError
 from hil.harness.search.sampling import Draw, score
 from hil.harness.search.spec import Campaign
+from hil.harness.vocab.figures import RunFigures
 
 ERROR_FILE = "episode-error.txt"
 
@@ -99,7 +100,7 @@ def run_episode(campaign: Campaign, draw: Draw, *, campaign_dir: Path, shard: st
         cfg = campaign.episode_config(index=draw.index, seed=draw.seed, values=draw.values)
         result = execute(cfg, out_dir=prepare_out_dir(out), gl_backend=gl_backend,
                          install_signal_handlers=install_signal_handlers)
-        _fill(res, campaign, result.summary, out)
+        _fill(res, campaign, RunFigures.from_json(result.summary), out)
     except HilError as err:
         res.error = f"{type(err).__name__}: {err}"
     except Exception as err:  # noqa: BLE001 - one broken episode must not end the campaign
@@ -113,20 +114,19 @@ def run_episode(campaign: Campaign, draw: Draw, *, campaign_dir: Path, shard: st
     return res
 
 
-def _fill(res: EpisodeResult, c: Campaign, summary: dict[str, Any], out: Path) -> None:
-    res.ended_by = str(summary.get("ended_by", ""))
+def _fill(res: EpisodeResult, c: Campaign, figures: RunFigures, out: Path) -> None:
+    res.ended_by = "" if figures.ended_by is None else figures.ended_by
     res.status = Status.OK if res.ended_by == "duration" else Status.EARLY
-    res.sim_s = float(summary.get("sim_time_s", 0.0))
+    res.sim_s = float(figures.sim_time_s or 0.0)
     mism: dict[str, int] = {}
     gaps: list[float | None] = []
     collided = 0
-    for v in summary.get("vehicles", {}).values():
-        res.anomalies += sum(int(n) for n in (v.get("anomalies") or {}).values())
-        for k, n in (v.get("mismatches") or {}).items():
-            mism[k] = mism.get(k, 0) + int(n)
-        o = v.get("outcome") or {}
-        gaps.append(o.get("min_gap_m"))
-        collided += 1 if o.get("collisions") else 0
+    for v in figures.vehicles.values():
+        res.anomalies += sum(v.anomalies.values())
+        for k, n in v.mismatches.items():
+            mism[k] = mism.get(k, 0) + n
+        gaps.append(None if v.outcome is None else v.outcome.min_gap_m)
+        collided += 1 if v.outcome is not None and v.outcome.collisions else 0
     res.mismatches = mism
     res.collisions = collided
     finite = [g for g in gaps if g is not None and math.isfinite(g)]

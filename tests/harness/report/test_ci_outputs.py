@@ -19,6 +19,7 @@ import yaml
 
 from hil.harness.check.ci_cases import of_calibrate
 from hil.harness.report.ci_cases import of_run, run_figures
+from hil.harness.vocab.figures import RunFigures
 from hil.harness.report.ci_outputs import CiCase, CiReport, write_junit
 from tests.adapters.tcp.pair import tcp_echo
 from tests.adapters.zenoh.pair import free_port
@@ -86,7 +87,7 @@ def test_a_failed_check_not_in_fail_on_is_a_warning_not_a_failure(
     s = json.loads((root / "run" / "summary.json").read_text())
     s = copy.deepcopy(s)
     s["verdict"].update(fail_on=[], fails_run=[])
-    report = of_run(s, run_dir=root / "run", exit_code=0)
+    report = of_run(RunFigures.from_json(s), run_dir=root / "run", exit_code=0)
     write_junit(report, tmp_path / "warn.xml")
     (suite,) = read_junit(tmp_path / "warn.xml")
     dl = suite.cases["deadline"]
@@ -95,7 +96,7 @@ def test_a_failed_check_not_in_fail_on_is_a_warning_not_a_failure(
     assert not any(c.failed for c in suite.cases.values())
     # An early end is exit 1: the completed case fails.
     s["ended_by"] = "target of ego0 is gone: exited with code 3"
-    write_junit(of_run(s, run_dir=root / "run", exit_code=1), tmp_path / "early.xml")
+    write_junit(of_run(RunFigures.from_json(s), run_dir=root / "run", exit_code=1), tmp_path / "early.xml")
     (suite,) = read_junit(tmp_path / "early.xml")
     assert suite.cases["completed"].failed and "ended early: target of ego0 is gone" in suite.cases["completed"].message
 
@@ -106,7 +107,7 @@ def test_run_figures_are_the_summarys() -> None:
          "vehicles": {"ego1": {"frames_sent": 10, "dropped": 1, "drop_rate": 0.1,
                                "latency_ms": {"end_to_end": {"count": 9, "p50_ms": 3.5, "p99_ms": 9.25},
                                               "transport": {"count": 0}}}}}
-    f = run_figures(s)
+    f = run_figures(RunFigures.from_json(s))
     assert f["ego1.end_to_end.p99_ms"] == 9.25 and f["ego1.dropped"] == 1 and f["realtime.late_frames"] == 2
     assert not any(k.startswith("ego1.transport") for k in f)
 

@@ -108,6 +108,7 @@ def test_a_target_without_cap_cameras_gets_camera_0_only_and_is_told_once(tmp_pa
     assert "rig" not in v and "cameras" not in v and not events(m, "camera_missing"), v.get("anomalies")
     assert v["estimates_applied"] == 10
     from hil.harness.cli.main import link_warnings  # the terminal's line, from the summary
+    from hil.harness.vocab.figures import RunFigures
 
-    (line,) = link_warnings(r.summary, rig_cameras=6)
+    (line,) = link_warnings(RunFigures.from_json(r.summary), rig_cameras=6)
     assert line.startswith("ego0:") and "camera 0 only of the 6-camera rig" in line
