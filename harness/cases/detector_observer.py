@@ -7,15 +7,15 @@ road under camera 0's mount in the vehicle's axes; "visible" from the segmentati
 boxes; the ego's route truth). A fused frame set's answer is judged once, against
 the union of its cameras' visible sets (an entity any camera showed is visible): it
 waits for each camera's truth, and one that never comes (a camera left out of the
-set) no longer counts once a later answer's truth arrives. Truth at ``t_apply`` from
-a snapshot taken when its control
-is applied, of that ego only and of the entities it had in range at ``t0``: the work
-per estimate does not grow with the number of vehicles (``truth_now`` is called with
-``egos=(vehicle,)`` where it takes that keyword). Ground truths are kept by sim time
-(bounded) so that a camera truth rendered late still meets its own instant. A mismatch is written
-to ``/events`` (kind ``mismatch.<kind>``) ``link_delay_s`` after it is found, once
-the timing analysis of its frames is done, with those frames' timing anomalies
-linked; the corner-case recorder picks it up from there.
+set) no longer counts once a later answer's truth arrives. Truth at ``t_apply`` comes
+from a snapshot taken when its control is applied, of that ego only and of the
+entities it had in range at ``t0``: the work per estimate does not grow with the
+number of vehicles (``truth_now`` is called with ``egos=(vehicle,)`` where it takes
+that keyword). Ground truths are kept by sim time (bounded) so that a camera truth
+rendered late still meets its own instant. A mismatch is written to ``/events``
+(kind ``mismatch.<kind>``) ``link_delay_s`` after it is found, once the timing
+analysis of its frames is done, with those frames' timing anomalies linked; the
+corner-case recorder picks it up from there.
 """
 
 from __future__ import annotations
@@ -149,7 +149,7 @@ class DetectorObserver:
         if g is None:
             gt = self._gts.get(truth.sim_time_ns)
             if gt is None:  # not its exact instant: the latest one before it
-                gt = next((g for t, g in reversed(self._gts.items()) if t <= truth.sim_time_ns), None)
+                gt = next((x for t, x in reversed(self._gts.items()) if t <= truth.sim_time_ns), None)
             if gt is None:
                 return
             g = vj.gathering[frame_id] = _Gathered(gt, set(), 0, cameras)
