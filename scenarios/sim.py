@@ -102,7 +102,6 @@ class Simulation:
         self.mounts = world.camera.mounts()  # the cameras of every ego, camera 0 first
         self._cam_ids = {n: [int(m.camera(camera_name(n, k)).id) for k in range(len(self.mounts))]
                          for n in self.egos}
-        self._cam_id = {n: ids[0] for n, ids in self._cam_ids.items()}
         self._active_contacts: set[tuple[str, str]] = set()
         self._new_collisions: list[Collision] = []
         self._kin_step = -1
@@ -121,7 +120,7 @@ class Simulation:
         self._states_cache: _States | None = None
         self._qvel_before = np.zeros(m.nv)
         self._rgb: dict[tuple[str, int], np.ndarray] = {}
-        self._seg: np.ndarray | None = None
+        self._seg: dict[tuple[int, int], np.ndarray] = {}  # segmentation buffers by image size
         for i, name in enumerate(self.egos):  # start headings and speeds
             yaw = self._specs[name].yaw_rad
             self.data.qpos[self._qyaw[i]] = yaw
@@ -297,7 +296,7 @@ class Simulation:
                                        reflections=self.world.reflections, geom_entity=self._geom_entity)
         self._rgb = {(n, k): np.empty((m.height, m.width, 3), np.uint8) for n in self.egos
                      for k, m in enumerate(self.mounts)}
-        self._seg = np.empty((self.mounts[0].height, self.mounts[0].width), np.int32)
+        self._seg = {(m.height, m.width): np.empty((m.height, m.width), np.int32) for m in self.mounts}
 
     def render(self, vehicle: str, camera: int = 0) -> np.ndarray:
         """RGB8 image (height x width x 3) of ``vehicle``'s camera ``camera`` (its
@@ -308,18 +307,22 @@ class Simulation:
         self._sync_kinematics()
         return self._renderer.rgb(self.data, self._cam_ids[vehicle][camera], self._rgb[(vehicle, camera)])
 
-    def segmentation(self, vehicle: str) -> np.ndarray:
-        """Entity id of each pixel of ``vehicle``'s camera (-1: road, sky, verge); the
-        array is reused by the next call."""
+    def segmentation(self, vehicle: str, camera: int = 0) -> np.ndarray:
+        """Entity id of each pixel of ``vehicle``'s camera ``camera`` (its rig's; 0:
+        the first or only one; -1: road, sky, verge); the array is reused by the next
+        call for a camera of the same image size."""
         self.open_renderer()
-        assert self._renderer is not None and self._seg is not None
+        assert self._renderer is not None
         self._sync_kinematics()
-        return self._renderer.segment(self.data, self._cam_id[vehicle], self._seg)
+        m = self.mounts[camera]
+        return self._renderer.segment(self.data, self._cam_ids[vehicle][camera], self._seg[(m.height, m.width)])
 
-    def camera_truth(self, vehicle: str, *, min_visible_px: int = 1) -> CameraTruth:
-        """Every entity ``vehicle``'s camera shows now, from a segmentation render:
-        its box, visible pixels and fraction, and distance along the ego's route."""
-        seg = self.segmentation(vehicle)
+    def camera_truth(self, vehicle: str, camera: int = 0, *, min_visible_px: int = 1) -> CameraTruth:
+        """Every entity ``vehicle``'s camera ``camera`` (its rig's; 0: the first or
+        only one) shows now, from a segmentation render: its box (pixels of that
+        camera's image), visible pixels and fraction, and distance along the ego's
+        route (negative: behind its front)."""
+        seg = self.segmentation(vehicle, camera)
         n = len(self.world.vehicles)
         counts = np.bincount(seg.ravel() + 1, minlength=n + 1)[1:]
         me = self._entity_index[vehicle]
@@ -328,9 +331,9 @@ class Simulation:
         if not seen:
             return CameraTruth(vehicle, self.sim_time_ns, (), ego)
         s_m, lat_m = self._path_coords(vehicle, seen)
-        cam = self._cam_id[vehicle]
-        intr = self.intrinsics()
-        w, h = self.mounts[0].width, self.mounts[0].height
+        cam = self._cam_ids[vehicle][camera]
+        intr = self.intrinsics(camera)
+        w, h = self.mounts[camera].width, self.mounts[camera].height
         boxes = []
         for k, (e, box) in enumerate(zip(seen, pixel_boxes(seg, seen))):
             area, truncated = 0.0, False

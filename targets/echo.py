@@ -7,7 +7,11 @@ target of timing tests (it never looks at the image).
 
 With ``--cameras set`` it answers each frame set with one object per camera that came
 (UNKNOWN, its ``camera`` the camera's index), SLOW when a camera is missing, else SAFE:
-what the SDK handed it, on the wire for tests of rigs.
+what the SDK handed it, on the wire for tests of rigs. ``--object CLS:X:Y[:CAMERA]``
+(repeatable) reports those objects in every answer instead (vehicle frame, m; a fixed
+belief for tests of the corner-case detector):
+
+    python -m hil.targets.echo --cameras set --object vehicle:-7.05:2.8:3
 """
 
 from __future__ import annotations
@@ -31,19 +35,22 @@ class Echo:
     duration is exact) then returns SAFE with the given control."""
 
     def __init__(self, *, infer_ms: float = 0.0, throttle: float = 0.0, brake: float = 0.0,
-                 exit_after_frames: int | None = None, camera_delay: tuple[int, float] | None = None) -> None:
-        """``camera_delay``: (camera index, ms) spent more on that camera's frames."""
+                 exit_after_frames: int | None = None, camera_delay: tuple[int, float] | None = None,
+                 objects: tuple[DetectedObject, ...] = ()) -> None:
+        """``camera_delay``: (camera index, ms) spent more on that camera's frames;
+        ``objects``: reported in every answer."""
         self.infer_ns = int(infer_ms * 1e6)
         self.camera_delay = None if camera_delay is None else (camera_delay[0], int(camera_delay[1] * 1e6))
-        self.result = Inference(DrivingState.SAFE, Control(0.0, throttle, brake))
+        self.objects = objects
+        self.result = Inference(DrivingState.SAFE, Control(0.0, throttle, brake), objects)
         self.exit_after_frames = exit_after_frames
         self.frames = 0
 
     def infer_set(self, frames: FrameSet) -> Inference:
         """A frame set: one object per camera that came, SLOW when one is missing."""
         result = self.infer(frames.frames[-1])
-        seen = tuple(DetectedObject(ObjectClass.UNKNOWN, 1.0, (0.0, 0.0, 1.0, 1.0), (0.0, 0.0, 0.0), f.camera_index)
-                     for f in frames.frames)
+        seen = self.objects or tuple(DetectedObject(ObjectClass.UNKNOWN, 1.0, (0.0, 0.0, 1.0, 1.0), (0.0, 0.0, 0.0),
+                                                    f.camera_index) for f in frames.frames)
         return Inference(DrivingState.SAFE if frames.complete else DrivingState.SLOW, result.control, seen)
 
     def infer(self, frame: Frame) -> Inference:
@@ -101,6 +108,21 @@ def _camera_delay(text: str) -> tuple[int, float]:
     return k, d
 
 
+def _object(text: str) -> DetectedObject:
+    parts = text.split(":")
+    try:
+        cls = ObjectClass[parts[0].upper()]
+        x, y = float(parts[1]), float(parts[2])
+        camera = int(parts[3]) if len(parts) == 4 else 0
+    except (KeyError, IndexError, ValueError):
+        cls, x, y, camera = ObjectClass.UNKNOWN, 0.0, 0.0, -1
+    if not 3 <= len(parts) <= 4 or not 0 <= camera < 32:
+        names = ", ".join(c.label for c in ObjectClass)
+        raise argparse.ArgumentTypeError(f"{text!r}: CLS:X:Y[:CAMERA], a class ({names}), metres and a camera "
+                                         "0..31, e.g. vehicle:12.5:-0.4")
+    return DetectedObject(cls, 1.0, (0.0, 0.0, 1.0, 1.0), (x, y, 0.0), camera)
+
+
 def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.targets.echo") -> int:
     from hil.adapters.sdk import TargetArgumentParser, add_transport_args, run_target, serve, transport_options
 
@@ -122,10 +144,12 @@ def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.target
                    help="--cameras set: give up an incomplete frame set this long after its first frame (ms)")
     p.add_argument("--camera-delay-ms", type=_camera_delay, default=None, metavar="INDEX:MS",
                    help="spend MS more on camera INDEX's frames: a rig with one slow camera, for tests")
+    p.add_argument("--object", type=_object, action="append", default=[], metavar="CLS:X:Y[:CAMERA]",
+                   help="report this object (vehicle frame, m; its box in CAMERA) in every answer; repeatable")
     add_transport_args(p)
     a = p.parse_args(argv)
     echo = Echo(infer_ms=a.infer_ms, throttle=a.throttle, brake=a.brake, exit_after_frames=a.exit_after_frames,
-                camera_delay=a.camera_delay_ms)
+                camera_delay=a.camera_delay_ms, objects=tuple(a.object))
     sets = a.cameras == "set"
     return run_target(prog, lambda: serve(None if sets else echo.infer, target_name=a.name, transport=a.transport,
                                           clock=_clock(a), cameras=a.cameras, infer_set=echo.infer_set if sets else None,

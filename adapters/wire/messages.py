@@ -4,7 +4,8 @@ Units: times are integer nanoseconds (``*_ns``; ``*_target_ns`` on the target's
 clock), distances metres, angles radians, boxes pixels ``(x0, y0, x1, y1)`` with the
 origin at the image's top-left corner. Object positions are in the camera-ground
 frame: origin on the road directly under the camera, x forward along the camera's
-heading, y left, z up.
+heading, y left, z up; a rig of two or more cameras has one such frame, under camera
+0's mount with the vehicle's axes, for every camera (PROTOCOL.md 4.3).
 
 Byte layouts are in ``PROTOCOL.md``; ``hil.adapters.wire.protocol`` encodes and decodes.
 """

@@ -7,7 +7,8 @@ Each applied estimate is judged twice (DESIGN.md, "Two kinds of events"):
 * at ``t_apply`` against the truth when its control took effect: right at ``t0``
   but wrong here means **latency** made it wrong.
 
-Checks (positions in the camera-ground frame of PROTOCOL.md: x forward, y left):
+Checks (positions in the vehicle frame of PROTOCOL.md 4.3: x forward, y left; a
+rig's under camera 0's mount, in the vehicle's axes):
 
 * ``position_error``: a matched object off by more than
   ``pos_tol_m + pos_tol_rel * distance``;

@@ -1,15 +1,21 @@
 """Runs the corner-case detector inside a run (a ``RunObserver`` with the truth hooks).
 
 Truth at ``t0`` comes from the ground truth of the frame's camera instant (every
-entity's position in the camera-ground frame; "visible" from the segmentation boxes;
-the ego's route truth); truth at ``t_apply`` from a snapshot taken when its control
-is applied, of that ego only and of the entities it had in range at ``t0``: the work
-per estimate does not grow with the number of vehicles (``truth_now`` is called with
-``egos=(vehicle,)`` where it takes that keyword). Ground truths are kept by sim time
-(bounded) so that a camera truth rendered late still meets its own instant. A mismatch is written
-to ``/events`` (kind ``mismatch.<kind>``) ``link_delay_s`` after it is found, once
-the timing analysis of its frames is done, with those frames' timing anomalies
-linked; the corner-case recorder picks it up from there.
+entity's position in the frame the AI reports in, PROTOCOL.md 4.3: a single camera's
+camera-ground frame, or for a rig of two or more cameras the vehicle frame on the
+road under camera 0's mount in the vehicle's axes; "visible" from the segmentation
+boxes; the ego's route truth). A fused frame set's answer is judged once, against
+the union of its cameras' visible sets (an entity any camera showed is visible): it
+waits for each camera's truth, and one that never comes (a camera left out of the
+set) no longer counts once a later answer's truth arrives. Truth at ``t_apply`` comes
+from a snapshot taken when its control is applied, of that ego only and of the
+entities it had in range at ``t0``: the work per estimate does not grow with the
+number of vehicles (``truth_now`` is called with ``egos=(vehicle,)`` where it takes
+that keyword). Ground truths are kept by sim time (bounded) so that a camera truth
+rendered late still meets its own instant. A mismatch is written to ``/events``
+(kind ``mismatch.<kind>``) ``link_delay_s`` after it is found, once the timing
+analysis of its frames is done, with those frames' timing anomalies linked; the
+corner-case recorder picks it up from there.
 """
 
 from __future__ import annotations
@@ -38,6 +44,17 @@ _KEEP_TRUTHS = 64   # ground truths kept by sim time, for camera truths rendered
 
 
 @dataclass
+class _Gathered:
+    """The camera truths of one answer so far: the ground truth of its instant, the
+    union of what the cameras showed, how many came of how many awaited."""
+
+    gt: GroundTruth
+    visible: set[str]
+    came: int
+    awaited: int
+
+
+@dataclass
 class _VehicleJudge:
     detector: CornerCaseDetector
     at_t0: dict[int, FrameTruth] = field(default_factory=dict)
@@ -46,6 +63,9 @@ class _VehicleJudge:
     # estimate), judged in frame order once it does.
     waiting: dict[int, tuple[PipelineRecord, Estimate]] = field(default_factory=dict)
     last_frame: int = -1
+    last_answer: int = -1  # the frame id of the last estimate taken (a set's is judged once)
+    # Answers whose camera truths are still coming (frame id of the answer -> gathered).
+    gathering: dict[int, _Gathered] = field(default_factory=dict)
 
 
 class DetectorObserver:
@@ -54,7 +74,11 @@ class DetectorObserver:
         """``events``: the run's bus the mismatches go on (default: one that records
         them on ``recorder``'s ``/events``)."""
         self.cfg = cfg
-        self.cam = camera
+        cams = camera.cameras()
+        # Where positions are compared (PROTOCOL.md 4.3): under camera 0's mount, turned
+        # by its yaw for a single camera, in the vehicle's axes for a rig.
+        c0 = cams[0]
+        self._mount = (c0.forward_m, c0.lateral_m, 0.0 if len(cams) > 1 else math.radians(c0.yaw_deg))
         self.events = events if events is not None else EventBus.recording_to(recorder)
         self.timing = timing
         self.delay_ns = int(link_delay_s * 1e9)
@@ -84,10 +108,10 @@ class DetectorObserver:
         return FrameTruth(gt.sim_time_ns, tuple(objs), DrivingState(int(ego.ref_state)), view)
 
     def _in_camera(self, me: EntityState, e: EntityState, visible: bool) -> TruthObject:
+        forward, lateral, yaw = self._mount
         x, y = nearest_point_in_camera_frame(
-            ego_x=me.x_m, ego_y=me.y_m, ego_yaw=me.heading_rad, mount_forward_m=self.cam.mount_forward_m,
-            mount_lateral_m=self.cam.mount_lateral_m, camera_yaw=math.radians(self.cam.yaw_deg),
-            x=e.x_m, y=e.y_m, yaw=e.heading_rad, length=e.size_m[0], width=e.size_m[1])
+            ego_x=me.x_m, ego_y=me.y_m, ego_yaw=me.heading_rad, mount_forward_m=forward, mount_lateral_m=lateral,
+            camera_yaw=yaw, x=e.x_m, y=e.y_m, yaw=e.heading_rad, length=e.size_m[0], width=e.size_m[1])
         return TruthObject(e.name, e.cls, x, y, visible)
 
     # -- observer hooks ------------------------------------------------------------
@@ -111,17 +135,36 @@ class DetectorObserver:
                                                       force_n=c.force_n):
                         self._pending.append((t_ns + self.delay_ns, m))
 
-    def on_camera_truth(self, vehicle: str, frame_id: int, truth: CameraTruth) -> None:
+    def on_camera_truth(self, vehicle: str, frame_id: int, truth: CameraTruth, *, cameras: int = 1) -> None:
+        """One camera's truth of the answer to ``frame_id`` (a fused set's id), which
+        is judged on ``cameras`` of them (fewer if the others never come)."""
         vj = self.v.get(vehicle)
-        gt = self._gts.get(truth.sim_time_ns)
-        if gt is None:  # not its exact instant: the latest one before it
-            gt = next((g for t, g in reversed(self._gts.items()) if t <= truth.sim_time_ns), None)
-        if gt is None or vj is None:
+        if vj is None:
             return
+        # A render worker draws a vehicle's cameras in order: once a later answer's
+        # truth is here, an earlier answer's missing cameras never will be.
+        for earlier in [k for k in vj.gathering if k < frame_id]:
+            self._gathered(vehicle, vj, earlier)
+        g = vj.gathering.get(frame_id)
+        if g is None:
+            gt = self._gts.get(truth.sim_time_ns)
+            if gt is None:  # not its exact instant: the latest one before it
+                gt = next((x for t, x in reversed(self._gts.items()) if t <= truth.sim_time_ns), None)
+            if gt is None:
+                return
+            g = vj.gathering[frame_id] = _Gathered(gt, set(), 0, cameras)
         c = self.cfg
-        visible = {b.entity for b in truth.boxes
-                   if b.visible_px >= c.min_visible_px and b.visible_fraction >= c.min_visible_fraction}
-        vj.at_t0[frame_id] = self._frame_truth(vehicle, gt, visible)
+        g.visible.update(b.entity for b in truth.boxes
+                         if b.visible_px >= c.min_visible_px and b.visible_fraction >= c.min_visible_fraction)
+        g.came += 1
+        if g.came >= g.awaited:
+            self._gathered(vehicle, vj, frame_id)
+
+    def _gathered(self, vehicle: str, vj: _VehicleJudge, frame_id: int) -> None:
+        """The answer to ``frame_id`` has the camera truths it will get: its truth at
+        ``t0``; the answers waiting for it are judged."""
+        g = vj.gathering.pop(frame_id)
+        vj.at_t0[frame_id] = self._frame_truth(vehicle, g.gt, g.visible)
         _trim(vj.at_t0, frame_id)
         if vj.waiting:
             self._release(vj, upto=frame_id)
@@ -157,13 +200,17 @@ class DetectorObserver:
         if vj is None or estimate is None or rec.status != FrameStatus.OK:
             return
         vj.last_frame = rec.frame_id
-        if rec.frame_id not in vj.at_t0 or vj.waiting:
+        answer = estimate.frame_id  # a fused set's: its set id, one estimate for each of its frames
+        if answer == vj.last_answer:
+            return
+        vj.last_answer = answer
+        if answer not in vj.at_t0 or vj.waiting:
             # Its camera truth (rendered after the frame) is still on its way, or an
             # earlier frame waits for its own: judged in frame order when they come.
-            vj.waiting[rec.frame_id] = (rec, estimate)
+            vj.waiting[answer] = (rec, estimate)
             while vj.waiting:  # truth never came (truth.visible_boxes off): bounded, oldest out first
                 oldest = next(iter(vj.waiting))
-                if oldest >= rec.frame_id - _KEEP_FRAMES:
+                if oldest >= answer - _KEEP_FRAMES:
                     break
                 del vj.waiting[oldest]
             return
@@ -178,8 +225,8 @@ class DetectorObserver:
                 self._judge(vj, rec, estimate)
 
     def _judge(self, vj: _VehicleJudge, rec: PipelineRecord, estimate: Estimate) -> None:
-        t0 = vj.at_t0.pop(rec.frame_id)
-        ta = vj.at_apply.pop(rec.frame_id, None)
+        t0 = vj.at_t0.pop(estimate.frame_id)
+        ta = vj.at_apply.pop(estimate.frame_id, None)
         now = rec.t_apply_ns or rec.t0p_ns or rec.t0_ns
         self._last_ns = max(self._last_ns, now)
         lat = rec.t_apply_ns - rec.t0_ns if rec.t_apply_ns is not None else None
@@ -194,7 +241,9 @@ class DetectorObserver:
             self._emit(lambda due: due <= now_ns)
 
     def finish(self) -> None:
-        for vj in self.v.values():
+        for name, vj in self.v.items():
+            for frame_id in list(vj.gathering):  # a set's cameras that never came: judged with those that did
+                self._gathered(name, vj, frame_id)
             for m in vj.detector.finish(harness_time_ns=self._last_ns):
                 self._pending.append((self._last_ns, m))
         self._emit(lambda due: True)

@@ -164,11 +164,12 @@ class FrameReady(NamedTuple):
 
 
 class CameraTruthReady(NamedTuple):
-    """What ``vehicle``'s camera showed at ``steps`` (segmentation boxes)."""
+    """What ``vehicle``'s camera ``camera`` showed at ``steps`` (segmentation boxes)."""
 
     vehicle: str
     steps: int
     truth: Any  # hil.scenarios.ground_truth.CameraTruth
+    camera: int = 0  # the camera of the vehicle's rig (0: the first or only one)
 
 
 class WorkerFailed(NamedTuple):

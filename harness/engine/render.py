@@ -7,7 +7,8 @@ run process, and the physics never waits for a worker) and the egos to capture. 
 worker renders each camera, stamps ``t0`` when the pixels are ready, encodes, and
 writes the bytes into that vehicle's shared-memory slot ring (images never cross a
 pipe); then, with ``truth.visible_boxes``, it renders segmentation for the camera
-truth — after every frame of the job is out, so truth adds no capture latency.
+truth of each camera it drew — after every frame of the job is out, so truth adds
+no capture latency.
 
 Worker -> run messages (``hil.harness.engine.messages``): ``WorkerReady``,
 ``FrameReady`` (the frame's stamps and its slot), ``CameraTruthReady``,
@@ -136,8 +137,8 @@ def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, parent_pid: 
         for name in spec.vehicles:
             for k in range(spec.cameras):
                 encode_image(sim.render(name, k), jpeg=spec.jpeg, quality=spec.jpeg_quality)
-            if spec.visible_boxes:
-                sim.camera_truth(name, min_visible_px=spec.min_visible_px)
+                if spec.visible_boxes:
+                    sim.camera_truth(name, k, min_visible_px=spec.min_visible_px)
         slots = {v: FrameSlots(slot_bytes=spec.slot_bytes, name=spec.shm[v], cameras=spec.cameras)
                  for v in spec.vehicles}
     except Exception as err:  # noqa: BLE001 - reported to the run, which raises SimulationError
@@ -170,8 +171,8 @@ def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, parent_pid: 
 def _render_job(job: RenderJob, to: dict[str, Connection], sim: Any, slots: dict[str, FrameSlots],
                 counter: dict[tuple[str, int], int], spec: RenderSpec) -> None:
     """Render, stamp, encode and hand over the frames of one job (each vehicle's rig
-    cameras of the job in camera order); then the camera truth (segmentation) of the
-    vehicles whose camera 0 was among them, which adds no capture latency there."""
+    cameras of the job in camera order); then the camera truth (segmentation) of each
+    of those cameras, in the same order, which adds no capture latency there."""
     steps = job.steps
     sim.load_state(steps, job.qpos, job.qvel)
     names = [sim.egos[vi] for vi in job.vis]
@@ -193,5 +194,7 @@ def _render_job(job: RenderJob, to: dict[str, Connection], sim: Any, slots: dict
                                      n, enc, k))
     if spec.visible_boxes:
         for name, mask in zip(names, masks):
-            if mask & 1:
-                to[name].send(CameraTruthReady(name, steps, sim.camera_truth(name, min_visible_px=spec.min_visible_px)))
+            for k in range(spec.cameras):
+                if mask >> k & 1:
+                    to[name].send(CameraTruthReady(name, steps, sim.camera_truth(
+                        name, k, min_visible_px=spec.min_visible_px), k))

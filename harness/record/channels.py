@@ -3,9 +3,11 @@
 Topics per vehicle ``V``: ``/V/camera`` (foxglove.CompressedImage or RawImage; a rig's
 other cameras ``/V/camera/<name>``, :mod:`hil.harness.record.rig_views`),
 ``/V/estimate``, ``/V/pipeline``, ``/V/clock_sync``, ``/V/truth`` (the camera's
-visible boxes); shared: ``/ground_truth`` and ``/events``; and the Foxglove views
-of :mod:`hil.harness.record.foxglove_out` (``/scene``, ``/tf``, ``/log``, ``/V/camera_info``
-and a rig's ``/V/camera_info/<name>``, ``/V/annotations``, ``/V/estimate_scene``, ``/V/latency``). ``log_time`` is always
+visible boxes; a rig's other cameras ``/V/truth/<name>``); shared: ``/ground_truth``
+and ``/events``; and the Foxglove views of :mod:`hil.harness.record.foxglove_out`
+(``/scene``, ``/tf``, ``/log``, ``/V/camera_info`` and a rig's ``/V/camera_info/<name>``,
+``/V/annotations`` and a rig's ``/V/annotations/<name>``, ``/V/estimate_scene``,
+``/V/latency``). ``log_time`` is always
 the harness clock (receipt or capture), shifted onto the wall clock by the
 recorder's time anchor (metadata ``time_anchor``);
 ``publish_time`` the source's time (``t0`` for frames and records, the target's
@@ -22,7 +24,7 @@ from typing import Any
 from hil.harness.vocab.events import EVENT_SCHEMA
 from hil.harness.record import foxglove_out
 from hil.harness.record.recorder import Recorder, TimeAnchor
-from hil.harness.record.rig_views import rig_views
+from hil.harness.record.rig_views import rig_views, truth_topic
 from hil.timing.sync import SyncSample
 
 
@@ -40,7 +42,8 @@ ESTIMATE = _obj("hil.Estimate", {
     "control": _obj("hil.Control", {"steering_rad": _NUM, "throttle": _NUM, "brake": _NUM}),
     "objects": {"type": "array", "items": _obj("hil.DetectedObject", {
         "cls": {"type": "string"}, "confidence": _NUM,
-        "box_px": {"type": "array", "items": _NUM}, "position_m": {"type": "array", "items": _NUM}})},
+        "box_px": {"type": "array", "items": _NUM}, "position_m": {"type": "array", "items": _NUM},
+        "camera": {"type": "integer", "description": "the rig camera whose image box_px is in (absent: 0)"}})},
 }, ["frame_id", "state", "control", "objects"])
 
 PIPELINE = _obj("hil.PipelineRecord", {
@@ -128,6 +131,11 @@ def register_all(rec: Any, vehicles: Iterable[str], *, anchor: TimeAnchor | None
     if inner.stats.enqueued == 0:
         inner.set_time_anchor(anchor or TimeAnchor.capture())
     cfg = _run_config(inner)
+    cam = cfg.get("camera")
+    rig = (rig_views(cam) if isinstance(cam, dict) else None) or ()
+    for v in vehicles:  # a rig's other cameras' truth (the views draw it on their annotations)
+        for view in rig[1:]:
+            rec.register_json_channel(truth_topic(v, view.name), "hil.CameraTruth", CAMERA_TRUTH)
     if views:
         views_of(cfg, vehicles, offset_ns=inner.log_time_offset_ns).install(inner)
     recording = cfg.get("recording") or {}
@@ -145,12 +153,15 @@ def register_all(rec: Any, vehicles: Iterable[str], *, anchor: TimeAnchor | None
 
 def views_of(cfg: dict[str, Any], vehicles: list[str], *, offset_ns: int) -> foxglove_out.FoxgloveViews:
     """The Foxglove views of ``vehicles`` under the run config ``cfg`` (as JSON):
-    the camera calibration and each one's end-to-end deadline."""
+    the camera calibration, each one's end-to-end deadline, and whether its frames
+    have camera truth (``truth.visible_boxes``, default on)."""
     cam = cfg.get("camera")
     ok = isinstance(cam, dict) and all(k in cam for k in ("width", "height", "fovy_deg"))
+    truth = cfg.get("truth")
+    boxes = truth.get("visible_boxes") if isinstance(truth, dict) else None
     return foxglove_out.FoxgloveViews(vehicles, camera=cam if ok else None, offset_ns=offset_ns,
                                       deadline_ms=_deadlines(cfg, vehicles),
-                                      rig=rig_views(cam) if isinstance(cam, dict) else None)
+                                      rig=rig_views(cam) if isinstance(cam, dict) else None, truth=boxes is not False)
 
 
 def _deadlines(cfg: dict[str, Any], vehicles: list[str]) -> dict[str, float]:

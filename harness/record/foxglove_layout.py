@@ -14,13 +14,13 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 
-from hil.harness.record.rig_views import calibration_topic, camera_topic
+from hil.harness.record.rig_views import annotations_topic, calibration_topic, camera_topic
 
 
 def build_layout(vehicles: Sequence[str] = ("ego0",), *, rig_cameras: Sequence[str] = ()) -> str:
     """The layout as JSON text (Foxglove: Layouts → Import from file);
     ``rig_cameras``: the names of a rig's cameras after camera 0, each a panel of its
-    own beside camera 0's.
+    own beside camera 0's, with its truth and AI boxes.
 
     Raises:
         ImportError: foxglove-sdk is not installed.
@@ -36,7 +36,8 @@ def build_layout(vehicles: Sequence[str] = ("ego0",), *, rig_cameras: Sequence[s
             annotations={f"/{v}/annotations": fl.ImageAnnotationSettings(visible=True)}, synchronize=False)))
         for v in vehicles]
     cameras += [fl.ImagePanel(title=f"{v} camera {c}", config=fl.ImageConfig(image_mode=fl.ImageModeConfig(
-        image_topic=camera_topic(v, c), calibration_topic=calibration_topic(v, c), synchronize=False)))
+        image_topic=camera_topic(v, c), calibration_topic=calibration_topic(v, c),
+        annotations={annotations_topic(v, c): fl.ImageAnnotationSettings(visible=True)}, synchronize=False)))
         for v in vehicles for c in rig_cameras]
     three_d = fl.ThreeDeePanel(title="3D: true cubes, AI spheres", config=fl.ThreeDeeConfig(
         follow_tf=vehicles[0], fixed_frame="world",

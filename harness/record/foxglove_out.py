@@ -14,7 +14,12 @@ producers nothing:
   ``<V>/camera`` (the optical frame of the images), at each ``/ground_truth``;
 - ``/<V>/annotations`` ``foxglove.ImageAnnotations``: the true visible boxes (green)
   and the AI's boxes (magenta), labelled with class and distance, stamped with the
-  frame's image timestamp, written when the frame's answer (or its drop) is known;
+  frame's image timestamp, written when the frame's answer (or its drop) and, with
+  ``truth.visible_boxes``, its camera truth are known (the truth, rendered after the
+  frame, often comes after a quick answer); a rig's other cameras each on
+  ``/<V>/annotations/<name>`` from ``/<V>/truth/<name>``
+  (the AI's boxes on the camera their ``camera`` names; a fused set's answer draws
+  every frame of the set);
 - ``/<V>/estimate_scene`` ``foxglove.SceneUpdate``: the AI's objects as spheres in
   ``<V>/camera_ground``, beside the true cubes of ``/scene``;
 - ``/<V>/latency`` ``hil.Latency``: stage latencies of each frame in ms (Plot panel);
@@ -36,7 +41,8 @@ import numpy as np
 
 from hil.harness.record import foxglove_schemas as fx
 from hil.harness.record.event_text import event_line
-from hil.harness.record.rig_views import RigView, calibration, calibration_topic, camera_topic
+from hil.harness.record.rig_views import (RigView, annotations_topic, calibration, calibration_topic, camera_topic,
+                                          truth_topic)
 from hil.scenarios.ground_truth import GroundTruth
 
 # Colours by class (RGBA 0..1); ego vehicles blue as in the render.
@@ -49,6 +55,8 @@ _BACKDROP = {"r": 0.0, "g": 0.0, "b": 0.0, "a": 0.6}
 _LEVEL = {"info": fx.LOG_INFO, "warning": fx.LOG_WARNING, "critical": fx.LOG_ERROR}
 _PENDING_FRAMES = 256  # truth boxes kept per vehicle while the frame's answer is awaited
 _ESTIMATE_LIFETIME_NS = 300_000_000
+# A frame's annotations before its truth: (topic, t0 ns, AI objects, note, log time, publish time).
+_Drawing = tuple[str, int, list[dict[str, Any]], str, int, int]
 
 LATENCY = {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "hil.Latency", "type": "object",
            "description": "Latency of one frame (ms); stages as in hil.PipelineRecord.stages_ns",
@@ -138,15 +146,25 @@ class FoxgloveViews:
             latencies (``/V/latency.deadline_ms``) so a plot can draw it.
         rig: a camera rig's cameras, camera 0 first (:func:`hil.harness.record.rig_views.rig_views`):
             each one's calibration and mount in place of ``camera``'s (None: the one camera).
+        truth: every frame sent has a camera truth (``truth.visible_boxes``): a frame's
+            annotations wait for it (bounded: beyond ``_PENDING_FRAMES`` frames, drawn
+            without it).
     """
 
     def __init__(self, vehicles: Iterable[str], *, camera: Mapping[str, Any] | None, offset_ns: int,
-                 deadline_ms: Mapping[str, float] | None = None, rig: tuple[RigView, ...] | None = None) -> None:
+                 deadline_ms: Mapping[str, float] | None = None, rig: tuple[RigView, ...] | None = None,
+                 truth: bool = False) -> None:
         self.vehicles = set(vehicles)
         self.deadline_ms = dict(deadline_ms or {})
         self.offset_ns = offset_ns
         self._truth: dict[str, OrderedDict[int, list[dict[str, Any]]]] = {v: OrderedDict() for v in self.vehicles}
         self._t0: dict[str, OrderedDict[int, int]] = {v: OrderedDict() for v in self.vehicles}
+        # A rig's frames awaiting their answer: frame id -> its camera (pipeline ``camera``).
+        self._camera: dict[str, OrderedDict[int, int]] = {v: OrderedDict() for v in self.vehicles}
+        self.truth = truth
+        # Annotations of answered frames whose camera truth is still to come: frame id ->
+        # (topic, t0, AI objects, note, log time, publish time).
+        self._untruthed: dict[str, OrderedDict[int, _Drawing]] = {v: OrderedDict() for v in self.vehicles}
         self._calib: dict[str, Any] | None = None
         self._mount: tuple[float, float, float, float] | None = None
         self.rig = rig
@@ -163,6 +181,9 @@ class FoxgloveViews:
             for cam in (self.rig or ())[1:]:
                 rec.register_json_channel(calibration_topic(v, cam.name), fx.CAMERA_CALIBRATION,
                                           fx.camera_calibration_schema())
+                rec.register_json_channel(annotations_topic(v, cam.name), fx.IMAGE_ANNOTATIONS,
+                                          fx.image_annotations_schema())
+                rec.add_derivation(truth_topic(v, cam.name), self.on_truth)
             rec.add_derivation(f"/{v}/truth", self.on_truth)
             rec.add_derivation(f"/{v}/pipeline", self.on_pipeline)
             rec.add_derivation(f"/{v}/estimate", lambda m, lt, pt, v=v: self.on_estimate(v, m, lt, pt))
@@ -220,10 +241,31 @@ class FoxgloveViews:
         pending = self._truth.get(str(v))
         if pending is None:
             return []
-        pending[int(ct["frame_id"])] = list(ct.get("boxes", ()))
+        frame, boxes = int(ct["frame_id"]), list(ct.get("boxes", ()))
+        drawing = self._untruthed[str(v)].pop(frame, None)
+        if drawing is not None:  # answered already: drawn now
+            return [self._drawn(drawing, boxes)]
+        pending[frame] = boxes
         while len(pending) > _PENDING_FRAMES:
             pending.popitem(last=False)
         return []
+
+    def _draw(self, v: str, frame: int, drawing: _Drawing) -> list[tuple[str, Any, int, int]]:
+        """Frame ``frame``'s annotations, now if its truth is here (or none comes), else
+        once it does."""
+        boxes = self._truth[v].pop(frame, None)
+        if boxes is not None or not self.truth:
+            return [self._drawn(drawing, boxes or [])]
+        waiting = self._untruthed[v]
+        waiting[frame] = drawing
+        out = []
+        while len(waiting) > _PENDING_FRAMES:  # its truth never came: drawn without it
+            out.append(self._drawn(waiting.popitem(last=False)[1], []))
+        return out
+
+    def _drawn(self, d: _Drawing, boxes: list[dict[str, Any]]) -> tuple[str, Any, int, int]:
+        topic, t0, objects, note, log_ns, pub_ns = d
+        return topic, self._annotations(t0, boxes, objects, note=note), log_ns, pub_ns
 
     def on_pipeline(self, rec: Mapping[str, Any], log_ns: int, pub_ns: int) -> list[tuple[str, Any, int, int]]:
         v, frame = str(rec.get("vehicle")), int(rec["frame_id"])
@@ -237,24 +279,44 @@ class FoxgloveViews:
         t0s = self._t0.get(v)
         if t0s is None:
             return out
+        camera = rec.get("camera")
         if rec.get("status") != "dropped":
             t0s[frame] = int(rec["t0_ns"])  # the estimate follows: it draws the overlay
             while len(t0s) > _PENDING_FRAMES:
                 t0s.popitem(last=False)
+            if isinstance(camera, int):
+                cams = self._camera[v]
+                cams[frame] = camera
+                while len(cams) > _PENDING_FRAMES:
+                    cams.popitem(last=False)
         else:  # no answer: the truth alone, labelled
-            boxes = self._truth[v].pop(frame, [])
-            out.append((f"/{v}/annotations", self._annotations(
-                int(rec["t0_ns"]), boxes, [], note=f"frame {frame}: no answer ({rec.get('status')})"), log_ns, pub_ns))
+            out += self._draw(v, frame, (self._annotations_topic(v, camera if isinstance(camera, int) else 0),
+                                         int(rec["t0_ns"]), [], f"frame {frame}: no answer ({rec.get('status')})",
+                                         log_ns, pub_ns))
+        return out
+
+    def _annotations_topic(self, v: str, camera: int) -> str:
+        rig = self.rig or ()
+        return annotations_topic(v, rig[camera].name if 0 < camera < len(rig) else None)
+
+    def _answered(self, v: str, frame: int) -> list[tuple[int, int]]:
+        """(frame id, camera) of each frame an estimate of ``frame`` answers: that one,
+        and for a fused set's answer (``frame`` its set id) the set's other frames."""
+        cams = self._camera[v]
+        out = [(frame, cams.pop(frame, 0))]
+        for k in range(1, len(self.rig or ())):
+            if cams.get(frame + k) == k:
+                out.append((frame + k, cams.pop(frame + k)))
         return out
 
     def on_estimate(self, v: str, m: Mapping[str, Any], log_ns: int, pub_ns: int) -> list[tuple[str, Any, int, int]]:
         frame = int(m["frame_id"])
-        t0 = self._t0[v].pop(frame, log_ns)
-        boxes = self._truth[v].pop(frame, [])
         objects = list(m.get("objects", ()))
-        out: list[tuple[str, Any, int, int]] = [
-            (f"/{v}/annotations", self._annotations(t0, boxes, objects, note=f"frame {frame}: AI {m.get('state')}"),
-             log_ns, pub_ns)]
+        out: list[tuple[str, Any, int, int]] = []
+        for f, k in self._answered(v, frame):
+            mine = objects if self.rig is None else [o for o in objects if o.get("camera", 0) == k]
+            out += self._draw(v, f, (self._annotations_topic(v, k), self._t0[v].pop(f, log_ns), mine,
+                                     f"frame {f}: AI {m.get('state')}", log_ns, pub_ns))
         entities = []
         for i, o in enumerate(objects):
             x, y, z = (list(o.get("position_m") or (0.0, 0.0, 0.0)) + [0.0, 0.0, 0.0])[:3]

@@ -1,12 +1,15 @@
 """Foxglove views of a camera rig (issue 31): each camera's image, calibration and mount.
 
-Camera 0 keeps the single camera's topics, ``/<V>/camera`` and ``/<V>/camera_info``;
-every other camera of a rig appends its name to both: ``/<V>/camera/<name>`` and
-``/<V>/camera_info/<name>``, so an Image panel pairs them the same way for every camera.
+Camera 0 keeps the single camera's topics, ``/<V>/camera``, ``/<V>/camera_info``,
+``/<V>/truth`` and ``/<V>/annotations``; every other camera of a rig appends its name
+to each: ``/<V>/camera/<name>``, ``/<V>/camera_info/<name>``, ``/<V>/truth/<name>``
+(its true visible boxes) and ``/<V>/annotations/<name>``, so an Image panel pairs
+them the same way for every camera.
 
 On ``/tf`` (vehicle axes: +x forward, +y left, +z up; optical axes: +x right, +y
 down, +z forward): camera 0 as for one camera, ``<V>`` → ``<V>/camera_ground`` (on
-the road under the camera, turned by its yaw: the AI's object frame) →
+the road under the camera: the AI's object frame; a single camera's turned by its
+yaw, a rig's of two or more cameras in the vehicle's axes, PROTOCOL.md 4.3) →
 ``<V>/camera`` (its optical frame); every other camera ``<V>`` →
 ``<V>/camera/<name>`` (its optical frame), the mount and orientation MuJoCo renders
 it with (``hil.scenarios.world``).
@@ -33,6 +36,16 @@ def camera_topic(vehicle: str, camera: str | None = None) -> str:
 def calibration_topic(vehicle: str, camera: str | None = None) -> str:
     """The ``foxglove.CameraCalibration`` topic beside :func:`camera_topic`."""
     return f"/{vehicle}/camera_info" + (f"/{camera}" if camera else "")
+
+
+def truth_topic(vehicle: str, camera: str | None = None) -> str:
+    """The ``hil.CameraTruth`` topic (true visible boxes) beside :func:`camera_topic`."""
+    return f"/{vehicle}/truth" + (f"/{camera}" if camera else "")
+
+
+def annotations_topic(vehicle: str, camera: str | None = None) -> str:
+    """The ``foxglove.ImageAnnotations`` topic (truth and AI boxes) beside :func:`camera_topic`."""
+    return f"/{vehicle}/annotations" + (f"/{camera}" if camera else "")
 
 
 def calibration(width: int, height: int, fovy_deg: float) -> dict[str, Any]:
@@ -82,7 +95,8 @@ def quaternion(m: np.ndarray) -> Quaternion:
 @dataclass(frozen=True)
 class RigView:
     """One rig camera as Foxglove draws it: its name (``None``: camera 0), calibration
-    and mount (m from the vehicle centre; angles in rad)."""
+    and mount (m from the vehicle centre; angles in rad); ``vehicle_axes``: camera 0
+    of a rig of two or more, whose ground frame keeps the vehicle's axes."""
 
     name: str | None
     calib: dict[str, Any]
@@ -92,6 +106,7 @@ class RigView:
     yaw_rad: float
     pitch_rad: float
     roll_rad: float
+    vehicle_axes: bool = False
 
     def transforms(self, v: str, ts: dict[str, int]) -> list[dict[str, Any]]:
         """The ``/tf`` messages from ``v`` to this camera's optical frame at ``ts``."""
@@ -99,10 +114,11 @@ class RigView:
         if self.name is not None:
             return [_tf(ts, v, f"{v}/camera/{self.name}", (self.forward_m, self.lateral_m, self.height_m),
                         dict(zip("xyzw", quaternion(axes))))]
-        cy, sy = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+        yaw = 0.0 if self.vehicle_axes else self.yaw_rad
+        cy, sy = math.cos(yaw), math.sin(yaw)
         ground = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
         return [_tf(ts, v, f"{v}/camera_ground", (self.forward_m, self.lateral_m, 0.0),
-                    dict(zip("xyzw", quaternion(ground))) if self.yaw_rad else dict(_IDENTITY)),
+                    dict(zip("xyzw", quaternion(ground))) if yaw else dict(_IDENTITY)),
                 _tf(ts, f"{v}/camera_ground", f"{v}/camera", (0.0, 0.0, self.height_m),
                     dict(zip("xyzw", quaternion(ground.T @ axes))))]
 
@@ -123,7 +139,7 @@ def rig_views(camera: Mapping[str, Any]) -> tuple[RigView, ...] | None:
     return tuple(RigView(c.name if k else None, calibration(int(c.width or 0), int(c.height or 0),
                                                             float(c.fovy_deg or 0.0)),
                          c.forward_m, c.lateral_m, c.height_m, math.radians(c.yaw_deg), math.radians(c.pitch_deg),
-                         math.radians(c.roll_deg)) for k, c in enumerate(cams))
+                         math.radians(c.roll_deg), k == 0 and len(cams) > 1) for k, c in enumerate(cams))
 
 
 def _tf(ts: dict[str, int], parent: str, child: str, xyz: tuple[float, float, float],
@@ -132,5 +148,5 @@ def _tf(ts: dict[str, int], parent: str, child: str, xyz: tuple[float, float, fl
             "translation": dict(zip("xyz", xyz)), "rotation": rotation}
 
 
-__all__ = ["RigView", "calibration", "calibration_topic", "camera_topic", "optical_axes", "quaternion",
-           "rig_views"]
+__all__ = ["RigView", "annotations_topic", "calibration", "calibration_topic", "camera_topic", "optical_axes",
+           "quaternion", "rig_views", "truth_topic"]

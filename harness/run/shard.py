@@ -85,7 +85,11 @@ class VehicleShard:
         self._boxes = cfg.truth.visible_boxes
         self._next_command = 0
         self._next_sync_ns = 0
-        self._frame_of: dict[tuple[str, int], int] = {}  # (vehicle, steps) -> frame id, for camera truth
+        # (vehicle, steps, camera) -> (frame id, the id its answer carries, camera truths
+        # that answer awaits), for camera truth
+        self._frame_of: dict[tuple[str, int, int], tuple[int, int, int]] = {}
+        # A fused frame set's answer awaits a truth from each camera that triggers.
+        self._set_truths = len(cams) - (cfg.engine.faults.drop_camera is not None)
         self._camtruth_early: list[CameraTruthReady] = []  # camera truth ahead of its world state
         self._sim_ns = 0  # the latest camera instant's sim time
         self._state_seen = -1
@@ -263,8 +267,10 @@ class VehicleShard:
         data = self._frame_bytes(f.vehicle, f.slot, f.nbytes)
         cam = self.cams[f.camera]
         frame_id = at.frame_id
-        if self._boxes and f.camera == 0:
-            self._frame_of[(f.vehicle, f.steps)] = frame_id
+        if self._boxes:  # a fused set's cameras are judged together, as its answer's (the set id)
+            fused = rig.answers_sets()
+            self._frame_of[(f.vehicle, f.steps, f.camera)] = (
+                frame_id, frame_id - at.camera_index if fused else frame_id, self._set_truths if fused else 1)
         try:
             t_tx = v.link.send_frame(frame_id=frame_id, sim_time_ns=at.sim_time_ns, t0_ns=f.t0_ns, width=cam.width,
                                      height=cam.height, encoding=ImageEncoding(f.encoding), camera=cam.info,
@@ -298,13 +304,18 @@ class VehicleShard:
 
     def _camera_truth(self, ct: CameraTruthReady) -> None:
         """Camera truth goes to the analysis after its instant's ground truth (the
-        render worker's pipe may overtake the physics's ring)."""
+        render worker's pipe may overtake the physics's ring); that of a camera whose
+        frame this target does not get is dropped."""
         if ct.steps > self._state_seen:
             self._camtruth_early.append(ct)
             return
-        frame_id = self._frame_of.pop((ct.vehicle, ct.steps), None)
-        if frame_id is not None:
-            self.analysis.post(self.tasks.camera_truth, ct.vehicle, frame_id, ct.truth)
+        sent = self._frame_of.pop((ct.vehicle, ct.steps, ct.camera), None)
+        if sent is None:
+            return
+        frame_id, answer_id, truths = sent
+        self.analysis.post(functools.partial(self.tasks.camera_truth, ct.vehicle, frame_id, ct.truth,
+                                             camera=self.cams[ct.camera].name if ct.camera else None,
+                                             answer_id=answer_id, truths=truths))
 
     def _maybe_sync(self) -> None:
         now = self.clock.now_ns()

@@ -19,7 +19,7 @@ from hil.harness.vocab.events import Event, EventBus, EventKind
 from hil.harness.vocab.observers import RunObserver
 from hil.harness.record import foxglove_out
 from hil.harness.record.channels import sync_sample_json
-from hil.harness.record.rig_views import camera_topic
+from hil.harness.record.rig_views import camera_topic, truth_topic
 from hil.harness.run.ledger import Answer
 from hil.harness.run.vehicle_state import InFlight, VehicleRun
 from hil.scenarios.ground_truth import GroundTruth, StateChanges
@@ -42,12 +42,14 @@ def pipeline_record(v: VehicleRun, fl: InFlight, status: FrameStatus, m: Estimat
 
 
 def estimate_json(m: Estimate) -> dict[str, Any]:
-    """The ``/<vehicle>/estimate`` message."""
+    """The ``/<vehicle>/estimate`` message; an object's ``camera`` (the rig camera its
+    box is in) only where it is not 0."""
     c = m.control
     return {"frame_id": m.frame_id, "state": m.state.name,
             "control": {"steering_rad": c.steering_rad, "throttle": c.throttle, "brake": c.brake},
             "objects": [{"cls": o.cls.name, "confidence": o.confidence, "box_px": list(o.box_px),
-                         "position_m": list(o.position_m)} for o in m.objects]}
+                         "position_m": list(o.position_m), **({"camera": o.camera} if o.camera else {})}
+                        for o in m.objects]}
 
 
 class TruthCache:
@@ -157,12 +159,17 @@ class VehicleTasks:
         for ob in self.observers:
             ob.on_tick(now_ns=now, sim_time_ns=sim_ns)
 
-    def camera_truth(self, name: str, frame_id: int, ct: Any) -> None:
+    def camera_truth(self, name: str, frame_id: int, ct: Any, *, camera: str | None = None,
+                     answer_id: int | None = None, truths: int = 1) -> None:
+        """Frame ``frame_id``'s camera truth, on ``/<name>/truth`` (camera 0) or a rig
+        camera's ``/<name>/truth/<camera>``; the observers get it under the frame id
+        its answer carries (``answer_id``: a fused frame set's id), with the number of
+        camera truths that answer is judged on (``truths``)."""
         t = self.clock.now_ns()
         for ob in self.observers:
             if hasattr(ob, "on_camera_truth"):
-                ob.on_camera_truth(name, frame_id, ct)
-        self.rec.write_json(f"/{name}/truth", {"frame_id": frame_id, **ct.to_json()}, log_time_ns=t,
+                ob.on_camera_truth(name, frame_id if answer_id is None else answer_id, ct, cameras=truths)
+        self.rec.write_json(truth_topic(name, camera), {"frame_id": frame_id, **ct.to_json()}, log_time_ns=t,
                             publish_time_ns=t)
 
     def applied(self, a: Answer, t_apply: int, steps: int, qpos: np.ndarray, qvel: np.ndarray) -> None:

@@ -34,8 +34,10 @@ class RunObserver(Protocol):
 class TruthObserver(RunObserver, Protocol):
     """Optional extra hooks, for observers that judge estimates against truth."""
 
-    def on_camera_truth(self, vehicle: str, frame_id: int, truth: CameraTruth) -> None:
-        """What ``vehicle``'s camera showed in frame ``frame_id`` (at its capture)."""
+    def on_camera_truth(self, vehicle: str, frame_id: int, truth: CameraTruth, *, cameras: int = 1) -> None:
+        """What one of ``vehicle``'s cameras showed in the frame (or fused frame set)
+        that the estimate carrying ``frame_id`` answers, at its capture; that answer is
+        judged on ``cameras`` such truths, one per camera of its set."""
 
     def on_apply(self, vehicle: str, frame_id: int, truth_now: Callable[[], GroundTruth]) -> None:
         """Frame ``frame_id``'s control was just applied; ``truth_now()`` gives the

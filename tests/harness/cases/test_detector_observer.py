@@ -4,6 +4,8 @@ ego's truth only."""
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
 from hil.adapters.wire.messages import Control, DrivingState, Estimate
@@ -75,3 +77,92 @@ def test_camera_truth_after_the_estimate_is_judged_in_frame_order(sim):
     ev = states[0]["evidence"]
     assert ev["truth_t0"] == {"state": "STOP"} and ev["sim_time_apply_ns"] - ev["sim_time_t0_ns"] == 10 * MS
     assert snapshots == [("ego0",)] * 6  # only the applying ego's truth is asked for
+
+
+# -- a camera rig (issue 31) ----------------------------------------------------------
+
+RIG = [{"name": "front", "forward_m": 1.0, "lateral_m": 0.5, "yaw_deg": 30.0},
+       {"name": "back", "forward_m": -2.0, "yaw_deg": 180.0}]
+
+
+def seen(gt: GroundTruth, *entities: str) -> CameraTruth:
+    from hil.scenarios.ground_truth import VisibleBox
+
+    boxes = tuple(VisibleBox(e, 1, "vehicle", (0, 0, 50, 50), 2500, 1.0, False, 10.0, 0.0) for e in entities)
+    return CameraTruth("ego0", gt.sim_time_ns, boxes, gt.ego("ego0"))
+
+
+def looks_at(frame_id: int, *objects: tuple[str, float, float]) -> Estimate:
+    from hil.adapters.wire.messages import DetectedObject, ObjectClass
+
+    objs = tuple(DetectedObject(ObjectClass[c.upper()], 1.0, (0.0, 0.0, 1.0, 1.0), (x, y, 0.0)) for c, x, y in objects)
+    return Estimate(0, frame_id, DrivingState.STOP, Control(), objs, 0, 0, 0, 0)
+
+
+def rig_observer(rec: Events) -> DetectorObserver:
+    return DetectorObserver(DetectorSettings(min_frames=1), ["ego0"], camera=CameraConfig(rig=RIG), recorder=rec,
+                            timing=None, link_delay_s=0.0)
+
+
+def answer_set(obs: DetectorObserver, sim: Simulation, set_id: int, est: Estimate) -> GroundTruth:
+    """A two-camera set's answer: ground truth, apply, both frames' records."""
+    for _ in range(25):
+        sim.step()
+    gt = sim.ground_truth()
+    obs.on_truth(gt, t_ns=set_id * 50 * MS)
+    obs.on_apply("ego0", set_id, lambda: gt)
+    for k in range(2):  # one estimate answers both frames of the set
+        obs.on_record("ego0", PipelineRecord("ego0", set_id + k, gt.sim_time_ns, 0, 0, FrameStatus.OK, 0, 0, 0, 0,
+                                             1, 2, gt.sim_time_ns, camera=k), est)
+    return gt
+
+
+def test_a_rig_compares_positions_in_the_vehicle_frame_under_camera_0(sim):
+    for _ in range(25):
+        sim.step()
+    gt = sim.ground_truth()
+    me, car = gt.entity("ego0"), gt.entity("car1")
+    assert me.heading_rad == car.heading_rad == 0.0
+    # The vehicle frame of a rig: on the road under camera 0's mount, the vehicle's axes
+    # (not camera 0's 30 degrees): the car's rear face, centred across from the mount.
+    mount_y = me.y_m + 0.5
+    x, y = car.x_m - car.size_m[0] / 2 - (me.x_m + 1.0), min(max(mount_y, car.y_m - 0.9), car.y_m + 0.9) - mount_y
+    turned = (x * math.cos(math.radians(30)) + y * math.sin(math.radians(30)),
+              -x * math.sin(math.radians(30)) + y * math.cos(math.radians(30)))  # the same point in camera 0's axes
+    kinds = []
+    for belief in ((x, y), turned):
+        rec = Events()
+        obs = rig_observer(rec)
+        obs.on_truth(gt, t_ns=0)
+        obs.on_apply("ego0", 0, lambda: gt)
+        est = looks_at(0, ("vehicle", *belief))
+        for k in range(2):
+            obs.on_record("ego0", PipelineRecord("ego0", k, gt.sim_time_ns, 0, 0, FrameStatus.OK, 0, 0, 0, 0, 1, 2,
+                                                 gt.sim_time_ns, camera=k), est)
+        obs.on_camera_truth("ego0", 0, seen(gt, "car1"), cameras=2)
+        obs.on_camera_truth("ego0", 0, seen(gt), cameras=2)
+        obs.finish()
+        kinds.append([e["kind"] for e in rec.events])
+    assert kinds[0] == [] and kinds[1], kinds  # read in camera 0's axes, the car is elsewhere
+
+
+def test_a_fused_set_waits_for_every_cameras_truth_and_judges_with_those_that_came(sim):
+    rec = Events()
+    obs = rig_observer(rec)
+    # Set 0: camera 1's truth never comes; a ghost at 5 m shows it was judged all the same.
+    gt = answer_set(obs, sim, 0, looks_at(0, ("pedestrian", 5.0, 0.0)))
+    obs.on_camera_truth("ego0", 0, seen(gt), cameras=2)
+    obs.on_tick(now_ns=10**18, sim_time_ns=0)
+    assert rec.events == []  # still waiting for camera 1
+    # Set 2: only the back camera shows the car; the blind answer missed it.
+    gt = answer_set(obs, sim, 2, looks_at(2))
+    obs.on_camera_truth("ego0", 2, seen(gt), cameras=2)
+    obs.on_tick(now_ns=10**18, sim_time_ns=0)
+    assert [e["kind"] for e in rec.events] == ["mismatch.ghost_object"]  # set 0, once set 2's truth came
+    obs.on_camera_truth("ego0", 2, seen(gt, "car1"), cameras=2)
+    # Set 4: the run ends before camera 1's truth; judged at the finish with camera 0's.
+    gt = answer_set(obs, sim, 4, looks_at(4, ("pedestrian", 30.0, 0.0)))
+    obs.on_camera_truth("ego0", 4, seen(gt), cameras=2)
+    obs.finish()
+    got = [(e["kind"], e["frame_ids"]) for e in rec.events]
+    assert got == [("mismatch.ghost_object", [0]), ("mismatch.missed_object", [2]), ("mismatch.ghost_object", [4])]
