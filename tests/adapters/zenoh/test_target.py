@@ -63,7 +63,8 @@ def test_once_serves_one_harness():
         assert "serving one run" in _first_line(proc, 30)
         with zenoh_link(port) as link:
             link.open(hello_timeout_s=20)
-        assert proc.wait(timeout=10) == 0
+        rc = proc.wait(timeout=10)
+        assert rc == 0, proc.stderr.read() if proc.stderr is not None else rc
     finally:
         end_process(proc)  # type: ignore[arg-type]
         if proc.stderr is not None:
