@@ -124,14 +124,23 @@ def _serve_one(session: zenoh.Session, ep: Endpoint, *, keys: Keys, vehicle_id: 
             ep.stop()
 
     entities: list[object] = []
+    # The publisher is written from several threads (the inference worker, Zenoh's
+    # callbacks answering a HEARTBEAT); undeclaring it while a put is under way fails
+    # in the binding ("Already borrowed"), so puts and the undeclaring take turns here,
+    # and a put once undeclaring has begun is refused as the session closing.
+    pub_turn = threading.Lock()
+    undeclaring = threading.Event()
     try:
         pub = session.declare_publisher(keys.t2h, congestion_control=zenoh.CongestionControl.BLOCK)
 
         def send(data: bytes) -> None:
-            try:
-                pub.put(data)
-            except zenoh.ZError as err:
-                raise TransportError(f"zenoh put on {keys.t2h!r} failed: {err}") from err
+            with pub_turn:
+                if undeclaring.is_set():
+                    raise TransportError(f"zenoh put on {keys.t2h!r}: the session is closing")
+                try:
+                    pub.put(data)
+                except zenoh.ZError as err:
+                    raise TransportError(f"zenoh put on {keys.t2h!r} failed: {err}") from err
 
         # Declarations before HELLO: a harness that has our HELLO knows our subscriber,
         # or its first frame would find no match and vanish. Zenoh undeclares an entity
@@ -155,11 +164,13 @@ def _serve_one(session: zenoh.Session, ep: Endpoint, *, keys: Keys, vehicle_id: 
     except zenoh.ZError as err:
         raise TransportError(f"zenoh declarations on {keys.h2t!r} failed: {err}") from err
     finally:  # serving joined the endpoint's worker
+        with pub_turn:
+            undeclaring.set()
         for entity in reversed(entities):
             undeclare = getattr(entity, "undeclare", None)
             if undeclare is not None:
                 try:
                     undeclare()  # the next harness must see this run's token go and a new one come
-                except zenoh.ZError:
+                except (zenoh.ZError, RuntimeError):  # RuntimeError: in use elsewhere; dropped with the list
                     pass
         entities.clear()
