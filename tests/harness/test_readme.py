@@ -151,3 +151,18 @@ def test_foxglove_steps_use_the_apps_words():
     assert ('"Open connection" (dashboard or left-hand menu), then "Foxglove WebSocket" in the "Open a new '
             'connection" dialog') in flat
     assert "Open connection →" not in flat
+
+
+def test_the_scenarios_hint_gives_overrides_that_load():
+    # It said `--set scenario.name=NAME --set scenario.params.PARAM=VALUE`, which every shipped
+    # config refuses (its params are its own scenario's) (README walkthrough).
+    from hil import scenarios
+
+    foot = " ".join(hil("scenarios").stdout.split("\n\n")[-1].split())
+    assert "scenario.name=NAME" not in foot and "--set scenario.params.PARAM=VALUE" in foot, foot
+    pick = re.search(r"--set '(scenario=\{name: NAME, params: \{PARAM: VALUE\}\})'", foot)
+    assert pick, foot
+    override = pick.group(1).replace("NAME", "cut_in").replace("PARAM", "npc_speed_mps").replace("VALUE", "14")
+    cfg = load_config(ROOT / "hil_configs" / "demo.yaml", overrides=[override])
+    assert cfg.scenario.name == "cut_in"
+    scenarios.get("cut_in").resolve(cfg.scenario.params)
