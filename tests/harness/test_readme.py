@@ -166,3 +166,19 @@ def test_the_scenarios_hint_gives_overrides_that_load():
     cfg = load_config(ROOT / "hil_configs" / "demo.yaml", overrides=[override])
     assert cfg.scenario.name == "cut_in"
     scenarios.get("cut_in").resolve(cfg.scenario.params)
+
+
+def test_every_summary_key_is_in_the_summary_table(tmp_path: Path):
+    # `session`, `impairment`, `schema_version` and four vehicle counters were in every
+    # summary.json but not in the table a tester checks it against (README walkthrough).
+    from tests.scenarios.test_scenario_runs import run
+
+    summary = run(tmp_path, mode="lockstep", duration_s=0.5).summary
+    table = README.split("### `summary.json`")[1].split("\nStages")[0]
+    named = set(re.findall(r"`([a-z0-9_]+)[`.]", table))  # `vehicles.<name>...` names `vehicles`
+    vehicle: set[str] = set()
+    for ln in (ln for ln in table.splitlines() if ln.startswith("| `vehicles.<name>")):
+        cell = ln if ln.startswith("| `vehicles.<name>` |") else ln.split("|")[1]  # that row lists them after
+        vehicle |= set(re.findall(r"`vehicles\.<name>\.([a-z0-9_]+)", cell) + re.findall(r"`([a-z0-9_]+)`", cell))
+    assert [k for k in summary if k not in named] == []
+    assert [k for k in summary["vehicles"]["ego0"] if k not in vehicle] == []
