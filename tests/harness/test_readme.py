@@ -5,6 +5,7 @@ example commands and overrides validate, and statements once untrue stay fixed."
 from __future__ import annotations
 
 import re
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -182,3 +183,17 @@ def test_every_summary_key_is_in_the_summary_table(tmp_path: Path):
         vehicle |= set(re.findall(r"`vehicles\.<name>\.([a-z0-9_]+)", cell) + re.findall(r"`([a-z0-9_]+)`", cell))
     assert [k for k in summary if k not in named] == []
     assert [k for k in summary["vehicles"]["ego0"] if k not in vehicle] == []
+
+
+def test_the_c_target_lines_work_as_written():
+    # The README named the C target but not how to build or start it (README walkthrough).
+    from tests.targets import c_build
+
+    if c_build.unavailable():
+        pytest.skip(c_build.unavailable())
+    flat = " ".join(README.split())
+    assert "`make -C targets/c` builds `targets/c/build/hil_target`" in flat
+    shown = re.search(r"serves like `hil target` \(`(--transport tcp --listen [0-9.:]+)`", flat)
+    assert shown, flat
+    p = subprocess.run([str(c_build.build().plain), "--help"], capture_output=True, text=True, timeout=30)
+    assert p.returncode == 0 and all(opt in p.stdout for opt in shown.group(1).split() if opt.startswith("--"))
