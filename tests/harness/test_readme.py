@@ -197,3 +197,15 @@ def test_the_c_target_lines_work_as_written():
     assert shown, flat
     p = subprocess.run([str(c_build.build().plain), "--help"], capture_output=True, text=True, timeout=30)
     assert p.returncode == 0 and all(opt in p.stdout for opt in shown.group(1).split() if opt.startswith("--"))
+
+
+def test_the_calibrate_paragraph_names_what_it_writes():
+    # `hil calibrate` had a line in the command list and nothing on what it checks or writes.
+    from hil.harness.check.calibrate import TRUTH_FILE, Calibration
+
+    para = " ".join(README.split("`hil calibrate [CONFIG]` proves")[1].split("\n\n")[0].split())
+    keys = re.search(r"`calibration.json` \(([^)]*)\)", para)
+    assert keys and f"`{TRUTH_FILE}`" in para, para
+    written = Calibration("local").to_json()
+    assert [k for k in re.findall(r"`([a-z_]+)`", keys.group(1)) if k not in written] == []
+    assert (ROOT / "hil_configs" / "calibrate.yaml").is_file() and (ROOT / "targets" / "reference.py").is_file()
