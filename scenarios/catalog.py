@@ -25,8 +25,10 @@ def describe(name: str | None = None, *, width: int = 100) -> str:
     (name, range, default, unit, meaning). Raises ConfigError as ``as_dict``."""
     defs = [get(name)] if name else [get(n) for n in names()]
     blocks = [_block(d, width) for d in defs]
-    foot = ("Set a parameter with: hil run CONFIG --set scenario.name=NAME --set scenario.params.PARAM=VALUE;"
-            " the seed (--set seed=N) jitters what each summary says.")
+    # Not `--set scenario.name=NAME`: the config's params belong to its own scenario, and are refused by another.
+    foot = ("Tune the configured scenario with: hil run CONFIG --set scenario.params.PARAM=VALUE; pick another with its"
+            " parameters: --set 'scenario={name: NAME, params: {PARAM: VALUE}}'; the seed (--set seed=N) jitters"
+            " what each summary says.")
     return "\n\n".join(blocks) + "\n\n" + "\n".join(textwrap.wrap(foot, width)) + "\n"
 
 

@@ -4,8 +4,9 @@ Each Zenoh sample carries exactly one encoded protocol message (PROTOCOL.md). A 
 uses four key expressions per vehicle, under a key prefix (``key_prefix``, default
 ``hil``) that both sides are given::
 
-    {prefix}/v{vehicle_id}/h2t      harness -> target: FRAME, SYNC_REQUEST, HEARTBEAT, BYE
-    {prefix}/v{vehicle_id}/t2h      target -> harness: HELLO, ESTIMATE, SYNC_RESPONSE, ERROR, BYE
+    {prefix}/v{vehicle_id}/h2t      harness -> target: FRAME, SYNC_REQUEST, HEARTBEAT, ERROR, BYE, COMMAND
+    {prefix}/v{vehicle_id}/t2h      target -> harness: HELLO, ESTIMATE, SYNC_RESPONSE, HEARTBEAT, ERROR, BYE,
+                                    COMMAND (replies)
     {prefix}/v{vehicle_id}/alive    liveliness token of the target
     {prefix}/v{vehicle_id}/harness  liveliness token of the harness
 

@@ -312,8 +312,10 @@ def cmd(args: argparse.Namespace) -> int:
         print(f"hil target-check: error: unexpected arguments {' '.join(command)!r} (only local takes a command)",
               file=sys.stderr)
         return EXIT_USAGE
-    if args.timeout <= 0 or not 0 <= args.vehicle <= 0xFFFF_FFFF:
-        print("hil target-check: error: --timeout must be > 0 and --vehicle in 0..4294967295", file=sys.stderr)
+    bad = (f"--timeout must be > 0 s (got {args.timeout:g})" if not args.timeout > 0 else
+           f"--vehicle must be in 0..4294967295 (got {args.vehicle})" if not 0 <= args.vehicle <= 0xFFFF_FFFF else None)
+    if bad:
+        print(f"hil target-check: error: {bad}", file=sys.stderr)
         return EXIT_USAGE
     from hil.harness.report.ci_outputs import CiCase, CiReport, check_ci_args, write_ci_outputs
 

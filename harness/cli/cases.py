@@ -21,7 +21,7 @@ from typing import Any
 from rich.table import Table
 
 from hil.common.errors import ConfigError
-from hil.harness.cases.casebook import read_cases
+from hil.harness.cases.casebook import DB_NAME, read_cases
 from hil.harness.cases.replayable import Reproducibility, reproducibility, why_not_replayable
 from hil.harness.report.progress import make_console
 
@@ -66,6 +66,9 @@ def cmd_cases(args: argparse.Namespace) -> int:
 
     run = _run_dir(args.run)
     console = make_console()
+    if not args.window and not (run / DB_NAME).exists():  # a run without a case writes no database
+        console.print(f"0 corner cases in {run} (the run recorded none)")
+        return 0
     if args.window:
         errors = write_case_windows(run, case_ids=sorted(set(args.window)), limit=len(set(args.window)))
         for line in errors:

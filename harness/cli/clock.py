@@ -21,8 +21,20 @@ from hil.timing.sync import ClockSync, SyncState
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("clock", help="show the targets' clock offset, skew, delay and uncertainty live")
     p.add_argument("config", help="a hil_configs/*.yaml file (its targets are started or connected)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE")
-    p.add_argument("--bursts", type=int, default=0, help="stop after this many bursts (default: until Ctrl-C)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",
+                   help="override a config field (repeatable)")
+    p.add_argument("--bursts", type=_bursts, default=0, help="stop after this many bursts (default: until Ctrl-C)")
+
+
+def _bursts(text: str) -> int:
+    """``--bursts N``, N >= 1 (0, the default, means until Ctrl-C, which a negative N also did)."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a number of bursts >= 1 (got {n}); leave it out to run until Ctrl-C")
+    return n
 
 
 def _us(ns: float | None) -> str:

@@ -15,10 +15,11 @@ from __future__ import annotations
 
 import dataclasses
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, field_validator
 
 from hil.harness.config.types import MODEL_CONFIG, Float, Int
 from hil.timing.anomaly import Thresholds
+from hil.timing.records import STAGES
 from hil.timing.sync import SyncConfig
 
 
@@ -48,6 +49,9 @@ class SyncSettings(BaseModel):
                           lost_after_s=self.lost_after_s, skew_limit_ppm=self.skew_limit_ppm)
 
 
+DEADLINE_STAGES = (*STAGES, "uplink", "downlink")  # what the timing observer measures per frame
+
+
 class ThresholdsConfig(BaseModel):
     """Anomaly thresholds; each unset field keeps its default (see
     ``hil.timing.anomaly.Thresholds``). ``deadline_ms`` maps a stage name (end_to_end,
@@ -63,6 +67,15 @@ class ThresholdsConfig(BaseModel):
     spike_k: Float | None = Field(None, gt=0, le=1000)
     spike_floor_ms: Float | None = Field(None, ge=0, le=60_000)
     spike_window: Int | None = Field(None, ge=10, le=100_000)
+
+    @field_validator("deadline_ms")
+    @classmethod
+    def _known_stages(cls, deadlines: dict[str, float] | None) -> dict[str, float] | None:
+        # A typo'd stage was never measured, so its budget silently judged nothing.
+        for stage in deadlines or {}:
+            if stage not in DEADLINE_STAGES:
+                raise ValueError(f"stage names, one of {', '.join(DEADLINE_STAGES)} (not {stage!r})")
+        return deadlines
 
     def apply(self, base: Thresholds) -> Thresholds:
         changes = {k: v for k, v in self.model_dump().items() if v is not None}

@@ -118,6 +118,10 @@ def build_world(cfg: RunConfig) -> tuple[Any, Any]:
                                          pitch_rad=math.radians(cam.pitch_deg), yaw_rad=math.radians(cam.yaw_deg),
                                          rig=rig),
                        shadows=cam.shadows, reflections=cam.reflections)
+    egos = [v.name for v in world.egos]
+    for name in cfg.timing.vehicles:  # a typo'd vehicle's thresholds would judge nothing
+        if name not in egos:
+            raise ConfigError(f"timing.vehicles.{name}: no such vehicle in this run (its vehicles: {', '.join(egos)})")
     t = cfg.truth
     rules = RefStateRules(comfort_decel_mps2=t.comfort_decel_mps2, stop_margin_m=t.stop_margin_m,
                           slow_headway_s=t.slow_headway_s, slow_ttc_s=t.slow_ttc_s)

@@ -234,7 +234,8 @@ def _run_point(args: argparse.Namespace, pt: Point, *, ns: _Namespace | None, ou
     t0 = time.monotonic()
     print(f"study: {pt.name}: running ({args.duration:g} s)", flush=True)
     with open(out / "points" / f"{pt.name}.log", "wb") as log:
-        p = subprocess.run(argv, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
+        # The caller's working directory: a relative config, --out or override means what it meant there.
+        p = subprocess.run(argv, stdout=log, stderr=subprocess.STDOUT,
                            timeout=max(120.0, 6 * args.duration + 60 + 10 * pt.vehicles))
     wall = time.monotonic() - t0
     summary = run_dir / "summary.json"

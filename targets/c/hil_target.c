@@ -518,12 +518,22 @@ static void serve(session *s, char *ended, size_t ended_size) {
                  s->bye_reason[0] ? ")" : "");
 }
 
-static int usage(const char *why) {
-    fprintf(stderr, "hil_target: %s\nusage: hil_target [--transport local|tcp] [--listen HOST:PORT | "
-                    "--connect HOST:PORT] [--name NAME] [--clock monotonic|realtime] [--dark LUMA] "
-                    "[--token-env NAME] [--frame-sets] [--once | --keep-serving] [--verbose]\n",
-            why);
+static const char USAGE[] = "usage: hil_target [--transport local|tcp] [--listen HOST:PORT | --connect HOST:PORT] "
+                            "[--name NAME] [--clock monotonic|realtime] [--dark LUMA] [--token-env NAME] "
+                            "[--frame-sets] [--once | --keep-serving] [--verbose]\n";
+
+/* One line naming the bad option, exit 2. */
+static int usage(const char *why, const char *option) {
+    fprintf(stderr, "hil_target: %s: %s (see --help)\n", option, why);
     return 2;
+}
+
+static int takes_value(const char *a) {
+    static const char *const names[] = {"--transport", "--listen", "--connect", "--name", "--token-env", "--dark",
+                                        "--clock"};
+    for (size_t k = 0; k < sizeof names / sizeof names[0]; k++)
+        if (strcmp(a, names[k]) == 0) return 1;
+    return 0;
 }
 
 typedef struct {
@@ -576,7 +586,9 @@ int main(int argc, char **argv) {
         if (strcmp(a, "--frame-sets") == 0) { s.frame_sets = 1; continue; }
         if (strcmp(a, "--once") == 0) { keep = 0; continue; }
         if (strcmp(a, "--keep-serving") == 0) { keep = 1; continue; }
-        if (!v) return usage("an option is missing its value");
+        if (strcmp(a, "-h") == 0 || strcmp(a, "--help") == 0) { fputs(USAGE, stdout); return 0; }
+        if (!takes_value(a)) return usage("unknown option", a);
+        if (!v) return usage("missing its value", a);
         i++;
         if (strcmp(a, "--transport") == 0) transport = v;
         else if (strcmp(a, "--listen") == 0) listen_at = v;
@@ -587,8 +599,8 @@ int main(int argc, char **argv) {
         else if (strcmp(a, "--clock") == 0) {
             if (strcmp(v, "monotonic") == 0) { s.clock = CLOCK_MONOTONIC; s.clock_id = HILP_CLOCK_MONOTONIC; }
             else if (strcmp(v, "realtime") == 0) { s.clock = CLOCK_REALTIME; s.clock_id = HILP_CLOCK_REALTIME; }
-            else return usage("--clock takes monotonic or realtime");
-        } else return usage("unknown option");
+            else return usage("takes monotonic or realtime", "--clock");
+        }
     }
     const char *token = getenv(token_env);
     if (token && *token) {
@@ -624,7 +636,7 @@ int main(int argc, char **argv) {
         snprintf(where, sizeof where, connect_to ? "dialling the harness at %s" : "listening on %s",
                  connect_to ? connect_to : listen_at);
     } else
-        return usage("--transport takes local or tcp");
+        return usage("takes local or tcp", "--transport");
     s.cap = BUF_START;
     s.buf = malloc(s.cap);
     if (!s.buf) return 1;

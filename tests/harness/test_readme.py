@@ -5,6 +5,7 @@ example commands and overrides validate, and statements once untrue stay fixed."
 from __future__ import annotations
 
 import re
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -151,3 +152,60 @@ def test_foxglove_steps_use_the_apps_words():
     assert ('"Open connection" (dashboard or left-hand menu), then "Foxglove WebSocket" in the "Open a new '
             'connection" dialog') in flat
     assert "Open connection →" not in flat
+
+
+def test_the_scenarios_hint_gives_overrides_that_load():
+    # It said `--set scenario.name=NAME --set scenario.params.PARAM=VALUE`, which every shipped
+    # config refuses (its params are its own scenario's) (README walkthrough).
+    from hil import scenarios
+
+    foot = " ".join(hil("scenarios").stdout.split("\n\n")[-1].split())
+    assert "scenario.name=NAME" not in foot and "--set scenario.params.PARAM=VALUE" in foot, foot
+    pick = re.search(r"--set '(scenario=\{name: NAME, params: \{PARAM: VALUE\}\})'", foot)
+    assert pick, foot
+    override = pick.group(1).replace("NAME", "cut_in").replace("PARAM", "npc_speed_mps").replace("VALUE", "14")
+    cfg = load_config(ROOT / "hil_configs" / "demo.yaml", overrides=[override])
+    assert cfg.scenario.name == "cut_in"
+    scenarios.get("cut_in").resolve(cfg.scenario.params)
+
+
+def test_every_summary_key_is_in_the_summary_table(tmp_path: Path):
+    # `session`, `impairment`, `schema_version` and four vehicle counters were in every
+    # summary.json but not in the table a tester checks it against (README walkthrough).
+    from tests.scenarios.test_scenario_runs import run
+
+    summary = run(tmp_path, mode="lockstep", duration_s=0.5).summary
+    table = README.split("### `summary.json`")[1].split("\nStages")[0]
+    named = set(re.findall(r"`([a-z0-9_]+)[`.]", table))  # `vehicles.<name>...` names `vehicles`
+    vehicle: set[str] = set()
+    for ln in (ln for ln in table.splitlines() if ln.startswith("| `vehicles.<name>")):
+        cell = ln if ln.startswith("| `vehicles.<name>` |") else ln.split("|")[1]  # that row lists them after
+        vehicle |= set(re.findall(r"`vehicles\.<name>\.([a-z0-9_]+)", cell) + re.findall(r"`([a-z0-9_]+)`", cell))
+    assert [k for k in summary if k not in named] == []
+    assert [k for k in summary["vehicles"]["ego0"] if k not in vehicle] == []
+
+
+def test_the_c_target_lines_work_as_written():
+    # The README named the C target but not how to build or start it (README walkthrough).
+    from tests.targets import c_build
+
+    if c_build.unavailable():
+        pytest.skip(c_build.unavailable())
+    flat = " ".join(README.split())
+    assert "`make -C targets/c` builds `targets/c/build/hil_target`" in flat
+    shown = re.search(r"serves like `hil target` \(`(--transport tcp --listen [0-9.:]+)`", flat)
+    assert shown, flat
+    p = subprocess.run([str(c_build.build().plain), "--help"], capture_output=True, text=True, timeout=30)
+    assert p.returncode == 0 and all(opt in p.stdout for opt in shown.group(1).split() if opt.startswith("--"))
+
+
+def test_the_calibrate_paragraph_names_what_it_writes():
+    # `hil calibrate` had a line in the command list and nothing on what it checks or writes.
+    from hil.harness.check.calibrate import TRUTH_FILE, Calibration
+
+    para = " ".join(README.split("`hil calibrate [CONFIG]` proves")[1].split("\n\n")[0].split())
+    keys = re.search(r"`calibration.json` \(([^)]*)\)", para)
+    assert keys and f"`{TRUTH_FILE}`" in para, para
+    written = Calibration("local").to_json()
+    assert [k for k in re.findall(r"`([a-z_]+)`", keys.group(1)) if k not in written] == []
+    assert (ROOT / "hil_configs" / "calibrate.yaml").is_file() and (ROOT / "targets" / "reference.py").is_file()

@@ -91,6 +91,20 @@ def test_builds_with_warnings_as_errors():
     assert b.asan.is_file() and os.access(b.asan, os.X_OK)
 
 
+@pytest.mark.parametrize(("argv", "line"), [
+    (["--bogus"], "hil_target: --bogus: unknown option (see --help)"),  # was "an option is missing its value"
+    (["--name"], "hil_target: --name: missing its value (see --help)"),
+    (["--clock", "tai"], "hil_target: --clock: takes monotonic or realtime (see --help)"),
+    (["--transport", "udp", "--once"], "hil_target: --transport: takes local or tcp (see --help)"),
+])
+def test_a_bad_option_is_one_line_naming_it_and_exit_2(argv, line):
+    p = subprocess.run([str(c_build.build().asan), *argv], capture_output=True, text=True, timeout=30,
+                       env={**os.environ, **c_build.SAN_ENV})
+    assert (p.returncode, p.stderr, p.stdout) == (2, line + "\n", "")
+    h = subprocess.run([str(c_build.build().plain), "--help"], capture_output=True, text=True, timeout=30)
+    assert h.returncode == 0 and h.stdout.startswith("usage: hil_target ") and "--token-env NAME" in h.stdout
+
+
 @pytest.mark.parametrize("transport", ["tcp", "local"])
 def test_session_over_transport(transport, tmp_path):
     with c_link(transport, tmp_path) as (link, _log):

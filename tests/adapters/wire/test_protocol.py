@@ -161,6 +161,26 @@ def test_protocol_md_matches_the_code():
         assert rows == {m.name: str(m.value) for m in enum}, enum.__name__
 
 
+
+def test_protocol_md_routes_every_message_type_of_each_direction():
+    # The Zenoh key table left ERROR out of harness -> target and the mixed transport's
+    # "everything else" left COMMAND out, though both travel there (README walkthrough).
+    spec = (Path(__file__).resolve().parents[3] / "PROTOCOL.md").read_text(encoding="utf-8")
+    by = dict(re.findall(r"^\| ([A-Z_]+) \| \d+ \| (harness|target|either)", spec, flags=re.M))
+    assert set(by) == {m.name for m in MsgType}, by
+    tcp_only = {"AUTH"}  # section 4.8: the reference harness asks for a proof on TCP only
+    from_harness = {t for t, who in by.items() if who in ("harness", "either")} - tcp_only
+    from_target = {t for t, who in by.items() if who in ("target", "either")} | {"COMMAND"} - tcp_only
+
+    def row(key: str) -> set[str]:
+        line = next(ln for ln in spec.splitlines() if ln.startswith(f"| `{{prefix}}/v{{vehicle_id}}/{key}` |"))
+        return set(re.findall(r"[A-Z_]{3,}", line.split("|")[3]))
+
+    assert row("h2t") == from_harness and row("t2h") == from_target
+    mixed = spec.split("### 10.4")[1].split("**Everything else** (")[1].split(")")[0]
+    assert set(re.findall(r"[A-Z_]{3,}", mixed)) == {m.name for m in MsgType} - {"FRAME"} - tcp_only
+
+
 def test_frame_encoding_copies_the_image_once():
     image = bytes(320 * 240 * 3)
     frame = Frame(1, 2, 3, 4, 5, 320, 240, ImageEncoding.RGB8, CameraInfo(300, 300, 160, 120, 1.3),

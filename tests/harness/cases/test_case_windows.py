@@ -204,3 +204,16 @@ def test_a_window_keeps_the_run_metadata(tmp_path: Path):
     assert meta["case"] == {"id": "1", "vehicle": "ego0", "window_start_ns": "0", "window_end_ns": str(3000 * MS)}
     with open(tmp_path / "run.mcap", "rb") as f:
         assert {m.name for m in make_reader(f).iter_metadata()} <= set(meta)
+
+
+def test_hil_cases_of_a_run_without_cases_lists_none(tmp_path: Path):
+    # A clean run writes no corner_cases.sqlite; `hil cases` said "error: ... no
+    # corner_cases.sqlite", exit 2, for it (README walkthrough): now it lists none, exit 0.
+    from tests.harness.cases.test_corner_cases import hil
+
+    fake_run(tmp_path, seconds=1, events={})
+    assert not (tmp_path / "corner_cases.sqlite").exists()  # as a real run without cases
+    p = hil("cases", str(tmp_path))
+    assert p.returncode == 0 and "0 corner cases" in p.stdout, p.stdout + p.stderr
+    p = hil("cases", str(tmp_path), "--window", "1")  # nothing to cut: still a mistake
+    assert p.returncode == 2 and "no corner_cases.sqlite" in p.stderr and "Traceback" not in p.stderr

@@ -117,6 +117,12 @@ def test_clock_shows_synced_targets():
     assert "+2500.0" in p.stdout.replace("\u202f", "")  # offset shown in ms: +2500.0xx ms
 
 
+@pytest.mark.parametrize("n", ["0", "-1"])
+def test_clock_refuses_a_count_of_bursts_below_one(n):
+    # `--bursts -1` (and 0) ran until Ctrl-C (README walkthrough).
+    assert_one_line_error(hil("clock", "hil_configs/demo.yaml", "--bursts", n), "--bursts", f"(got {n})")
+
+
 # --- a newcomer's first hour (issue 14, items 14, 17, 18) ----------------------------
 
 

@@ -123,6 +123,21 @@ def test_enum_error_lists_the_valid_values(write) -> None:
     assert "at mode: got 'fast'; expected 'realtime' or 'lockstep'" in message
 
 
+@pytest.mark.parametrize("where", ["thresholds", "vehicles", "override"])
+def test_a_deadline_for_an_unknown_stage_is_refused(write, where) -> None:
+    # `deadline_ms: {end_to_endd: 5}` ran and judged nothing (README walkthrough).
+    if where == "override":
+        message = config_error(write(""), overrides=("timing.vehicles={ego0: {deadline_ms: {inferance: 5}}}",))
+        assert "timing.vehicles.ego0.deadline_ms" in message and "'inferance'" in message, message
+        return
+    text = ("timing:\n  thresholds: {deadline_ms: {end_to_endd: 5, uplink: 3}}\n" if where == "thresholds" else
+            "timing:\n  vehicles: {ego0: {deadline_ms: {end_to_endd: 5}}}\n")
+    message = config_error(write(text))
+    assert "deadline_ms" in message and "'end_to_endd'" in message and "end_to_end, to_apply" in message, message
+    cfg = load_config(write("timing:\n  thresholds: {deadline_ms: {uplink: 3, to_apply: 90}}\n", "ok.yaml"))
+    assert cfg.timing.thresholds_for("ego0").deadline_ms["uplink"] == 3
+
+
 def test_long_bad_value_is_truncated(write) -> None:
     message = config_error(write(f"camera:\n  width: {'x' * 500}\n"))
     got = message.split("got ", 1)[1].split(";", 1)[0]

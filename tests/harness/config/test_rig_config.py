@@ -25,6 +25,13 @@ def test_the_default_rig_is_the_camera_sections_one_camera_and_builds_the_same_w
     assert xml.count("<camera ") == 1 and 'name="ego0/camera"' in xml
 
 
+def test_thresholds_for_a_vehicle_the_run_has_not_are_refused() -> None:
+    # `timing.vehicles: {eg0: ...}` ran with the defaults for ego0 (README walkthrough).
+    build_world(parse_config({"timing": {"vehicles": {"ego0": {"jitter_ms": 5}}}}))
+    with pytest.raises(ConfigError, match=r"timing.vehicles.eg0: no such vehicle in this run \(its vehicles: ego0\)"):
+        build_world(parse_config({"timing": {"vehicles": {"eg0": {"jitter_ms": 5}}}}))
+
+
 def test_surround6_is_six_named_cameras_around_the_car() -> None:
     cfg = parse_config({"camera": {"rig": "surround6"}})
     cams = cfg.camera.cameras()

@@ -62,6 +62,23 @@ def test_netem_where_the_kernel_has_none_skips_the_distributed_points_with_the_r
 
 
 @pytest.mark.slow
+def test_a_relative_out_and_config_mean_the_callers_folder(tmp_path, gl_backend):
+    # The points ran with cwd=ROOT: `cd /tmp/x && hil study CONFIG --out st` wrote each
+    # point's run into the checkout's st/, found no summary in /tmp/x/st and called every
+    # point failed ("exit 0: report.html: ...") (README walkthrough).
+    (tmp_path / "cfg").mkdir()
+    (tmp_path / "cfg" / "s.yaml").write_text((ROOT / "hil_configs" / "study.yaml").read_text())
+    p = subprocess.run([sys.executable, "-m", "hil.harness.cli.main", "study", "cfg/s.yaml", "--vehicles", "1",
+                        "--placement", "replicated", "--duration", "1", "--out", "st"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=200, env={**os.environ, "MUJOCO_GL": gl_backend})
+    assert p.returncode in (0, 1), (p.stdout, p.stderr)
+    (point,) = json.loads((tmp_path / "st" / "results.json").read_text())["points"]
+    assert point["status"] == "ok", point
+    assert (tmp_path / "st" / "points" / "replicated-n1-fps20" / "summary.json").is_file()
+    assert not (ROOT / "st").exists()
+
+
+@pytest.mark.slow
 def test_a_tiny_study_in_both_placements(tmp_path, gl_backend):
     out = tmp_path / "study"
     p = _hil("study", "hil_configs/study.yaml", "--vehicles", "1", "2", "--duration", "2", "--out", str(out),
