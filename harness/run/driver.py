@@ -247,7 +247,10 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
         "scenario_realized": world.realized,
         "latency_profile": None if latency is None else latency.describe(),
         "session": secrets.token_hex(6),  # this run's nonce: a started Zenoh target's keys carry it
-        "impairment": cfg.target.impair.model_dump(mode="json") if cfg.target.impair.active else None,
+        # The settings the run used: an unset seed is the run's (adapters.impair.stage_for).
+        "impairment": {**cfg.target.impair.model_dump(mode="json"),
+                       "seed": cfg.seed if cfg.target.impair.seed is None else cfg.target.impair.seed}
+        if cfg.target.impair.active else None,
     }
     # ``sim`` mirrors the physics process's world here (truth, summary); it renders
     # only for the CAN preflight.

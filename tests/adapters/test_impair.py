@@ -198,6 +198,7 @@ def test_a_run_measures_the_injected_uplink_delay_back(tmp_path, gl_backend):
                        env={**__import__("os").environ, "MUJOCO_GL": gl_backend})
     assert p.returncode in (0, 1), p.stderr[-2000:]
     s = json.loads((out / "summary.json").read_text())
+    assert s["impairment"]["seed"] == s["seed"]  # unset: the run's seed, as the stage used it
     v = s["vehicles"]["ego0"]
     up = v["splits_ms"]["uplink"]
     assert 20.0 <= up["p50_ms"] <= 25.0, up
