@@ -25,7 +25,7 @@ rig's under camera 0's mount, in the vehicle's axes):
   time; its brake came too late (``harness/cases/late_reaction.py``). Always latency.
 
 Objects are matched by class and position with an optimal assignment (Hungarian,
-``scipy.optimize.linear_sum_assignment``).
+``harness/cases/assignment.py``).
 
 Episodes are kept per (kind, entity, cause): a perception error is reported while a
 latency episode of the same kind is open, and the reverse; a later frame never
@@ -52,13 +52,9 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 
-import numpy as np
-# Imported with the module, before a run starts: a first import inside the sim loop
-# stalled it for ~250 ms.
-from scipy.optimize import linear_sum_assignment
-
 from hil.adapters.wire.messages import DrivingState, Estimate
 from hil.common.classes import ObjectClass
+from hil.harness.cases.assignment import assign
 from hil.harness.cases.late_reaction import Decision, EgoView, LateReaction, LateReactionJudge
 from hil.harness.config.detector import DetectorSettings
 from hil.timing.anomaly import Anomaly, Severity
@@ -167,15 +163,14 @@ def match(est: Sequence[tuple[str, float, float]], truth: Sequence[TruthObject],
     objects; pairs farther apart than ``gate(truth_distance)`` are not matched."""
     if not est or not truth:
         return []
-    cost = np.full((len(est), len(truth)), _INF)
+    cost = [[_INF] * len(truth) for _ in est]
     for i, (cls, x, y) in enumerate(est):
         for j, t in enumerate(truth):
             if cls == t.cls:
                 d = math.hypot(x - t.x_m, y - t.y_m)
                 if d <= gate(t.distance_m):
-                    cost[i, j] = d
-    rows, cols = linear_sum_assignment(cost)
-    return [(int(i), int(j)) for i, j in zip(rows, cols) if cost[i, j] < _INF]
+                    cost[i][j] = d
+    return [(i, j) for i, j in assign(cost) if cost[i][j] < _INF]
 
 
 @dataclass
