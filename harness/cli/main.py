@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -69,68 +70,73 @@ def _live_before_config(argv: list[str]) -> list[str]:
     return out
 
 
-def build_parser() -> argparse.ArgumentParser:
+# The commands in the order ``hil --help`` lists them, each with the module whose
+# ``add_parser(sub)`` adds it (None: added here); ``cases`` and ``replay`` share one module.
+_PARSERS: dict[str, str | None] = {
+    "run": None, "scenarios": None, "clock": "hil.harness.cli.clock", "cases": "hil.harness.cli.cases",
+    "replay": "hil.harness.cli.cases", "target": None, "report": "hil.harness.report.run_report",
+    "compare": "hil.harness.check.gate", "train": "hil.training.train", "calibrate": "hil.harness.check.calibrate",
+    "target-check": "hil.harness.check.target_check", "search": "hil.harness.search.cli",
+    "study": "hil.harness.study.study", "trace": "hil.harness.report.trace", "rosbag": "hil.harness.report.rosbag2"}
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser of ``hil``; with ``command`` (the first word of ``hil COMMAND ...``)
+    only that command's, as importing every command's module cost ~0.35 s of each
+    start (``python -X importtime``); None or an unknown word: all of them."""
+    import importlib
+
     p = _Parser(prog="hil", description="Hardware-in-the-loop timing harness for autonomous-driving AI.")
     p.add_argument("--version", action="version", version=f"hil {__version__}")
     sub: argparse._SubParsersAction[argparse.ArgumentParser] = p.add_subparsers(dest="command", required=True,
                                                                                 parser_class=_Parser)
-    r = sub.add_parser("run", help="run a configuration and write a run folder")
-    r.add_argument("config", help="a hil_configs/*.yaml file")
-    r.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",
-                   help="override a config field, e.g. --set camera.fps=10 (repeatable)")
-    r.add_argument("--out", type=Path, default=None,
-                   help="run folder (default runs/<name>-<timestamp>/)")
-    r.add_argument("--no-progress", action="store_true", help="no live display")
-    r.add_argument("--fail-on", dest="fail_on", default="", metavar="CHECK,...",
-                   help="exit 3 when one of these verdicts fails: realtime, deadline, drop, collision, mismatch, "
-                        "anomaly (adds to the config's verdict.fail_on)")
-    r.add_argument("--live", nargs="?", const="", default=None, metavar="HOST:PORT", type=_live_address,
-                   help="serve the run live to Foxglove (foxglove.sdk.v1 and foxglove.websocket.v1) on HOST:PORT "
-                        "(default 127.0.0.1 and a free port, printed; recording.live, recording.live_address)")
-    from hil.harness.report.ci_outputs import add_ci_args
-
-    add_ci_args(r)
-    sc = sub.add_parser("scenarios", help="list the scenarios with their parameters, ranges and defaults")
-    sc.add_argument("name", nargs="?", default=None, help="show only this scenario")
-    sc.add_argument("--json", action="store_true", help="machine-readable output")
-    from hil.harness.cli import cases as cases_cmd
-    from hil.harness.cli import clock as clock_cmd
-
-    clock_cmd.add_parser(sub)
-    cases_cmd.add_parsers(sub)
-    t = sub.add_parser("target", help="serve an example AI target (on this host or a device)",
-                       description="Serve an example AI target over a transport, e.g. on a remote host: "
-                                   "hil target cv --transport zenoh --listen tcp/0.0.0.0:7447. Options after "
-                                   "the name go to the target (see hil target cv --help).",
-                       add_help=False)
-    t.add_argument("name", choices=sorted(TARGETS), help="which example target")
-    t.add_argument("target_args", nargs=argparse.REMAINDER, help="options for the target")
-    # Each command lives in its own module: add_parser(sub) and cmd(args).
-    from hil.harness.check import calibrate
-    from hil.harness.check import gate as compare
-    from hil.harness.report import run_report as report
-    from hil.training import train
-
-    report.add_parser(sub)
-    compare.add_parser(sub)
-    train.add_parser(sub)
-    calibrate.add_parser(sub)
-    from hil.harness.check import target_check
-
-    target_check.add_parser(sub)
-    from hil.harness.search import cli as search_cli
-
-    search_cli.add_parser(sub)
-    from hil.harness.study import study
-
-    study.add_parser(sub)
-    from hil.harness.report import trace
-
-    trace.add_parser(sub)
-    from hil.harness.report import rosbag2
-
-    rosbag2.add_parser(sub)
+    added: set[str] = set()
+    for name, module in _PARSERS.items():
+        if (command in _PARSERS and name != command) or module in added:
+            continue
+        if module is None:
+            _add_builtin_parser(sub, name)
+            continue
+        added.add(module)
+        adder = importlib.import_module(module)
+        if module == "hil.harness.cli.cases":
+            adder.add_parsers(sub)
+        else:
+            adder.add_parser(sub)
     return p
+
+
+def _add_builtin_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser], name: str) -> None:
+    if name == "run":
+        r = sub.add_parser("run", help="run a configuration and write a run folder")
+        r.add_argument("config", help="a hil_configs/*.yaml file")
+        r.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",
+                       help="override a config field, e.g. --set camera.fps=10 (repeatable)")
+        r.add_argument("--out", type=Path, default=None,
+                       help="run folder (default runs/<name>-<timestamp>/)")
+        r.add_argument("--no-progress", action="store_true", help="no live display")
+        r.add_argument("--fail-on", dest="fail_on", default="", metavar="CHECK,...",
+                       help="exit 3 when one of these verdicts fails: realtime, deadline, drop, collision, mismatch, "
+                            "anomaly (adds to the config's verdict.fail_on)")
+        r.add_argument("--live", nargs="?", const="", default=None, metavar="HOST:PORT", type=_live_address,
+                       help="serve the run live to Foxglove (foxglove.sdk.v1 and foxglove.websocket.v1) on "
+                            "HOST:PORT (default 127.0.0.1 and a free port, printed; recording.live, "
+                            "recording.live_address)")
+        from hil.harness.report.ci_outputs import add_ci_args
+
+        add_ci_args(r)
+    elif name == "scenarios":
+        sc = sub.add_parser("scenarios", help="list the scenarios with their parameters, ranges and defaults")
+        sc.add_argument("name", nargs="?", default=None, help="show only this scenario")
+        sc.add_argument("--json", action="store_true", help="machine-readable output")
+    else:
+        t = sub.add_parser("target", help="serve an example AI target (on this host or a device)",
+                           description="Serve an example AI target over a transport, e.g. on a remote host: "
+                                       "hil target cv --transport zenoh --listen tcp/0.0.0.0:7447. Options after "
+                                       "the name go to the target (see hil target cv --help).",
+                           add_help=False)
+        t.add_argument("name", choices=sorted(TARGETS), help="which example target")
+        t.add_argument("target_args", nargs=argparse.REMAINDER, help="options for the target")
 
 
 # Commands whose module has add_parser(sub) and cmd(args), by name.
@@ -143,6 +149,16 @@ TARGETS = {"cnn": "hil.targets.cnn.cli", "cv": "hil.targets.cv_baseline", "echo"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except BrokenPipeError:
+        # The reader of the output left (``hil scenarios --json | head``): no traceback,
+        # and none from Python flushing stdout at exit either.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_EARLY
+
+
+def _main(argv: Sequence[str] | None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if len(argv) >= 2 and argv[0] == "target" and argv[1] in TARGETS:
         # Everything after the name belongs to the target (including --help).
@@ -160,7 +176,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         from hil.harness.search import cli as search_cli
 
         return search_cli.main(argv[1:])
-    args = build_parser().parse_args(_live_before_config(argv))
+    args = build_parser(argv[0] if argv else None).parse_args(_live_before_config(argv))
     try:
         if args.command == "run":
             return _cmd_run(args)

@@ -3,6 +3,7 @@ run that is stopped (Ctrl-C, SIGTERM) still leaves a finalized MCAP."""
 
 from __future__ import annotations
 
+import argparse
 import os
 import signal
 import subprocess
@@ -35,6 +36,36 @@ def assert_one_line_error(p: subprocess.CompletedProcess[str], *needles: str) ->
 def test_version():
     p = hil("--version")
     assert p.returncode == 0 and p.stdout.startswith("hil ")
+
+
+def test_a_reader_that_leaves_early_gets_no_traceback():
+    # hil scenarios --json | head -c 1: the pipe is closed before hil has written.
+    p = subprocess.Popen([sys.executable, "-m", "hil.harness.cli.main", "scenarios", "--json"], cwd=ROOT,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert p.stdout is not None and p.stderr is not None
+    p.stdout.close()
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=60) == 1 and err == "", err
+
+
+def _command_help(parser: argparse.ArgumentParser, name: str) -> str:
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return str(sub.choices[name].format_help())
+
+
+def test_every_command_has_the_same_help_alone_as_among_all():
+    # hil builds only the parser of the command it is given (a quicker start) ...
+    from hil.harness.cli.main import _PARSERS, build_parser
+
+    every = build_parser()
+    for name in _PARSERS:
+        assert _command_help(build_parser(name), name) == _command_help(every, name), name
+    # ... and imports no other command's module for it.
+    code = ("import sys; from hil.harness.cli.main import build_parser; build_parser('run'); "
+            "print(sorted(m for m in sys.modules if m.startswith(('hil.harness.check', 'hil.harness.search', "
+            "'hil.harness.study', 'hil.training', 'hil.harness.report.rosbag2'))))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout
 
 
 def test_missing_config(tmp_path):
