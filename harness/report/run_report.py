@@ -293,7 +293,7 @@ def _verdict_section(d: RunData) -> str:
     out.append(f'<p class="{"ok" if v.passed else "nok"}">{escape(head)}</p>')
     rows = []
     for c in v.checks:
-        mark = ('<span class="ok">met</span>' if c.ok else
+        mark = ('<span class="ok">ok</span>' if c.ok else
                 '<span class="nok">FAILED (fails the run)</span>' if c.name in v.fails_run else
                 '<span class="nok">missed</span>')
         rows.append([escape(c.name), mark, escape(c.headline)])
