@@ -231,7 +231,7 @@ def test_a_guided_campaign_draws_each_generation_from_the_last(spec_file, tmp_pa
     c = load_spec(spec_file, strategy="mutate")
     c = type(c).from_json({**c.as_json(), "strategy": {**c.as_json()["strategy"], "generation": 2, "explore": 0.0}})
     oc = run_campaign(c, out=tmp_path / "guided", gl_backend=GL_BACKEND, workers=2, install_signal_handlers=False)
-    assert oc.complete
+    assert oc.complete, [(r.index, r.status, r.ended_by, r.error) for r in oc.ran]
     with CampaignDB(tmp_path / "guided" / "campaign.sqlite", readonly=True) as db:
         eps = db.episodes()
     assert [e["generation"] for e in eps] == [0, 0, 1, 1]
