@@ -37,6 +37,63 @@ def in_child_processes(fn: Callable[..., T], calls: Sequence[tuple[Any, ...]], *
         return list(pool.map(fn, *zip(*calls)))
 
 
+# --- work computed ahead, beside the tests before it ------------------------------------
+# A few fixtures are deterministic, CPU-bound work that reads no clock and waits on no
+# timeout (the CNN's in-process closed loops, its held-out frames): their results are the
+# same whenever and beside whatever they run. Such a fixture registers its calls with
+# ``ahead`` when its module is imported; once the session's tests are collected, the calls
+# start in child processes at the lowest priority (nice 19: a test's process that wants a
+# core takes it from them at once, so a real-time test beside them runs much as on a quiet
+# machine, and they still get a sliver of a core, so a lockstep run's generous timeouts
+# hold) and the fixture takes the results with ``ahead_results``, waiting for what is left.
+_AHEAD: dict[str, tuple[Callable[..., Any], list[tuple[Any, ...]]]] = {}
+_AHEAD_STARTED: dict[str, list[Any]] = {}
+_AHEAD_POOL: list[ProcessPoolExecutor] = []
+
+
+def ahead(module: str, fixture: str, fn: Callable[..., Any], calls: Sequence[tuple[Any, ...]]) -> None:
+    """Compute ``[fn(*args) for args in calls]`` ahead for ``module``'s ``fixture``
+    (``fn`` and its arguments importable by name, as for ``in_child_processes``)."""
+    _AHEAD[f"{module}::{fixture}"] = (fn, list(calls))
+
+
+def ahead_results(module: str, fixture: str) -> list[Any]:
+    """The results of what ``ahead`` registered, in the calls' order; computed here, as
+    ``in_child_processes`` does, when the session did not start them."""
+    key = f"{module}::{fixture}"
+    futures = _AHEAD_STARTED.pop(key, None)
+    if futures is None:
+        fn, calls = _AHEAD[key]
+        return in_child_processes(fn, calls)
+    return [f.result() for f in futures]
+
+
+def _lowest_priority() -> None:
+    os.nice(19)
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    wanted = set()
+    for item in session.items:
+        module = getattr(item, "module", None)
+        for name in getattr(item, "fixturenames", ()) if module is not None else ():
+            if f"{module.__name__}::{name}" in _AHEAD:
+                wanted.add(f"{module.__name__}::{name}")
+    if not wanted or session.config.option.collectonly:
+        return
+    pool = ProcessPoolExecutor(max(1, min(4, len(os.sched_getaffinity(0)))),
+                               mp_context=multiprocessing.get_context("spawn"), initializer=_lowest_priority)
+    _AHEAD_POOL.append(pool)
+    for key in sorted(wanted, key=list(_AHEAD).index):
+        fn, calls = _AHEAD[key]
+        _AHEAD_STARTED[key] = [pool.submit(fn, *args) for args in calls]
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    for pool in _AHEAD_POOL:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
 def read_mcap(path: Path) -> dict[str, list[tuple[Any, Any]]]:
     """All messages of an MCAP file by topic: (message record, decoded JSON)."""
     from mcap.reader import make_reader

@@ -23,6 +23,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from hil.adapters.wire.messages import CameraInfo, DrivingState, Frame, ImageEncoding  # noqa: E402
+from tests.conftest import ahead, ahead_results  # noqa: E402
 
 LANE_HALF_WIDTH_M, CAR_HALF_WIDTH_M = 3.7 / 2, 0.9
 
@@ -95,16 +96,17 @@ def _drive(scenario: str, seed: int) -> Drive | tuple[bool, dict[str, float], Dr
     return drive("curved_road", {}, seed=seed, duration_s=60.0) if scenario == "curved_road" else stopped_car(seed)
 
 
+# The 60 s curved road and the ten ``stopped_car`` seeds (57 s one after the other on a
+# 2-core machine, the lane drive a third of it): each drive is lockstep on one torch
+# thread and nothing it is judged on reads a clock, so a child process computes the very
+# drive this one would, and it can start ahead, beside the tests before these.
+ahead(__name__, "drives", _drive, [("curved_road", 0)] + [("stopped_car", seed) for seed in range(10)])
+
+
 @pytest.fixture(scope="module")
 def drives() -> tuple[Drive, list[tuple[bool, dict[str, float], Drive]]]:
-    """The 60 s curved road and the ten ``stopped_car`` seeds, as many at once as there
-    are cores: each drive is lockstep on one torch thread and nothing it is judged on
-    reads a clock, so a child process computes the very drive this one would (57 s
-    one after the other on a 2-core machine, the lane drive a third of it)."""
-    from tests.conftest import in_child_processes
-
-    lane, *seeds = in_child_processes(_drive, [("curved_road", 0)] + [("stopped_car", seed) for seed in range(10)])
-    return lane, seeds  # type: ignore[return-value]
+    lane, *seeds = ahead_results(__name__, "drives")
+    return lane, seeds
 
 
 @pytest.mark.slow

@@ -18,18 +18,29 @@ torch = pytest.importorskip("torch")
 from hil.training import train  # noqa: E402
 
 from hil.targets.cnn import models  # noqa: E402
-from hil.training import dataset
+from hil.training import dataset  # noqa: E402
+from tests.conftest import ahead, ahead_results  # noqa: E402
 
 N_FRAMES = 500
 
 
-@pytest.fixture(scope="module")
-def heldout():
+def heldout_samples() -> list[dataset.Sample]:
+    """The held-out frames (rendering them is the fixture's work; a module-level
+    function: a child process runs it, ahead, beside the tests before these)."""
     from hil.scenarios.gl import select_backend
 
     select_backend()
+    return list(dataset.generate(seed=dataset.HELDOUT_SEED_BASE, n_frames=N_FRAMES, split=0))
+
+
+ahead(__name__, "heldout", heldout_samples, [()])
+
+
+@pytest.fixture(scope="module")
+def heldout():
     torch.set_num_threads(2)
-    return train.prepare(list(dataset.generate(seed=dataset.HELDOUT_SEED_BASE, n_frames=N_FRAMES, split=0)))
+    (samples,) = ahead_results(__name__, "heldout")
+    return train.prepare(samples)
 
 
 @pytest.mark.slow
