@@ -9,18 +9,33 @@ import subprocess
 _PR_SET_PDEATHSIG = 1
 
 
-def prioritise_this_thread(nice: int = -5) -> bool:
-    """Give the calling thread a lower nice value (served first when the cores are
-    busy): for threads that stamp receipts or move frames. Needs CAP_SYS_NICE (root);
-    returns False, changing nothing, without it."""
+def prioritise_this_thread(by: int = 5) -> int | None:
+    """Lower the calling thread's nice value by ``by`` from what it is (served first
+    when the cores are busy): for threads that stamp receipts or move frames. Relative,
+    so a harness started at ``nice -n 10`` stays below the user's other work. Needs
+    CAP_SYS_NICE (root). Returns the nice value the thread had (for
+    :func:`restore_thread_priority`), or None, changing nothing, without the privilege."""
+    import os
+    import threading
+
+    tid = threading.get_native_id()
+    try:
+        before = os.getpriority(os.PRIO_PROCESS, tid)
+        os.setpriority(os.PRIO_PROCESS, tid, max(-20, before - by))
+    except (OSError, AttributeError):
+        return None
+    return before
+
+
+def restore_thread_priority(nice: int) -> None:
+    """Give the calling thread back the nice value :func:`prioritise_this_thread` returned."""
     import os
     import threading
 
     try:
         os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
     except (OSError, AttributeError):
-        return False
-    return True
+        pass
 
 
 def die_with_parent() -> None:

@@ -110,15 +110,17 @@ def restore_affinity(cores: set[int] | None) -> None:
             pass
 
 
-def lower_thread_priority(nice: int = 10) -> None:
-    """Make the calling thread yield the CPU to the run's latency-critical threads
-    (Linux: a thread's nice value is its own; raising it needs no privilege). The
-    analysis and recording threads call this, so the loop thread that moves frames
-    and controls is served first when the cores are busy."""
+def lower_thread_priority(by: int = 10) -> None:
+    """Make the calling thread yield the CPU to the run's latency-critical threads:
+    its nice value ``by`` above what it is, at most 19 (Linux: a thread's nice value is
+    its own; raising it needs no privilege). The analysis and recording threads call
+    this, so the loop thread that moves frames and controls is served first when the
+    cores are busy."""
     try:
         import threading
 
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + by))
     except (OSError, AttributeError):
         pass
 

@@ -33,7 +33,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from hil.adapters.process import prioritise_this_thread
+from hil.adapters.process import prioritise_this_thread, restore_thread_priority
 from hil.harness.vocab.events import Event, EventBus, EventKind
 from hil.harness.config.model import Mode, RunConfig
 from hil.harness.engine.analysis_thread import AnalysisThread
@@ -186,8 +186,8 @@ class SimLoop:
             self.stats.analysis_cpu_ns = self.analysis.cpu_ns
             self.stats.analysis_dropped = self.analysis.dropped
             sys.setswitchinterval(switch)
-            if boosted:
-                prioritise_this_thread(0)
+            if boosted is not None:
+                restore_thread_priority(boosted)
             gc.set_threshold(*thresholds)
             gc.unfreeze()
 
