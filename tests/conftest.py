@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import multiprocessing
 import os
+import shutil
+import tempfile
 from collections import defaultdict
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -49,6 +51,7 @@ def in_child_processes(fn: Callable[..., T], calls: Sequence[tuple[Any, ...]], *
 # generous timeouts hold (SCHED_IDLE could starve them past one); a run raises its
 # threads' priority relative to the nice value it started at (hil.adapters.process).
 _AHEAD: dict[str, tuple[Callable[..., Any], list[tuple[Any, ...]]]] = {}
+_AHEAD_ROOT = Path(tempfile.gettempdir()) / f"hil-tests-ahead-{os.getpid()}"
 _AHEAD_STARTED: dict[str, list[Any]] = {}
 _AHEAD_POOL: list[ProcessPoolExecutor] = []
 
@@ -57,6 +60,12 @@ def ahead(module: str, fixture: str, fn: Callable[..., Any], calls: Sequence[tup
     """Compute ``[fn(*args) for args in calls]`` ahead for ``module``'s ``fixture``
     (``fn`` and its arguments importable by name, as for ``in_child_processes``)."""
     _AHEAD[f"{module}::{fixture}"] = (fn, list(calls))
+
+
+def ahead_folder(name: str) -> Path:
+    """A folder for a call of ``ahead`` to write into (the call creates it), removed
+    when the session ends."""
+    return _AHEAD_ROOT / name
 
 
 def ahead_results(module: str, fixture: str) -> list[Any]:
@@ -94,6 +103,7 @@ def pytest_collection_finish(session: pytest.Session) -> None:
 def pytest_sessionfinish(session: pytest.Session) -> None:
     for pool in _AHEAD_POOL:
         pool.shutdown(wait=True, cancel_futures=True)
+    shutil.rmtree(_AHEAD_ROOT, ignore_errors=True)
 
 
 def read_mcap(path: Path) -> dict[str, list[tuple[Any, Any]]]:

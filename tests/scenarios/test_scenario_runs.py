@@ -9,12 +9,13 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from hil.harness.config.loading import parse_config
 from hil.harness.run.driver import execute, prepare_out_dir
-from tests.conftest import GL_BACKEND, read_mcap
+from tests.conftest import GL_BACKEND, ahead, ahead_folder, ahead_results, read_mcap
 from hil.common.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -47,17 +48,40 @@ def truth_hash(mcap: Path) -> str:
     return h.hexdigest()
 
 
+# The lockstep runs below, ahead and beside the tests before them (tests/conftest.py):
+# a lockstep run waits for every estimate and its sim side reads no clock.
+CUT_IN = {"mode": "lockstep", "duration_s": 2.0, "target": {"command": [sys.executable, "-m", "hil.targets.cv_baseline"],
+                                                            "estimate_timeout_s": 10.0},
+          "scenario": {"name": "cut_in", "params": {"cut_in_at_s": 0.5, "lane_change_s": 1.0}}}
+BRAKE = {"command": [*ECHO, "--brake", "1.0"], "estimate_timeout_s": 5.0}
+LOGNORMAL = {"mode": "lockstep", "lockstep": {"latency": {"kind": "lognormal", "ms": 80, "sigma": 0.5, "max_ms": 300}}}
+LOCKSTEP: dict[str, dict[str, object]] = {
+    "cut_in": CUT_IN, "cut_in_again": CUT_IN, "cut_in_seed_2": {**CUT_IN, "seed": 2},
+    "pedestrian": {"mode": "lockstep", "scenario": {"name": "pedestrian_occluded", "params": {"step_out_s": 0.6}}},
+    "brake_200ms_late": {"mode": "lockstep", "target": BRAKE, "duration_s": 2.5,
+                         "lockstep": {"latency": {"kind": "constant", "ms": 200}}},
+    "brake_at_once": {"mode": "lockstep", "target": BRAKE, "duration_s": 2.5},
+    "lognormal": LOGNORMAL, "lognormal_again": LOGNORMAL}
+
+
+def lockstep_run(out: Path, name: str):
+    return run(out, **LOCKSTEP[name])
+
+
+ahead(__name__, "lockstep", lockstep_run, [(ahead_folder(f"scenario-runs/{name}"), name) for name in LOCKSTEP])
+
+
+@pytest.fixture(scope="module")
+def lockstep() -> dict[str, Any]:
+    return dict(zip(LOCKSTEP, ahead_results(__name__, "lockstep")))
+
+
 # -- determinism -------------------------------------------------------------------
 
 
-def test_lockstep_truth_trace_is_byte_identical_for_a_seed(tmp_path: Path) -> None:
+def test_lockstep_truth_trace_is_byte_identical_for_a_seed(lockstep) -> None:
     # The OpenCV baseline closes the loop: images -> AI -> control -> physics.
-    cfg = {"mode": "lockstep", "duration_s": 2.0, "target": {"command": [sys.executable, "-m", "hil.targets.cv_baseline"],
-                                                             "estimate_timeout_s": 10.0},
-           "scenario": {"name": "cut_in", "params": {"cut_in_at_s": 0.5, "lane_change_s": 1.0}}}
-    a = run(tmp_path / "a", **cfg)
-    b = run(tmp_path / "b", **cfg)
-    c = run(tmp_path / "c", **cfg, seed=2)
+    a, b, c = lockstep["cut_in"], lockstep["cut_in_again"], lockstep["cut_in_seed_2"]
     for r in (a, b, c):
         assert r.summary["vehicles"]["ego0"]["dropped"] == 0
     assert truth_hash(a.mcap_path) == truth_hash(b.mcap_path)
@@ -69,8 +93,8 @@ def test_lockstep_truth_trace_is_byte_identical_for_a_seed(tmp_path: Path) -> No
     assert a.summary["scenario_realized"]["cut_in_at_s"] != c.summary["scenario_realized"]["cut_in_at_s"]
 
 
-def test_ground_truth_records_initial_states_then_changes(tmp_path: Path) -> None:
-    r = run(tmp_path, mode="lockstep", scenario={"name": "pedestrian_occluded", "params": {"step_out_s": 0.6}})
+def test_ground_truth_records_initial_states_then_changes(lockstep) -> None:
+    r = lockstep["pedestrian"]
     gts = [d for _, d in read_mcap(r.mcap_path)["/ground_truth"]]
     assert len(gts) == 30  # every camera tick
     assert gts[0]["initial"] and [e["name"] for e in gts[0]["entities"]] == ["ego0", "van1", "ped1"]
@@ -92,11 +116,8 @@ def _applied(r) -> dict[int, int]:
             for _, d in read_mcap(r.mcap_path)["/ego0/pipeline"] if d["status"] == "ok"}
 
 
-def test_constant_latency_delays_control_in_sim_time(tmp_path: Path) -> None:
-    brake = {"command": [*ECHO, "--brake", "1.0"], "estimate_timeout_s": 5.0}
-    slow = run(tmp_path / "lat", mode="lockstep", target=brake, duration_s=2.5,
-               lockstep={"latency": {"kind": "constant", "ms": 200}})
-    quick = run(tmp_path / "now", mode="lockstep", target=brake, duration_s=2.5)
+def test_constant_latency_delays_control_in_sim_time(lockstep) -> None:
+    slow, quick = lockstep["brake_200ms_late"], lockstep["brake_at_once"]
     lat = _applied(slow)
     assert len(lat) == 50 - 4 and set(lat.values()) == {200_000_000}  # 4 frames were due after the end
     v = slow.summary["vehicles"]["ego0"]
@@ -111,11 +132,8 @@ def test_constant_latency_delays_control_in_sim_time(tmp_path: Path) -> None:
     assert slow.summary["latency_profile"] == {"kind": "constant", "ms": 200.0}
 
 
-def test_distribution_latency_is_seeded_and_bounded(tmp_path: Path) -> None:
-    cfg = {"mode": "lockstep", "lockstep": {"latency": {"kind": "lognormal", "ms": 80, "sigma": 0.5,
-                                                         "max_ms": 300}}}
-    a = _applied(run(tmp_path / "a", **cfg))
-    b = _applied(run(tmp_path / "b", **cfg))
+def test_distribution_latency_is_seeded_and_bounded(lockstep) -> None:
+    a, b = _applied(lockstep["lognormal"]), _applied(lockstep["lognormal_again"])
     assert a == b
     vals = sorted(set(a.values()))
     assert len(vals) > 5 and 0 < vals[0] and vals[-1] <= 300_000_000

@@ -10,10 +10,7 @@ open); cases hold one cause each and are the same in a second run.
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import sys
-import tempfile
 from collections import Counter
 from pathlib import Path
 from types import SimpleNamespace
@@ -24,7 +21,7 @@ from hil.harness.cases.detector import Cause, MismatchKind
 from hil.harness.cases.casebook import read_cases
 from hil.harness.config.loading import parse_config
 from hil.harness.run.driver import execute, prepare_out_dir
-from tests.conftest import GL_BACKEND, ahead, ahead_results, read_mcap
+from tests.conftest import GL_BACKEND, ahead, ahead_folder, ahead_results, read_mcap
 from tests.harness.cases.test_detector_causes import cause_from_evidence
 
 pytestmark = pytest.mark.slow
@@ -64,14 +61,12 @@ def run_and_events(out: Path, scenario: str, latency_ms: int) -> SimpleNamespace
 # sim side, so a run beside another is the run alone (test_the_same_cases_in_a_second_run
 # checks one against a run of its own).
 KEYS = [(s, ms) for s in SCENARIOS for ms in LATENCIES_MS]
-ROOT = Path(tempfile.gettempdir()) / f"hil-latency-causes-{os.getpid()}"
-ahead(__name__, "runs", run_and_events, [(ROOT / f"{s}-{ms}", s, ms) for s, ms in KEYS])
+ahead(__name__, "runs", run_and_events, [(ahead_folder(f"latency-causes/{s}-{ms}"), s, ms) for s, ms in KEYS])
 
 
 @pytest.fixture(scope="module")
 def runs():
-    yield dict(zip(KEYS, ahead_results(__name__, "runs")))
-    shutil.rmtree(ROOT, ignore_errors=True)
+    return dict(zip(KEYS, ahead_results(__name__, "runs")))
 
 
 def counts(events: list[dict]) -> Counter[str]:
