@@ -135,7 +135,7 @@ def test_served_over_zenoh_like_on_a_remote_host(tmp_path: Path):
     port = free_port()
     with open(tmp_path / "t.log", "ab") as log:
         proc = subprocess.Popen([sys.executable, "-m", "hil.harness.cli.main", "target", "cnn", "--transport", "zenoh",
-                                 "--listen", f"tcp/127.0.0.1:{port}"], cwd=ROOT,
+                                 "--listen", f"tcp/127.0.0.1:{port}", "--once"], cwd=ROOT,
                                 env=dict(os.environ, PYTHONUNBUFFERED="1"), stdin=subprocess.DEVNULL,
                                 stdout=log, stderr=log)
     try:
