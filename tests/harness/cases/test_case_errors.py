@@ -7,7 +7,8 @@ from pathlib import Path
 
 from hil.harness.vocab.events import Event, EventKind
 from hil.harness.cases.casebook import CaseRecorder
-from hil.harness.cli.main import EXIT_EARLY, EXIT_OK, run_exit_code
+from hil.harness.cli.main import run_exit_code
+from hil.harness.cli.parser import EXIT_EARLY, EXIT_OK
 from hil.harness.record.recorder import Recorder
 
 

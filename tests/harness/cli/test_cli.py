@@ -55,13 +55,13 @@ def _command_help(parser: argparse.ArgumentParser, name: str) -> str:
 
 def test_every_command_has_the_same_help_alone_as_among_all():
     # hil builds only the parser of the command it is given (a quicker start) ...
-    from hil.harness.cli.main import _PARSERS, build_parser
+    from hil.harness.cli.parser import _PARSERS, build_parser
 
     every = build_parser()
     for name in _PARSERS:
         assert _command_help(build_parser(name), name) == _command_help(every, name), name
     # ... and imports no other command's module for it.
-    code = ("import sys; from hil.harness.cli.main import build_parser; build_parser('run'); "
+    code = ("import sys; from hil.harness.cli.parser import build_parser; build_parser('run'); "
             "print(sorted(m for m in sys.modules if m.startswith(('hil.harness.check', 'hil.harness.search', "
             "'hil.harness.study', 'hil.training', 'hil.harness.report.rosbag2'))))")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)

@@ -271,12 +271,12 @@ def test_live_address_mistakes_are_one_line(capsys: pytest.CaptureFixture[str]) 
 
 def test_live_before_the_config_serves_on_a_free_port() -> None:
     """``hil run --live CONFIG``: the config is the run's, not the live address."""
-    from hil.harness.cli.main import _live_before_config, build_parser
+    from hil.harness.cli.parser import build_parser, live_before_config
 
     for argv in (["run", "--live", "hil_configs/demo.yaml"], ["run", "--live", "mine.yaml", "--no-progress"]):
-        args = build_parser().parse_args(_live_before_config(argv))
+        args = build_parser().parse_args(live_before_config(argv))
         assert args.config == argv[2] and args.live == ""
-    args = build_parser().parse_args(_live_before_config(["run", "--live", "127.0.0.1:0", "hil_configs/demo.yaml"]))
+    args = build_parser().parse_args(live_before_config(["run", "--live", "127.0.0.1:0", "hil_configs/demo.yaml"]))
     assert args.config == "hil_configs/demo.yaml" and args.live == "127.0.0.1:0"
 
 
