@@ -41,15 +41,17 @@ def in_child_processes(fn: Callable[..., T], calls: Sequence[tuple[Any, ...]], *
 
 # --- work computed ahead, beside the tests before it ------------------------------------
 # A few fixtures are deterministic, CPU-bound work that reads no clock for what it is
-# judged on (the in-process closed loops, the CNN's held-out frames, lockstep runs): their
-# results are the same whenever and beside whatever they run. Such a fixture registers
-# its calls with ``ahead`` when its module is imported; once the session's tests are
-# collected, the calls start in child processes at nice 19 and the fixture takes the
-# results with ``ahead_results``, waiting for what is left. Nice 19: a test's process
-# that wants a core takes it from them at once, so a real-time test beside them runs
-# much as on a quiet machine, yet they keep a sliver of each core, so a lockstep run's
-# generous timeouts hold (SCHED_IDLE could starve them past one); a run raises its
-# threads' priority relative to the nice value it started at (hil.adapters.process).
+# judged on (the in-process closed loops, the CNN's held-out frames, lockstep runs whose
+# frames and target start time out only past what starvation can reach): their results are
+# the same whenever and beside whatever they run. Such a fixture registers its calls with
+# ``ahead`` when its module is imported; once the session's tests are collected, the calls
+# start in child processes at nice 19 and the fixture takes the results with
+# ``ahead_results``, waiting for what is left. Nice 19: a test's process that wants a
+# core takes it from them at once, so a real-time test beside them runs much as on a
+# quiet machine, yet they keep a sliver of each core (SCHED_IDLE could starve them for
+# good); a run raises its threads' priority relative to the nice value it started at
+# (hil.adapters.process), so it stays in the background. A lockstep run with the default
+# estimate timeout (0.5 s) is no such work: starved, it drops frames.
 _AHEAD: dict[str, tuple[Callable[..., Any], list[tuple[Any, ...]]]] = {}
 _AHEAD_ROOT = Path(tempfile.gettempdir()) / f"hil-tests-ahead-{os.getpid()}"
 _AHEAD_STARTED: dict[str, list[Any]] = {}

@@ -42,8 +42,10 @@ def lockstep_run(out: Path, scenario: str, latency_ms: int):
     params, duration = SCENARIOS[scenario]
     cfg = {"name": f"{scenario}-{latency_ms}", "seed": 1, "mode": "lockstep", "duration_s": duration,
            "progress": False, "scenario": {"name": scenario, "params": params}, "camera": {"fps": 10.0},
-           # A generous timeout: no frame is dropped for the machine's load.
-           "target": {"command": [sys.executable, "-m", "hil.targets.cv_baseline"], "estimate_timeout_s": 10.0},
+           # Generous timeouts: no frame is dropped, no start refused for the machine's load
+           # (ahead, at nice 19, a run may wait seconds for a core).
+           "target": {"command": [sys.executable, "-m", "hil.targets.cv_baseline"], "estimate_timeout_s": 30.0,
+                      "startup_timeout_s": 120.0},
            "lockstep": {"latency": {"kind": "constant", "ms": latency_ms} if latency_ms else {"kind": "none"}}}
     return execute(parse_config(cfg), out_dir=prepare_out_dir(out), gl_backend=GL_BACKEND,
                    install_signal_handlers=False)

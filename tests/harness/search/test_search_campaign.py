@@ -23,7 +23,7 @@ from hil.harness.search.episode import run_episode
 from hil.harness.search.merge import merge
 from hil.harness.search.sampling import draw_generation
 from hil.harness.search.spec import load_spec
-from tests.conftest import GL_BACKEND, ahead, ahead_folder, ahead_results
+from tests.conftest import GL_BACKEND
 from hil.common.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -44,30 +44,28 @@ def hil(*args: str) -> subprocess.CompletedProcess[str]:
                           timeout=300, env=dict(os.environ, MUJOCO_GL=GL_BACKEND), check=False)
 
 
-def _spec_in(folder: Path) -> Path:
-    folder.mkdir(parents=True, exist_ok=True)
-    p = folder / "blind.yaml"
+@pytest.fixture(scope="module")
+def spec_file(tmp_path_factory) -> Path:
+    p = tmp_path_factory.mktemp("spec") / "blind.yaml"
     p.write_text(yaml.safe_dump(SPEC))
     return p
 
 
 @pytest.fixture(scope="module")
-def spec_file(tmp_path_factory) -> Path:
-    return _spec_in(tmp_path_factory.mktemp("spec"))
-
-
-def whole_campaign(folder: Path):
+def campaign(spec_file, tmp_path_factory):
     """The whole campaign on two workers."""
-    return run_campaign(load_spec(_spec_in(folder)), out=folder / "all", gl_backend=GL_BACKEND, workers=2,
+    out = tmp_path_factory.mktemp("search") / "all"
+    return run_campaign(load_spec(spec_file), out=out, gl_backend=GL_BACKEND, workers=2,
                         install_signal_handlers=False)
 
 
-def two_shards(root: Path) -> Path:
-    """The same campaign as two shards, run as a Kubernetes pod would: the CLI. Both at
-    once, as two pods would: the episodes are lockstep, so neither shard's result
-    depends on the other's load."""
-    spec = _spec_in(root)
-    procs = [subprocess.Popen([sys.executable, "-m", "hil.harness.cli.main", "search", str(spec), "--shard",
+@pytest.fixture(scope="module")
+def shards(spec_file, tmp_path_factory):
+    """The same campaign as two shards, run as a Kubernetes pod would: the CLI."""
+    # Both at once, as two pods would: the episodes are lockstep, so neither shard's
+    # result depends on the other's load.
+    root = tmp_path_factory.mktemp("shards")
+    procs = [subprocess.Popen([sys.executable, "-m", "hil.harness.cli.main", "search", str(spec_file), "--shard",
                                f"{i}/2", "--out", str(root / f"shard-{i}"), "--workers", "1", "--no-progress"],
                               cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                               env=dict(os.environ, MUJOCO_GL=GL_BACKEND)) for i in (0, 1)]
@@ -82,21 +80,6 @@ def two_shards(root: Path) -> Path:
                 p.kill()
                 p.wait()
     return root
-
-
-# Lockstep episodes, so both run ahead, beside the tests before these (tests/conftest.py).
-ahead(__name__, "campaign", whole_campaign, [(ahead_folder("search-campaign"),)])
-ahead(__name__, "shards", two_shards, [(ahead_folder("search-shards"),)])
-
-
-@pytest.fixture(scope="module")
-def campaign():
-    return ahead_results(__name__, "campaign")[0]
-
-
-@pytest.fixture(scope="module")
-def shards():
-    return ahead_results(__name__, "shards")[0]
 
 
 def episodes(folder: Path) -> dict[int, tuple]:

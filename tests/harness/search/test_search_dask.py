@@ -18,7 +18,7 @@ import yaml
 from hil.harness.search.campaign import run_campaign
 from hil.harness.search.merge import merge
 from hil.harness.search.spec import load_spec
-from tests.conftest import GL_BACKEND, ahead, ahead_folder, ahead_results
+from tests.conftest import GL_BACKEND
 from hil.common.errors import ConfigError
 
 distributed = pytest.importorskip("distributed")
@@ -56,34 +56,20 @@ def cases(folder: Path) -> list[tuple]:
         con.close()
 
 
-def _spec_in(folder: Path) -> Path:
-    folder.mkdir(parents=True, exist_ok=True)
-    p = folder / "dask.yaml"
+@pytest.fixture(scope="module")
+def spec_file(tmp_path_factory) -> Path:
+    p = tmp_path_factory.mktemp("spec") / "dask.yaml"
     p.write_text(yaml.safe_dump(SPEC))
     return p
 
 
 @pytest.fixture(scope="module")
-def spec_file(tmp_path_factory) -> Path:
-    return _spec_in(tmp_path_factory.mktemp("spec"))
-
-
-def pooled_campaign(folder: Path) -> Path:
-    """The campaign on the process pool: the reference (lockstep episodes: it runs
-    ahead, beside the tests before these; tests/conftest.py)."""
-    out = folder / "pool"
-    oc = run_campaign(load_spec(_spec_in(folder)), out=out, gl_backend=GL_BACKEND, workers=2,
-                      install_signal_handlers=False)
+def pooled(spec_file, tmp_path_factory) -> Path:
+    """The campaign on the process pool: the reference."""
+    out = tmp_path_factory.mktemp("pool") / "pool"
+    oc = run_campaign(load_spec(spec_file), out=out, gl_backend=GL_BACKEND, workers=2, install_signal_handlers=False)
     assert oc.complete, [r.error for r in oc.ran]
     return out
-
-
-ahead(__name__, "pooled", pooled_campaign, [(ahead_folder("dask-pooled"),)])
-
-
-@pytest.fixture(scope="module")
-def pooled() -> Path:
-    return ahead_results(__name__, "pooled")[0]
 
 
 @pytest.fixture(scope="module")
