@@ -168,7 +168,8 @@ def auto_frontend(*, slots: int, kind: str = "process", cores: int | None = None
     cores = len(os.sched_getaffinity(0)) if cores is None else cores
     frames = synthetic_frames(slots)
     inline = Frontend(0, slots=slots, log=say)
-    t_in = _median_ms(lambda: inline.prepare(frames, NETS.names), reps)
+    # Rounded as printed, so the choice follows from the figures the line shows.
+    t_in = round(_median_ms(lambda: inline.prepare(frames, NETS.names), reps), 2)
     what = f"a batch of {slots} synthetic 320x240 JPEG frames decodes in {t_in:.2f} ms in process"
     if cores < 2:
         say(f"cnn: --decode-workers auto: {what}; one core: in process")
@@ -178,7 +179,7 @@ def auto_frontend(*, slots: int, kind: str = "process", cores: int | None = None
     except (PoolError, OSError) as err:
         say(f"cnn: --decode-workers auto: {what}; no pool ({err}): in process")
         return inline
-    t_pool = _median_ms(lambda: pooled.prepare(frames, NETS.names), reps)
+    t_pool = round(_median_ms(lambda: pooled.prepare(frames, NETS.names), reps), 2)
     use = pool_pays(t_in, t_pool)
     say(f"cnn: --decode-workers auto: {what}, {t_pool:.2f} ms on {pooled.describe()}: "
         + (pooled.describe() if use else "in process"))
