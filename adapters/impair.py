@@ -338,14 +338,19 @@ IMPAIRMENT_SCHEMA: dict[str, Any] = {
     "required": ["direction", "kind", "frame_id", "action", "delay_ns", "t_in_ns"]}
 
 
+def impairment_seed(section: Any, *, run_seed: int) -> int:
+    """The seed the stage of a ``target.impair`` section draws from: the section's, else the run's."""
+    return int(section.seed) if section.seed is not None else run_seed
+
+
 def stage_for(section: Any, *, run_seed: int, vehicle_id: int, clock: Clock) -> LinkImpairment | None:
     """The stage a ``target.impair`` config section asks for, or None when it injects
-    nothing. The seed is the section's, else the run's."""
+    nothing (its seed: :func:`impairment_seed`)."""
     if section is None or not getattr(section, "active", False):
         return None
-    seed = section.seed if section.seed is not None else run_seed
     return LinkImpairment(uplink=Impairment.of(section.uplink), downlink=Impairment.of(section.downlink),
-                          seed=seed, vehicle_id=vehicle_id, clock=clock, sync=section.sync)
+                          seed=impairment_seed(section, run_seed=run_seed), vehicle_id=vehicle_id, clock=clock,
+                          sync=section.sync)
 
 
 def record_on(stage: LinkImpairment | None, recorder: Any, topic: str) -> None:

@@ -58,6 +58,11 @@ _AHEAD_STARTED: dict[str, list[Any]] = {}
 _AHEAD_POOL: list[ProcessPoolExecutor] = []
 
 
+# A lockstep run's target settings when it runs ahead: its start and each frame time out
+# only past what no starvation reaches (its results do not depend on how long it waited).
+AHEAD_TIMEOUTS = {"estimate_timeout_s": 30.0, "startup_timeout_s": 120.0}
+
+
 def ahead(module: str, fixture: str, fn: Callable[..., Any], calls: Sequence[tuple[Any, ...]]) -> None:
     """Compute ``[fn(*args) for args in calls]`` ahead for ``module``'s ``fixture``
     (``fn`` and its arguments importable by name, as for ``in_child_processes``)."""

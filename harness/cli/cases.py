@@ -29,7 +29,7 @@ CONFIG_NAME = "config.json"
 REPRODUCE_WINDOW_S = 1.0
 
 
-def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     c = sub.add_parser("cases", help="list a run's corner cases")
     c.add_argument("run", type=Path, help="a run folder")
     c.add_argument("--window", type=int, action="append", default=None, metavar="ID",

@@ -66,7 +66,8 @@ def live_before_config(argv: list[str]) -> list[str]:
 
 
 # The commands in the order ``hil --help`` lists them, each with the module whose
-# ``add_parser(sub)`` adds it (None: added here); ``cases`` and ``replay`` share one module.
+# ``add_parser(sub)`` adds it (None: added here); ``cases`` and ``replay`` share one module,
+# which adds both.
 _PARSERS: dict[str, str | None] = {
     "run": None, "scenarios": None, "clock": "hil.harness.cli.clock", "cases": "hil.harness.cli.cases",
     "replay": "hil.harness.cli.cases", "target": None, "report": "hil.harness.report.run_report",
@@ -93,11 +94,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
             _add_builtin_parser(sub, name)
             continue
         added.add(module)
-        adder = importlib.import_module(module)
-        if module == "hil.harness.cli.cases":
-            adder.add_parsers(sub)
-        else:
-            adder.add_parser(sub)
+        importlib.import_module(module).add_parser(sub)
     return p
 
 

@@ -19,6 +19,7 @@ from pydantic import BaseModel, Field, field_validator
 
 from hil.harness.config.types import MODEL_CONFIG, Float, Int
 from hil.timing.anomaly import Thresholds
+from hil.timing.pipeline import CROSS_CLOCK_STAGES
 from hil.timing.records import STAGES
 from hil.timing.sync import SyncConfig
 
@@ -49,7 +50,7 @@ class SyncSettings(BaseModel):
                           lost_after_s=self.lost_after_s, skew_limit_ppm=self.skew_limit_ppm)
 
 
-DEADLINE_STAGES = (*STAGES, "uplink", "downlink")  # what the timing observer measures per frame
+DEADLINE_STAGES = (*STAGES, *CROSS_CLOCK_STAGES)  # what the timing observer measures per frame
 
 
 class ThresholdsConfig(BaseModel):

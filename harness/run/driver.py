@@ -21,6 +21,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from hil.adapters.impair import impairment_seed
 from hil.common.errors import ConfigError, HilError, RecordingError, TargetError, TransportError
 from hil.harness import __version__
 from hil.harness.config.loading import config_hash, dump_config
@@ -247,9 +248,9 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
         "scenario_realized": world.realized,
         "latency_profile": None if latency is None else latency.describe(),
         "session": secrets.token_hex(6),  # this run's nonce: a started Zenoh target's keys carry it
-        # The settings the run used: an unset seed is the run's (adapters.impair.stage_for).
+        # The settings the run used, with the seed its stage draws from.
         "impairment": {**cfg.target.impair.model_dump(mode="json"),
-                       "seed": cfg.seed if cfg.target.impair.seed is None else cfg.target.impair.seed}
+                       "seed": impairment_seed(cfg.target.impair, run_seed=cfg.seed)}
         if cfg.target.impair.active else None,
     }
     # ``sim`` mirrors the physics process's world here (truth, summary); it renders

@@ -15,17 +15,17 @@ import pytest
 
 from hil.harness.config.loading import parse_config
 from hil.harness.run.driver import execute, prepare_out_dir
-from tests.conftest import GL_BACKEND, ahead, ahead_folder, ahead_results, read_mcap
+from tests.conftest import AHEAD_TIMEOUTS, GL_BACKEND, ahead, ahead_folder, ahead_results, read_mcap
 from hil.common.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
 ECHO = [sys.executable, "-m", "hil.targets.echo"]
+TARGET = {"command": [*ECHO, "--throttle", "0.2"], "estimate_timeout_s": 5.0}
 
 
 def run(tmp: Path, **cfg: object):
     base: dict[str, object] = {"name": "t", "duration_s": 1.5, "progress": False, "seed": 1,
-                               "scenario": {"name": "lead_brake", "params": {"brake_at_s": 0.5}},
-                               "target": {"command": [*ECHO, "--throttle", "0.2"], "estimate_timeout_s": 5.0}}
+                               "scenario": {"name": "lead_brake", "params": {"brake_at_s": 0.5}}, "target": TARGET}
     base.update(cfg)
     return execute(parse_config(base), out_dir=prepare_out_dir(tmp), gl_backend=GL_BACKEND,
                    install_signal_handlers=False)
@@ -65,12 +65,8 @@ LOCKSTEP: dict[str, dict[str, object]] = {
 
 
 def lockstep_run(out: Path, name: str):
-    # Ahead, at nice 19, a run may wait seconds for a core: its target's start and each
-    # frame time out only past what no starvation reaches (a lockstep run's results do
-    # not depend on how long it waited).
     cfg = dict(LOCKSTEP[name])
-    target = cfg.pop("target", {"command": [*ECHO, "--throttle", "0.2"]})
-    return run(out, target={**target, "estimate_timeout_s": 30.0, "startup_timeout_s": 120.0}, **cfg)
+    return run(out, target={**cfg.pop("target", TARGET), **AHEAD_TIMEOUTS}, **cfg)
 
 
 ahead(__name__, "lockstep", lockstep_run, [(ahead_folder(f"scenario-runs/{name}"), name) for name in LOCKSTEP])

@@ -21,7 +21,7 @@ from hil.harness.cases.detector import Cause, MismatchKind
 from hil.harness.cases.casebook import read_cases
 from hil.harness.config.loading import parse_config
 from hil.harness.run.driver import execute, prepare_out_dir
-from tests.conftest import GL_BACKEND, ahead, ahead_folder, ahead_results, read_mcap
+from tests.conftest import AHEAD_TIMEOUTS, GL_BACKEND, ahead, ahead_folder, ahead_results, read_mcap
 from tests.harness.cases.test_detector_causes import cause_from_evidence
 
 pytestmark = pytest.mark.slow
@@ -42,10 +42,8 @@ def lockstep_run(out: Path, scenario: str, latency_ms: int):
     params, duration = SCENARIOS[scenario]
     cfg = {"name": f"{scenario}-{latency_ms}", "seed": 1, "mode": "lockstep", "duration_s": duration,
            "progress": False, "scenario": {"name": scenario, "params": params}, "camera": {"fps": 10.0},
-           # Generous timeouts: no frame is dropped, no start refused for the machine's load
-           # (ahead, at nice 19, a run may wait seconds for a core).
-           "target": {"command": [sys.executable, "-m", "hil.targets.cv_baseline"], "estimate_timeout_s": 30.0,
-                      "startup_timeout_s": 120.0},
+           # No frame dropped, no start refused for the machine's load (these runs go ahead).
+           "target": {"command": [sys.executable, "-m", "hil.targets.cv_baseline"], **AHEAD_TIMEOUTS},
            "lockstep": {"latency": {"kind": "constant", "ms": latency_ms} if latency_ms else {"kind": "none"}}}
     return execute(parse_config(cfg), out_dir=prepare_out_dir(out), gl_backend=GL_BACKEND,
                    install_signal_handlers=False)
