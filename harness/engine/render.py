@@ -148,6 +148,7 @@ def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, parent_pid: 
     ring = Ring.open(jobs, producer=False)
     to = {v: outs[spec.out_of[v]] if spec.out_of else conn for v in spec.vehicles}
     conn.send(WorkerReady(os.getpid()))
+    status = 0
     try:
         while True:
             ready = wait([jobs.bell, conn])
@@ -160,12 +161,21 @@ def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, parent_pid: 
                 _render_job(decode(record), to, sim, slots, counter, spec)  # type: ignore[arg-type]
     except (EOFError, BrokenPipeError, KeyboardInterrupt):
         pass
+    except Exception as err:  # noqa: BLE001 - the run must hear why, not only that the worker is gone
+        import traceback
+
+        traceback.print_exc()
+        status = 1
+        try:
+            conn.send(WorkerFailed(f"render worker {os.getpid()} failed: {type(err).__name__}: {err}"))
+        except OSError:
+            pass
     finally:
         ring.close()
         for s in slots.values():
             s.close()
         sim.close()
-        os._exit(0)
+        os._exit(status)
 
 
 def _render_job(job: RenderJob, to: dict[str, Connection], sim: Any, slots: dict[str, FrameSlots],

@@ -90,6 +90,7 @@ class SimLoop:
         self._finished = False
         self._done: Done | None = None
         self._physics_eof = False
+        self._exiting = False  # Exit sent: the physics and then the render workers end
         self._halted = False
         self._next_tick_ns = 0
         self._behind_told: dict[str, tuple[int, int]] = {}  # consumer -> (records told, next event ns)
@@ -146,7 +147,9 @@ class SimLoop:
             case WorkerFailed():
                 self.request_stop(msg.text)
             case ChildGone():
-                if self._done is None:
+                # Once the physics is told to exit, a render worker leaves when its job
+                # ring closes, which may be read before the physics's Done is.
+                if self._done is None and not self._exiting:
                     self.request_stop(f"the {msg.name} process ended unexpectedly")
 
     def _on_state(self, ws: WorldState) -> None:
@@ -329,6 +332,7 @@ class SimLoop:
                 sh.unconfirmed()
 
     def _await_physics_end(self) -> None:
+        self._exiting = True
         try:
             self.engine.exit_physics()
         except (OSError, ValueError):

@@ -32,7 +32,11 @@ def test_offset_and_drifting_target_clock_is_mapped(tmp_path):
     # True offset at the model's reference time: 3.7 s + 250 ppm of the time since the
     # target started (a few seconds: at most ~2 ms).
     assert abs(clock["offset_ns"] - 3.7e9) < 3e6
-    assert 150 < clock["skew_ppm"] < 350, clock  # 3 s of samples: a rough but sure-signed fit
+    # 3 s of samples: a rough fit, but the true 250 ppm lies within the bound it states
+    # (how tight depends on how quiet the machine is: 30-120 ppm idle, wider loaded),
+    # and the fit is used (tighter than the 2,000 ppm prior).
+    assert abs(clock["skew_ppm"] - 250.0) <= clock["skew_uncertainty_ppm"] + 1e-3, str(clock)
+    assert clock["skew_uncertainty_ppm"] < 1000.0, str(clock)
     inf = v["latency_ms"]["inference"]
     # The spin is exactly 5 ms of host time; preemption can only lengthen a frame,
     # so the shortest shows the measurement (250 ppm of 5 ms is 1.25 µs).
