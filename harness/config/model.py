@@ -259,6 +259,9 @@ class EngineFaults(BaseModel):
     # This camera of the rig (its name) never triggers, as a camera whose frames fail:
     # its frame ids in each frame set stay unused (PROTOCOL.md 4.2.1).
     drop_camera: str | None = None
+    # The render worker fails (raises) on this frame of each camera (1: the first; 0:
+    # never), as a renderer that crashes would: the run ends early, saying why.
+    render_fail_at_frame: Int = Field(0, ge=0, le=1_000_000_000)
 
 
 class EngineConfig(BaseModel):

@@ -60,6 +60,7 @@ class RenderSpec:
     delay_every: int = 1           # ... every this many frames of a camera (engine.faults)
     out_of: dict[str, int] | None = None  # vehicle -> its shard's pipe (index into render_main's ``outs``)
     cameras: int = 1               # cameras of each vehicle's rig
+    fail_at: int = 0               # injected fault: raise on this frame of a camera (1-based; 0: never)
 
 
 def slot_of(frame: int, camera: int, cameras: int) -> int:
@@ -101,6 +102,11 @@ class FrameSlots:
                 shm.unlink()
             except FileNotFoundError:
                 pass
+
+
+class InjectedRenderFault(RuntimeError):
+    """``engine.faults.render_fail_at_frame``: the worker fails as a crashing renderer
+    would (reported like any failure, without a traceback: nothing to debug)."""
 
 
 def _hold(ns: int) -> None:
@@ -162,9 +168,10 @@ def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, parent_pid: 
     except (EOFError, BrokenPipeError, KeyboardInterrupt):
         pass
     except Exception as err:  # noqa: BLE001 - the run must hear why, not only that the worker is gone
-        import traceback
+        if not isinstance(err, InjectedRenderFault):
+            import traceback
 
-        traceback.print_exc()
+            traceback.print_exc()
         status = 1
         try:
             conn.send(WorkerFailed(f"render worker {os.getpid()} failed: {type(err).__name__}: {err}"))
@@ -193,6 +200,8 @@ def _render_job(job: RenderJob, to: dict[str, Connection], sim: Any, slots: dict
                 continue
             rgb = sim.render(name, k)
             i = counter[(name, k)]
+            if i + 1 == spec.fail_at:
+                raise InjectedRenderFault(f"injected fault (engine.faults.render_fail_at_frame): frame {i + 1} of {name}")
             if spec.delay_ns and i % spec.delay_every == 0:
                 _hold(spec.delay_ns)
             t0 = time.monotonic_ns()

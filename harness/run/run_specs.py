@@ -49,7 +49,8 @@ def engine_specs(cfg: RunConfig, world: Any, rules: Any) -> tuple[PhysicsSpec, R
     render = RenderSpec(world=world, vehicles=egos, shm={}, slot_bytes=most * 3 + 65536, cameras=len(rig),
                         jpeg=cam.encoding == Encoding.JPEG, jpeg_quality=cam.jpeg_quality,
                         visible_boxes=cfg.truth.visible_boxes, min_visible_px=cfg.truth.min_visible_px,
-                        delay_ns=int(eng.faults.render_delay_ms * 1e6), delay_every=eng.faults.render_delay_every)
+                        delay_ns=int(eng.faults.render_delay_ms * 1e6), delay_every=eng.faults.render_delay_every,
+                        fail_at=eng.faults.render_fail_at_frame)
     return physics, render
 
 
