@@ -265,7 +265,8 @@ class _Keeper:
         else:
             self._lockstep()
         self.span_ns = time.monotonic_ns() - start
-        self._send_last(Finished(self.sim.steps))
+        # To the shards too: after it, a shard knows every world state it will get is in.
+        self._send_last(Finished(self.sim.steps), to=[self.run, *self.shards])
         while not self.exiting:  # the run drains its frames: controls still apply
             self._serve(self._ready(None))
         steps, qpos, qvel = self.sim.state()

@@ -129,6 +129,8 @@ class SimLoop:
                     sh.on_applied(msg)
             case Finished():
                 self._sim_steps = msg.steps
+                for sh in self.shards:
+                    sh.states_complete()
                 self._finished = True
             case Done():
                 self._done = msg

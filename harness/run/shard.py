@@ -91,6 +91,7 @@ class VehicleShard:
         # A fused frame set's answer awaits a truth from each camera that triggers.
         self._set_truths = len(cams) - (cfg.engine.faults.drop_camera is not None)
         self._camtruth_early: list[CameraTruthReady] = []  # camera truth ahead of its world state
+        self._states_complete = False  # every world state the physics will send is in
         self._sim_ns = 0  # the latest camera instant's sim time
         self._state_seen = -1
 
@@ -208,6 +209,17 @@ class VehicleShard:
             ctls, self.ledger.lockstep_controls = self.ledger.lockstep_controls, []
             return ctls, None if self.held is None else self.held.next_due()
 
+    def states_complete(self) -> None:
+        """The physics has finished: every world state of this shard's egos it will
+        send is in (``Finished`` follows them in the ring). A camera truth of a later
+        instant lost its world state on a full ring and never meets it: it and the
+        frame awaiting it are forgotten, not awaited to the end of the drain."""
+        with self.lock:
+            self._states_complete = True
+            seen = self._state_seen
+            self._camtruth_early = [ct for ct in self._camtruth_early if ct.steps <= seen]
+            self._frame_of = {k: v for k, v in self._frame_of.items() if k[1] <= seen}
+
     def begin_drain(self, deadline_ns: int) -> None:
         """The run ends: answers are awaited until ``deadline_ns`` (the loop waits here)."""
 
@@ -307,7 +319,10 @@ class VehicleShard:
         render worker's pipe may overtake the physics's ring); that of a camera whose
         frame this target does not get is dropped."""
         if ct.steps > self._state_seen:
-            self._camtruth_early.append(ct)
+            if self._states_complete:  # its world state was lost: never judged
+                self._frame_of.pop((ct.vehicle, ct.steps, ct.camera), None)
+            else:
+                self._camtruth_early.append(ct)
             return
         sent = self._frame_of.pop((ct.vehicle, ct.steps, ct.camera), None)
         if sent is None:

@@ -179,6 +179,9 @@ class RemoteShard:
             return [], None
         return list(idle.controls), idle.next_due_ns
 
+    def states_complete(self) -> None:
+        """Nothing to do here: the shard's process reads ``Finished`` on its own ring."""
+
     def begin_drain(self, deadline_ns: int) -> None:
         self._draining = True
         self._send(ShardDrain(deadline_ns))

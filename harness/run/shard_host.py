@@ -14,8 +14,8 @@ from typing import Any
 from hil.common.errors import HilError
 from hil.harness.vocab.events import EventBus
 from hil.harness.engine.analysis_thread import AnalysisThread
-from hil.harness.engine.messages import (Applied, ApplyControl, CameraTruthReady, ChildGone, Done, FrameReady,
-                                         WorldState)
+from hil.harness.engine.messages import (Applied, ApplyControl, CameraTruthReady, ChildGone, Done, Finished,
+                                         FrameReady, WorldState)
 from hil.harness.engine.procs import Pump, RingPump
 from hil.harness.engine.render import FrameSlots
 from hil.harness.engine.rings import Ring
@@ -164,6 +164,9 @@ class ShardHost:
                 self.bell.ring()
             case Applied():
                 self.shard.on_applied(msg)
+            case Finished():
+                self.shard.states_complete()
+                self.bell.ring()
             case Done() | ChildGone():
                 self.physics_done.set()
                 self.bell.ring()
