@@ -265,8 +265,14 @@ class _Keeper:
         else:
             self._lockstep()
         self.span_ns = time.monotonic_ns() - start
-        # To the shards too: after it, a shard knows every world state it will get is in.
-        self._send_last(Finished(self.sim.steps), to=[self.run, *self.shards])
+        self._send_last(Finished(self.sim.steps))
+        # To the shards too, where there is room (one try, not counted as lost: the
+        # controls of the drain must not wait on a slow shard): after it a shard knows
+        # every world state it will get is in; without it, it waits for them to the end
+        # of its drain.
+        finished = encode(Finished(self.sim.steps))
+        for ring in self.shards:
+            ring.write(finished, count=False)
         while not self.exiting:  # the run drains its frames: controls still apply
             self._serve(self._ready(None))
         steps, qpos, qvel = self.sim.state()
