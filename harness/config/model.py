@@ -253,8 +253,9 @@ class EngineFaults(BaseModel):
 
     render_delay_ms: Float = Field(0.0, ge=0, le=10_000)
     render_delay_every: Int = Field(1, ge=1, le=1_000_000)
-    # The run process stops reading the physics's ring this long, once, half a second
-    # into the run, as a stuck consumer would: the physics must not wait for it.
+    # The run process (and each shard process) stops reading the physics's ring this
+    # long, once, half a second into the run, as a stuck consumer would: the physics
+    # must not wait for it.
     stall_run_ms: Float = Field(0.0, ge=0, le=60_000)
     # This camera of the rig (its name) never triggers, as a camera whose frames fail:
     # its frame ids in each frame set stay unused (PROTOCOL.md 4.2.1).

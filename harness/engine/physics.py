@@ -32,6 +32,7 @@ from hil.harness.engine.rings import Ring, RingSpec
 SPIN_NS = 60_000          # spin the last 60 µs before a due instant (sleep overshoots)
 BIN_NS = 10_000           # lateness histogram resolution: 10 µs
 BINS = 10_000             # up to 100 ms; beyond goes to the last bin (max kept exactly)
+FINISHED_RETRY_S = 0.005  # a shard's ring full at the end: Finished tried again this often
 OVER_10MS_NS = 10_000_000
 
 
@@ -266,15 +267,14 @@ class _Keeper:
             self._lockstep()
         self.span_ns = time.monotonic_ns() - start
         self._send_last(Finished(self.sim.steps))
-        # To the shards too, where there is room (one try, not counted as lost: the
-        # controls of the drain must not wait on a slow shard): after it a shard knows
-        # every world state it will get is in; without it, it waits for them to the end
-        # of its drain.
+        # To the shards too: after it a shard knows every world state it will get is in.
+        # A shard that fell behind has no room yet: tried again every few ms while the
+        # controls of the drain are served (they never wait on it).
         finished = encode(Finished(self.sim.steps))
-        for ring in self.shards:
-            ring.write(finished, count=False)
+        behind = list(self.shards)
         while not self.exiting:  # the run drains its frames: controls still apply
-            self._serve(self._ready(None))
+            behind = [r for r in behind if not r.write(finished, count=False)]
+            self._serve(self._ready(FINISHED_RETRY_S if behind else None))
         steps, qpos, qvel = self.sim.state()
         # span_ns: the physics's own wall time from start to its last step (its pace).
         done = Done({**self.hist.to_json(), "span_ns": self.span_ns, "behind": self.behind()}, steps, qpos, qvel,

@@ -228,6 +228,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     from hil.harness.run import capacity
     from hil.harness.run.fleet import LocalFleet, ShardedFleet, assign, shard_count
     from hil.harness.run.loop import encode_image, engine_specs
+    from hil.harness.run.run_specs import stall_of
     from hil.harness.run.target_launch import can_preflight
     from hil import scenarios
     from hil.scenarios.sim import Simulation
@@ -288,9 +289,8 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
             # The physics's own core (engine.physics_cpu): this process, and so the
             # render workers and targets it starts, keep off it until the run ends.
             affinity = keep_off_core(phys_spec.cpu)
-            stall_s = cfg.engine.faults.stall_run_ms / 1e3
             engine = Engine(physics=phys_spec, render=render_spec, ring_bytes=cfg.engine.ring_kib * 1024,
-                            workers=workers, stall_run=(round(0.5 / cfg.physics_step_s), stall_s) if stall_s else None,
+                            workers=workers, stall_run=stall_of(cfg),
                             shard_of=shard_of)
             fleet.start(engine)
             guard = _RecordingGuard()

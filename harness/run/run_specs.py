@@ -54,6 +54,14 @@ def engine_specs(cfg: RunConfig, world: Any, rules: Any) -> tuple[PhysicsSpec, R
     return physics, render
 
 
+def stall_of(cfg: RunConfig) -> tuple[int, float] | None:
+    """The injected stuck consumer (``engine.faults.stall_run_ms``): (the step half a
+    second in, seconds) for each ``RingPump`` that reads a physics ring of the run (the
+    run process's, and each shard process's), or None."""
+    stall_s = cfg.engine.faults.stall_run_ms / 1e3
+    return (round(0.5 / cfg.physics_step_s), stall_s) if stall_s else None
+
+
 @dataclass
 class LoopStats:
     wall_start_ns: int = 0

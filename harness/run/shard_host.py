@@ -22,6 +22,7 @@ from hil.harness.engine.rings import Ring
 from hil.harness.run.shard_proc import (Doorbell, Outbox, ShardDone, ShardDrain, ShardDrained, ShardFailed,
                                         ShardFinish, ShardIdle, ShardProgress, ShardReady, ShardSpec, ShardStart,
                                         ShardStop, ShardStopRequest)
+from hil.harness.run.run_specs import stall_of
 from hil.harness.run.target_launch import close_links
 from hil.harness.run.vehicle_state import VehicleRun
 from hil.timing.clock import MonotonicClock
@@ -146,7 +147,7 @@ class ShardHost:
                                   on_stop=self._ask_stop, wake=self.bell.ring, latency=self.spec.latency)
         self.mine = {v.vehicle_id: v.name for v in self.vehicles}
         ring = Ring.open(io.ring, producer=False)
-        self.pumps = [RingPump(ring, self._on_physics, name="physics")]
+        self.pumps = [RingPump(ring, self._on_physics, name="physics", stall=stall_of(cfg))]
         self.pumps += [Pump(c, self._on_render, name=f"render-{w}") for w, c in enumerate(io.frames)]
         for v in self.vehicles:
             v.link.deliver_to(self.shard.on_received)

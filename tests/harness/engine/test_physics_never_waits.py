@@ -43,3 +43,23 @@ def test_a_stuck_run_process_loses_records_and_is_named_while_physics_keeps_pace
     # recorded as applied, without t_apply.
     v = r.summary["vehicles"]["ego0"]
     assert v["estimates_applied"] + v["dropped"] + v["stale"] == v["frames_sent"]
+
+
+def test_stuck_shard_processes_lose_records_and_the_run_still_ends_on_time(tmp_path: Path) -> None:
+    # The same stuck consumer in each shard process: their rings lose world states too,
+    # and the end of the run does not wait for the camera truths of those instants.
+    cfg = parse_config({
+        "name": "stall-shards", "duration_s": 3.0, "progress": False, "seed": 1,
+        "scenario": {"name": "multi_vehicle", "params": {"n_vehicles": 2}},
+        "target": {"command": [sys.executable, "-m", "hil.targets.echo"], "estimate_timeout_s": 5.0},
+        "truth": {"visible_boxes": True},
+        "engine": {"ring_kib": 1, "shards": 2, "faults": {"stall_run_ms": 2500}},
+    })
+    r = execute(cfg, out_dir=prepare_out_dir(tmp_path / "run"), gl_backend=GL_BACKEND, install_signal_handlers=False)
+    rt = r.summary["realtime"]
+    assert rt["shards"] == 2
+    assert {"shard-0", "shard-1"} <= set(rt["behind"]), rt["behind"]
+    assert rt["achieved_factor"] > 0.95, rt
+    assert r.summary["wall_time_s"] < 3.0 + 5.0, r.summary["wall_time_s"]
+    for v in r.summary["vehicles"].values():
+        assert v["estimates_applied"] + v["dropped"] + v["stale"] == v["frames_sent"]
