@@ -113,6 +113,13 @@ def pytest_sessionfinish(session: pytest.Session) -> None:
     shutil.rmtree(_AHEAD_ROOT, ignore_errors=True)
 
 
+def recording_started(mcap: Path) -> bool:
+    """A running run's recorder has flushed once: it flushes each second, and its first
+    flush (~50 KB for the demo) holds the first second's frames and answers (the file's
+    header alone is 61 bytes)."""
+    return mcap.exists() and mcap.stat().st_size > 20_000
+
+
 def read_mcap(path: Path) -> dict[str, list[tuple[Any, Any]]]:
     """All messages of an MCAP file by topic: (message record, decoded JSON)."""
     from mcap.reader import make_reader

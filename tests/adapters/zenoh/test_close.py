@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from tests.adapters.zenoh.pair import SKIP_REASON, ROOT, echo_target, free_port, zenoh_link
-from tests.conftest import GL_BACKEND
+from tests.conftest import GL_BACKEND, recording_started
 
 pytestmark = pytest.mark.skipif(SKIP_REASON is not None, reason=SKIP_REASON or "")
 
@@ -78,8 +78,7 @@ def test_a_run_whose_zenoh_target_freezes_keeps_its_outputs(tmp_path: Path):
     try:
         deadline = time.monotonic() + 60
         mcap = out / "run.mcap"
-        while time.monotonic() < deadline and proc.poll() is None and not (
-                mcap.exists() and mcap.stat().st_size > 20_000):  # the first flush: answers recorded
+        while time.monotonic() < deadline and proc.poll() is None and not recording_started(mcap):
             time.sleep(0.05)  # polling a file another process writes: no event to wait on
         assert proc.poll() is None, proc.communicate()
         frozen = _target_children(proc.pid)

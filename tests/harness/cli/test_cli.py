@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import GL_BACKEND, read_mcap
+from tests.conftest import GL_BACKEND, read_mcap, recording_started
 
 ROOT = Path(__file__).resolve().parents[3]
 
@@ -117,13 +117,11 @@ def test_stopped_run_finalizes_mcap(tmp_path, sig):
                              'target.command=["{python}", "-m", "hil.targets.echo"]'],
                             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        # Wait (bounded) until the run is recording: its target has answered frames. The
-        # recorder flushes each second; its first flush (~50 KB here) holds the first
-        # second's frames and answers (the file header alone is 61 bytes).
+        # Wait (bounded) until the run is recording: its target has answered frames.
         deadline = time.monotonic() + 60
         log = out / "target-ego0.log"
         mcap = out / "run.mcap"
-        while time.monotonic() < deadline and not (mcap.exists() and mcap.stat().st_size > 20_000):
+        while time.monotonic() < deadline and not recording_started(mcap):
             if proc.poll() is not None:
                 break
             time.sleep(0.05)

@@ -19,7 +19,7 @@ from hil.common.errors import ConfigError
 from hil.harness.config.loading import parse_config
 from hil.harness.run.driver import execute, prepare_out_dir
 from hil.harness.run.fleet import assign, shard_count
-from tests.conftest import GL_BACKEND, read_mcap
+from tests.conftest import GL_BACKEND, read_mcap, recording_started
 
 ROOT = Path(__file__).resolve().parents[3]
 ECHO = [sys.executable, "-m", "hil.targets.echo", "--throttle", "0.2"]
@@ -146,8 +146,8 @@ def test_sigterm_ends_a_sharded_run_cleanly(tmp_path: Path) -> None:
         kids = _children(p.pid)
         shards = [k for k in kids if b"spawn_main" in _cmdline(k)]
         assert len(shards) >= 4, "physics, render worker and two shards"
-        while time.monotonic() < deadline and (out / "run.mcap").stat().st_size <= 20_000:
-            time.sleep(0.05)  # frames flow: the recorder's first flush (each second) is out
+        while time.monotonic() < deadline and not recording_started(out / "run.mcap"):
+            time.sleep(0.05)  # let frames flow
         p.send_signal(signal.SIGTERM)
         code = p.wait(60)
         err = p.stderr.read()
