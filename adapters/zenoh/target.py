@@ -93,6 +93,8 @@ def serve_endpoint(ep: Endpoint, *, options: ZenohOptions | None = None, vehicle
                 if quit_.is_set() or not keep_serving:
                     return
                 current = fresh_endpoint(ep, current)
+                if quit_.is_set():  # a SIGTERM while it was made stopped the one before it
+                    return
     finally:
         close_session(session, timeout_s=CLOSE_TIMEOUT_S)  # bounded: the harness may be frozen
 

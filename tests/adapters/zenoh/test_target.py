@@ -69,3 +69,41 @@ def test_once_serves_one_harness():
         end_process(proc)  # type: ignore[arg-type]
         if proc.stderr is not None:
             proc.stderr.close()
+
+
+# The target of ``hil target echo --transport zenoh``, with a SIGTERM sent to itself while
+# it makes the endpoint for the next harness: the one moment the endpoint the signal stops
+# is not the one served next.
+_BETWEEN = """
+import os, signal, sys
+import hil.adapters.zenoh.target as zt
+made = zt.fresh_endpoint
+def fresh_endpoint(base, done):
+    os.kill(os.getpid(), signal.SIGTERM)
+    return made(base, done)
+zt.fresh_endpoint = fresh_endpoint
+from hil.harness.cli.main import main
+sys.exit(main(["target", "echo", "--transport", "zenoh", "--listen", sys.argv[1]]))
+"""
+
+
+@pytest.mark.slow
+def test_a_sigterm_between_two_harnesses_ends_the_target():
+    # Before: the SIGTERM stopped the endpoint of the harness that had left, and the
+    # target served a new one until the next signal (a run-after-run test waited 10 s).
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-c", _BETWEEN, f"tcp/127.0.0.1:{port}"], cwd=ROOT,
+                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    try:
+        assert "run after run" in _first_line(proc, 30)
+        link = zenoh_link(port)
+        try:
+            assert link.open(hello_timeout_s=20).target_name == "echo"
+        finally:
+            link.close()  # the harness leaves: the target makes the next endpoint
+        assert proc.wait(timeout=10) == 0
+    finally:
+        end_process(proc)  # type: ignore[arg-type]
+        if proc.stderr is not None:
+            proc.stderr.close()
