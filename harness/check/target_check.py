@@ -241,8 +241,14 @@ def check_bye(s: Session) -> None:
     s.add("bye ends the session", "1", p, s.link.peer_gone_reason or "closed")
 
 
-def run_checks(link: Link, *, timeout_s: float, token_env: str | None = None) -> list[Check]:
-    """The scripted session on a built (not opened) link; always closes it."""
+LOCAL_START_S = 5.0  # a target the checker starts itself gets this long for its HELLO at least
+
+
+def run_checks(link: Link, *, timeout_s: float, token_env: str | None = None, hello_timeout_s: float | None = None,
+               ) -> list[Check]:
+    """The scripted session on a built (not opened) link; always closes it.
+    ``hello_timeout_s``: how long the HELLO may take (default ``timeout_s``; a
+    process the checker starts takes its start-up on top)."""
     s = Session(link, timeout_s)
     dispatch = link._dispatch  # noqa: SLF001 - record what the target sent that did not decode
 
@@ -254,7 +260,7 @@ def run_checks(link: Link, *, timeout_s: float, token_env: str | None = None) ->
     link._dispatch = recording  # type: ignore[method-assign]  # noqa: SLF001
     try:
         try:
-            hello = link.open(hello_timeout_s=max(timeout_s, 5.0))
+            hello = link.open(hello_timeout_s=timeout_s if hello_timeout_s is None else hello_timeout_s)
         except HilError as err:
             s.add("hello", "1, 4.1", [str(err)], "")
             return s.rows
@@ -295,7 +301,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--vehicle", type=int, default=0, help="vehicle id the target serves (default 0)")
     p.add_argument("--key-prefix", default=ZenohOptions.key_prefix,
                    help=f"zenoh key prefix (default {ZenohOptions.key_prefix})")
-    p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for each answer (default 5)")
+    p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for each answer, the HELLO included (default 5; a target started "
+                   f"with local -- COMMAND gets at least {LOCAL_START_S:g} s for its HELLO)")
     p.add_argument("--token-env", default=None, metavar="NAME",
                    help="tcp: check the target's AUTH proof of the token in this environment variable "
                         "(PROTOCOL.md 4.8)")
@@ -331,7 +338,10 @@ def cmd(args: argparse.Namespace) -> int:
     except HilError as err:
         print(f"hil target-check: error: {err}", file=sys.stderr)
         return EXIT_USAGE
-    rows = run_checks(link, timeout_s=args.timeout, token_env=args.token_env)
+    # A target started here imports and starts before it can say HELLO; one at an
+    # address is already running, and --timeout is what the user gave it.
+    hello_s = max(args.timeout, LOCAL_START_S) if transport == "local" else args.timeout
+    rows = run_checks(link, timeout_s=args.timeout, token_env=args.token_env, hello_timeout_s=hello_s)
     sys.stdout.write(format_table(rows))
     code = EXIT_PASS if all(r.ok for r in rows) else EXIT_FAIL
     cases = [CiCase(r.name, r.ok, r.detail, {"section": f"PROTOCOL.md §{r.section}"}, group="protocol") for r in rows]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -113,7 +114,11 @@ def test_bad_input_is_one_line_and_exit_2(argv, message, capsys):
 
 
 def test_unreachable_target_is_a_failed_check(capsys):
+    # --timeout bounds the wait for a target at an address (only one the checker
+    # starts itself gets LOCAL_START_S for its HELLO): not the 5 s it once waited.
+    began = time.monotonic()
     assert target_check.main([f"tcp://127.0.0.1:{free_port()}", "--timeout", "0.5"]) == 1
+    assert time.monotonic() - began < target_check.LOCAL_START_S - 1.0
     out = capsys.readouterr().out
     assert "FAIL" in out and "cannot connect to the target" in out
 
