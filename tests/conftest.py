@@ -76,18 +76,41 @@ def ahead_folder(name: str) -> Path:
 
 
 def ahead_results(module: str, fixture: str) -> list[Any]:
-    """The results of what ``ahead`` registered, in the calls' order; computed here, as
-    ``in_child_processes`` does, when the session did not start them."""
+    """The results of what ``ahead`` (or ``beside``) registered, in the calls' order;
+    computed here, as ``in_child_processes`` does (``beside``: in this process), when the
+    session did not start them."""
     key = f"{module}::{fixture}"
     futures = _AHEAD_STARTED.pop(key, None)
-    if futures is None:
-        fn, calls = _AHEAD[key]
-        return in_child_processes(fn, calls)
-    return [f.result() for f in futures]
+    if futures is not None:
+        return [f.result() for f in futures]
+    if key in _BESIDE:
+        fn, args, kwargs = _BESIDE[key]
+        return [fn(*args, **kwargs)]
+    fn, calls = _AHEAD[key]
+    return in_child_processes(fn, calls)
 
 
 def _lowest_priority() -> None:
     os.nice(19)
+
+
+# --- a real-time run beside the tests ---------------------------------------------------
+# One real-time run is judged on the machine as it is: the clean calibration holds every
+# anomaly against the reference target's own truth, so a delay the machine causes (the
+# target or the harness preempted) is explained, and only a false alarm fails it. It runs
+# in a child process at the session's own priority (not nice 19: it must keep real time),
+# started before any test; its fixture takes the result, waiting for what is left. A run
+# whose verdict needs a quiet machine is no such work (runs with injected faults are not:
+# a loaded machine widens the spike detector's baseline). One at a time: runs beside each
+# other would load each other past what a test beside them does. The clean calibration
+# (~65 s) ends within the first folder of tests (tests/adapters, ~100 s here).
+_BESIDE: dict[str, tuple[Callable[..., Any], tuple[Any, ...], dict[str, Any]]] = {}
+
+
+def beside(module: str, fixture: str, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
+    """Run ``fn(*args, **kwargs)`` (importable by name) in real time beside the tests,
+    for ``module``'s ``fixture``; ``ahead_results`` returns ``[fn(*args, **kwargs)]``."""
+    _BESIDE[f"{module}::{fixture}"] = (fn, args, kwargs)
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
@@ -95,16 +118,27 @@ def pytest_collection_finish(session: pytest.Session) -> None:
     for item in session.items:
         module = getattr(item, "module", None)
         for name in getattr(item, "fixturenames", ()) if module is not None else ():
-            if f"{module.__name__}::{name}" in _AHEAD:
+            if f"{module.__name__}::{name}" in _AHEAD or f"{module.__name__}::{name}" in _BESIDE:
                 wanted.add(f"{module.__name__}::{name}")
-    if not wanted or session.config.option.collectonly:
+    if session.config.option.collectonly:
         return
-    pool = ProcessPoolExecutor(max(1, min(4, len(os.sched_getaffinity(0)))),
-                               mp_context=multiprocessing.get_context("spawn"), initializer=_lowest_priority)
-    _AHEAD_POOL.append(pool)
-    for key in sorted(wanted, key=list(_AHEAD).index):
-        fn, calls = _AHEAD[key]
-        _AHEAD_STARTED[key] = [pool.submit(fn, *args) for args in calls]
+    spawn = multiprocessing.get_context("spawn")
+    # Alone in the session it runs as the fixture asks (in this process): nothing to be beside.
+    real_time = [k for k in _BESIDE if k in wanted] if len(session.items) > 1 else []
+    if real_time:  # first: it keeps real time from its start
+        pool = ProcessPoolExecutor(1, mp_context=spawn)
+        _AHEAD_POOL.append(pool)
+        for key in real_time:
+            fn, args, kwargs = _BESIDE[key]
+            _AHEAD_STARTED[key] = [pool.submit(fn, *args, **kwargs)]
+    computed = [k for k in _AHEAD if k in wanted]
+    if computed:
+        pool = ProcessPoolExecutor(max(1, min(4, len(os.sched_getaffinity(0)))), mp_context=spawn,
+                                   initializer=_lowest_priority)
+        _AHEAD_POOL.append(pool)
+        for key in computed:
+            fn, calls = _AHEAD[key]
+            _AHEAD_STARTED[key] = [pool.submit(fn, *args) for args in calls]
 
 
 def pytest_sessionfinish(session: pytest.Session) -> None:

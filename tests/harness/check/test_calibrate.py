@@ -20,7 +20,7 @@ from hil.harness.check.calibrate_checks import RunData, Truth, load_truth, quant
 from hil.harness.check.calibrate_faults import Cause, fault_checks, kind_table
 from hil.harness.config.loading import load_config
 from hil.harness.config.model import Transport
-from tests.conftest import GL_BACKEND, read_mcap
+from tests.conftest import GL_BACKEND, ahead_folder, ahead_results, beside, read_mcap
 from hil.common.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -166,6 +166,21 @@ def faults_run(tmp_path_factory) -> tuple[Calibration, Path]:
     return _calibrate(tmp), tmp / "cal"
 
 
+# The clean run only has to raise no false alarm, and it judges every anomaly against
+# the reference target's truth (a delay the machine causes is explained): it runs beside
+# the other tests (tests.conftest.beside), on the machine as they leave it. The runs with
+# injected faults stay here: a loaded machine widens the spike detector's baseline past
+# the injected spike (seen: the zenoh run's spike at frame 55 missed).
+CLEAN = ("duration_s=60", 'target.args=["--infer-ms", "20"]', "timing={}")
+beside(__name__, "clean_run", _calibrate, ahead_folder("calibrate-clean"), *CLEAN)
+
+
+@pytest.fixture(scope="module")
+def clean_run() -> tuple[Calibration, Path]:
+    (cal,) = ahead_results(__name__, "clean_run")
+    return cal, ahead_folder("calibrate-clean") / "cal"
+
+
 @pytest.mark.slow
 def test_every_injected_timing_fault_is_flagged_once_where_injected(faults_run):
     cal, out = faults_run
@@ -210,7 +225,7 @@ def test_calibrate_over_zenoh_loopback(tmp_path):
 
 
 @pytest.mark.slow
-def test_clean_run_raises_no_anomaly_at_default_thresholds(tmp_path):
+def test_clean_run_raises_no_anomaly_at_default_thresholds(clean_run):
     # 60 s, no fault injected, default thresholds and sync. The reference target's
     # truth says whether it delivered a clean run: where this shared machine preempted
     # the target itself (a frame skipped, a reply late beyond its inference), the
@@ -219,8 +234,7 @@ def test_clean_run_raises_no_anomaly_at_default_thresholds(tmp_path):
     # overhead as anomalies_from_harness_delays): how often the harness itself is late
     # is a real-time figure for bench/ (a timed pass/fail flakes on a shared 2-core
     # machine), not a verdict. None may be a false alarm.
-    cal = _calibrate(tmp_path, "duration_s=60", 'target.args=["--infer-ms", "20"]', "timing={}")
-    out = tmp_path / "cal"
+    cal, out = clean_run
     summary = json.loads((out / "summary.json").read_text())["vehicles"]["ego0"]
     assert all(c.ok for c in cal.checks), [c for c in cal.checks if not c.ok]
     false = [str(o) for o in cal.others if o.cause is Cause.FALSE]
