@@ -14,6 +14,7 @@ import sqlite3
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
@@ -23,15 +24,18 @@ from hil.harness.search.episode import run_episode
 from hil.harness.search.merge import merge
 from hil.harness.search.sampling import draw_generation
 from hil.harness.search.spec import load_spec
-from tests.conftest import GL_BACKEND
+from tests.conftest import AHEAD_TIMEOUTS, GL_BACKEND, ahead, ahead_folder, ahead_results
 from hil.common.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[3]
 pytestmark = pytest.mark.slow
 
+# Lockstep episodes, computed ahead (tests.conftest.ahead) with AHEAD_TIMEOUTS: a target
+# starved there waits for its frame instead of dropping it (the same episodes, cases
+# and ids whatever the load, which is what the tests below compare).
 SPEC = {"name": "blind-search", "seed": 5, "episodes": 4,
         "run": {"mode": "lockstep", "duration_s": 2.0, "scenario": {"name": "stopped_car"},
-                "target": {"command": ["{python}", "-m", "hil.targets.echo", "--throttle", "0.3"]},
+                "target": {"command": ["{python}", "-m", "hil.targets.echo", "--throttle", "0.3"], **AHEAD_TIMEOUTS},
                 "corner_cases": {"history_s": 1.0, "after_s": 0.3,
                                  "on_anomalies": ["deadline_miss", "latency_spike", "jitter"]},
                 "timing": {"thresholds": {"deadline_ms": {"end_to_end": 0.01}}}},
@@ -44,42 +48,50 @@ def hil(*args: str) -> subprocess.CompletedProcess[str]:
                           timeout=300, env=dict(os.environ, MUJOCO_GL=GL_BACKEND), check=False)
 
 
-@pytest.fixture(scope="module")
-def spec_file(tmp_path_factory) -> Path:
-    p = tmp_path_factory.mktemp("spec") / "blind.yaml"
+def write_spec(folder: Path) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    p = folder / "blind.yaml"
     p.write_text(yaml.safe_dump(SPEC))
     return p
 
 
 @pytest.fixture(scope="module")
-def campaign(spec_file, tmp_path_factory):
+def spec_file(tmp_path_factory) -> Path:
+    return write_spec(tmp_path_factory.mktemp("spec"))
+
+
+def whole_campaign(folder: Path) -> Any:
     """The whole campaign on two workers."""
-    out = tmp_path_factory.mktemp("search") / "all"
-    return run_campaign(load_spec(spec_file), out=out, gl_backend=GL_BACKEND, workers=2,
+    return run_campaign(load_spec(write_spec(folder)), out=folder / "all", gl_backend=GL_BACKEND, workers=2,
                         install_signal_handlers=False)
 
 
+def one_shard(folder: Path, i: int) -> tuple[int, str, str]:
+    """Shard ``i`` of 2 run as a Kubernetes pod would: the CLI (both at once, as two
+    pods would); (exit code, stdout, stderr)."""
+    p = subprocess.run([sys.executable, "-m", "hil.harness.cli.main", "search", str(write_spec(folder / f"spec-{i}")),
+                        "--shard", f"{i}/2", "--out", str(folder / f"shard-{i}"), "--workers", "1", "--no-progress"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300, check=False,
+                       env=dict(os.environ, MUJOCO_GL=GL_BACKEND))
+    return p.returncode, p.stdout, p.stderr
+
+
+ahead(__name__, "campaign", whole_campaign, [(ahead_folder("search-campaign"),)])
+ahead(__name__, "shards", one_shard, [(ahead_folder("search-shards"), i) for i in (0, 1)])
+
+
 @pytest.fixture(scope="module")
-def shards(spec_file, tmp_path_factory):
-    """The same campaign as two shards, run as a Kubernetes pod would: the CLI."""
-    # Both at once, as two pods would: the episodes are lockstep, so neither shard's
-    # result depends on the other's load.
-    root = tmp_path_factory.mktemp("shards")
-    procs = [subprocess.Popen([sys.executable, "-m", "hil.harness.cli.main", "search", str(spec_file), "--shard",
-                               f"{i}/2", "--out", str(root / f"shard-{i}"), "--workers", "1", "--no-progress"],
-                              cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                              env=dict(os.environ, MUJOCO_GL=GL_BACKEND)) for i in (0, 1)]
-    try:
-        for p in procs:
-            stdout, stderr = p.communicate(timeout=300)
-            assert p.returncode == 0, (stdout, stderr)
-            assert "2 episodes (shard " in stdout
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-                p.wait()
-    return root
+def campaign() -> Any:
+    (outcome,) = ahead_results(__name__, "campaign")
+    return outcome
+
+
+@pytest.fixture(scope="module")
+def shards() -> Path:
+    for code, stdout, stderr in ahead_results(__name__, "shards"):
+        assert code == 0, (stdout, stderr)
+        assert "2 episodes (shard " in stdout
+    return ahead_folder("search-shards")
 
 
 def episodes(folder: Path) -> dict[int, tuple]:
