@@ -301,8 +301,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     p.add_argument("--vehicle", type=int, default=0, help="vehicle id the target serves (default 0)")
     p.add_argument("--key-prefix", default=ZenohOptions.key_prefix,
                    help=f"zenoh key prefix (default {ZenohOptions.key_prefix})")
-    p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for each answer, the HELLO included (default 5; a target started "
-                   f"with local -- COMMAND gets at least {LOCAL_START_S:g} s for its HELLO)")
+    p.add_argument("--timeout", type=float, default=5.0,
+                   help=f"seconds to wait for each answer, the HELLO included (default 5; a target started with "
+                        f"local -- COMMAND gets at least {LOCAL_START_S:g} s for its HELLO)")
     p.add_argument("--token-env", default=None, metavar="NAME",
                    help="tcp: check the target's AUTH proof of the token in this environment variable "
                         "(PROTOCOL.md 4.8)")

@@ -14,12 +14,11 @@ import sqlite3
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any
 
 import pytest
 import yaml
 
-from hil.harness.search.campaign import run_campaign
+from hil.harness.search.campaign import Outcome, run_campaign
 from hil.harness.search.episode import run_episode
 from hil.harness.search.merge import merge
 from hil.harness.search.sampling import draw_generation
@@ -35,7 +34,8 @@ pytestmark = pytest.mark.slow
 # and ids whatever the load, which is what the tests below compare).
 SPEC = {"name": "blind-search", "seed": 5, "episodes": 4,
         "run": {"mode": "lockstep", "duration_s": 2.0, "scenario": {"name": "stopped_car"},
-                "target": {"command": ["{python}", "-m", "hil.targets.echo", "--throttle", "0.3"], **AHEAD_TIMEOUTS},
+                "target": {"command": ["{python}", "-m", "hil.targets.echo", "--throttle", "0.3"],
+                           **AHEAD_TIMEOUTS},
                 "corner_cases": {"history_s": 1.0, "after_s": 0.3,
                                  "on_anomalies": ["deadline_miss", "latency_spike", "jitter"]},
                 "timing": {"thresholds": {"deadline_ms": {"end_to_end": 0.01}}}},
@@ -60,15 +60,16 @@ def spec_file(tmp_path_factory) -> Path:
     return write_spec(tmp_path_factory.mktemp("spec"))
 
 
-def whole_campaign(folder: Path) -> Any:
+def whole_campaign(folder: Path) -> Outcome:
     """The whole campaign on two workers."""
     return run_campaign(load_spec(write_spec(folder)), out=folder / "all", gl_backend=GL_BACKEND, workers=2,
                         install_signal_handlers=False)
 
 
 def one_shard(folder: Path, i: int) -> tuple[int, str, str]:
-    """Shard ``i`` of 2 run as a Kubernetes pod would: the CLI (both at once, as two
-    pods would); (exit code, stdout, stderr)."""
+    """Shard ``i`` of 2 run as a Kubernetes pod would: the CLI; (exit code, stdout,
+    stderr). The two run at once where the work computed ahead leaves two workers free:
+    the episodes are lockstep, so neither shard's result depends on the other's load."""
     p = subprocess.run([sys.executable, "-m", "hil.harness.cli.main", "search", str(write_spec(folder / f"spec-{i}")),
                         "--shard", f"{i}/2", "--out", str(folder / f"shard-{i}"), "--workers", "1", "--no-progress"],
                        cwd=ROOT, capture_output=True, text=True, timeout=300, check=False,
@@ -81,7 +82,7 @@ ahead(__name__, "shards", one_shard, [(ahead_folder("search-shards"), i) for i i
 
 
 @pytest.fixture(scope="module")
-def campaign() -> Any:
+def campaign() -> Outcome:
     (outcome,) = ahead_results(__name__, "campaign")
     return outcome
 
