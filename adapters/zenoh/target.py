@@ -93,8 +93,6 @@ def serve_endpoint(ep: Endpoint, *, options: ZenohOptions | None = None, vehicle
                 if quit_.is_set() or not keep_serving:
                     return
                 current = fresh_endpoint(ep, current)
-                if quit_.is_set():  # a SIGTERM while it was made stopped the one before it
-                    return
     finally:
         close_session(session, timeout_s=CLOSE_TIMEOUT_S)  # bounded: the harness may be frozen
 
@@ -102,6 +100,8 @@ def serve_endpoint(ep: Endpoint, *, options: ZenohOptions | None = None, vehicle
 def _serve_one(session: zenoh.Session, ep: Endpoint, *, keys: Keys, vehicle_id: int,
                quit_: threading.Event) -> None:
     """One harness: declarations, HELLO, serve until it leaves or we are stopped."""
+    if quit_.is_set():  # a SIGTERM while ``ep`` was being made stopped the endpoint before it
+        return
     engaged = threading.Event()  # a FRAME or SYNC_REQUEST came: the handshake is over
     harness_gone = threading.Event()  # BYE from the harness, or its token went away
 

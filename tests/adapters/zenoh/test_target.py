@@ -87,21 +87,43 @@ sys.exit(main(["target", "echo", "--transport", "zenoh", "--listen", sys.argv[1]
 """
 
 
+# A shared target (one session, a thread per vehicle) with the SIGTERM landing while the
+# vehicle's thread makes its endpoint, before that endpoint is the one a SIGTERM stops.
+_SHARED_BETWEEN = """
+import os, signal, sys, time
+from hil.adapters.batching import BatchedEndpoint, BatchScheduler
+from hil.adapters.zenoh.options import ZenohOptions
+from hil.adapters.zenoh.shared_target import serve_shared
+sched = BatchScheduler(lambda frames: [], window_ns=1_000_000)
+made = []
+def make_endpoint():
+    made.append(1)
+    if len(made) == 2:  # the first is for the startup line; this one is vehicle 0's
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.5)  # the main thread's handler runs before this endpoint is current
+    return BatchedEndpoint(sched, target_name="shared")
+serve_shared(sched, make_endpoint, vehicles=[0], options=ZenohOptions(listen=(sys.argv[1],)), keep_serving=True)
+"""
+
+
 @pytest.mark.slow
-def test_a_sigterm_between_two_harnesses_ends_the_target():
-    # Before: the SIGTERM stopped the endpoint of the harness that had left, and the
-    # target served a new one until the next signal (a run-after-run test waited 10 s).
+@pytest.mark.parametrize("script", [_BETWEEN, _SHARED_BETWEEN], ids=["own", "shared"])
+def test_a_sigterm_while_the_next_endpoint_is_made_ends_the_target(script):
+    # Before: the SIGTERM stopped the endpoint before (the harness's that had left, or
+    # none), and the target served the new one until the next signal (a run-after-run
+    # test waited 10 s). The own target gets its signal once a harness has left.
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-c", _BETWEEN, f"tcp/127.0.0.1:{port}"], cwd=ROOT,
+    proc = subprocess.Popen([sys.executable, "-c", script, f"tcp/127.0.0.1:{port}"], cwd=ROOT,
                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             env=dict(os.environ, PYTHONUNBUFFERED="1"))
     try:
         assert "run after run" in _first_line(proc, 30)
-        link = zenoh_link(port)
-        try:
-            assert link.open(hello_timeout_s=20).target_name == "echo"
-        finally:
-            link.close()  # the harness leaves: the target makes the next endpoint
+        if script is _BETWEEN:
+            link = zenoh_link(port)
+            try:
+                assert link.open(hello_timeout_s=20).target_name == "echo"
+            finally:
+                link.close()  # the harness leaves: the target makes the next endpoint
         assert proc.wait(timeout=10) == 0
     finally:
         end_process(proc)  # type: ignore[arg-type]
