@@ -424,14 +424,16 @@ def serving(ep: Endpoint, *, vehicle_id: int | None = None, harness_gone: thread
 
 def serve_stream(ep: Endpoint, reader: StreamReader[R], *, send: Callable[[bytes], None],
                  deliver: Callable[[Message | ProtocolError | R, int], None] | None = None,
-                 on_term: Callable[[], None] | None = None) -> str:
+                 quit_: threading.Event | None = None) -> str:
     """A stream transport's target loop (tcp, local) inside ``serving``: the next
     message from ``reader`` (one message per read, each stamped with its own arrival,
     ``hil.adapters.wire.receipt``), handed to ``deliver(item, t_rx)`` (default
     ``ep.on_message``), until BYE, end of stream or a broken socket (the harness has
     left: no BYE back), or SIGTERM, which shuts the socket's reading side to end the
-    blocked read and leaves its writing side open for our BYE (and calls
-    ``on_term``). The caller closes the socket. Returns how the session ended."""
+    blocked read and leaves its writing side open for our BYE (and sets ``quit_``: no
+    further sessions). A ``quit_`` already set when the session begins (a SIGTERM
+    that came as the harness connected) stops it at once: HELLO, then BYE. The caller
+    closes the socket. Returns how the session ended."""
     gone = threading.Event()
     sock = reader.sock
     ended = "stopped (SIGTERM)"
@@ -441,11 +443,13 @@ def serve_stream(ep: Endpoint, reader: StreamReader[R], *, send: Callable[[bytes
             sock.shutdown(socket.SHUT_RD)
         except OSError:
             pass
-        if on_term is not None:
-            on_term()
+        if quit_ is not None:
+            quit_.set()
 
     give = deliver if deliver is not None else cast(Callable[[Message | ProtocolError | R, int], None], ep.on_message)
     with serving(ep, harness_gone=gone, on_term=wake):
+        if quit_ is not None and quit_.is_set():  # before ``wake`` was in place
+            ep.stop()
         ep.start(send)
         while not ep.stopped:
             try:

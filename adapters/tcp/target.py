@@ -107,7 +107,7 @@ def _serve_one(ep: Endpoint, sock: socket.socket, quit_: threading.Event) -> str
     # need not run with the host's realtime clock, which kernel stamps are on).
     reader: StreamReader[object] = StreamReader(sock, ep.clock, uncertainty=False)
     try:
-        return serve_stream(ep, reader, send=sock.sendall, on_term=quit_.set)
+        return serve_stream(ep, reader, send=sock.sendall, quit_=quit_)
     finally:
         sock.close()
 

@@ -320,3 +320,47 @@ def test_a_silent_caller_does_not_hold_up_a_listening_harness(tmp_path):
                 link.close()
         silent.settimeout(2)
         assert silent.recv(100) == b""  # closed once the run's target was there
+
+
+# ``python -m hil.targets.echo --transport tcp``, with a SIGTERM sent to itself as a
+# harness connects: after the accept loop looked for one, before the session's own
+# handler is in place.
+_AS_IT_CONNECTS = """
+import os, signal, sys
+import hil.adapters.tcp.target as tt
+tuned = tt.tune
+def tune(sock):
+    os.kill(os.getpid(), signal.SIGTERM)
+    tuned(sock)
+tt.tune = tune
+from hil.targets.echo import main
+sys.exit(main(["--transport", "tcp", "--listen", sys.argv[1]]))
+"""
+
+
+@pytest.mark.slow
+def test_a_sigterm_as_the_harness_connects_ends_the_session(tmp_path):
+    # Before: the signal only said "no further sessions", and the target served this
+    # harness until it left (a whole run).
+    import subprocess
+
+    from tests.adapters.zenoh.pair import ROOT, end_process
+
+    address = f"127.0.0.1:{free_port()}"
+    with open(tmp_path / "t.log", "ab") as log:
+        proc = subprocess.Popen([sys.executable, "-c", _AS_IT_CONNECTS, address], cwd=ROOT, stdout=log, stderr=log,
+                                stdin=subprocess.DEVNULL)
+    link = TcpLink(vehicle_id=0, clock=MonotonicClock(), options=TcpOptions(connect=address))
+    try:
+        try:
+            link.open(hello_timeout_s=20)
+        except TransportError:
+            pass  # the target may be gone before its HELLO is read
+        assert proc.wait(timeout=10) == 0, (tmp_path / "t.log").read_text()  # the harness is still connected
+        deadline = time.monotonic() + 5
+        while link.alive and time.monotonic() < deadline:
+            link.recv(timeout_s=0.05)
+        assert "target stopping" in (link.peer_gone_reason or ""), link.peer_gone_reason
+    finally:
+        link.close()
+        end_process(proc)  # type: ignore[arg-type]
