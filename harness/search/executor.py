@@ -157,8 +157,13 @@ class _Shipped(Future[EpisodeResult]):
             return False
         if str(self.task.key) in self.engine.executing():
             return False
+        # This future first: the task's callback (``unpack``, on Dask's callback thread)
+        # often runs before ``task.cancel()`` returns, and must find it cancelled, not
+        # set the task's CancelledError as the episode's error.
+        if not super().cancel():
+            return False
         self.task.cancel()
-        return super().cancel()
+        return True
 
 
 class DaskEngine:

@@ -330,3 +330,25 @@ def test_sigterm_lets_running_episodes_finish_and_resume_completes(spec_file, tm
             "--episodes", "4", "--resume")
     assert p.returncode == 0, (p.stdout, p.stderr)
     assert f"4 episodes, {len(done)} done already" in p.stdout and sorted(episodes(out)) == [0, 1, 2, 3]
+
+
+def test_a_queued_episode_cancelled_is_dropped_not_an_error(spec_file, tmp_path):
+    # A stopped campaign cancels the episodes no worker runs yet. Dask runs the task's
+    # callback on its own thread, often before task.cancel() returns: it found the
+    # episode's future not yet cancelled and gave it the task's CancelledError, so the
+    # campaign recorded a queued episode as an error (a fresh-clone suite saw e00001
+    # "error" after SIGTERM). One worker: the first episode runs, the next three wait.
+    from hil.harness.search.executor import DaskEngine
+    from hil.harness.search.sampling import draw_generation
+
+    c = load_spec(spec_file, episodes=4)
+    draws = draw_generation(c, 0)
+    assert len(draws) == 4
+    with DaskEngine(gl_backend=GL_BACKEND, workers=1) as engine:
+        futures = [engine.submit(c, d, out=tmp_path, shard="0/1") for d in draws]
+        queued = futures[1:]
+        assert all(f.cancel() for f in queued), [f.exception() if f.done() and not f.cancelled() else f
+                                                 for f in queued]
+        assert all(f.cancelled() for f in queued)
+        first = futures[0].result(timeout=120)
+    assert first.status == "ok" and first.index == draws[0].index
