@@ -48,7 +48,8 @@ class EncodingRecorder:
         self._derivations: dict[str, list[Derivation]] = {}
         self._buf: list[bytes] = []
         self._size = 0
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # the batch being filled
+        self._send_lock = threading.Lock()  # the batch being sent (held while ``send`` blocks)
         self.enqueued = 0
         self.errors = 0
         self.first_error: str | None = None
@@ -110,11 +111,14 @@ class EncodingRecorder:
         self._put(EVENT, "", dumps(event_json), log_time_ns, 0)
 
     def flush(self) -> None:
-        """Send what is batched (any thread)."""
-        with self._lock:
-            buf, self._buf, self._size = self._buf, [], 0
-        if buf:
-            self._send(b"".join(buf))
+        """Send what is batched (any thread). One batch at a time: a pipe's message
+        over 16 KiB goes in several writes, and two sends at once interleave them; and
+        batches leave in the order they were filled."""
+        with self._send_lock:
+            with self._lock:
+                buf, self._buf, self._size = self._buf, [], 0
+            if buf:
+                self._send(b"".join(buf))
 
     def _put(self, kind: int, topic: str, data: bytes, log_ns: int, pub_ns: int) -> None:
         t = topic.encode()
