@@ -140,12 +140,20 @@ class RemoteShard:
         self._wake()
 
     def _read_data(self, recorder: Any, on_event: Callable[[bytes, int], None]) -> None:
+        broken = False
         while True:
             try:
                 batch = self._data.recv_bytes()
             except (EOFError, OSError):
                 return
-            self.recorder_refused += feed(batch, recorder, on_event)
+            if broken:  # read on, so the shard never blocks on a pipe nobody reads
+                continue
+            try:
+                self.recorder_refused += feed(batch, recorder, on_event)
+            except ValueError as err:  # not one of ours: the stream cannot be trusted past it
+                broken = True
+                self._on_stop(f"shard {self.index} ({', '.join(self.names)}): its recording stream broke "
+                              f"({err}); the run stopped, what was recorded before is kept")
 
     # -- what the loop asks -----------------------------------------------------------------
 

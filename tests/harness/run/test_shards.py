@@ -13,6 +13,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from hil.common.errors import ConfigError
@@ -164,3 +165,52 @@ def test_sigterm_ends_a_sharded_run_cleanly(tmp_path: Path) -> None:
         if p.poll() is None:
             p.kill()
             p.wait(10)
+
+
+def test_a_torn_recording_batch_stops_the_run_and_the_shard_is_still_read(tmp_path: Path) -> None:
+    # A shard's recording stream that cannot be parsed (a GPU host saw one, two threads
+    # of a shard sending at once): the reader thread raised and died, the shard blocked on
+    # its full pipe and the run waited on it until killed. Now the run is told to stop
+    # with the reason, and the pipe is read to its end. Real pipe, the handle's own reader.
+    import multiprocessing as mp
+    import threading
+
+    from hil.harness.record.producer import EncodingRecorder
+    from hil.harness.run.shard_handle import RemoteShard
+
+    shard = RemoteShard.__new__(RemoteShard)  # the reader alone: no shard process
+    shard.index, shard.names, shard.recorder_refused = 1, ["ego4", "ego5"], 0
+    stops: list[str] = []
+    shard._on_stop = stops.append
+    recv, send = mp.Pipe(duplex=False)
+    shard._data = recv
+    written: list[str] = []
+
+    class Rec:
+        def write_encoded(self, topic: str, data: bytes, **_kw: int) -> bool:
+            written.append(topic)
+            return True
+
+    reader = threading.Thread(target=shard._read_data, args=(Rec(), lambda _d, _t: None), daemon=True)
+    reader.start()
+    enc = EncodingRecorder(send.send_bytes)
+
+    def shard_side() -> None:
+        enc.write_json("/ego4/before", {"k": 1}, log_time_ns=1, publish_time_ns=1)
+        enc.flush()
+        send.send_bytes(b"\x01\x02\x03")  # shorter than a record's head
+        for i in range(64):  # more than the pipe holds (~4 MB): sent only if it is read
+            enc.write_raw_image("/ego4/after", np.zeros((240, 320, 3), np.uint8), encoding="rgb8", frame_id="c",
+                                log_time_ns=i, publish_time_ns=i)
+            enc.flush()
+        send.close()
+
+    sender = threading.Thread(target=shard_side, daemon=True)
+    sender.start()
+    sender.join(30)
+    assert not sender.is_alive(), "the shard blocked on a pipe nobody reads"
+    reader.join(30)
+    assert not reader.is_alive()
+    assert written == ["/ego4/before"]
+    assert len(stops) == 1 and "shard 1 (ego4, ego5): its recording stream broke" in stops[0], stops
+    assert "cut short at byte 0" in stops[0]
