@@ -62,8 +62,10 @@ def loaded_floor(seconds: float, *, priority: int, nice: int) -> dict[str, objec
             h.join(5)
 
 
-def floor(seconds: float, *, priority: int | None = None, nice: int = 0) -> dict[str, object]:
-    """The physics process pacing the demo's world with nothing else to do."""
+def floor(seconds: float, *, priority: int | None = None, nice: int = 0, config: str = "hil_configs/demo.yaml",
+          overrides: tuple[str, ...] = ()) -> dict[str, object]:
+    """The physics process pacing a config's world (the demo's unless told) with nothing
+    else to do."""
     from hil.scenarios import gl
 
     gl.select_backend()
@@ -74,7 +76,7 @@ def floor(seconds: float, *, priority: int | None = None, nice: int = 0) -> dict
     from hil.harness.run.driver import build_world
     from hil import scenarios
 
-    cfg = load_config(ROOT / "hil_configs/demo.yaml")
+    cfg = load_config(ROOT / config, overrides=overrides)
     world, rules = build_world(cfg)
     step_ns = round(cfg.physics_step_s * 1e9)
     spec = PhysicsSpec(world=world, rules=rules, realtime=True, total_steps=round(seconds * 1e9 / step_ns),

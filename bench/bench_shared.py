@@ -125,10 +125,11 @@ def batch_cost(frames: list[tuple[bytes, CameraInfo, float]], *, device: str, th
 
     from hil.adapters.wire.messages import Frame
     from hil.targets.cnn.frontend import Frontend
-    from hil.targets.cnn.target import CnnTarget
+    from hil.targets.cnn.target import CnnTarget, Serving
 
     torch.set_num_threads(threads)
-    target = CnnTarget(device=device)
+    # The largest batch timed must fit the CUDA graphs captured (their largest bucket).
+    target = CnnTarget(device=device, serving=Serving(max_batch=max(16, *sizes)))
     fronts = {"in process": Frontend(0, slots=max(sizes)),
               "threads": Frontend(workers, kind="thread", slots=max(sizes)),
               "processes": Frontend(workers, kind="process", slots=max(sizes))}

@@ -1,0 +1,305 @@
+"""How many vehicles does this host carry? Issue 24's capacity goals, measured in one
+call against floors of the same call (written for a GPU host; runs anywhere).
+
+One after another (never two at once):
+
+* floor: the physics process alone pacing the largest world (``--vehicles``' last N,
+  ``hil_configs/scale.yaml``) for ``--floor-s`` seconds (``bench_realtime.floor``);
+* real time: ``hil run hil_configs/scale.yaml`` with N vehicles at ``--fps``, echo
+  targets, for each N of ``--vehicles``; then the same with the OpenCV target for each
+  N of ``--cv``;
+* lockstep: each N of ``--lockstep``, echo targets, against the bare rendering floor
+  of the same N cameras (``bench_lockstep.floor``, one process, measured just before).
+
+Per run, beside the summary's figures: the whole machine's CPU (``/proc/stat``, all
+processes, targets included) per frame and how busy it was, and the GPU's mean
+utilisation (``nvidia-smi``, where there is one): what saturates when a run does not
+keep up. Goals (issue 24, GPU host): with echo targets, N=64 at 20 fps with no more
+physics steps > 10 ms late than the floor and p99 no worse than the floor's (0.5 ms
+slack), every vehicle >= 19.5 frames/s, frames dropped <= 0.1 %, no recording or
+analysis message dropped; lockstep >= 1,500 frames/s at N=64 and >= 0.8 x its floor;
+the harness's capture->send p50 at the largest N within 2x of N=1. A row whose run did
+not happen (refused, failed) reads so, never "met".
+
+    python bench/bench_capacity.py [--vehicles 1 16 32 64] [--fps 20] [--seconds 10]
+        [--cv 16 32] [--lockstep 64] [--json FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+import bench_lockstep  # noqa: E402
+import bench_realtime  # noqa: E402
+
+P99_SLACK_MS = 0.5
+
+
+def _load() -> str:
+    return open("/proc/loadavg").read().split()[0]
+
+
+def _cpu_jiffies() -> tuple[int, int]:
+    """(busy, total) jiffies of the whole machine."""
+    f = [int(x) for x in open("/proc/stat").readline().split()[1:]]
+    idle = f[3] + (f[4] if len(f) > 4 else 0)
+    return sum(f) - idle, sum(f)
+
+
+class GpuSampler(threading.Thread):
+    """nvidia-smi's utilisation every half second while a run goes (nothing where
+    there is no nvidia-smi)."""
+
+    def __init__(self) -> None:
+        super().__init__(daemon=True)
+        self.samples: list[float] = []
+        self.stop = threading.Event()
+        self.exe = shutil.which("nvidia-smi")
+
+    def run(self) -> None:
+        while self.exe and not self.stop.wait(0.5):
+            p = subprocess.run([self.exe, "--query-gpu=utilization.gpu", "--format=csv,noheader,nounits"],
+                               capture_output=True, text=True, check=False)
+            try:
+                self.samples.append(float(p.stdout.split()[0]))
+            except (IndexError, ValueError):
+                return
+
+    def mean(self) -> float | None:
+        return statistics.fmean(self.samples) if self.samples else None
+
+
+def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool = False,
+            timeout_s: float = 600.0) -> dict[str, Any]:
+    """One ``hil run`` of scale.yaml; its summary's figures, or ``{"failed": why}``."""
+    sets = [f"scenario.params.n_vehicles={n}", f"camera.fps={fps:g}", f"duration_s={seconds:g}",
+            f'target.command=["{{python}}", "-m", "hil.targets.{target}"]', "target.startup_timeout_s=120"]
+    if lockstep:
+        sets += ["mode=lockstep", "truth.visible_boxes=false"]
+    with tempfile.TemporaryDirectory() as d:
+        out = Path(d) / "run"
+        args = [sys.executable, "-m", "hil.harness.cli.main", "run", "hil_configs/scale.yaml", "--no-progress",
+                "--out", str(out)]
+        for s in sets:
+            args += ["--set", s]
+        load0, (busy0, all0) = _load(), _cpu_jiffies()
+        gpu = GpuSampler()
+        gpu.start()
+        t = time.monotonic()
+        # Its own process group: a run stopped at the timeout takes its targets and
+        # workers with it (they would load the next run).
+        p = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                             start_new_session=True)
+        lines: list[tuple[float, str]] = []
+        reader = threading.Thread(target=lambda: lines.extend((time.monotonic() - t, ln.rstrip())
+                                                              for ln in p.stdout or ()), daemon=True)
+        reader.start()
+        stopped = False
+        try:
+            p.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            stopped = True
+            _end_group(p)
+        finally:  # the bench itself stopped (SIGTERM, Ctrl-C): the run's group goes too
+            gpu.stop.set()
+            if p.poll() is None:
+                _end_group(p)
+        reader.join(5)
+        wall = time.monotonic() - t
+        busy1, all1 = _cpu_jiffies()
+        log = [f"{at:7.1f} s  {ln[:200]}" for at, ln in lines if ln.strip()]
+        log = log if len(log) <= 30 else [*log[:10], "...", *log[-20:]]
+        if not (out / "summary.json").exists():
+            why = f"no summary within {timeout_s:g} s" if stopped else (
+                log[-1][10:] if log else f"exit {p.returncode}")
+            return {"failed": why[:300], "log": log}
+        summary_at = (out / "summary.json").stat().st_mtime - (time.time() - (time.monotonic() - t))
+        s = json.loads((out / "summary.json").read_text())
+    hz = os.sysconf("SC_CLK_TCK")
+    vs = list(s["vehicles"].values())
+    frames = sum(v["frames_sent"] for v in vs)
+    dropped = sum(v["dropped"] for v in vs)
+    cost, r = s.get("harness_cost", {}), s["realtime"]
+
+    def p50s(stage: str) -> list[float]:
+        return sorted(v["latency_ms"][stage]["p50_ms"] for v in vs if v["latency_ms"].get(stage, {}).get("count"))
+
+    c2s, apply = p50s("capture_to_send"), p50s("apply_delay")
+    return {
+        "n": n, "fps": fps, "target": target, "lockstep": lockstep, "frames": frames, "dropped": dropped,
+        "drop_pct": 100.0 * dropped / max(1, frames + dropped),
+        "min_fps": min((v["frames_per_s"] for v in vs), default=0.0),
+        "steps": sum(int(c) for c in r.get("lateness_histogram", {}).get("bins", {}).values()),
+        "over10": r["steps_over_10ms"], "p99": r["lateness_ms"]["p99"], "max": r["max_lateness_ms"],
+        "factor": r["achieved_factor"], "kept": r.get("kept_realtime"), "sched": r.get("physics_scheduling"),
+        "late_frames": r.get("camera", {}).get("late_frames", 0),
+        "workers": r.get("render_workers"), "shards": r.get("shards"),
+        "mcap_dropped": s["recorder"]["dropped"], "analysis_dropped": cost.get("analysis_tasks_dropped"),
+        "c2s_p50": statistics.median(c2s) if c2s else None, "c2s_worst": c2s[-1] if c2s else None,
+        "apply_p50": statistics.median(apply) if apply else None,
+        "run_us": cost.get("run_us_per_frame"), "start_s": cost.get("start_s"), "finish_s": cost.get("finish_s"),
+        "loop_wall_s": s["wall_time_s"], "command_s": wall, "summary_at_s": summary_at, "log": log,
+        "exited": not stopped,
+        "fps_total": frames / s["wall_time_s"] if s["wall_time_s"] else 0.0,
+        "cpu_busy_pct": 100.0 * (busy1 - busy0) / max(1, all1 - all0),
+        "cpu_us_per_frame": (busy1 - busy0) / hz * 1e6 / max(1, frames), "gpu_pct": gpu.mean(),
+        "load": f"{load0} / {_load()}",
+    }
+
+
+def _end_group(p: subprocess.Popen[str]) -> None:
+    """SIGTERM to the run's process group, SIGKILL to what is left 10 s later."""
+    for sig, wait in ((signal.SIGTERM, 10.0), (signal.SIGKILL, 5.0)):
+        try:
+            os.killpg(p.pid, sig)
+        except ProcessLookupError:
+            return
+        deadline = time.monotonic() + wait
+        while time.monotonic() < deadline:
+            p.poll()  # reaps the leader: a zombie still counts in its group
+            try:
+                os.killpg(p.pid, 0)
+            except ProcessLookupError:
+                return
+            time.sleep(0.2)
+
+
+def _f(x: Any, fmt: str = ".2f") -> str:
+    return "–" if x is None else format(x, fmt)
+
+
+def realtime_goals(r: dict[str, Any], fl: dict[str, Any]) -> str:
+    """The issue's capacity goals for one real-time run against the floor: 'met' or
+    what was missed."""
+    if "failed" in r:
+        return "not measured"
+    miss = []
+    if r["over10"] > fl["steps_over_10ms"] or r["p99"] > fl["p99_ns"] / 1e6 + P99_SLACK_MS:
+        miss.append("physics lateness")
+    if r["min_fps"] < 0.975 * r["fps"]:
+        miss.append("frames/s")
+    if r["drop_pct"] > 0.1:
+        miss.append("drops")
+    if r["mcap_dropped"] or r["analysis_dropped"]:
+        miss.append("messages dropped")
+    return "met" if not miss else "**not met**: " + ", ".join(miss)
+
+
+def print_realtime(rows: list[dict[str, Any]], fl: dict[str, Any]) -> None:
+    print("| N | target | steps | > 10 ms late | p99 ms | max ms | factor | min vehicle frames/s | frames | dropped % "
+          "| MCAP / analysis dropped | capture→send p50 ms (median, worst vehicle) | t0'→apply p50 ms | run-side µs "
+          "per frame | machine CPU µs per frame (busy %) | GPU % | workers / shards | start s | finish s "
+          "| command s (summary written at) | goals | load before / after |")
+    print("|" + "---:|" * 2 + "---:|" * 19 + "---|---|")
+    for r in rows:
+        if "failed" in r:
+            print(f"| {r['n']} | {r['target']} | {r['failed']} |" + " |" * 19 + " not measured | |")
+            continue
+        stopped = "" if r["exited"] else ", stopped at the timeout"
+        print(f"| {r['n']} | {r['target']} | {r['steps']} | {r['over10']} | {r['p99']:.2f} | {r['max']:.2f} | "
+              f"{r['factor']:.3f} | {r['min_fps']:.2f} | {r['frames']} | {r['drop_pct']:.3f} | {r['mcap_dropped']} / "
+              f"{r['analysis_dropped']} | {_f(r['c2s_p50'])}, {_f(r['c2s_worst'])} | {_f(r['apply_p50'])} | "
+              f"{_f(r['run_us'], '.0f')} | {r['cpu_us_per_frame']:.0f} ({r['cpu_busy_pct']:.0f}) | "
+              f"{_f(r['gpu_pct'], '.0f')} | {r['workers']} / {r['shards']} | {_f(r['start_s'])} | "
+              f"{_f(r['finish_s'])} | {r['command_s']:.1f} ({r['summary_at_s']:.1f}{stopped}) | "
+              f"{realtime_goals(r, fl)} | {r['load']} |", flush=True)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--vehicles", type=int, nargs="*", default=[1, 16, 32, 64])
+    ap.add_argument("--cv", type=int, nargs="*", default=[16, 32])
+    ap.add_argument("--lockstep", type=int, nargs="*", default=[64])
+    ap.add_argument("--fps", type=float, default=20.0)
+    ap.add_argument("--seconds", type=float, default=10.0, help="simulated seconds per run")
+    ap.add_argument("--lockstep-seconds", type=float, default=4.0)
+    ap.add_argument("--floor-s", type=float, default=10.0)
+    ap.add_argument("--floor-images", type=int, default=1280)
+    ap.add_argument("--run-timeout", type=float, default=600.0, help="seconds before a run counts as failed")
+    ap.add_argument("--json", type=Path, help="also write every row here (JSON lines)")
+    a = ap.parse_args()
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # unwinds, so a run in flight is ended
+    gpu = GpuSampler().exe
+    name = (subprocess.run([gpu, "--query-gpu=name", "--format=csv,noheader"], capture_output=True, text=True,
+                           check=False).stdout.strip() if gpu else "no GPU")
+    print(f"machine: {os.cpu_count()} cores, {name}, MUJOCO_GL={os.environ.get('MUJOCO_GL', '(auto)')}, "
+          f"load before {_load()}\n")
+    rows: list[dict[str, Any]] = []
+
+    def keep(*new: dict[str, Any]) -> None:  # written as they come: a bench stopped keeps its rows
+        rows.extend(new)
+        if a.json:
+            a.json.write_text("".join(json.dumps(r) + "\n" for r in rows))
+
+    big = max([*a.vehicles, *a.cv, 1])
+    fl: dict[str, Any] = bench_realtime.floor(a.floor_s, config="hil_configs/scale.yaml",
+                              overrides=(f"scenario.params.n_vehicles={big}",))
+    keep({"floor": "physics", "n": big, **fl})
+    print(f"## floor: the physics process alone, {big} vehicles' world, {a.floor_s:g} s\n")
+    print("| steps | > 10 ms late | p99 ms | max ms | scheduling |\n|---:|---:|---:|---:|---|")
+    print(f"| {fl['steps']} | {fl['steps_over_10ms']} | {float(fl['p99_ns']) / 1e6:.3f} | "
+          f"{float(fl['max_ns']) / 1e6:.3f} | {fl['scheduling']} |\n", flush=True)
+    for title, ns, target in (("echo targets", a.vehicles, "echo"), ("OpenCV targets", a.cv, "cv_baseline")):
+        if not ns:
+            continue
+        print(f"## real time, {a.fps:g} fps, {a.seconds:g} s, {title}\n")
+        rt = []
+        for n in ns:
+            r = hil_run(n, fps=a.fps, seconds=a.seconds, target=target, timeout_s=a.run_timeout)
+            rt.append({"n": n, "target": target, **r})
+        keep(*rt)
+        print_realtime(rt, fl)
+        for r in rt:
+            if "failed" in r or not r["exited"]:
+                print(f"\nN={r['n']}, {target}: the run's output, seconds after its start\n\n```")
+                print("\n".join(r["log"]) + "\n```")
+        done = [r for r in rt if "failed" not in r and r["c2s_p50"] is not None]
+        if target == "echo" and len(done) > 1:
+            lo, hi = done[0], done[-1]
+            ratio = hi["c2s_p50"] / lo["c2s_p50"]
+            print(f"\nharness's capture→send p50 at N={hi['n']} / N={lo['n']}: {ratio:.2f} (goal <= 2: "
+                  f"{'met' if ratio <= 2 else 'not met'})")
+        print(flush=True)
+    if a.lockstep:
+        print(f"## lockstep, echo targets, {a.lockstep_seconds:g} simulated s, no camera truth\n")
+        print("| N | floor images/s (bare, one process) | frames/s | ratio | goal (>= 1,500 and >= 0.8) | run-side µs "
+              "per frame | machine CPU µs per frame (busy %) | GPU % | workers / shards | start s | finish s | "
+              "load |\n|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---|")
+        for n in a.lockstep:
+            try:
+                floor = bench_lockstep.floor(n, a.floor_images)
+            except subprocess.CalledProcessError as e:
+                floor = float("nan")
+                print(f"(floor failed: {e.stderr.strip().splitlines()[-1:]})")
+            r = hil_run(n, fps=a.fps, seconds=a.lockstep_seconds, target="echo", lockstep=True, timeout_s=a.run_timeout)
+            keep({"n": n, "floor_images_per_s": floor, **r})
+            if "failed" in r:
+                print(f"| {n} | {floor:.0f} | {r['failed']} | | not measured | | | | | | | |", flush=True)
+                continue
+            ratio = r["fps_total"] / floor
+            goal = "met" if r["fps_total"] >= 1500 and ratio >= 0.8 else "**not met**"
+            print(f"| {n} | {floor:.0f} | {r['fps_total']:.0f} | {ratio:.2f} | {goal} | {_f(r['run_us'], '.0f')} | "
+                  f"{r['cpu_us_per_frame']:.0f} ({r['cpu_busy_pct']:.0f}) | {_f(r['gpu_pct'], '.0f')} | "
+                  f"{r['workers']} / {r['shards']} | {_f(r['start_s'])} | {_f(r['finish_s'])} | {r['load']} |",
+                  flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
