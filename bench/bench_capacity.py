@@ -22,7 +22,7 @@ the harness's capture->send p50 at the largest N within 2x of N=1. A row whose r
 not happen (refused, failed) reads so, never "met".
 
     python bench/bench_capacity.py [--vehicles 1 16 32 64] [--fps 20] [--seconds 10]
-        [--cv 16 32] [--lockstep 64] [--json FILE]
+        [--cv 16 32] [--lockstep 64] [--set engine.shards=4] [--json FILE]
 """
 
 from __future__ import annotations
@@ -86,12 +86,13 @@ class GpuSampler(threading.Thread):
 
 
 def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool = False,
-            timeout_s: float = 600.0) -> dict[str, Any]:
+            timeout_s: float = 600.0, extra: tuple[str, ...] = ()) -> dict[str, Any]:
     """One ``hil run`` of scale.yaml; its summary's figures, or ``{"failed": why}``."""
     sets = [f"scenario.params.n_vehicles={n}", f"camera.fps={fps:g}", f"duration_s={seconds:g}",
             f'target.command=["{{python}}", "-m", "hil.targets.{target}"]', "target.startup_timeout_s=120"]
     if lockstep:
         sets += ["mode=lockstep", "truth.visible_boxes=false"]
+    sets += extra
     with tempfile.TemporaryDirectory() as d:
         out = Path(d) / "run"
         args = [sys.executable, "-m", "hil.harness.cli.main", "run", "hil_configs/scale.yaml", "--no-progress",
@@ -141,6 +142,7 @@ def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool =
         return sorted(v["latency_ms"][stage]["p50_ms"] for v in vs if v["latency_ms"].get(stage, {}).get("count"))
 
     c2s, apply = p50s("capture_to_send"), p50s("apply_delay")
+    stages = sorted({k for v in vs for k in v["latency_ms"]})
     return {
         "n": n, "fps": fps, "target": target, "lockstep": lockstep, "frames": frames, "dropped": dropped,
         "drop_pct": 100.0 * dropped / max(1, frames + dropped),
@@ -153,6 +155,7 @@ def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool =
         "mcap_dropped": s["recorder"]["dropped"], "analysis_dropped": cost.get("analysis_tasks_dropped"),
         "c2s_p50": statistics.median(c2s) if c2s else None, "c2s_worst": c2s[-1] if c2s else None,
         "apply_p50": statistics.median(apply) if apply else None,
+        "stages_p50_ms": {k: statistics.median(p50s(k)) for k in stages if p50s(k)},  # median over vehicles
         "run_us": cost.get("run_us_per_frame"), "start_s": cost.get("start_s"), "finish_s": cost.get("finish_s"),
         "loop_wall_s": s["wall_time_s"], "command_s": wall, "summary_at_s": summary_at, "log": log,
         "exited": not stopped,
@@ -231,6 +234,8 @@ def main() -> int:
     ap.add_argument("--lockstep-seconds", type=float, default=4.0)
     ap.add_argument("--floor-s", type=float, default=10.0)
     ap.add_argument("--floor-images", type=int, default=1280)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a config override for every run (e.g. engine.shards=4), repeatable")
     ap.add_argument("--run-timeout", type=float, default=600.0, help="seconds before a run counts as failed")
     ap.add_argument("--json", type=Path, help="also write every row here (JSON lines)")
     a = ap.parse_args()
@@ -239,7 +244,7 @@ def main() -> int:
     name = (subprocess.run([gpu, "--query-gpu=name", "--format=csv,noheader"], capture_output=True, text=True,
                            check=False).stdout.strip() if gpu else "no GPU")
     print(f"machine: {os.cpu_count()} cores, {name}, MUJOCO_GL={os.environ.get('MUJOCO_GL', '(auto)')}, "
-          f"load before {_load()}\n")
+          f"load before {_load()}; overrides for every run: {' '.join(a.set) or 'none'}\n")
     rows: list[dict[str, Any]] = []
 
     def keep(*new: dict[str, Any]) -> None:  # written as they come: a bench stopped keeps its rows
@@ -261,7 +266,8 @@ def main() -> int:
         print(f"## real time, {a.fps:g} fps, {a.seconds:g} s, {title}\n")
         rt = []
         for n in ns:
-            r = hil_run(n, fps=a.fps, seconds=a.seconds, target=target, timeout_s=a.run_timeout)
+            r = hil_run(n, fps=a.fps, seconds=a.seconds, target=target, timeout_s=a.run_timeout,
+                        extra=tuple(a.set))
             rt.append({"n": n, "target": target, **r})
         keep(*rt)
         print_realtime(rt, fl)
@@ -287,7 +293,8 @@ def main() -> int:
             except subprocess.CalledProcessError as e:
                 floor = float("nan")
                 print(f"(floor failed: {e.stderr.strip().splitlines()[-1:]})")
-            r = hil_run(n, fps=a.fps, seconds=a.lockstep_seconds, target="echo", lockstep=True, timeout_s=a.run_timeout)
+            r = hil_run(n, fps=a.fps, seconds=a.lockstep_seconds, target="echo", lockstep=True,
+                        timeout_s=a.run_timeout, extra=tuple(a.set))
             keep({"n": n, "floor_images_per_s": floor, **r})
             if "failed" in r:
                 print(f"| {n} | {floor:.0f} | {r['failed']} | | not measured | | | | | | | |", flush=True)
