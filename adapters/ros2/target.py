@@ -8,7 +8,10 @@ It subscribes to ``sensor_msgs/Image`` on ``image`` and ``CompressedImage`` on
 ``/tf_static`` (the camera mount: the transform to the images' frame and the one to
 its parent give the mount height and pitch); each image becomes a frame for the SDK
 endpoint, with the camera info and speed of the same stamp (else the latest). An
-image before any camera info or mount is skipped, counted. Each estimate goes out as
+image that comes before any camera info or mount waits for them (the newest
+``HELD`` images; an older one is skipped, counted): the transient-local
+``/tf_static`` reaches a node that joined late through the reliable protocol's
+repair, which can come after the first images. Each estimate goes out as
 a ``Detection2DArray`` and an ``AckermannDriveStamped`` (hil.adapters.ros2.answers),
 both under the image's header, as ROS 2 perception copies it.
 
@@ -26,7 +29,7 @@ import math
 import os
 import sys
 import threading
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Mapping
 from typing import Any
 
@@ -49,6 +52,7 @@ DEFAULT_TOPICS: Mapping[str, str] = {
     "speed": _HARNESS.speed, "control": _HARNESS.control, "detections": _HARNESS.detections}
 POLL_S = 0.05
 _KEPT = 64  # camera infos and speeds kept by stamp
+HELD = 2  # images waiting for their camera info or mount (IMAGE_QOS's depth: a slow node's newest)
 
 
 class Ros2Node:
@@ -71,6 +75,7 @@ class Ros2Node:
         self._speeds: OrderedDict[int, float] = OrderedDict()
         self._transforms: dict[str, tuple[str, Any]] = {}  # child frame -> (parent, Transform)
         self._frames: OrderedDict[int, tuple[Header, float]] = OrderedDict()
+        self._waiting: deque[tuple[Any, bool, int]] = deque()  # (image, compressed, t_rx), oldest first
         self._lock = threading.Lock()
         self._next_id = 0
         self.skipped: dict[str, int] = {}
@@ -103,9 +108,28 @@ class Ros2Node:
         elif kind == "speed":
             _keep(self._speeds, ns_of(msg.header.stamp), float(msg.twist.linear.x))
         else:
-            frame = self._frame(msg, compressed=kind == "compressed_image")
+            if len(self._waiting) == HELD:
+                old = self._waiting.popleft()[0]
+                self._skip(self._missing(old) or "")
+            self._waiting.append((msg, kind == "compressed_image", t_rx))
+        self._release()
+
+    def _release(self) -> None:
+        """Hand on the images waiting, oldest first, once what they need has come;
+        each keeps its own arrival."""
+        while self._waiting and self._missing(self._waiting[0][0]) is None:
+            img, compressed, t_rx = self._waiting.popleft()
+            frame = self._frame(img, compressed=compressed)
             if frame is not None:
                 self.ep.on_message(frame, t_rx)
+
+    def _missing(self, img: Any) -> str | None:
+        """What the image still needs before it is a frame (None: nothing)."""
+        if not self._infos:
+            return "no camera info yet"
+        if self._mount(img.header.frame_id) is None:
+            return f"no /tf_static mount of {img.header.frame_id!r}"
+        return None
 
     def _skip(self, why: str) -> None:
         if why not in self.skipped:
@@ -125,11 +149,9 @@ class Ros2Node:
 
     def _frame(self, img: Any, *, compressed: bool) -> Frame | None:
         stamp = ns_of(img.header.stamp)
-        info = self._infos.get(stamp) or (next(reversed(self._infos.values())) if self._infos else None)
+        info = self._infos.get(stamp) or next(reversed(self._infos.values()))  # ``_missing``: there is one
         mount = self._mount(img.header.frame_id)
-        if info is None or mount is None:
-            self._skip("no camera info yet" if info is None else f"no /tf_static mount of {img.header.frame_id!r}")
-            return None
+        assert mount is not None  # ``_missing`` said so
         if compressed:
             if not any(f in img.format.lower() for f in ("jpeg", "jpg", "png")):
                 self._skip(f"compressed format {img.format!r} (jpeg or png expected)")

@@ -290,3 +290,46 @@ def test_a_hand_started_ros2_target_announces_itself_and_keeps_serving_until_sig
         if p.poll() is None:
             p.kill()
             p.wait()
+
+
+def test_an_image_before_its_camera_info_and_mount_waits_for_them() -> None:
+    # The node's /tf_static (transient local) reaches a node that joined late through the
+    # reliable protocol's repair, which can come after the first images: on a loaded
+    # machine the SDK node skipped the run's first images ("no /tf_static mount"), and a
+    # run's first frames, the test above's only two, were never answered. The samples in
+    # the order that race gives, as the link writes them; the node's own handling.
+    from hil.adapters.ros2.answers import DriveMapping, camera_info_of, stamp_of
+    from hil.adapters.ros2.link import Ros2Link
+    from hil.adapters.ros2.target import HELD, Ros2Node, node_topics
+
+    got: list[tuple[object, int]] = []
+
+    class Ep:  # what the node hands on, and when each image arrived
+        clock = MonotonicClock()
+
+        def on_message(self, msg: object, t_rx: int) -> None:
+            got.append((msg, t_rx))
+
+    harness = Ros2Link(vehicle_id=0, clock=MonotonicClock(), options=Ros2Options(domain_id=domain()))  # not opened
+    dds = Participant(domain_id=harness.domain_id, config=XML, name="late_node")
+    try:
+        node = Ros2Node(Ep(), dds=dds, topics=node_topics(), vehicle_id=0,  # type: ignore[arg-type]
+                        mapping=DriveMapping())
+
+        def image(stamp_ns: int) -> Image:
+            return Image(Header(stamp_of(stamp_ns), harness.frames[2]), 2, 4, "rgb8", 0, 12, bytes(24))
+
+        for k in range(HELD + 1):  # the oldest of these is the one too many
+            node._on("image", image(1000 + k), 100 + k)
+        node._on("camera_info", camera_info_of(Header(stamp_of(1000), harness.frames[2]), 4, 2, 200.0, 200.0,
+                                                2.0, 1.0), 200)
+        assert got == []  # the mount is still missing
+        node._on("tf_static", harness._tf_static(), 300)
+        assert [t_rx for _, t_rx in got] == [100 + k for k in range(1, HELD + 1)]  # each with its own arrival
+        frame = got[0][0]
+        assert frame.camera.mount_height_m == pytest.approx(harness.mount[2])  # type: ignore[attr-defined]
+        assert node.skipped == {"no camera info yet": 1}  # it went before the camera info came
+        node._on("image", image(2000), 400)  # from now on, at once
+        assert got[-1][1] == 400 and len(got) == HELD + 1
+    finally:
+        dds.close()
