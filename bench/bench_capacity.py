@@ -51,10 +51,6 @@ import bench_realtime  # noqa: E402
 P99_SLACK_MS = 0.5
 
 
-def _load() -> str:
-    return open("/proc/loadavg").read().split()[0]
-
-
 def _cpu_jiffies() -> tuple[int, int]:
     """(busy, total) jiffies of the whole machine."""
     f = [int(x) for x in open("/proc/stat").readline().split()[1:]]
@@ -99,7 +95,7 @@ def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool =
                 "--out", str(out)]
         for s in sets:
             args += ["--set", s]
-        load0, (busy0, all0) = _load(), _cpu_jiffies()
+        load0, (busy0, all0) = bench_realtime._load(), _cpu_jiffies()
         gpu = GpuSampler()
         gpu.start()
         t = time.monotonic()
@@ -141,8 +137,8 @@ def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool =
     def p50s(stage: str) -> list[float]:
         return sorted(v["latency_ms"][stage]["p50_ms"] for v in vs if v["latency_ms"].get(stage, {}).get("count"))
 
-    c2s, apply = p50s("capture_to_send"), p50s("apply_delay")
-    stages = sorted({k for v in vs for k in v["latency_ms"]})
+    by_stage = {k: p50s(k) for k in sorted({k for v in vs for k in v["latency_ms"]})}
+    c2s, apply = by_stage.get("capture_to_send", []), by_stage.get("apply_delay", [])
     return {
         "n": n, "fps": fps, "target": target, "lockstep": lockstep, "frames": frames, "dropped": dropped,
         "drop_pct": 100.0 * dropped / max(1, frames + dropped),
@@ -155,14 +151,14 @@ def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool =
         "mcap_dropped": s["recorder"]["dropped"], "analysis_dropped": cost.get("analysis_tasks_dropped"),
         "c2s_p50": statistics.median(c2s) if c2s else None, "c2s_worst": c2s[-1] if c2s else None,
         "apply_p50": statistics.median(apply) if apply else None,
-        "stages_p50_ms": {k: statistics.median(p50s(k)) for k in stages if p50s(k)},  # median over vehicles
+        "stages_p50_ms": {k: statistics.median(x) for k, x in by_stage.items() if x},  # median over vehicles
         "run_us": cost.get("run_us_per_frame"), "start_s": cost.get("start_s"), "finish_s": cost.get("finish_s"),
         "loop_wall_s": s["wall_time_s"], "command_s": wall, "summary_at_s": summary_at, "log": log,
         "exited": not stopped,
         "fps_total": frames / s["wall_time_s"] if s["wall_time_s"] else 0.0,
         "cpu_busy_pct": 100.0 * (busy1 - busy0) / max(1, all1 - all0),
         "cpu_us_per_frame": (busy1 - busy0) / hz * 1e6 / max(1, frames), "gpu_pct": gpu.mean(),
-        "load": f"{load0} / {_load()}",
+        "load": f"{load0} / {bench_realtime._load()}",
     }
 
 
@@ -244,7 +240,7 @@ def main() -> int:
     name = (subprocess.run([gpu, "--query-gpu=name", "--format=csv,noheader"], capture_output=True, text=True,
                            check=False).stdout.strip() if gpu else "no GPU")
     print(f"machine: {os.cpu_count()} cores, {name}, MUJOCO_GL={os.environ.get('MUJOCO_GL', '(auto)')}, "
-          f"load before {_load()}; overrides for every run: {' '.join(a.set) or 'none'}\n")
+          f"load before {bench_realtime._load()}; overrides for every run: {' '.join(a.set) or 'none'}\n")
     rows: list[dict[str, Any]] = []
 
     def keep(*new: dict[str, Any]) -> None:  # written as they come: a bench stopped keeps its rows
@@ -254,7 +250,7 @@ def main() -> int:
 
     big = max([*a.vehicles, *a.cv, 1])
     fl: dict[str, Any] = bench_realtime.floor(a.floor_s, config="hil_configs/scale.yaml",
-                              overrides=(f"scenario.params.n_vehicles={big}",))
+                                              overrides=(f"scenario.params.n_vehicles={big}",))
     keep({"floor": "physics", "n": big, **fl})
     print(f"## floor: the physics process alone, {big} vehicles' world, {a.floor_s:g} s\n")
     print("| steps | > 10 ms late | p99 ms | max ms | scheduling |\n|---:|---:|---:|---:|---|")

@@ -117,9 +117,13 @@ class Ros2Node:
     def _release(self) -> None:
         """Hand on the images waiting, oldest first, once what they need has come;
         each keeps its own arrival."""
-        while self._waiting and self._missing(self._waiting[0][0]) is None:
-            img, compressed, t_rx = self._waiting.popleft()
-            frame = self._frame(img, compressed=compressed)
+        while self._waiting:
+            img, compressed, t_rx = self._waiting[0]
+            mount = self._mount(img.header.frame_id) if self._infos else None
+            if mount is None:  # ``_missing`` says which
+                return
+            self._waiting.popleft()
+            frame = self._frame(img, compressed=compressed, mount=mount)
             if frame is not None:
                 self.ep.on_message(frame, t_rx)
 
@@ -147,11 +151,10 @@ class Ros2Node:
         sin_p = 2 * (q.w * q.y - q.z * q.x)
         return float(mount[1].translation.z), math.asin(max(-1.0, min(1.0, sin_p)))
 
-    def _frame(self, img: Any, *, compressed: bool) -> Frame | None:
+    def _frame(self, img: Any, *, compressed: bool, mount: tuple[float, float]) -> Frame | None:
+        """``img`` as a frame, once its mount and a camera info are in (``_release``)."""
         stamp = ns_of(img.header.stamp)
-        info = self._infos.get(stamp) or next(reversed(self._infos.values()))  # ``_missing``: there is one
-        mount = self._mount(img.header.frame_id)
-        assert mount is not None  # ``_missing`` said so
+        info = self._infos.get(stamp) or next(reversed(self._infos.values()))
         if compressed:
             if not any(f in img.format.lower() for f in ("jpeg", "jpg", "png")):
                 self._skip(f"compressed format {img.format!r} (jpeg or png expected)")
