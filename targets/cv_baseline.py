@@ -403,8 +403,16 @@ def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.target
     p.add_argument("--name", default="cv-baseline", help="target name reported in HELLO")
     add_transport_args(p)
     a = p.parse_args(argv)
-    return run_target(prog, lambda: serve(CvBaseline(cruise_speed_mps=a.cruise_speed).infer, target_name=a.name,
-                                          transport=a.transport, **transport_options(a)))
+
+    def serve_it() -> object:
+        # One OpenCV thread: a host runs a target per vehicle, so the targets are the
+        # parallelism; a pool per target (a thread per core) costs CPU and, with many
+        # targets, throughput (bench/README, "OpenCV threads").
+        cv2.setNumThreads(1)
+        return serve(CvBaseline(cruise_speed_mps=a.cruise_speed).infer, target_name=a.name, transport=a.transport,
+                     **transport_options(a))
+
+    return run_target(prog, serve_it)
 
 
 if __name__ == "__main__":

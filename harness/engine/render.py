@@ -132,6 +132,12 @@ def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, parent_pid: 
     from hil.adapters.process import prioritise_this_thread
 
     prioritise_this_thread()
+    import cv2
+
+    # One OpenCV thread: the workers are the parallelism. A pool per worker (a thread
+    # per core, spinning between calls) only competes with the other workers, the
+    # targets and the physics: a 320x240 encode is no faster with it (bench/README).
+    cv2.setNumThreads(1)
     slots: dict[str, FrameSlots] = {}
     try:
         from hil.scenarios.sim import Simulation
