@@ -82,8 +82,14 @@ class GpuSampler(threading.Thread):
 
 
 def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool = False,
-            timeout_s: float = 600.0, extra: tuple[str, ...] = ()) -> dict[str, Any]:
-    """One ``hil run`` of scale.yaml; its summary's figures, or ``{"failed": why}``."""
+            timeout_s: float = 600.0, extra: tuple[str, ...] = (), logs: Path | None = None) -> dict[str, Any]:
+    """One ``hil run`` of scale.yaml; its summary's figures, or ``{"failed": why}``.
+
+    ``logs``: a folder for the run's whole output, written as it comes (seconds after
+    the start on each line), so a bench stopped from outside still says where the run
+    was; a run stopped at the timeout first gets SIGUSR2, which makes each harness
+    process print every thread's stack there, and its targets' logs are kept beside it."""
+    label = f"{'lockstep' if lockstep else 'rt'}-{target}-{n}"
     sets = [f"scenario.params.n_vehicles={n}", f"camera.fps={fps:g}", f"duration_s={seconds:g}",
             f'target.command=["{{python}}", "-m", "hil.targets.{target}"]', "target.startup_timeout_s=120"]
     if lockstep:
@@ -104,15 +110,15 @@ def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool =
         p = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                              start_new_session=True)
         lines: list[tuple[float, str]] = []
-        reader = threading.Thread(target=lambda: lines.extend((time.monotonic() - t, ln.rstrip())
-                                                              for ln in p.stdout or ()), daemon=True)
+        reader = threading.Thread(target=_read_lines, args=(p, t, lines, logs / f"{label}.log" if logs else None),
+                                  daemon=True)
         reader.start()
         stopped = False
         try:
             p.wait(timeout_s)
         except subprocess.TimeoutExpired:
             stopped = True
-            _end_group(p)
+            _end_group(p, dump=logs is not None)
         finally:  # the bench itself stopped (SIGTERM, Ctrl-C): the run's group goes too
             gpu.stop.set()
             if p.poll() is None:
@@ -122,6 +128,8 @@ def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool =
         busy1, all1 = _cpu_jiffies()
         log = [f"{at:7.1f} s  {ln[:200]}" for at, ln in lines if ln.strip()]
         log = log if len(log) <= 30 else [*log[:10], "...", *log[-20:]]
+        if logs and (stopped or not (out / "summary.json").exists()):
+            _keep_target_logs(out, logs / f"{label}-targets.log")
         if not (out / "summary.json").exists():
             why = f"no summary within {timeout_s:g} s" if stopped else (
                 log[-1][10:] if log else f"exit {p.returncode}")
@@ -162,8 +170,46 @@ def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool =
     }
 
 
-def _end_group(p: subprocess.Popen[str]) -> None:
-    """SIGTERM to the run's process group, SIGKILL to what is left 10 s later."""
+def _read_lines(p: subprocess.Popen[str], t: float, lines: list[tuple[float, str]], log: Path | None) -> None:
+    with open(log, "w", buffering=1) if log else open(os.devnull, "w") as f:
+        for ln in p.stdout or ():
+            at = time.monotonic() - t
+            lines.append((at, ln.rstrip()))
+            f.write(f"{at:8.2f} {ln}")
+
+
+def _keep_target_logs(out: Path, to: Path, tail: int = 30) -> None:
+    """The last lines of each target's log of a run that did not finish."""
+    with open(to, "w") as f:
+        for log in sorted(out.glob("target-*.log")):
+            text = log.read_text(errors="replace").splitlines()
+            f.write(f"== {log.name} ({len(text)} lines)\n" + "".join(ln + "\n" for ln in text[-tail:]))
+
+
+def _dump_group(pgid: int) -> None:
+    """SIGUSR2 to each process of the run's group, one at a time (their stacks share
+    one pipe): each harness process prints its threads' stacks and goes on."""
+    pids = []
+    for d in Path("/proc").iterdir():
+        try:  # the run and its spawned children (SIGUSR2 would end any other process)
+            if d.name.isdigit() and os.getpgid(int(d.name)) == pgid and (
+                    int(d.name) == pgid or b"spawn_main" in (d / "cmdline").read_bytes()):
+                pids.append(int(d.name))
+        except OSError:
+            continue
+    for pid in sorted(pids, key=lambda x: x != pgid):  # the run process first
+        try:
+            os.kill(pid, signal.SIGUSR2)
+        except OSError:
+            continue
+        time.sleep(0.2)
+
+
+def _end_group(p: subprocess.Popen[str], *, dump: bool = False) -> None:
+    """SIGTERM to the run's process group, SIGKILL to what is left 10 s later;
+    ``dump``: SIGUSR2 first, so each harness process prints its threads' stacks."""
+    if dump:
+        _dump_group(p.pid)
     for sig, wait in ((signal.SIGTERM, 10.0), (signal.SIGKILL, 5.0)):
         try:
             os.killpg(p.pid, sig)
@@ -234,7 +280,11 @@ def main() -> int:
                     help="a config override for every run (e.g. engine.shards=4), repeatable")
     ap.add_argument("--run-timeout", type=float, default=600.0, help="seconds before a run counts as failed")
     ap.add_argument("--json", type=Path, help="also write every row here (JSON lines)")
+    ap.add_argument("--logs", type=Path, help="a folder for each run's whole output (and, for a run that did not "
+                    "finish, its threads' stacks and its targets' logs)")
     a = ap.parse_args()
+    if a.logs:
+        a.logs.mkdir(parents=True, exist_ok=True)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # unwinds, so a run in flight is ended
     gpu = GpuSampler().exe
     name = (subprocess.run([gpu, "--query-gpu=name", "--format=csv,noheader"], capture_output=True, text=True,
@@ -263,7 +313,7 @@ def main() -> int:
         rt = []
         for n in ns:
             r = hil_run(n, fps=a.fps, seconds=a.seconds, target=target, timeout_s=a.run_timeout,
-                        extra=tuple(a.set))
+                        extra=tuple(a.set), logs=a.logs)
             rt.append({"n": n, "target": target, **r})
         keep(*rt)
         print_realtime(rt, fl)
@@ -290,7 +340,7 @@ def main() -> int:
                 floor = float("nan")
                 print(f"(floor failed: {e.stderr.strip().splitlines()[-1:]})")
             r = hil_run(n, fps=a.fps, seconds=a.lockstep_seconds, target="echo", lockstep=True,
-                        timeout_s=a.run_timeout, extra=tuple(a.set))
+                        timeout_s=a.run_timeout, extra=tuple(a.set), logs=a.logs)
             keep({"n": n, "floor_images_per_s": floor, **r})
             if "failed" in r:
                 print(f"| {n} | {floor:.0f} | {r['failed']} | | not measured | | | | | | | |", flush=True)

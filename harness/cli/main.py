@@ -39,6 +39,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _main(argv: Sequence[str] | None) -> int:
+    if argv is None:  # the program (not a caller in its own process): SIGUSR2 prints its stacks
+        from hil.harness.engine.procs import stacks_on_sigusr2
+
+        stacks_on_sigusr2()
     argv = list(sys.argv[1:] if argv is None else argv)
     if len(argv) >= 2 and argv[0] == "target" and argv[1] in TARGETS:
         # Everything after the name belongs to the target (including --help).

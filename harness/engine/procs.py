@@ -26,10 +26,20 @@ def _prctl(option: int, arg: int) -> bool:
         return False
 
 
+def stacks_on_sigusr2() -> None:
+    """SIGUSR2 prints every thread's stack of this process on stderr and goes on: what
+    a run that seems stuck is doing, without stopping it (README, "A run that seems stuck")."""
+    import faulthandler
+
+    faulthandler.register(signal.SIGUSR2, all_threads=True)
+
+
 def die_with_parent(expected_parent: int | None = None) -> None:
     """Have the kernel SIGKILL this process when its parent dies (Linux), so a
     killed run never leaves workers behind. Exits at once if the parent is already
-    gone (``expected_parent`` given and no longer our parent)."""
+    gone (``expected_parent`` given and no longer our parent). A harness child also
+    prints its stacks on SIGUSR2 (``stacks_on_sigusr2``)."""
+    stacks_on_sigusr2()
     _prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL))
     if expected_parent is not None and os.getppid() != expected_parent:
         os._exit(1)
