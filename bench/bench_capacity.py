@@ -147,6 +147,9 @@ def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool =
 
     by_stage = {k: p50s(k) for k in sorted({k for v in vs for k in v["latency_ms"]})}
     c2s, apply = by_stage.get("capture_to_send", []), by_stage.get("apply_delay", [])
+    parts = {part: statistics.median(x) for part in ("encode", "hand_off", "queue", "send")
+             if (x := [v["capture_to_send_parts_ms"][part]["p50_ms"] for v in vs
+                       if v.get("capture_to_send_parts_ms", {}).get(part, {}).get("count")])}
     return {
         "n": n, "fps": fps, "target": target, "lockstep": lockstep, "frames": frames, "dropped": dropped,
         "drop_pct": 100.0 * dropped / max(1, frames + dropped),
@@ -159,6 +162,7 @@ def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool =
         "mcap_dropped": s["recorder"]["dropped"], "analysis_dropped": cost.get("analysis_tasks_dropped"),
         "c2s_p50": statistics.median(c2s) if c2s else None, "c2s_worst": c2s[-1] if c2s else None,
         "apply_p50": statistics.median(apply) if apply else None,
+        "c2s_parts_p50": parts,  # median over vehicles of each part's p50 (ms)
         "stages_p50_ms": {k: statistics.median(x) for k, x in by_stage.items() if x},  # median over vehicles
         "run_us": cost.get("run_us_per_frame"), "start_s": cost.get("start_s"), "finish_s": cost.get("finish_s"),
         "loop_wall_s": s["wall_time_s"], "command_s": wall, "summary_at_s": summary_at, "log": log,
@@ -248,18 +252,21 @@ def realtime_goals(r: dict[str, Any], fl: dict[str, Any]) -> str:
 
 def print_realtime(rows: list[dict[str, Any]], fl: dict[str, Any]) -> None:
     print("| N | target | steps | > 10 ms late | p99 ms | max ms | factor | min vehicle frames/s | frames | dropped % "
-          "| MCAP / analysis dropped | capture→send p50 ms (median, worst vehicle) | t0'→apply p50 ms | run-side µs "
+          "| MCAP / analysis dropped | capture→send p50 ms (median, worst vehicle) | its parts p50 ms (encode / "
+          "hand-off / queue / send) | t0'→apply p50 ms | run-side µs "
           "per frame | machine CPU µs per frame (busy %) | GPU % | workers / shards | start s | finish s "
           "| command s (summary written at) | goals | load before / after |")
-    print("|" + "---:|" * 2 + "---:|" * 19 + "---|---|")
+    print("|" + "---:|" * 2 + "---:|" * 20 + "---|---|")
     for r in rows:
         if "failed" in r:
-            print(f"| {r['n']} | {r['target']} | {r['failed']} |" + " |" * 19 + " not measured | |")
+            print(f"| {r['n']} | {r['target']} | {r['failed']} |" + " |" * 20 + " not measured | |")
             continue
         stopped = "" if r["exited"] else ", stopped at the timeout"
         print(f"| {r['n']} | {r['target']} | {r['steps']} | {r['over10']} | {r['p99']:.2f} | {r['max']:.2f} | "
               f"{r['factor']:.3f} | {r['min_fps']:.2f} | {r['frames']} | {r['drop_pct']:.3f} | {r['mcap_dropped']} / "
-              f"{r['analysis_dropped']} | {_f(r['c2s_p50'])}, {_f(r['c2s_worst'])} | {_f(r['apply_p50'])} | "
+              f"{r['analysis_dropped']} | {_f(r['c2s_p50'])}, {_f(r['c2s_worst'])} | "
+              f"{' / '.join(_f(r['c2s_parts_p50'].get(k)) for k in ('encode', 'hand_off', 'queue', 'send'))} | "
+              f"{_f(r['apply_p50'])} | "
               f"{_f(r['run_us'], '.0f')} | {r['cpu_us_per_frame']:.0f} ({r['cpu_busy_pct']:.0f}) | "
               f"{_f(r['gpu_pct'], '.0f')} | {r['workers']} / {r['shards']} | {_f(r['start_s'])} | "
               f"{_f(r['finish_s'])} | {r['command_s']:.1f} ({r['summary_at_s']:.1f}{stopped}) | "

@@ -20,6 +20,7 @@ cores to spare), or several, each in a process of its own
 from __future__ import annotations
 
 import functools
+import time
 import threading
 from collections.abc import Callable
 from typing import Any
@@ -124,8 +125,9 @@ class VehicleShard:
             self._maybe_sync()
 
     def on_frame(self, f: FrameReady) -> None:
+        t_in = time.monotonic_ns()  # the pump holds it (capture -> send's parts)
         with self.lock:
-            self._on_frame(f)
+            self._on_frame(f, t_in)
         if self.lockstep and not self.ledger.busy():
             self._wake()
 
@@ -260,18 +262,19 @@ class VehicleShard:
 
     # -- frames out (under the lock) ------------------------------------------------------
 
-    def _on_frame(self, f: FrameReady) -> None:
+    def _on_frame(self, f: FrameReady, t_in: int) -> None:
         v = self.by_name[f.vehicle]
         try:
-            self._send(v, f)
+            self._send(v, f, t_in)
         finally:
             # Rendering ends once the frame is in flight (or not sent): the shard is
             # never seen idle in between, by a loop that reads ``busy`` unlocked.
             self.ledger.rendered(v.vehicle_id, f.steps, f.camera)
 
-    def _send(self, v: VehicleRun, f: FrameReady) -> None:
+    def _send(self, v: VehicleRun, f: FrameReady, t_in: int) -> None:
         if self.stopping:
             return
+        t_locked = time.monotonic_ns()
         rig = self._rig(v)
         at, v.next_frame_id = rig.number(v.next_frame_id, f.steps, f.camera)
         if at is None:  # another camera of a rig this target does not take
@@ -293,7 +296,8 @@ class VehicleShard:
             return
         self.ledger.sent(v.vehicle_id, InFlight(frame_id, at.sim_time_ns, f.t0_ns, t_tx, f.t_state_ns,
                                                 camera=f.camera if rig.sends_sets() else None))
-        v.frame_out(t_tx - f.t_state_ns, tolerance_ns=self.frame_tolerance_ns)
+        v.frame_out(t_tx - f.t_state_ns, tolerance_ns=self.frame_tolerance_ns,
+                    parts=(f.t_encoded_ns - f.t0_ns, t_in - f.t_encoded_ns, t_locked - t_in, t_tx - t_locked))
         if f.camera == 0:
             v.fps_meter.add(f.t0_ns)
         if self._images:  # camera 0 on the vehicle's /camera, a rig's others on /camera/<name>

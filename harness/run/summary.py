@@ -57,6 +57,7 @@ def vehicle_summary(v: VehicleRun, *, wall_s: float, timing: TimingObserver | No
         "estimates_per_s": round(applied / wall_s, 3) if wall_s > 0 else 0.0,
         "order_violations": v.order_violations,
         "latency_ms": stages,
+        "capture_to_send_parts_ms": {p: summarize_ns(col) for p, col in v.send_parts.items()},
         "budgets": _budgets(v, timing),
         "late_frames": v.late_frames,
         **(timing.summary(v.name) if timing is not None else {}),

@@ -27,6 +27,13 @@ class InFlight:
     camera: int | None = None  # the camera of the vehicle's rig (None: a rig of one camera)
 
 
+# capture -> send (t0 -> t_tx) in the harness's hands, part by part: ``encode`` in the
+# render worker (t0 -> encoded and in its slot), ``hand_off`` to the shard (the worker's
+# pipe, the pump thread's wake, the message's decoding), ``queue`` (waiting for the
+# shard: other frames being sent), ``send`` (the link's work until t_tx).
+SEND_PARTS = ("encode", "hand_off", "queue", "send")
+
+
 class ProgressRow(NamedTuple):
     """One vehicle's line of the live display (plain values: a shard in another
     process sends them)."""
@@ -59,6 +66,7 @@ class VehicleRun:
     # late tolerance after their camera instant (t_tx - t_state), and the worst lag.
     late_frames: int = 0
     worst_frame_lag_ns: int = 0
+    send_parts: dict[str, SpillColumn] = field(default_factory=lambda: {p: SpillColumn() for p in SEND_PARTS})
     e2e_window: RollingWindow = field(default_factory=RollingWindow)
     fps_meter: RateMeter = field(default_factory=RateMeter)
 
@@ -77,12 +85,16 @@ class VehicleRun:
             for name, v in rec.stages_ns().items():
                 self.stage_values[name].append(v)
 
-    def frame_out(self, lag_ns: int, *, tolerance_ns: int) -> None:
-        """A frame left for its target ``lag_ns`` after its camera instant."""
+    def frame_out(self, lag_ns: int, *, tolerance_ns: int, parts: tuple[int, int, int, int] | None = None) -> None:
+        """A frame left for its target ``lag_ns`` after its camera instant; ``parts``:
+        its capture -> send in ``SEND_PARTS``' order (ns)."""
         if lag_ns > tolerance_ns:
             self.late_frames += 1
         if lag_ns > self.worst_frame_lag_ns:
             self.worst_frame_lag_ns = lag_ns
+        if parts is not None:
+            for col, ns in zip(self.send_parts.values(), parts):
+                col.append(ns)
 
     def count(self, status: FrameStatus) -> int:
         return self.counts[status]

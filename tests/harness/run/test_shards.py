@@ -99,6 +99,20 @@ def test_two_shards_record_what_one_does_to_the_byte(pair) -> None:
     assert (two.out_dir / "summary.json").exists() and (two.out_dir / "report.html").exists()
 
 
+def test_capture_to_send_parts_add_up_to_it_in_and_out_of_process(pair) -> None:
+    # Every frame was applied (15 of 15), so the parts and capture -> send cover the
+    # same frames: their means add up (to the summary's rounding), and none is negative.
+    one, two, _left = pair
+    for s in (one.summary, two.summary):
+        for name, v in s["vehicles"].items():
+            parts, c2s = v["capture_to_send_parts_ms"], v["latency_ms"]["capture_to_send"]
+            assert list(parts) == ["encode", "hand_off", "queue", "send"], name
+            assert all(p["count"] == v["frames_sent"] == c2s["count"] for p in parts.values()), name
+            assert all(p["min_ms"] >= 0 for p in parts.values()), (name, parts)
+            assert sum(p["mean_ms"] for p in parts.values()) == pytest.approx(c2s["mean_ms"], abs=3e-4), name
+            assert parts["encode"]["p50_ms"] > 0.01, name  # a JPEG is encoded in the worker, not in no time
+
+
 def test_shard_processes_and_their_targets_end_with_the_run(pair) -> None:
     _one, _two, left = pair
     deadline = time.monotonic() + 10

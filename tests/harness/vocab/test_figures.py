@@ -79,7 +79,7 @@ def test_every_figure_of_todays_run_reads_back_as_written(run_now: Path) -> None
     for stage, st in v.latency_ms.items():
         assert st.to_json() == written["vehicles"]["ego0"]["latency_ms"][stage]
     # The sections no reader takes apart are kept whole.
-    assert set(v.extra) == {"streaming_ms", "splits_ms", "splits_excluded"}
+    assert set(v.extra) == {"streaming_ms", "splits_ms", "splits_excluded", "capture_to_send_parts_ms"}
     assert {"scenario_realized", "spill", "session"} <= set(f.extra) and f.realtime is not None
     assert set(f.realtime.extra) == {"lateness_histogram"}
     # What the run folder reader and the report read is the same record.
