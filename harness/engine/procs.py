@@ -4,12 +4,13 @@ the physics's ring into the run's handlers."""
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import os
 import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -24,6 +25,36 @@ def _prctl(option: int, arg: int) -> bool:
         return int(libc.prctl(option, arg, 0, 0, 0)) == 0
     except (OSError, AttributeError):  # not Linux
         return False
+
+
+# A link's reader or a pump gets the interpreter back within this of a frame or an
+# estimate arriving, even while the analysis and recording threads are busy (Python's
+# default is 5 ms).
+SWITCH_INTERVAL_S = 0.0001
+
+
+@contextlib.contextmanager
+def loop_process(*, collect: bool = True) -> Iterator[None]:
+    """A process while its run loop goes (the run process's, each shard process's):
+    Python's full garbage collection held off (a collection over a run's growing
+    history stalled a loop for 60-80 ms; a shard's first one 36-60 ms here) after one
+    now (``collect``; False: the caller just did), with what is alive frozen out of
+    later ones, and the 0.1 ms switch interval. Restored after."""
+    import gc
+    import sys
+
+    thresholds, switch = gc.get_threshold(), sys.getswitchinterval()
+    if collect:
+        gc.collect()
+    gc.freeze()
+    gc.set_threshold(thresholds[0], thresholds[1], 1_000_000)
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
+    try:
+        yield
+    finally:
+        sys.setswitchinterval(switch)
+        gc.set_threshold(*thresholds)
+        gc.unfreeze()
 
 
 def stacks_on_sigusr2() -> None:

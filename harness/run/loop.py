@@ -26,8 +26,6 @@ Truth and the shards' analysis run on the analysis thread
 
 from __future__ import annotations
 
-import gc
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -41,6 +39,7 @@ from hil.harness.engine.messages import (Applied, ApplyControl, CameraTruthReady
                                          FrameReady, WorkerFailed, WorldState)
 from hil.harness.engine.physics import PhysicsSpec, capture_table
 from hil.harness.engine.pool import Engine
+from hil.harness.engine.procs import loop_process
 from hil.harness.run.run_specs import LoopStats, encode_image, engine_specs
 from hil.harness.run.shard import VehicleShard
 from hil.harness.run.tasks import WorldTasks
@@ -51,11 +50,6 @@ from hil.timing.clock import Clock
 TICK_NS = 20_000_000         # shards' and observers' on_tick and the live display, at most this often
 PHYSICS_END_TIMEOUT_S = 10.0
 DRAIN_EXTRA_NS = 1_000_000_000  # drain: the estimate timeout and this, at most
-# How long a thread of the run process may hold the interpreter while another waits:
-# a link's reader or a pump gets it back within this of a frame or an estimate
-# arriving, even while the analysis and recording threads are busy (Python's default
-# is 5 ms).
-SWITCH_INTERVAL_S = 0.0001
 
 __all__ = ["LoopStats", "SimLoop", "encode_image", "engine_specs"]
 
@@ -172,29 +166,21 @@ class SimLoop:
     def run(self) -> LoopStats:
         """Run to the configured duration (or a stop request); returns the loop's stats.
 
-        Python's full garbage collection is held off during the loop (a collection
-        over a run's growing history stalled it for 60-80 ms) and restored afterwards.
+        The process is set for the loop while it goes (``procs.loop_process``: full
+        garbage collection held off, a short switch interval) and restored afterwards.
         """
-        thresholds = gc.get_threshold()
-        switch = sys.getswitchinterval()
-        gc.collect()
-        gc.freeze()
-        gc.set_threshold(thresholds[0], thresholds[1], 1_000_000)
-        sys.setswitchinterval(SWITCH_INTERVAL_S)
-        boosted = prioritise_this_thread()  # (root) served before the analysis and recording threads
-        cpu0 = time.thread_time_ns()
-        try:
-            return self._run()
-        finally:
-            self.stats.loop_cpu_ns = time.thread_time_ns() - cpu0
-            self.analysis.close()
-            self.stats.analysis_cpu_ns = self.analysis.cpu_ns
-            self.stats.analysis_dropped = self.analysis.dropped
-            sys.setswitchinterval(switch)
-            if boosted is not None:
-                restore_thread_priority(boosted)
-            gc.set_threshold(*thresholds)
-            gc.unfreeze()
+        with loop_process():
+            boosted = prioritise_this_thread()  # (root) served before the analysis and recording threads
+            cpu0 = time.thread_time_ns()
+            try:
+                return self._run()
+            finally:
+                self.stats.loop_cpu_ns = time.thread_time_ns() - cpu0
+                self.analysis.close()
+                self.stats.analysis_cpu_ns = self.analysis.cpu_ns
+                self.stats.analysis_dropped = self.analysis.dropped
+                if boosted is not None:
+                    restore_thread_priority(boosted)
 
     def _run(self) -> LoopStats:
         st = self.stats

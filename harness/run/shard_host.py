@@ -3,6 +3,7 @@ shard, and the loop that keeps its time and answers the run process."""
 
 from __future__ import annotations
 
+import gc
 import os
 import signal
 import threading
@@ -11,12 +12,24 @@ from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any
 
+from hil.adapters.impair import record_on
 from hil.common.errors import HilError
+# What a shard builds its vehicles' work from is imported with the process, while the
+# targets start (~0.3 s on 2 cores): built after the run's start, the first frames of
+# every vehicle waited for these imports in the render pipes (hand-off 50-290 ms).
+from hil.harness.analysis.timing_observer import TimingObserver, rig_of
+from hil.harness.cases.detector_observer import DetectorObserver
+from hil.harness.config.loading import dump_config
+from hil.harness.record.channels import register_all, sync_sample_json, views_of
+from hil.harness.record.producer import EncodingRecorder
+from hil.harness.run.rig_frames import rig_cams
+from hil.harness.run.shard import VehicleShard
+from hil.harness.run.tasks import VehicleTasks
 from hil.harness.vocab.events import EventBus
 from hil.harness.engine.analysis_thread import AnalysisThread
 from hil.harness.engine.messages import (Applied, ApplyControl, CameraTruthReady, ChildGone, Done, Finished,
                                          FrameReady, WorldState)
-from hil.harness.engine.procs import Pump, RingPump
+from hil.harness.engine.procs import Pump, RingPump, loop_process
 from hil.harness.engine.render import FrameSlots
 from hil.harness.engine.rings import Ring
 from hil.harness.run.shard_proc import (Doorbell, Outbox, ShardDone, ShardDrain, ShardDrained, ShardFailed,
@@ -25,6 +38,7 @@ from hil.harness.run.shard_proc import (Doorbell, Outbox, ShardDone, ShardDrain,
 from hil.harness.run.run_specs import stall_of
 from hil.harness.run.target_launch import close_links
 from hil.harness.run.vehicle_state import VehicleRun
+from hil.scenarios.sim import Simulation
 from hil.timing.clock import MonotonicClock
 
 TICK_NS = 20_000_000
@@ -80,13 +94,20 @@ class ShardHost:
         hellos = {v.name: (None if v.link.hello is None else
                            (v.link.hello.target_name, v.link.hello.clock_id.name, v.link.hello.clock_resolution_ns))
                   for v in self.vehicles}
+        # Before the run starts, so its first frames find the shard reading its pipes:
+        # the detector's world mirror (MuJoCo's model of the whole world) and a full
+        # garbage collection of the start-up (each tens of ms; ``loop_process`` then
+        # only freezes what is alive).
+        self.sim = Simulation(self.spec.world, rules=self.spec.rules)
+        gc.collect()
         self.out.send(ShardReady(hellos, warmup))
         start = self.ctl.recv()
         if not isinstance(start, ShardStart):
             return
         self._build(start, warmup)
         self._cpu0 = time.process_time_ns()  # the run's own work from here (as the run process counts it)
-        self._loop()
+        with loop_process(collect=False):
+            self._loop()
 
     def _start_targets(self) -> dict[str, list[Any]]:
         from hil.harness.run.target_launch import SYNC_WARMUP_SAMPLES, check_identity, make_link, open_links
@@ -107,17 +128,6 @@ class ShardHost:
         return warmup
 
     def _build(self, start: ShardStart, warmup: dict[str, list[Any]]) -> None:
-        from hil.adapters.impair import record_on
-        from hil.harness.run.rig_frames import rig_cams
-        from hil.harness.cases.detector_observer import DetectorObserver
-        from hil.harness.analysis.timing_observer import TimingObserver, rig_of
-        from hil.harness.config.loading import dump_config
-        from hil.harness.record.channels import register_all, sync_sample_json, views_of
-        from hil.harness.record.producer import EncodingRecorder
-        from hil.harness.run.shard import VehicleShard
-        from hil.harness.run.tasks import VehicleTasks
-        from hil.scenarios.sim import Simulation
-
         cfg, io, names = self.cfg, self.spec.io, [v.name for v in self.vehicles]
         enc = self.encoder = EncodingRecorder(self.data.send_bytes, log_time_offset_ns=start.log_time_offset_ns)
         register_all(enc, names)
@@ -134,7 +144,6 @@ class ShardHost:
                 enc.write_json(f"/{name}/clock_sync", sync_sample_json(s, warmup=True), log_time_ns=s.t4_ns,
                                publish_time_ns=s.t1_ns)
                 self.timing.on_sync(name, s)
-        self.sim = Simulation(self.spec.world, rules=self.spec.rules)  # a mirror: the detector's truth
         self.tasks = VehicleTasks(self.sim, enc, self.clock, render_worker=self.spec.render_worker)
         self.tasks.observers.append(self.timing)
         if self.detector is not None:

@@ -113,6 +113,17 @@ def test_capture_to_send_parts_add_up_to_it_in_and_out_of_process(pair) -> None:
             assert parts["encode"]["p50_ms"] > 0.01, name  # a JPEG is encoded in the worker, not in no time
 
 
+def test_a_shard_process_reads_its_first_frames_at_once(pair) -> None:
+    # A shard builds its vehicles' work before the run starts: built after it, every
+    # vehicle's first frame waited in the render pipe for the shard's imports (0.2-0.3 s
+    # here, growing with the vehicles of the shard), which at 20 fps is a burst of late
+    # frames at every run's start.
+    _one, two, _left = pair
+    first = {name: d["t_tx_ns"] - d["t0_ns"] for name in ("ego0", "ego1", "ego2", "ego3")
+             for _, d in read_mcap(two.mcap_path)[f"/{name}/pipeline"] if d["frame_id"] == 0}
+    assert len(first) == 4 and max(first.values()) < 100e6, first
+
+
 def test_shard_processes_and_their_targets_end_with_the_run(pair) -> None:
     _one, _two, left = pair
     deadline = time.monotonic() + 10
