@@ -82,13 +82,15 @@ class GpuSampler(threading.Thread):
 
 
 def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool = False,
-            timeout_s: float = 600.0, extra: tuple[str, ...] = (), logs: Path | None = None) -> dict[str, Any]:
+            timeout_s: float = 600.0, extra: tuple[str, ...] = (), logs: Path | None = None,
+            keep: Path | None = None) -> dict[str, Any]:
     """One ``hil run`` of scale.yaml; its summary's figures, or ``{"failed": why}``.
 
     ``logs``: a folder for the run's whole output, written as it comes (seconds after
     the start on each line), so a bench stopped from outside still says where the run
     was; a run stopped at the timeout first gets SIGUSR2, which makes each harness
-    process print every thread's stack there, and its targets' logs are kept beside it."""
+    process print every thread's stack there, and its targets' logs are kept beside it.
+    ``keep``: a folder the run folder is moved into (as ``<label>``), to read after."""
     label = f"{'lockstep' if lockstep else 'rt'}-{target}-{n}"
     sets = [f"scenario.params.n_vehicles={n}", f"camera.fps={fps:g}", f"duration_s={seconds:g}",
             f'target.command=["{{python}}", "-m", "hil.targets.{target}"]', "target.startup_timeout_s=120"]
@@ -136,6 +138,8 @@ def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool =
             return {"failed": why[:300], "log": log}
         summary_at = (out / "summary.json").stat().st_mtime - (time.time() - (time.monotonic() - t))
         s = json.loads((out / "summary.json").read_text())
+        if keep:
+            shutil.move(out, keep / label)
     hz = os.sysconf("SC_CLK_TCK")
     vs = list(s["vehicles"].values())
     frames = sum(v["frames_sent"] for v in vs)
@@ -287,11 +291,13 @@ def main() -> int:
                     help="a config override for every run (e.g. engine.shards=4), repeatable")
     ap.add_argument("--run-timeout", type=float, default=600.0, help="seconds before a run counts as failed")
     ap.add_argument("--json", type=Path, help="also write every row here (JSON lines)")
+    ap.add_argument("--keep", type=Path, help="a folder each finished run's folder is moved into")
     ap.add_argument("--logs", type=Path, help="a folder for each run's whole output (and, for a run that did not "
                     "finish, its threads' stacks and its targets' logs)")
     a = ap.parse_args()
-    if a.logs:
-        a.logs.mkdir(parents=True, exist_ok=True)
+    for d in (a.logs, a.keep):
+        if d:
+            d.mkdir(parents=True, exist_ok=True)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # unwinds, so a run in flight is ended
     gpu = GpuSampler().exe
     name = (subprocess.run([gpu, "--query-gpu=name", "--format=csv,noheader"], capture_output=True, text=True,
@@ -320,7 +326,7 @@ def main() -> int:
         rt = []
         for n in ns:
             r = hil_run(n, fps=a.fps, seconds=a.seconds, target=target, timeout_s=a.run_timeout,
-                        extra=tuple(a.set), logs=a.logs)
+                        extra=tuple(a.set), logs=a.logs, keep=a.keep)
             rt.append({"n": n, "target": target, **r})
         keep(*rt)
         print_realtime(rt, fl)
@@ -347,7 +353,7 @@ def main() -> int:
                 floor = float("nan")
                 print(f"(floor failed: {e.stderr.strip().splitlines()[-1:]})")
             r = hil_run(n, fps=a.fps, seconds=a.lockstep_seconds, target="echo", lockstep=True,
-                        timeout_s=a.run_timeout, extra=tuple(a.set), logs=a.logs)
+                        timeout_s=a.run_timeout, extra=tuple(a.set), logs=a.logs, keep=a.keep)
             keep({"n": n, "floor_images_per_s": floor, **r})
             if "failed" in r:
                 print(f"| {n} | {floor:.0f} | {r['failed']} | | not measured | | | | | | | |", flush=True)
