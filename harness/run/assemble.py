@@ -25,7 +25,8 @@ def local_loop(cfg: RunConfig, sim: Any, vehicles: list[Any], *, engine: Any, ph
                          analysis=analysis, events=bus, clock=clock, frame_bytes=engine.frame_bytes,
                          send_control=engine.control, on_stop=lambda why: box[0].request_stop(why),
                          wake=lambda: box[0].wake(), latency=latency)
-    world = WorldTasks(sim, rec, bus, clock, egos={v.name for v in vehicles}, observers=tasks.observers, cache=cache)
+    world = WorldTasks(sim, rec, bus, clock, egos={v.name for v in vehicles}, observers=tasks.observers, cache=cache,
+                       view_every_ns=cfg.camera_period_steps * sim.step_ns)
     loop = SimLoop(cfg, sim, [shard], engine=engine, physics=physics, world=world, analysis=analysis, events=bus,
                    clock=clock, recorder=rec)
     box.append(loop)

@@ -189,7 +189,8 @@ class ShardedFleet:
             if cfg.target.impair.active:
                 main_rec.register_json_channel(f"/{name}/impairment", "hil.Impairment", IMPAIRMENT_SCHEMA)
         analysis = AnalysisThread()
-        world = WorldTasks(sim, rec, bus, self.clock, egos=set(self.egos), observers=[])
+        world = WorldTasks(sim, rec, bus, self.clock, egos=set(self.egos), observers=[],
+                           view_every_ns=cfg.camera_period_steps * sim.step_ns)
         loop = SimLoop(cfg, sim, self.shards, engine=engine, physics=physics, world=world, analysis=analysis,
                        events=bus, clock=self.clock, recorder=rec)
         engine.connect(on_physics=loop.on_physics, on_render=loop.on_render)

@@ -141,6 +141,16 @@ def test_a_sharded_real_time_run_keeps_every_frame_accounted(tmp_path: Path) -> 
         assert v["estimates_applied"] + v["dropped"] + v["stale"] == v["frames_sent"], name
         assert v["latency_ms"]["end_to_end"]["count"] > 0 and v["clock"]["samples_used"] > 0, name
     assert r.summary["harness_cost"]["run_us_per_frame"] > 0
+    # The four cameras trigger at different instants: /ground_truth has each instant,
+    # the Foxglove views of the world (/scene, world -> vehicle on /tf) one per camera
+    # period (they were one per instant: N per period, N^2 messages a period).
+    m = read_mcap(r.mcap_path)
+    truths = {d["sim_time_ns"] for _, d in m["/ground_truth"]}
+    scenes = [d for _, d in m["/scene"]]
+    periods = {t // 100_000_000 for t in truths}  # 10 fps
+    assert len(truths) >= 3.5 * len(periods) and len(scenes) == len(periods), (len(truths), len(scenes))
+    to_vehicles = [d for _, d in m["/tf"] if d["parent_frame_id"] == "world"]
+    assert len(to_vehicles) == 4 * len(scenes)
 
 
 def test_how_many_shards() -> None:
