@@ -81,6 +81,63 @@ class GpuSampler(threading.Thread):
         return statistics.fmean(self.samples) if self.samples else None
 
 
+class CpuByRole(threading.Thread):
+    """Every ``period_s``, the CPU the run's processes used since the last sample, by
+    role: the run process; its spawned children that have children (shards, whose
+    children are targets) and the others (physics, render workers, multiprocessing's
+    resource tracker); the targets (the run's other children and everything further
+    down); in cores (1.0: one core busy the whole period)."""
+
+    def __init__(self, root: int, period_s: float = 0.25) -> None:
+        super().__init__(daemon=True)
+        self.root, self.period_s = root, period_s
+        self.samples: list[tuple[float, dict[str, float]]] = []
+        self.stop = threading.Event()
+
+    @staticmethod
+    def _procs() -> dict[int, tuple[int, int]]:
+        out = {}
+        for d in Path("/proc").iterdir():
+            if not d.name.isdigit():
+                continue
+            try:
+                f = (d / "stat").read_text().rsplit(")", 1)[1].split()
+                out[int(d.name)] = (int(f[1]), int(f[11]) + int(f[12]))  # ppid, utime + stime
+            except (OSError, IndexError, ValueError):
+                continue
+        return out
+
+    def _roles(self, procs: dict[int, tuple[int, int]]) -> dict[int, str]:
+        kids: dict[int, list[int]] = {}
+        for pid, (ppid, _) in procs.items():
+            kids.setdefault(ppid, []).append(pid)
+        roles = {self.root: "run"}
+        for c in kids.get(self.root, []):
+            try:
+                spawned = b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()
+            except OSError:
+                continue
+            roles[c] = ("shards" if kids.get(c) else "physics+render") if spawned else "targets"
+            stack = list(kids.get(c, []))
+            while stack:
+                g = stack.pop()
+                roles[g] = "targets"
+                stack.extend(kids.get(g, []))
+        return roles
+
+    def run(self) -> None:
+        hz, t0 = os.sysconf("SC_CLK_TCK"), time.monotonic()
+        last = self._procs()
+        while not self.stop.wait(self.period_s):
+            now = self._procs()
+            by: dict[str, float] = {}
+            for pid, role in self._roles(now).items():
+                used = now[pid][1] - last.get(pid, (0, 0))[1]
+                by[role] = by.get(role, 0.0) + used / hz / self.period_s
+            self.samples.append((round(time.monotonic() - t0, 2), {k: round(v, 2) for k, v in by.items()}))
+            last = now
+
+
 def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool = False,
             timeout_s: float = 600.0, extra: tuple[str, ...] = (), logs: Path | None = None,
             keep: Path | None = None) -> dict[str, Any]:
@@ -115,6 +172,8 @@ def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool =
         reader = threading.Thread(target=_read_lines, args=(p, t, lines, logs / f"{label}.log" if logs else None),
                                   daemon=True)
         reader.start()
+        roles = CpuByRole(p.pid)
+        roles.start()
         stopped = False
         try:
             p.wait(timeout_s)
@@ -123,6 +182,7 @@ def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool =
             _end_group(p, dump=logs is not None)
         finally:  # the bench itself stopped (SIGTERM, Ctrl-C): the run's group goes too
             gpu.stop.set()
+            roles.stop.set()
             if p.poll() is None:
                 _end_group(p)
         reader.join(5)
@@ -174,6 +234,7 @@ def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool =
         "fps_total": frames / s["wall_time_s"] if s["wall_time_s"] else 0.0,
         "cpu_busy_pct": 100.0 * (busy1 - busy0) / max(1, all1 - all0),
         "cpu_us_per_frame": (busy1 - busy0) / hz * 1e6 / max(1, frames), "gpu_pct": gpu.mean(),
+        "cpu_by_role": roles.samples,  # (seconds after the command's start, {role: cores})
         "load": f"{load0} / {bench_realtime._load()}",
     }
 
