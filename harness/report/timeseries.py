@@ -120,6 +120,7 @@ def fps_section(d: RunData) -> str:
             "period before a frame is due (for estimates, shifted by their median delay t_apply−t0): on pace, "
             "every bin holds the same number of frames.</p>")]
     t0 = d.t_start_ns
+    left, span = fleet.chart_left(d, strips), time_span(d)  # once: each goes over every vehicle's records
     for vehicle in d.vehicles:
         recs = d.pipeline.get(vehicle, [])
         sent = np.array([(r["t0_ns"] - t0) / 1e9 for r in recs if isinstance(r.get("t0_ns"), int)])
@@ -145,7 +146,7 @@ def fps_section(d: RunData) -> str:
                                  y_label="per second",
                                  title=f"{vehicle} (bins of {k} frame period{'s' if k != 1 else ''}, "
                                        f"{k * period:.3g} s)", height=200, headroom=0.25,
-                                 left=fleet.chart_left(d, strips), x_range=time_span(d)))
+                                 left=left, x_range=span))
     return "".join(out)
 
 
@@ -194,6 +195,7 @@ def clock_section(d: RunData) -> str:
     if not d.clock:
         return "".join(out) + "<p>no clock samples recorded</p>"
     t0 = d.t_start_ns
+    left, span = fleet.chart_left(d, strips), time_span(d)
     rows = []
     vs = {} if d.summary is None else d.summary.vehicles
     for vehicle in d.vehicles + sorted(v for v in d.clock if v not in d.vehicles):
@@ -210,7 +212,7 @@ def clock_section(d: RunData) -> str:
                                  bands=[rp.Band("± uncertainty", x, y - u, y + u, c)],
                                  x_label="time since first frame (s)", y_label="µs", y_zero=False,
                                  title=f"{vehicle} ({d.clock_source.get(vehicle, '?')})", height=200,
-                                 left=fleet.chart_left(d, strips), x_range=time_span(d)))
+                                 left=left, x_range=span))
         vf = vs.get(vehicle)
         rows.append([escape(vehicle), escape(d.clock_source.get(vehicle, "?")), str(len(pts)),
                      f"{med / 1e6:.3f}", ms(float(u.min()), 1), ms(float(np.median(u)), 1),
