@@ -38,6 +38,22 @@ def _new_histogram() -> Any:
     return HdrHistogram(LOWEST_US, HIGHEST_US, SIGNIFICANT_DIGITS)
 
 
+def values_at_percentiles(h: Any, percentiles: Iterable[float]) -> list[int]:
+    """``h.get_value_at_percentile(q)`` for each ``q``, in one pass over the counts with
+    numpy: the library walks its 17,408 buckets in Python for each (~0.4 ms a call),
+    which was most of a 64-vehicle run's finish (every stage of every vehicle)."""
+    cum = np.cumsum(np.ctypeslib.as_array(h.counts)[:h.counts_len], dtype=np.int64)
+    out = []
+    for q in percentiles:
+        i = int(np.searchsorted(cum, h.get_target_count_at_percentile(q), side="left"))
+        if i >= h.counts_len:
+            out.append(0)
+            continue
+        v = h.get_value_from_index(i)
+        out.append(h.get_highest_equivalent_value(v) if q else h.get_lowest_equivalent_value(v))
+    return out
+
+
 @dataclass
 class _Moments:
     """Exact running count, min, max, mean and sum of squared deviations (ns)."""
@@ -156,10 +172,9 @@ class StageHistograms:
         m = self._moments.get(stage)
         if m is None or m.count == 0:
             return {"count": 0}
-        h = self._hist[stage]
         out: dict[str, float | int] = {"count": m.count}
-        for q in (50, 90, 99):
-            out[f"p{q}_ms"] = round(h.get_value_at_percentile(q) / 1e3, 4)
+        for q, us in zip((50, 90, 99), values_at_percentiles(self._hist[stage], (50, 90, 99)), strict=True):
+            out[f"p{q}_ms"] = round(us / 1e3, 4)
         out.update(max_ms=round(m.hi / 1e6, 4), min_ms=round(m.lo / 1e6, 4),
                    mean_ms=round(m.mean / 1e6, 4), std_ms=round(math.sqrt(m.m2 / m.count) / 1e6, 4))
         return out

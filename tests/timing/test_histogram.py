@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hil.timing.histogram import MAX_STAGES, StageHistograms
+from hil.timing.histogram import MAX_STAGES, StageHistograms, _new_histogram, values_at_percentiles
 from hil.timing.records import FrameStatus, PipelineRecord
 from hil.timing.stats import summarize_ns
 
@@ -28,6 +28,19 @@ def test_percentiles_match_exact_summary_within_a_tenth_of_a_percent():
         assert got[key] == pytest.approx(exact[key], rel=2e-3, abs=2e-3)
     for key in ("max_ms", "min_ms", "mean_ms", "std_ms"):  # kept exactly beside the histogram
         assert got[key] == pytest.approx(exact[key], abs=1e-4)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_percentiles_in_one_pass_are_the_librarys_own(seed: int) -> None:
+    # Values from 1 µs to 60 s, a few or many, one value repeated, empty.
+    rng = np.random.default_rng(seed)
+    h = _new_histogram()
+    n = [0, 1, 7, 200, 5000, 3][seed]
+    values = rng.lognormal(7 + seed, 2.5, n).clip(1, 60_000_000).astype(int) if seed != 5 else [40_000] * 3
+    for v in values:
+        h.record_value(int(v))
+    qs = (0, 0.1, 50, 90, 99, 99.9, 100)
+    assert values_at_percentiles(h, qs) == [h.get_value_at_percentile(q) for q in qs]
 
 
 def test_single_record_and_batches_agree():
