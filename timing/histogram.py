@@ -40,8 +40,8 @@ def _new_histogram() -> Any:
 
 def values_at_percentiles(h: Any, percentiles: Iterable[float]) -> list[int]:
     """``h.get_value_at_percentile(q)`` for each ``q``, in one pass over the counts with
-    numpy: the library walks its 17,408 buckets in Python for each (~0.4 ms a call),
-    which was most of a 64-vehicle run's finish (every stage of every vehicle)."""
+    numpy: the library walks its 17,408 buckets in Python for each (0.4-0.7 ms a call
+    here), which was most of a shard's finish (every stage of every vehicle)."""
     cum = np.cumsum(np.ctypeslib.as_array(h.counts)[:h.counts_len], dtype=np.int64)
     out = []
     for q in percentiles:

@@ -20,8 +20,8 @@ cores to spare), or several, each in a process of its own
 from __future__ import annotations
 
 import functools
-import time
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 

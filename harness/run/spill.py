@@ -13,12 +13,13 @@ from hil.timing.stats import SpillColumn
 
 def spill_summary(vehicles: Iterable[Any], timing: Any) -> dict[str, Any]:
     """``{"failures": N, "columns": {"ego0/latency/end_to_end": n, ...}, "error": first}``
-    over every vehicle's stage columns (``VehicleRun.stage_values``) and the timing
+    over every vehicle's stage columns (``VehicleRun.stage_values``, ``send_parts``) and the timing
     observer's split columns (``TimingObserver.v[name].splits``); ``failures`` 0 and
     nothing else when every block was spilled."""
     columns: dict[str, SpillColumn] = {}
     for v in vehicles:
         columns.update({f"{v.name}/latency/{stage}": col for stage, col in v.stage_values.items()})
+        columns.update({f"{v.name}/capture_to_send/{part}": col for part, col in v.send_parts.items()})
     for name, vt in getattr(timing, "v", {}).items():
         for split, cols in vt.splits.items():
             for part, col in zip(("frame", "value", "uncertainty"), cols.columns):
