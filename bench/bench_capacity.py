@@ -22,7 +22,11 @@ the harness's capture->send p50 at the largest N within 2x of N=1. A row whose r
 not happen (refused, failed) reads so, never "met".
 
     python bench/bench_capacity.py [--vehicles 1 16 32 64] [--fps 20] [--seconds 10]
-        [--cv 16 32] [--lockstep 64] [--set engine.shards=4] [--json FILE]
+        [--cv 16 32] [--lockstep 64] [--set engine.shards=4] [--json FILE] [--logs DIR] [--keep DIR]
+
+Per run also: capture→send part by part, and the CPU of the run's processes by role
+every quarter second (``cpu_by_role`` in the JSON rows); ``bench/late_frames.py`` reads
+a kept run folder.
 """
 
 from __future__ import annotations
