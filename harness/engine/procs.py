@@ -59,10 +59,14 @@ def loop_process(*, collect: bool = True) -> Iterator[None]:
 
 def stacks_on_sigusr2() -> None:
     """SIGUSR2 prints every thread's stack of this process on stderr and goes on: what
-    a run that seems stuck is doing, without stopping it (README, "A run that seems stuck")."""
+    a run that seems stuck is doing, without stopping it (README, "A run that seems stuck").
+    Nothing where there is no standard error to print on (closed, or not a file)."""
     import faulthandler
 
-    faulthandler.register(signal.SIGUSR2, all_threads=True)
+    try:
+        faulthandler.register(signal.SIGUSR2, all_threads=True)
+    except (RuntimeError, ValueError, OSError):  # sys.stderr None, or without a file descriptor
+        pass
 
 
 def die_with_parent(expected_parent: int | None = None) -> None:

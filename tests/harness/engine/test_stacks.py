@@ -43,3 +43,15 @@ def test_sigusr2_prints_every_threads_stack_and_the_process_goes_on() -> None:
             p.wait()
     assert p.returncode == 0, err
     assert "in parked_in_a_named_function" in err and "Current thread" in err, err
+
+
+def test_without_a_standard_error_nothing_is_registered_and_nothing_fails(monkeypatch) -> None:
+    # A harness child must start whatever its stderr is (stacks_on_sigusr2 runs first in
+    # each): None (closed) or an object without a file descriptor (an embedding's).
+    import io
+
+    from hil.harness.engine.procs import stacks_on_sigusr2
+
+    for err in (None, io.StringIO()):
+        monkeypatch.setattr(sys, "stderr", err)
+        stacks_on_sigusr2()  # no exception
