@@ -32,7 +32,8 @@ def test_a_real_time_run_beyond_sixteen_is_measured_and_refused_when_it_cannot_r
     with sim, pytest.raises(ConfigError) as err:
         capacity.check(cfg, sim, workers=2, cores=2)
     msg = str(err.value)
-    assert msg.startswith("scenario.params.n_vehicles: 20 cameras at 200 fps need 4000 images/s")
+    assert msg.startswith("scenario.params.n_vehicles: 20 vehicles at 200 fps need 4000 frames/s (1 camera and "
+                          "its truth each)")
     assert "measured now" in msg and "mode: lockstep" in msg and "\n" not in msg
     fits = int(msg.split("so it carries ")[1].split(" ")[0])
     assert 0 <= fits < 20
@@ -50,6 +51,24 @@ def test_what_the_machine_carries_starts_and_lockstep_is_never_refused() -> None
             assert capacity.check(c, s, workers=2, cores=2) is None  # nothing to measure
 
 
+def test_a_vehicles_frame_is_its_whole_rig_and_its_truth() -> None:
+    # What a render worker draws for a vehicle at a camera instant: every camera of its
+    # rig and, with truth.visible_boxes, each one's segmentation. Measured on the same
+    # world: six cameras take longer than one, and truth adds to colour alone.
+    cfg, sim = _sim(17, camera={"fps": 1.0, "rig": "surround6"}, physics_step_s=0.001)
+    with sim:
+        line = capacity.check(cfg, sim, workers=2, cores=2)
+        assert line is not None and "vehicle frames/s (6 cameras and their truth)" in line
+        one = capacity.measure(sim, workers=1, cores=1, cameras=1, seconds=0.3)
+        six = capacity.measure(sim, workers=1, cores=1, cameras=6, seconds=0.3)
+        six_truth = capacity.measure(sim, workers=1, cores=1, cameras=6, truth_px=1, seconds=0.3)
+    assert six.per_worker < one.per_worker / 2 and six_truth.per_worker < six.per_worker, (one, six, six_truth)
+    cfg, sim = _sim(17, camera={"fps": 1.0}, truth={"visible_boxes": False}, physics_step_s=0.001)
+    with sim:
+        line = capacity.check(cfg, sim, workers=2, cores=2)
+    assert line is not None and "vehicle frames/s (1 camera) per render worker" in line
+
+
 def test_hil_run_refuses_before_anything_starts(tmp_path: Path) -> None:
     out = tmp_path / "run"
     env = dict(os.environ, MUJOCO_GL=GL_BACKEND)
@@ -59,7 +78,7 @@ def test_hil_run_refuses_before_anything_starts(tmp_path: Path) -> None:
                        timeout=120, check=False)
     assert p.returncode == 2, p.stderr
     err = p.stderr.strip().splitlines()
-    assert "Traceback" not in p.stderr and "n_vehicles: 64 cameras at 200 fps" in err[-1], p.stderr
+    assert "Traceback" not in p.stderr and "n_vehicles: 64 vehicles at 200 fps" in err[-1], p.stderr
     assert not (out / "run.mcap").exists() and not list(out.glob("target-*.log"))
 
 
@@ -67,7 +86,7 @@ def test_hil_study_takes_up_to_64_and_refuses_what_it_cannot_render(tmp_path: Pa
     env = dict(os.environ, MUJOCO_GL=GL_BACKEND)
     for argv, needle in ((["--vehicles", "65"], "1..64"),
                          (["--vehicles", "2", "64", "--fps", "200", "--set", "physics_step_s=0.001"],
-                          "n_vehicles: 64 cameras at 200 fps")):
+                          "n_vehicles: 64 vehicles at 200 fps")):
         p = subprocess.run([sys.executable, "-m", "hil.harness.cli.main", "study", "hil_configs/study.yaml", *argv,
                             "--out", str(tmp_path / "s")], cwd=ROOT, env=env, capture_output=True, text=True,
                            timeout=120, check=False)
