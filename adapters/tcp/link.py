@@ -209,6 +209,10 @@ class TcpLink(Link):
                 for cand in [c for c in pending if c.expired(now)]:
                     self._drop(pending, sel, cand, cand.late_reason())
             return None
+        except OSError:
+            if self._stop.is_set():  # close() closed the listener under us (EBADF): the wait just ends
+                return None
+            raise
         finally:
             for cand in pending:  # the run's target came (or the wait ended): the rest go
                 cand.close()

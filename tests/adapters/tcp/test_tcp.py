@@ -186,6 +186,21 @@ def test_target_closing_marks_the_link_gone(tmp_path):
         link.close()
 
 
+def test_a_listener_closed_before_the_wait_begins_ends_it_quietly() -> None:
+    # The race the test below meets now and then, in its order: close() shut the
+    # listening socket after the reader took it and before it waited on it (EBADF there
+    # ended the reader with an exception).
+    link = TcpLink(vehicle_id=0, clock=MonotonicClock(), options=TcpOptions(listen=f"127.0.0.1:{free_port()}"))
+    link.start_listening()
+    link._deadline = time.monotonic() + 5  # noqa: SLF001 - as open() sets it
+    listener = link._listener  # noqa: SLF001
+    assert listener is not None
+    link._stop.set()  # noqa: SLF001 - what close() does first
+    listener.close()
+    assert link._establish() is None  # noqa: SLF001
+    link.close()
+
+
 @pytest.mark.parametrize("mode", ["listen", "connect"])
 def test_close_while_waiting_for_the_target(mode, monkeypatch):
     """close() from another thread while the reader still waits to connect or accept:
