@@ -52,6 +52,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 import bench_lockstep  # noqa: E402
 import bench_realtime  # noqa: E402
 
+from hil.harness.run.vehicle_state import SEND_PARTS  # noqa: E402
+
 P99_SLACK_MS = 0.5
 
 
@@ -215,7 +217,7 @@ def hil_run(n: int, *, fps: float, seconds: float, target: str, lockstep: bool =
 
     by_stage = {k: p50s(k) for k in sorted({k for v in vs for k in v["latency_ms"]})}
     c2s, apply = by_stage.get("capture_to_send", []), by_stage.get("apply_delay", [])
-    parts = {part: statistics.median(x) for part in ("encode", "hand_off", "queue", "send")
+    parts = {part: statistics.median(x) for part in SEND_PARTS
              if (x := [v["capture_to_send_parts_ms"][part]["p50_ms"] for v in vs
                        if v.get("capture_to_send_parts_ms", {}).get(part, {}).get("count")])}
     return {
@@ -334,7 +336,7 @@ def print_realtime(rows: list[dict[str, Any]], fl: dict[str, Any]) -> None:
         print(f"| {r['n']} | {r['target']} | {r['steps']} | {r['over10']} | {r['p99']:.2f} | {r['max']:.2f} | "
               f"{r['factor']:.3f} | {r['min_fps']:.2f} | {r['frames']} | {r['drop_pct']:.3f} | {r['mcap_dropped']} / "
               f"{r['analysis_dropped']} | {_f(r['c2s_p50'])}, {_f(r['c2s_worst'])} | "
-              f"{' / '.join(_f(r['c2s_parts_p50'].get(k)) for k in ('encode', 'hand_off', 'queue', 'send'))} | "
+              f"{' / '.join(_f(r['c2s_parts_p50'].get(k)) for k in SEND_PARTS)} | "
               f"{_f(r['apply_p50'])} | "
               f"{_f(r['run_us'], '.0f')} | {r['cpu_us_per_frame']:.0f} ({r['cpu_busy_pct']:.0f}) | "
               f"{_f(r['gpu_pct'], '.0f')} | {r['workers']} / {r['shards']} | {_f(r['start_s'])} | "

@@ -15,19 +15,16 @@ import csv
 import sys
 from pathlib import Path
 
-import orjson
-
 COLUMNS = ("vehicle", "frame_id", "status", "render_worker", "t_state_s", "render_ms", "capture_to_send_ms",
            "to_estimate_ms", "apply_delay_ms")
 
 
 def frames(run: Path) -> list[dict[str, object]]:
-    from hil.harness.record.recorder import iter_salvaged_messages
+    """Every frame's stamps (``/<vehicle>/pipeline``, read by ``read_run``) as durations
+    and seconds after the run's first camera instant."""
+    from hil.harness.record.run_folder import read_run
 
-    rows = []
-    for _schema, channel, message in iter_salvaged_messages(run / "run.mcap"):
-        if channel.topic.endswith("/pipeline"):
-            rows.append(orjson.loads(message.data))
+    rows = [r for recs in read_run(run).pipeline.values() for r in recs]
     start = min((int(r["t_state_ns"]) for r in rows if r.get("t_state_ns")), default=0)
 
     def ms(a: str, b: str, r: dict[str, object]) -> float | None:

@@ -85,16 +85,15 @@ class VehicleRun:
             for name, v in rec.stages_ns().items():
                 self.stage_values[name].append(v)
 
-    def frame_out(self, lag_ns: int, *, tolerance_ns: int, parts: tuple[int, int, int, int] | None = None) -> None:
+    def frame_out(self, lag_ns: int, *, tolerance_ns: int, parts: tuple[int, int, int, int]) -> None:
         """A frame left for its target ``lag_ns`` after its camera instant; ``parts``:
         its capture -> send in ``SEND_PARTS``' order (ns)."""
         if lag_ns > tolerance_ns:
             self.late_frames += 1
         if lag_ns > self.worst_frame_lag_ns:
             self.worst_frame_lag_ns = lag_ns
-        if parts is not None:
-            for col, ns in zip(self.send_parts.values(), parts):
-                col.append(ns)
+        for col, ns in zip(self.send_parts.values(), parts):
+            col.append(ns)
 
     def count(self, status: FrameStatus) -> int:
         return self.counts[status]
