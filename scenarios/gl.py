@@ -21,6 +21,14 @@ _PROBE = (
     "r = mujoco.Renderer(m, 16, 16); d = mujoco.MjData(m); r.update_scene(d); r.render(); r.close()"
 )
 
+# Set (where the user has not) before the GL driver loads. NVIDIA's driver spins on the CPU
+# while it waits for the GPU (``__GL_YIELD`` unset: ``sched_yield`` in a loop; NOTHING: a
+# bare spin); USLEEP sleeps instead. Render workers serve the capture path at a raised
+# priority, so their spin took the cores the shards needed to forward the frames
+# (bench/README, "start-up burst"). Mesa ignores it. ``__GL_YIELD=`` (empty) gives the
+# driver's own choice back.
+GL_DRIVER_DEFAULTS = {"__GL_YIELD": "USLEEP"}
+
 INSTALL_HINT = (
     "install Mesa's EGL (Debian: apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri) "
     "or OSMesa (apt-get install libosmesa6)"
@@ -42,12 +50,15 @@ def probe(backend: str, *, timeout_s: float = 30.0) -> str | None:
 
 
 def select_backend() -> str:
-    """Set ``MUJOCO_GL`` to a working headless backend and return its name.
+    """Set ``MUJOCO_GL`` to a working headless backend and return its name (and the GL
+    driver's settings of ``GL_DRIVER_DEFAULTS`` the user left unset).
 
     Raises:
         SimulationError: neither EGL nor OSMesa works (with the install hint), or
             ``mujoco`` was already imported with another backend.
     """
+    for name, value in GL_DRIVER_DEFAULTS.items():
+        os.environ.setdefault(name, value)  # inherited by the probe, the render workers, the floors
     chosen = os.environ.get("MUJOCO_GL", "").strip().lower()
     if chosen:
         return chosen
