@@ -224,10 +224,14 @@ class RemoteShard:
     def unconfirmed(self) -> None:
         """The shard records its unconfirmed controls when it finishes."""
 
-    def finish(self, wall_s: float, timeout_s: float = FINISH_TIMEOUT_S) -> ShardDone | None:
-        """Sum up: the shard finishes its analysis and recording and reports; None if
-        it died first (what it recorded so far stays)."""
+    def ask_finish(self, wall_s: float) -> None:
+        """Ask the shard to sum up (:meth:`finish` waits for it): every shard asked
+        first, so they sum up at once rather than one after another."""
         self._send(ShardFinish(wall_s))
+
+    def finish(self, timeout_s: float = FINISH_TIMEOUT_S) -> ShardDone | None:
+        """The shard's sum-up (asked by :meth:`ask_finish`): it finishes its analysis
+        and recording and reports; None if it died first (what it recorded so far stays)."""
         with self._changed:
             self._changed.wait_for(lambda: self.done is not None or not self._readers[0].is_alive(), timeout_s)
         self._readers[1].join(timeout_s)  # its recording, to the last batch

@@ -158,7 +158,8 @@ def test_how_many_shards() -> None:
     assert shard_count(cfg, 1, cores=2) == 1  # N=1 never pays for a process
     assert shard_count(cfg, 16, cores=2) == 1  # 2 cores have none to spare
     assert shard_count(cfg, 64, cores=16) == 4 and shard_count(cfg, 64, cores=64) == 4
-    assert shard_count(cfg, 8, cores=64) == 1
+    assert shard_count(cfg, 8, cores=64) == 1 and shard_count(cfg, 16, cores=16) == 1
+    assert shard_count(cfg, 17, cores=16) == 2 and shard_count(cfg, 24, cores=16) == 2  # one shard of 24 saturated
     assert shard_count(parse_config({**_cfg(), "engine": {"shards": 3}}), 2) == 2  # at most one per vehicle
     assert assign(5, 2) == (0, 1, 0, 1, 0) and assign(5, 1) == ()
     can = parse_config({**_cfg(), "target": {"transport": "can"}, "engine": {"shards": 2}})
