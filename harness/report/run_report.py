@@ -145,6 +145,11 @@ def _run_section(d: RunData) -> str:
                 f"loop thread {cost.loop_thread_us_per_frame} µs, analysis thread "
                 f"{cost.analysis_thread_us_per_frame} µs (CPU), analysis tasks dropped "
                 f"{cost.analysis_tasks_dropped}")))
+            if cost.start_s is not None and cost.summary_s is not None:
+                windows = "" if cost.windows_s is None else f", of it {ms(cost.windows_s, 2)} s cutting case windows"
+                rows.append(("start and end", escape(
+                    f"{ms(cost.start_s, 2)} s from the command to the first step; {ms(cost.summary_s, 2)} s from the "
+                    f"last step to summary.json{windows}")))
         rows.append(("recorder", escape(_recorder_text(s.recorder,
                                                        None if d.truncated or not d.mcap_present else d.messages))))
         rows.append(("collisions", str(len(s.collisions))))

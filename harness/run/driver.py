@@ -368,10 +368,12 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                 # of a case's history is held during it).
                 from hil.harness.cases.windows import write_case_windows
 
+                cut_ns = clock.now_ns()
                 try:
                     summary["corner_cases"]["errors"] += write_case_windows(out_dir, limit=cc.windows)
                 except HilError as err:
                     summary["corner_cases"]["errors"].append(str(err))
+                summary["harness_cost"]["windows_s"] = round((clock.now_ns() - cut_ns) / 1e9, 3)
             if cfg.recording.rosbag2:  # ROS 2's bag beside run.mcap, cut from it (harness/report/rosbag2.py)
                 summary["rosbag2"] = _write_rosbag2(mcap_path, out_dir)
         finally:
@@ -386,6 +388,8 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
     batches = _target_batches(out_dir)
     if batches is not None:
         summary["target_batches"] = batches
+    # From the loop's last step to this file (case windows included: ``windows_s``).
+    summary["harness_cost"]["summary_s"] = round((clock.now_ns() - stats.wall_end_ns) / 1e9, 3)
     summary_path.write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")
     write_report(out_dir)
     return RunResult(out_dir, mcap_path, summary_path, summary)

@@ -153,6 +153,8 @@ class HarnessCost:
     analysis_tasks_dropped: int | None = None
     start_s: float | None = None
     finish_s: float | None = None
+    windows_s: float | None = None
+    summary_s: float | None = None
 
     @classmethod
     def from_json(cls, f: Fields) -> HarnessCost:
@@ -160,7 +162,8 @@ class HarnessCost:
                    loop_thread_us_per_frame=f.opt_number("loop_thread_us_per_frame"),
                    analysis_thread_us_per_frame=f.opt_number("analysis_thread_us_per_frame"),
                    analysis_tasks_dropped=f.opt_integer("analysis_tasks_dropped"), start_s=f.opt_number("start_s"),
-                   finish_s=f.opt_number("finish_s"))
+                   finish_s=f.opt_number("finish_s"), windows_s=f.opt_number("windows_s"),
+                   summary_s=f.opt_number("summary_s"))
 
 
 @dataclass(frozen=True)
