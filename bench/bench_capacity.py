@@ -4,7 +4,8 @@ call against floors of the same call (written for a GPU host; runs anywhere).
 One after another (never two at once):
 
 * floor: the physics process alone pacing the largest world (``--vehicles``' last N,
-  ``hil_configs/scale.yaml``) for ``--floor-s`` seconds (``bench_realtime.floor``);
+  ``hil_configs/scale.yaml``) for ``--floor-s`` seconds (``bench_realtime.floor``), on
+  the core and at the nice value a run gives it;
 * real time: ``hil run hil_configs/scale.yaml`` with N vehicles at ``--fps``, echo
   targets, for each N of ``--vehicles``; then the same with the OpenCV target for each
   N of ``--cv``;
@@ -400,7 +401,7 @@ def main() -> int:
 
     big = max([*a.vehicles, *a.cv, 1])
     fl: dict[str, Any] = bench_realtime.floor(a.floor_s, config="hil_configs/scale.yaml",
-                                              overrides=(f"scenario.params.n_vehicles={big}",))
+                                              overrides=(f"scenario.params.n_vehicles={big}",), as_run=True)
     keep({"floor": "physics", "n": big, **fl})
     print(f"## floor: the physics process alone, {big} vehicles' world, {a.floor_s:g} s\n")
     print("| steps | > 10 ms late | p99 ms | max ms | scheduling |\n|---:|---:|---:|---:|---|")

@@ -63,15 +63,17 @@ def loaded_floor(seconds: float, *, priority: int, nice: int) -> dict[str, objec
 
 
 def floor(seconds: float, *, priority: int | None = None, nice: int = 0, config: str = "hil_configs/demo.yaml",
-          overrides: tuple[str, ...] = ()) -> dict[str, object]:
+          overrides: tuple[str, ...] = (), as_run: bool = False) -> dict[str, object]:
     """The physics process pacing a config's world (the demo's unless told) with nothing
-    else to do."""
+    else to do. ``as_run``: placed as a run places it (``engine.physics_cpu``'s core,
+    where it spins between steps, and ``engine.fallback_nice``), ``nice`` aside."""
     from hil.scenarios import gl
 
     gl.select_backend()
     from hil.harness.config.loading import load_config
     from hil.harness.engine.messages import Done, Exit, Finished, PhysicsReady, Start, decode
     from hil.harness.engine.physics import PhysicsOutputs, PhysicsSpec, physics_main
+    from hil.harness.engine.procs import physics_core
     from hil.harness.engine.rings import Ring
     from hil.harness.run.driver import build_world
     from hil import scenarios
@@ -83,7 +85,8 @@ def floor(seconds: float, *, priority: int | None = None, nice: int = 0, config:
                        wall_per_step_ns=step_ns, period_steps=cfg.camera_period_steps, phases=(),
                        late_tolerance_ns=int(cfg.engine.late_tolerance_ms * 1e6),
                        realtime_priority=cfg.engine.realtime_priority if priority is None else priority,
-                       fallback_nice=nice)
+                       fallback_nice=cfg.engine.fallback_nice if as_run else nice,
+                       cpu=physics_core(cfg.engine.physics_cpu) if as_run else None)
     del scenarios
     ctx = mp.get_context("spawn")
     ring = Ring.create("run")
