@@ -291,18 +291,22 @@ class EngineConfig(BaseModel):
     physics_cpu: str | int = "auto"
     ring_kib: Int = Field(4096, ge=1, le=1 << 20)  # each ring the physics writes into (KiB)
     # Processes the vehicles' work is cut into (links, timing analysis, detector,
-    # recording's encoding): "auto" gives one per 16 vehicles, at most a quarter of the
-    # cores, and 1 (the run process itself) below that; a number asks for that many
+    # recording's encoding): "auto" gives one per 16 vehicles or part of them, at most a
+    # quarter of the cores, and 1 (the run process itself) for 16 or fewer; a number asks for that many
     # (at most one per vehicle). Transports can and mixed and shared targets keep
     # every vehicle in the run process.
     shards: str | int = "auto"
+    # Before a real-time run's first step the render workers render their cameras this
+    # many ms, so a GPU that idled while the targets started is awake for the first
+    # frames; "auto": 300 where the workers render on a GPU, 0 on a software renderer.
+    render_warm_ms: str | int = "auto"
     faults: EngineFaults = Field(default_factory=EngineFaults)
 
-    @field_validator("physics_cpu", "shards", mode="before")
+    @field_validator("physics_cpu", "shards", "render_warm_ms", mode="before")
     @classmethod
     def _auto_or_count(cls, v: object, info: ValidationInfo) -> object:
         words = ("auto", "none") if info.field_name == "physics_cpu" else ("auto",)
-        low = 0 if info.field_name == "physics_cpu" else 1
+        low = 1 if info.field_name == "shards" else 0
         if v in words or (isinstance(v, int) and not isinstance(v, bool) and low <= v <= 4095):
             return v
         raise ValueError(f"{' or '.join(repr(w) for w in words)} or a whole number from {low}")

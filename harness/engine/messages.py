@@ -144,7 +144,19 @@ class RenderJob(NamedTuple):
 
 
 class WorkerReady(NamedTuple):
+    """A render worker is ready; ``renderer``: its OpenGL renderer (``GL_RENDERER``;
+    empty where it could not be read)."""
+
     pid: int
+    renderer: str = ""
+
+
+class Warm(NamedTuple):
+    """Render every camera of the worker again and again until ``until_ns`` (the run's
+    start): a GPU that idled while the targets started leaves its idle state before the
+    first frame, not during the first second (``engine.render_warm_ms``)."""
+
+    until_ns: int
 
 
 class FrameReady(NamedTuple):

@@ -14,7 +14,7 @@ from multiprocessing.connection import Connection
 from typing import Any, TypeVar
 
 from hil.common.errors import SimulationError
-from hil.harness.engine.messages import (Advance, ApplyControl, Exit, Halt, PhysicsReady, Start, StopWorker,
+from hil.harness.engine.messages import (Advance, ApplyControl, Exit, Halt, PhysicsReady, Start, StopWorker, Warm,
                                          WorkerFailed, WorkerReady)
 from hil.harness.engine.physics import PhysicsOutputs, PhysicsSpec, physics_main
 from hil.harness.engine.procs import Pump, RingPump, end_child, widen_pipe
@@ -22,6 +22,8 @@ from hil.harness.engine.render import FrameSlots, RenderSpec, render_main
 from hil.harness.engine.rings import Ring, RingSpec
 
 START_TIMEOUT_S = 60.0
+WARM_NS = 300_000_000  # engine.render_warm_ms "auto" on a GPU
+SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swrast", "software rasterizer")  # Mesa's, in GL_RENDERER
 RING_BYTES = 4 << 20  # each of the physics's rings: ~2,000 world states of a 16-vehicle scene
 _M = TypeVar("_M")
 
@@ -30,6 +32,16 @@ def auto_workers(n_vehicles: int) -> int:
     """Render workers when the config says 0: one per spare core, at most one per
     vehicle (the physics process and the run process keep a core between them)."""
     return max(1, min(n_vehicles, (os.cpu_count() or 2) - 1))
+
+
+def warm_ns(setting: str | int, renderers: list[str]) -> int:
+    """How long the render workers warm up before a real-time start
+    (``engine.render_warm_ms``): "auto" warms where a worker renders on hardware (its
+    ``GL_RENDERER`` known and not one of Mesa's software renderers)."""
+    if setting != "auto":
+        return int(setting) * 1_000_000
+    hardware = any(r and not any(sw in r.lower() for sw in SOFTWARE_RENDERERS) for r in renderers)
+    return WARM_NS if hardware else 0
 
 
 @contextlib.contextmanager
@@ -71,7 +83,8 @@ class Engine:
     messages (``hil.harness.engine.messages``) go there, on the threads that read them."""
 
     def __init__(self, *, physics: PhysicsSpec, render: RenderSpec, workers: int, ring_bytes: int = RING_BYTES,
-                 stall_run: tuple[int, float] | None = None, shard_of: tuple[int, ...] = ()) -> None:
+                 stall_run: tuple[int, float] | None = None, shard_of: tuple[int, ...] = (),
+                 render_warm: str | int = "auto") -> None:
         """``stall_run``: (step, seconds): the injected stuck consumer
         (``engine.faults.stall_run_ms``, see ``RingPump``). ``shard_of``: the shard
         process of each ego when the run's vehicles live in shards of their own
@@ -81,6 +94,8 @@ class Engine:
         self.slots: dict[str, FrameSlots] = {}
         self.scheduling = "not started"
         self.worker_pids: list[int] = []
+        self.renderers: list[str] = []  # each worker's GL_RENDERER
+        self.warm_ns = 0  # render_warm: how long the workers warm up before a real-time start
         self.rings: list[Ring] = []
         self._pumps: list[Pump | RingPump] = []
         self._stall = stall_run
@@ -150,7 +165,10 @@ class Engine:
             self._conns = [pc, *self._render]
             self.scheduling = self._expect(pc, PhysicsReady, "physics").scheduling
             for w, c in enumerate(self._render):
-                self.worker_pids.append(self._expect(c, WorkerReady, f"render worker {w}").pid)
+                ready = self._expect(c, WorkerReady, f"render worker {w}")
+                self.worker_pids.append(ready.pid)
+                self.renderers.append(ready.renderer)
+            self.warm_ns = warm_ns(render_warm, self.renderers)
 
         except BaseException:
             self.close()
@@ -194,7 +212,12 @@ class Engine:
 
     # -- to the physics process ------------------------------------------------------
 
-    def start(self, wall_start_ns: int) -> None:
+    def start(self, wall_start_ns: int, *, warm: bool = False) -> None:
+        """Start the physics, paced from ``wall_start_ns``; ``warm``: the render workers
+        render their cameras until then (``Warm``)."""
+        if warm:
+            for c in self._render:
+                c.send(Warm(wall_start_ns))
         self._physics.send(Start(wall_start_ns))
 
     def control(self, c: ApplyControl) -> None:

@@ -26,7 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from hil.harness.engine.messages import CameraTruthReady, FrameReady, RenderJob, WorkerFailed, WorkerReady, decode
+from hil.harness.engine.messages import (CameraTruthReady, FrameReady, RenderJob, Warm, WorkerFailed, WorkerReady,
+                                         decode)
 from hil.harness.engine.procs import die_with_parent
 from hil.harness.engine.rings import Ring, RingSpec
 
@@ -159,13 +160,17 @@ def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, parent_pid: 
     counter = {(v, k): 0 for v in spec.vehicles for k in range(spec.cameras)}
     ring = Ring.open(jobs, producer=False)
     to = {v: outs[spec.out_of[v]] if spec.out_of else conn for v in spec.vehicles}
-    conn.send(WorkerReady(os.getpid()))
+    conn.send(WorkerReady(os.getpid(), gl_renderer()))
     status = 0
     try:
         while True:
             ready = wait([jobs.bell, conn])
             if conn in ready:
-                break  # StopWorker (or the run process is gone)
+                msg = conn.recv()
+                if isinstance(msg, Warm):
+                    _warm(sim, spec, msg.until_ns)
+                    continue
+                break  # StopWorker (the run process gone: EOFError)
             records = ring.read()
             if not records and ring.closed_by_producer:
                 break  # the physics is gone
@@ -189,6 +194,27 @@ def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, parent_pid: 
             s.close()
         sim.close()
         os._exit(status)
+
+
+def gl_renderer() -> str:
+    """The current OpenGL context's renderer (``GL_RENDERER``: "llvmpipe (LLVM 15.0.6,
+    256 bits)", "NVIDIA H200/PCIe/SSE2"); empty where it cannot be read."""
+    try:
+        from OpenGL import GL
+
+        name = GL.glGetString(GL.GL_RENDERER)
+    except Exception:  # noqa: BLE001 - PyOpenGL missing or no current context: unknown, not an error
+        return ""
+    return name.decode(errors="replace") if isinstance(name, bytes) else ""
+
+
+def _warm(sim: Any, spec: RenderSpec, until_ns: int) -> None:
+    """Render the worker's cameras in turn until ``until_ns`` (``Warm``)."""
+    cams = [(name, k) for name in spec.vehicles for k in range(spec.cameras)]
+    i = 0
+    while cams and time.monotonic_ns() < until_ns:
+        sim.render(*cams[i % len(cams)])
+        i += 1
 
 
 def _render_job(job: RenderJob, to: dict[str, Connection], sim: Any, slots: dict[str, FrameSlots],

@@ -291,7 +291,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
             affinity = keep_off_core(phys_spec.cpu)
             engine = Engine(physics=phys_spec, render=render_spec, ring_bytes=cfg.engine.ring_kib * 1024,
                             workers=workers, stall_run=stall_of(cfg),
-                            shard_of=shard_of)
+                            shard_of=shard_of, render_warm=cfg.engine.render_warm_ms)
             fleet.start(engine)
             guard = _RecordingGuard()
             reserve = _reserve_disk(out_dir)

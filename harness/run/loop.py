@@ -72,7 +72,8 @@ class SimLoop:
         self.shard_of = {v.vehicle_id: sh for sh in shards for v in sh.vehicles}
         self.shard_by_name = {v.name: sh for sh in shards for v in sh.vehicles}
         self.egos = sim.egos
-        self.stats = LoopStats(render_workers=engine.workers, scheduling=engine.scheduling)
+        self.stats = LoopStats(render_workers=engine.workers, scheduling=engine.scheduling,
+                               renderer=next((r for r in engine.renderers if r), ""))
         self.stop_reason: str | None = None
         self.on_tick = on_tick
         self.frame_tolerance_ns = cfg.frame_late_tolerance_ns
@@ -184,9 +185,13 @@ class SimLoop:
 
     def _run(self) -> LoopStats:
         st = self.stats
-        st.wall_start_ns = self.clock.now_ns()
+        # Real time: paced from after the render workers' warm-up (a GPU awake for the
+        # first frames; engine.render_warm_ms), which the start-up (start_s) includes.
+        lead = self.engine.warm_ns if self.cfg.mode != Mode.LOCKSTEP else 0
+        st.render_warm_ms = lead / 1e6
+        st.wall_start_ns = self.clock.now_ns() + lead
         try:
-            self.engine.start(st.wall_start_ns)
+            self.engine.start(st.wall_start_ns, warm=lead > 0)
             if self.cfg.mode == Mode.LOCKSTEP:
                 self._run_lockstep()
             else:

@@ -74,6 +74,8 @@ class LoopStats:
     lateness: dict[str, Any] = field(default_factory=dict)   # the physics process's histogram
     scheduling: str = ""
     render_workers: int = 0
+    renderer: str = ""         # the render workers' GL_RENDERER
+    render_warm_ms: float = 0.0  # how long they rendered before the first step (engine.render_warm_ms)
     loop_cpu_ns: int = 0       # CPU time of the loop thread (frames, estimates, controls)
     analysis_cpu_ns: int = 0   # CPU time of the analysis thread (truth, observers, recording)
     analysis_dropped: int = 0  # analysis tasks dropped on a full queue

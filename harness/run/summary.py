@@ -165,6 +165,8 @@ def realtime_summary(loop: SimLoop, stats: LoopStats, camera: dict[str, CameraFi
         "kept_realtime": not lagging,
         "physics_scheduling": stats.scheduling,
         "render_workers": stats.render_workers,
+        "renderer": stats.renderer,
+        "render_warm_ms": stats.render_warm_ms,
     }
 
 
