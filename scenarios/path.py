@@ -44,6 +44,7 @@ class Path:
     heading0_rad: float
     segments: tuple[Segment, ...] = ()
     _starts: np.ndarray = field(init=False, repr=False, compare=False)  # (n, 4): s, x, y, heading
+    _curvatures: np.ndarray = field(init=False, repr=False, compare=False)  # (n,): each segment's
 
     def __post_init__(self) -> None:
         rows = []
@@ -54,6 +55,8 @@ class Path:
             s += seg.length_m
         rows.append((s, x, y, h))
         object.__setattr__(self, "_starts", np.array(rows, dtype=np.float64))
+        object.__setattr__(self, "_curvatures", np.array([seg.curvature_per_m for seg in self.segments],
+                                                         dtype=np.float64))
 
     # -- building ------------------------------------------------------------
 
@@ -112,7 +115,7 @@ class Path:
             return self.x0_m + s * np.cos(h), self.y0_m + s * np.sin(h), h
         starts = self._starts
         idx = np.clip(np.searchsorted(starts[:n, 0], s, side="right") - 1, 0, n - 1)
-        k = np.array([seg.curvature_per_m for seg in self.segments])[idx]
+        k = self._curvatures[idx]
         s0, x0, y0, h0 = starts[idx, 0], starts[idx, 1], starts[idx, 2], starts[idx, 3]
         u = s - s0
         # Off either end: a straight continuation along the end heading.
@@ -135,7 +138,7 @@ class Path:
         if n == 0:
             return np.zeros_like(s)
         idx = np.clip(np.searchsorted(self._starts[:n, 0], s, side="right") - 1, 0, n - 1)
-        k = np.array([seg.curvature_per_m for seg in self.segments])[idx]
+        k = self._curvatures[idx]
         return np.where((s < 0) | (s > self.length_m), 0.0, k)
 
     def project(self, x_m: float | np.ndarray, y_m: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:

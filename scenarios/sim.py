@@ -116,6 +116,9 @@ class Simulation:
         self._half_l = np.array([v.size_m[0] / 2 for v in world.vehicles])
         self._half_w = np.array([v.size_m[1] / 2 for v in world.vehicles])
         self._others = [np.array([j for j in range(n) if j != i], int) for i in range(n)]
+        # Each entity's fixed part of its EntityState (name, class label, size), read at
+        # every camera instant: the label's enum lookup was a third of ground_truth().
+        self._fixed = [(v.name, v.cls.label, v.size_m) for v in world.vehicles]
         self._states_step = -1
         self._states_cache: _States | None = None
         self._qvel_before = np.zeros(m.nv)
@@ -383,8 +386,8 @@ class Simulation:
         self._sync_kinematics()
         t = self.sim_time_ns
         xs, ys, hs, vxs, vys = (a.tolist() for a in self._states())
-        ents = tuple(EntityState(v.name, v.cls.label, xs[i], ys[i], vxs[i], vys[i], hs[i], v.size_m, i, t)
-                     for i, v in enumerate(self.world.vehicles))
+        ents = tuple(EntityState(name, label, xs[i], ys[i], vxs[i], vys[i], hs[i], size, i, t)
+                     for i, (name, label, size) in enumerate(self._fixed))
         truths = tuple(self._ego_truth(name) for name in (self.egos if egos is None else egos))
         collisions, self._new_collisions = tuple(self._new_collisions), []
         return GroundTruth(t, ents, truths, collisions)
