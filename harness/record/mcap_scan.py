@@ -4,8 +4,8 @@ The readers of a finished run (the report, the case windows, ``hil compare``, re
 go over every message of ``run.mcap`` once. The ``mcap`` package's stream reader
 builds an object for every record (message indexes included) through a stream
 wrapper: at 64 vehicles that was most of the report's time (bench/README, issue 24).
-This walks the file through ``memoryview`` and ``struct`` and makes an object only
-for what it yields: the same ``Schema``, ``Channel`` and ``Message`` records of
+This walks the file's bytes with ``struct`` and makes an object only for what it
+yields: the same ``Schema``, ``Channel`` and ``Message`` records of
 ``mcap.records`` the package's reader yields, in the same order, up to the last
 complete chunk (a crashed run's file ends anywhere), a chunk whose CRC fails ending
 it like a cut. Schema and channel records are parsed by the package itself.
@@ -14,7 +14,6 @@ it like a cut. Schema and channel records are parsed by the package itself.
 from __future__ import annotations
 
 import io
-import mmap
 import struct
 import zlib
 from collections.abc import Iterator
@@ -40,23 +39,42 @@ class Cut(Exception):
 
 
 def iter_messages(f: BinaryIO) -> Iterator[Item]:
-    """The messages of the MCAP file open as ``f`` (a real file: it is mapped), in file
-    order, up to the last complete chunk.
+    """The messages of the MCAP file open as ``f`` (binary, seekable), in file order, up
+    to the last complete chunk. Plain reads and ``bytes`` (no ``mmap`` or ``memoryview``
+    outlives a consumer that stops early).
 
     Raises:
         InvalidMagic: the file does not start as MCAP.
     """
-    if f.seek(0, io.SEEK_END) < len(MAGIC):
-        f.seek(0)
-        raise InvalidMagic(f.read())
-    with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mm:
-        buf = memoryview(mm)
-        try:
-            if buf[:len(MAGIC)] != MAGIC:
-                raise InvalidMagic(bytes(buf[:len(MAGIC)]))
-            yield from _Scan().top(buf, len(MAGIC))
-        finally:
-            buf.release()
+    size = f.seek(0, io.SEEK_END)
+    f.seek(0)
+    magic = f.read(len(MAGIC))
+    if magic != MAGIC:
+        raise InvalidMagic(magic)
+    scan = _Scan()
+    while True:
+        head = f.read(_RECORD.size)
+        if len(head) < _RECORD.size:
+            return  # the end, or the cut inside a record's opcode or length
+        op, n = _RECORD.unpack(head)
+        if op in (_OP_CHUNK, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE):
+            body = f.read(n)
+            if len(body) < n:
+                return  # the cut: an incomplete record
+            if op == _OP_CHUNK:
+                try:
+                    records = _chunk_records(body)
+                except Cut:
+                    return
+                yield from scan.records(records)
+            else:
+                yield from scan.records(head + body)
+        elif op in (_OP_DATA_END, _OP_FOOTER):
+            return  # the summary section repeats schemas and channels only
+        elif f.tell() + n > size:
+            return
+        else:
+            f.seek(n, io.SEEK_CUR)  # message indexes, attachments, metadata: not messages
 
 
 class _Scan:
@@ -64,28 +82,11 @@ class _Scan:
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, tuple[Schema | None, Channel]] = {}
 
-    def top(self, buf: memoryview, at: int) -> Iterator[Item]:
-        end = len(buf)
-        while at + _RECORD.size <= end:
-            op, n = _RECORD.unpack_from(buf, at)
-            body, at = at + _RECORD.size, at + _RECORD.size + n
-            if at > end:
-                return  # the cut: an incomplete record
-            if op == _OP_CHUNK:
-                try:
-                    records = _chunk_records(buf[body:at])
-                except Cut:
-                    return
-                yield from self.records(memoryview(records), 0, len(records))
-            elif op in (_OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE):
-                yield from self.records(buf, body - _RECORD.size, at)
-            elif op in (_OP_DATA_END, _OP_FOOTER):
-                return  # the summary section repeats schemas and channels only
-
-    def records(self, buf: memoryview, at: int, end: int) -> Iterator[Item]:
-        """The messages among the records of ``buf[at:end]`` (a chunk's, or one
-        record outside chunks), learning its schemas and channels."""
+    def records(self, buf: bytes) -> Iterator[Item]:
+        """The messages among the records of ``buf`` (a chunk's, or one record outside
+        chunks), learning its schemas and channels."""
         channels, unpack_record, unpack_message = self.channels, _RECORD.unpack_from, _MESSAGE.unpack_from
+        at, end = 0, len(buf)
         while at + _RECORD.size <= end:
             op, n = unpack_record(buf, at)
             body, at = at + _RECORD.size, at + _RECORD.size + n
@@ -97,7 +98,7 @@ class _Scan:
                 if known is None:
                     return  # a message before its channel: damaged; stop as the package's reader would
                 yield known[0], known[1], Message(channel_id=cid, log_time=log_time, publish_time=publish_time,
-                                                  sequence=seq, data=bytes(buf[body + _MESSAGE.size:at]))
+                                                  sequence=seq, data=buf[body + _MESSAGE.size:at])
             elif op == _OP_SCHEMA:
                 s = Schema.read(ReadDataStream(io.BytesIO(buf[body:at])))
                 self.schemas[s.id] = s
@@ -108,7 +109,7 @@ class _Scan:
                 channels[c.id] = (self.schemas.get(c.schema_id) if c.schema_id else None, c)
 
 
-def _chunk_records(body: memoryview) -> bytes | memoryview:
+def _chunk_records(body: bytes) -> bytes:
     """A chunk record's records, decompressed and CRC-checked.
 
     Raises:
@@ -118,7 +119,7 @@ def _chunk_records(body: memoryview) -> bytes | memoryview:
         _start, _end, size, crc = _CHUNK.unpack_from(body, 0)
         at = _CHUNK.size
         (n,) = _U32.unpack_from(body, at)
-        compression = bytes(body[at + 4:at + 4 + n]).decode()
+        compression = body[at + 4:at + 4 + n].decode()
         at += 4 + n
         (n,) = _U64.unpack_from(body, at)
         data = body[at + 8:at + 8 + n]
@@ -127,7 +128,7 @@ def _chunk_records(body: memoryview) -> bytes | memoryview:
         if compression == "zstd":
             import zstandard
 
-            records: bytes | memoryview = zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+            records: bytes = zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
         elif compression == "lz4":
             import lz4.frame
 

@@ -108,3 +108,27 @@ def test_not_an_mcap_file_is_a_config_error(tmp_path: Path) -> None:
         p.write_bytes(content)
         with pytest.raises(ConfigError, match="not an MCAP file"):
             list(iter_salvaged_messages(p))
+
+
+def test_a_reader_that_stops_early_leaves_nothing_behind(tmp_path: Path) -> None:
+    # A consumer that takes a few messages and drops the rest (a search episode's hash
+    # did): closing the reader, at once or by the garbage collector, raises nothing.
+    import gc
+    import sys
+
+    path = _written(tmp_path, CompressionType.NONE)
+    raised: list[object] = []
+    hook, sys.unraisablehook = sys.unraisablehook, lambda u: raised.append(u.exc_value)
+    try:
+        for stop_after in (1, 57, 300):
+            it = iter_salvaged_messages(path)
+            for _ in range(stop_after):
+                next(it)
+            if stop_after == 57:
+                del it
+                gc.collect()
+            else:
+                it.close()
+    finally:
+        sys.unraisablehook = hook
+    assert raised == []
