@@ -73,6 +73,8 @@ class RealtimeFigures:
     physics_scheduling: str | None = None
     render_workers: int | None = None
     shards: int | None = None
+    renderer: str | None = None
+    render_warm_ms: float | None = None
     extra: Mapping[str, Any] = field(default_factory=dict)
 
     @classmethod
@@ -84,7 +86,8 @@ class RealtimeFigures:
                    f.integer("steps_over_10ms"), f.nums("lateness_ms"), f.opt_number("max_lateness_ms"),
                    None if cam is None else CameraHealth.from_json(cam), f.counts("behind"), lagging,
                    f.flag("kept_realtime", not lagging), f.opt_text("physics_scheduling"),
-                   f.opt_integer("render_workers"), f.opt_integer("shards"), f.rest(field_names(cls)))
+                   f.opt_integer("render_workers"), f.opt_integer("shards"), f.opt_text("renderer"),
+                   f.opt_number("render_warm_ms"), f.rest(field_names(cls)))
 
 
 @dataclass(frozen=True)
