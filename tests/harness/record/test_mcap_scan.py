@@ -47,7 +47,8 @@ def _same(a: list[tuple], b: list[tuple]) -> None:
             (mb.channel_id, mb.sequence, mb.log_time, mb.publish_time, mb.data)
 
 
-def _written(tmp_path: Path, compression: CompressionType, *, chunk_size: int = 4096, use_chunking: bool = True) -> Path:
+def _written(tmp_path: Path, compression: CompressionType, *, chunk_size: int = 4096,
+             use_chunking: bool = True) -> Path:
     path = tmp_path / f"w-{compression.value or 'none'}-{use_chunking}.mcap"
     with open(path, "wb") as f:
         w = Writer(f, compression=compression, chunk_size=chunk_size, use_chunking=use_chunking)
