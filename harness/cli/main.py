@@ -214,8 +214,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
                   + (" (software fallback: slower)" if backend == "osmesa" else ""))
     try:
         with Progress(console=console, enabled=cfg.progress and not args.no_progress) as progress:
-            result = execute(cfg, out_dir=out, gl_backend=backend, on_progress=progress.update,
-                             notify=console.print)
+            shown = progress.update if progress.enabled else None  # no table: no rows computed
+            result = execute(cfg, out_dir=out, gl_backend=backend, on_progress=shown, notify=console.print)
     except (HilError, KeyboardInterrupt) as err:
         reason = mark_failed(out, err)
         if isinstance(err, KeyboardInterrupt) and (out / "run.mcap").is_file():
