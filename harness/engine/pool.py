@@ -34,7 +34,7 @@ def auto_workers(n_vehicles: int) -> int:
     return max(1, min(n_vehicles, (os.cpu_count() or 2) - 1))
 
 
-def warm_ns(setting: str | int, renderers: list[str]) -> int:
+def warm_lead_ns(setting: str | int, renderers: list[str]) -> int:
     """How long the render workers warm up before a real-time start
     (``engine.render_warm_ms``): "auto" warms where a worker renders on hardware (its
     ``GL_RENDERER`` known and not one of Mesa's software renderers)."""
@@ -168,7 +168,7 @@ class Engine:
                 ready = self._expect(c, WorkerReady, f"render worker {w}")
                 self.worker_pids.append(ready.pid)
                 self.renderers.append(ready.renderer)
-            self.warm_ns = warm_ns(render_warm, self.renderers)
+            self.warm_ns = warm_lead_ns(render_warm, self.renderers)
 
         except BaseException:
             self.close()

@@ -137,9 +137,7 @@ def _chunk_records(body: bytes) -> bytes:
             records = data
         else:
             raise Cut
-    except Cut:
-        raise
-    except Exception as err:  # noqa: BLE001 - struct, unicode or a decompressor's own error: damage
+    except Exception as err:  # noqa: BLE001 - struct, unicode, a decompressor's own error, Cut: damage
         raise Cut from err
     if len(records) != size or (crc and zlib.crc32(records) != crc):
         raise Cut

@@ -27,6 +27,7 @@ from hil.harness import __version__
 from hil.harness.config.loading import config_hash, dump_config
 from hil.harness.config.model import RunConfig, Transport
 from hil.harness.engine.heap import fix_mmap_threshold
+from hil.harness.run.vehicle_state import PROGRESS_NS
 from hil.timing.clock import MonotonicClock
 
 
@@ -154,9 +155,6 @@ def _target_batches(out_dir: Path) -> dict[str, Any] | None:
     total = sum(sizes.values())
     return {"batches": total, "by_size": {str(k): v for k, v in sorted(sizes.items())},
             "mean_size": round(sum(k * v for k, v in sizes.items()) / total, 3) if total else 0.0}
-
-
-PROGRESS_NS = 250_000_000  # the live table's rows, at most this often (each is every vehicle's percentiles)
 
 
 def _progress_every(every_ns: int, clock: Any, show: Callable[[int], None]) -> Callable[[], None]:

@@ -37,12 +37,11 @@ from hil.harness.run.shard_proc import (Doorbell, Outbox, ShardDone, ShardDrain,
                                         ShardStop, ShardStopRequest)
 from hil.harness.run.run_specs import stall_of
 from hil.harness.run.target_launch import close_links
-from hil.harness.run.vehicle_state import VehicleRun
+from hil.harness.run.vehicle_state import PROGRESS_NS, VehicleRun
 from hil.scenarios.sim import Simulation
 from hil.timing.clock import MonotonicClock
 
 TICK_NS = 20_000_000
-PROGRESS_NS = 250_000_000
 PHYSICS_DONE_TIMEOUT_S = 10.0
 
 

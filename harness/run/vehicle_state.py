@@ -34,6 +34,9 @@ class InFlight:
 SEND_PARTS = ("encode", "hand_off", "queue", "send")
 
 
+PROGRESS_NS = 250_000_000  # progress rows (every vehicle's percentiles), at most this often
+
+
 class ProgressRow(NamedTuple):
     """One vehicle's line of the live display (plain values: a shard in another
     process sends them)."""

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from hil.harness.config.loading import parse_config
-from hil.harness.engine.pool import WARM_NS, warm_ns
+from hil.harness.engine.pool import WARM_NS, warm_lead_ns as warm_ns
 from hil.harness.run.driver import execute, prepare_out_dir
 from tests.conftest import GL_BACKEND
 

@@ -4,7 +4,8 @@ vehicles spent a quarter of its loop thread's CPU on rows nobody saw)."""
 
 from __future__ import annotations
 
-from hil.harness.run.driver import PROGRESS_NS, _progress_every
+from hil.harness.run.driver import _progress_every
+from hil.harness.run.vehicle_state import PROGRESS_NS
 from hil.timing.clock import ManualClock
 
 
