@@ -23,8 +23,12 @@ fresh HELLO. The harness keeps the first HELLO and drops the duplicates (counted
 ``ZenohLink.zenoh_stats.duplicate_hellos``).
 
 Liveness. The harness subscribes to the target's liveliness token; its DELETE (the
-target's session closed, its process died, or its link's lease expired) marks the
-link gone. A killed process closes its TCP socket and is noticed in a few ms (3-4 ms
+target's session closed, its process died, or its link's lease expired) after its
+HELLO marks the link gone. A DELETE before the HELLO does not: a target serving run
+after run undeclares the token of the run it is finishing before it declares the
+next one's, and a harness that subscribed in between sees that DELETE first (CI saw
+it: the link was marked gone by the previous run's token); the harness keeps asking
+and the hello timeout says so if no target comes back. A killed process closes its TCP socket and is noticed in a few ms (3-4 ms
 measured on loopback). A silent peer (frozen process, pulled cable) is noticed when
 the lease it announced expires: ``transport/link/tx/lease`` is set to ``lease_ms``
 (default 1000 ms, Zenoh's own default is 10 s) with a keep-alive every
@@ -241,6 +245,7 @@ class ZenohLink(Link):
         self._hello_seen = threading.Event()
         self._hello_lock = threading.Lock()
         self._target_seen = False
+        self._tokens_gone_before_hello = 0  # DELETEs of the target's token before its HELLO
         self.options = options or ZenohOptions()
         self.zenoh = ZenohHalf(vehicle_id=vehicle_id, options=self.options)
         self.zenoh_stats = self.zenoh.stats
@@ -279,6 +284,15 @@ class ZenohLink(Link):
             self._target_seen = True
             self._poke.set()  # ask for HELLO now rather than at the next tick
         elif sample.kind == zenoh.SampleKind.DELETE:
+            with self._hello_lock:  # against a HELLO coming in on another of Zenoh's threads
+                if not self._hello_seen.is_set():
+                    # Not the target this link talks to yet: a target serving run after run
+                    # undeclares the token of the run it is finishing before it declares the
+                    # next run's, and this link's history can hold the old one. Keep asking;
+                    # a target that left for good ends in the hello timeout, which says so.
+                    self._target_seen = False
+                    self._tokens_gone_before_hello += 1
+                    return
             self._mark_gone(f"zenoh liveliness lost: token {self.keys.alive!r} went away "
                             f"(target process exited, closed its session or its lease expired)")
 
@@ -299,6 +313,9 @@ class ZenohLink(Link):
         reason = self.zenoh.no_session_reason(timeout_s)
         if reason is not None:
             return reason
+        if not self._target_seen and self._tokens_gone_before_hello:
+            return (f"the target's token {self.keys.alive!r} went away before its HELLO and no target serves it "
+                    f"now ({timeout_s:g} s): the target exited or closed its session while this harness waited")
         if not self._target_seen:
             return (f"zenoh is connected but no target serves {self.keys.alive!r} within {timeout_s:g} s: "
                     f"check the target's --vehicle and --key-prefix")

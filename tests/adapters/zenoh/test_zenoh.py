@@ -21,8 +21,9 @@ zenoh = pytest.importorskip("zenoh")
 
 from hil.adapters.link import open_link  # noqa: E402
 from hil.adapters.sdk import Endpoint  # noqa: E402
-from hil.adapters.wire.messages import (Control, DrivingState, Estimate, Frame, Hello, ImageEncoding,  # noqa: E402
-                                        Inference)
+from hil.adapters.wire import protocol  # noqa: E402
+from hil.adapters.wire.messages import (ClockId, Control, DrivingState, Estimate, Frame, Hello, ImageEncoding,  # noqa: E402
+                                        Inference, MsgType)
 from hil.adapters.zenoh.link import ZenohLink  # noqa: E402
 from hil.adapters.zenoh.options import ZenohOptions  # noqa: E402
 from hil.adapters.zenoh.session import Keys, config_entries, make_config  # noqa: E402
@@ -322,6 +323,63 @@ def test_target_stops_when_the_harness_vanishes(tmp_path: Path):
         token.undeclare()  # as if the harness crashed: no BYE
         assert proc.wait(timeout=5) == 0
         sub.undeclare()
+
+
+@contextlib.contextmanager
+def finishing_target(port: int, *, comes_back: bool) -> Iterator[Callable[[], None]]:
+    """A target serving run after run, as a bare Zenoh session listening on ``port``,
+    caught between two runs: it holds the token of the run it is finishing; the
+    function yielded undeclares it once the harness asks for HELLO and, if
+    ``comes_back``, then declares the next run's token and answers HEARTBEATs."""
+    keys = Keys.of("hil", 0)
+    with raw_session(listen=[f"tcp/127.0.0.1:{port}"]) as s:
+        asked, next_run = threading.Event(), threading.Event()
+
+        def on_h2t(sample: zenoh.Sample) -> None:
+            data = sample.payload.to_bytes()
+            if protocol.decode_header(data).type is MsgType.HEARTBEAT:
+                asked.set()
+                if next_run.is_set():
+                    s.put(keys.t2h, protocol.encode(Hello("next-run", protocol.VERSION, ClockId.MONOTONIC, 1)))
+
+        entities: list[Any] = [s.declare_subscriber(keys.h2t, on_h2t), s.liveliness().declare_token(keys.alive)]
+
+        def finish_run() -> None:
+            assert asked.wait(20), "the harness never asked for HELLO"
+            entities.pop().undeclare()  # the finished run's token: its DELETE reaches the harness
+            time.sleep(0.2)
+            if comes_back:
+                entities.append(s.liveliness().declare_token(keys.alive))
+                next_run.set()
+
+        yield finish_run
+
+
+@pytest.mark.parametrize("comes_back", [True, False])
+def test_token_gone_before_hello_is_a_run_ending_not_the_target(comes_back: bool):
+    """CI caught ``hil target --transport zenoh`` between two runs: the next harness saw
+    the finished run's token go and called the target gone, then got its HELLO."""
+    port = free_port()
+    with finishing_target(port, comes_back=comes_back) as finish_run, link_to(port) as link:
+        opened: list[Any] = []
+        opener = threading.Thread(target=lambda: opened.append(_open_or_error(link, 3.0)))
+        opener.start()
+        finish_run()
+        opener.join(10)
+        if comes_back:
+            assert isinstance(opened[0], Hello) and opened[0].target_name == "next-run", opened
+            time.sleep(0.2)
+            assert link.alive, link.peer_gone_reason
+        else:
+            assert isinstance(opened[0], TargetError), opened
+            assert "went away before its HELLO" in str(opened[0]), opened[0]
+
+
+def _open_or_error(link: ZenohLink, timeout_s: float) -> Hello | TargetError:
+    try:
+        return link.open(hello_timeout_s=timeout_s)
+    except TargetError as err:
+        return err
 
 
 # -- diagnostics -------------------------------------------------------------------
