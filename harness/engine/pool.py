@@ -163,16 +163,35 @@ class Engine:
             self._procs.append(p)
             self._physics = pc
             self._conns = [pc, *self._render]
-            self.scheduling = self._expect(pc, PhysicsReady, "physics").scheduling
+        except BaseException:
+            self.close()
+            raise
+        self._render_warm = render_warm
+        self._ready = False
+
+    def wait_ready(self) -> None:
+        """Wait until the physics and every render worker have started (imports, MuJoCo,
+        the GL context). The constructor only spawns them, so that what starts beside
+        them (the targets) overlaps their start-up; :meth:`connect` and :meth:`start`
+        wait here first if nobody did. Idempotent.
+
+        Raises:
+            SimulationError: a child failed or did not start within ``START_TIMEOUT_S``
+                (the engine is closed then).
+        """
+        if self._ready:
+            return
+        try:
+            self.scheduling = self._expect(self._physics, PhysicsReady, "physics").scheduling
             for w, c in enumerate(self._render):
                 ready = self._expect(c, WorkerReady, f"render worker {w}")
                 self.worker_pids.append(ready.pid)
                 self.renderers.append(ready.renderer)
-            self.warm_ns = warm_lead_ns(render_warm, self.renderers)
-
+            self.warm_ns = warm_lead_ns(self._render_warm, self.renderers)
         except BaseException:
             self.close()
             raise
+        self._ready = True
 
     @staticmethod
     def _expect(conn: Any, kind: type[_M], who: str) -> _M:
@@ -207,6 +226,7 @@ class Engine:
     def connect(self, *, on_physics: Callable[[Any], None], on_render: Callable[[Any], None]) -> None:
         """Hand every message of the physics (its ring) to ``on_physics`` and of the
         render workers to ``on_render``, each on the thread that reads it."""
+        self.wait_ready()
         self._pumps = [RingPump(self._run_ring, on_physics, name="physics", stall=self._stall)]
         self._pumps += [Pump(c, on_render, name=f"render-{w}") for w, c in enumerate(self._render)]
 
@@ -215,6 +235,7 @@ class Engine:
     def start(self, wall_start_ns: int, *, warm: bool = False) -> None:
         """Start the physics, paced from ``wall_start_ns``; ``warm``: the render workers
         render their cameras until then (``Warm``)."""
+        self.wait_ready()
         if warm:
             for c in self._render:
                 c.send(Warm(wall_start_ns))

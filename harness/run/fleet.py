@@ -86,6 +86,9 @@ class LocalFleet:
             self.vehicles.append(VehicleRun(name, i, link))
             opening.append((name, link, proc))
         open_links(opening, timeout_s=self.cfg.target.startup_timeout_s)
+        # The engine's children started beside the targets; the clock sync's warm-up
+        # waits for them, so that their start-up does not load its round trips.
+        engine.wait_ready()
         self.warmup = {v.name: [s for _ in range(SYNC_WARMUP_SAMPLES)
                                 if (s := v.link.sync_exchange(timeout_s=0.5)) is not None] for v in self.vehicles}
         check_identity(self.cfg, self.vehicles, self.procs)
@@ -170,6 +173,7 @@ class ShardedFleet:
                                                      self.session, self.latency, engine.shard_io(k),
                                                      {n: engine.assign[n] for _i, n in mine})))
         engine.release_shard_io()
+        engine.wait_ready()  # its children started beside the shards
         timeout = self.cfg.target.startup_timeout_s + 60.0  # its own start-up (imports, MuJoCo) on top
         for sh in self.shards:
             sh.wait_ready(timeout)
