@@ -224,6 +224,21 @@ def test_steering_decays_without_markings(sim_mod) -> None:
     assert steers[-1] < 0.2 * first
 
 
+def test_warm_up_leaves_no_trace_in_what_the_ai_answers(sim_mod) -> None:
+    """Served, the baseline runs once on noise before its HELLO (OpenCV's and numpy's
+    first calls stay off the run's first frame); what it then answers is what a fresh
+    one answers, frame for frame, steering filter included (the bare road first: with
+    no markings the filter answers with what it held)."""
+    shots = [_shot(sim_mod, gap_m=30.0, ego_dy_m=-0.6), _shot(sim_mod, gap_m=15.0, ego_dyaw_rad=0.05)]
+    bare_road = _frame(np.full_like(shots[0].rgb, 82), shots[0].camera, ImageEncoding.RGB8, speed_mps=8.0)
+    frames = [bare_road] + [_frame(sh.rgb, sh.camera, enc, speed_mps=8.0, frame_id=i + 1) for i, (sh, enc) in
+                            enumerate((sh, enc) for sh in shots for enc in (ImageEncoding.RGB8, ImageEncoding.JPEG))]
+    warmed = CvBaseline()
+    warmed.warm_up()
+    fresh = CvBaseline()
+    assert [warmed.infer(f) for f in frames] == [fresh.infer(f) for f in frames]
+
+
 # -- frames and the package rule -----------------------------------------------
 
 
