@@ -57,6 +57,33 @@ def loop_process(*, collect: bool = True) -> Iterator[None]:
         gc.unfreeze()
 
 
+def threads_cpu_ns(*, loop_ident: int | None = None) -> dict[int, tuple[str, int]]:
+    """CPU time (ns) of each live Python thread of this process so far, by thread
+    ident: ``(role, ns)``, the role being the thread's name without a trailing
+    ``-N`` (``local-rx-3`` -> ``local-rx``), ``loop`` for the thread ``loop_ident``.
+    A thread that ends while this reads it is left out."""
+    out: dict[int, tuple[str, int]] = {}
+    for t in threading.enumerate():
+        if t.ident is None:
+            continue
+        try:
+            ns = time.clock_gettime_ns(time.pthread_getcpuclockid(t.ident))
+        except (OSError, ProcessLookupError, AttributeError):  # gone meanwhile, or not Linux
+            continue
+        role = "loop" if t.ident == loop_ident else t.name.rstrip("0123456789").rstrip("-") or t.name
+        out[t.ident] = (role, ns)
+    return out
+
+
+def cpu_by_role(before: dict[int, tuple[str, int]], after: dict[int, tuple[str, int]]) -> dict[str, int]:
+    """CPU time (ns) each role's threads spent between two :func:`threads_cpu_ns`
+    readings (a thread started in between counts from its start)."""
+    out: dict[str, int] = {}
+    for ident, (role, ns) in after.items():
+        out[role] = out.get(role, 0) + ns - before.get(ident, (role, 0))[1]
+    return out
+
+
 def stacks_on_sigusr2() -> None:
     """SIGUSR2 prints every thread's stack of this process on stderr and goes on: what
     a run that seems stuck is doing, without stopping it (README, "A run that seems stuck").

@@ -145,6 +145,11 @@ def _run_section(d: RunData) -> str:
                 f"loop thread {cost.loop_thread_us_per_frame} µs, analysis thread "
                 f"{cost.analysis_thread_us_per_frame} µs (CPU), analysis tasks dropped "
                 f"{cost.analysis_tasks_dropped}")))
+            if cost.threads_us_per_frame:
+                rows.append(("run process by thread", escape(", ".join(
+                    f"{role} {us} µs" for role, us in sorted(cost.threads_us_per_frame.items(),
+                                                             key=lambda kv: -(kv[1] or 0)))
+                    + " per frame (CPU while the loop ran), the costliest first")))
             if cost.start_s is not None and cost.summary_s is not None:
                 windows = "" if cost.windows_s is None else f", of it {ms(cost.windows_s, 2)} s cutting case windows"
                 rows.append(("start and end", escape(

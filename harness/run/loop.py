@@ -39,7 +39,7 @@ from hil.harness.engine.messages import (Applied, ApplyControl, CameraTruthReady
                                          FrameReady, WorkerFailed, WorldState)
 from hil.harness.engine.physics import PhysicsSpec, capture_table
 from hil.harness.engine.pool import Engine
-from hil.harness.engine.procs import loop_process
+from hil.harness.engine.procs import cpu_by_role, loop_process, threads_cpu_ns
 from hil.harness.run.run_specs import LoopStats, encode_image, engine_specs
 from hil.harness.run.shard import VehicleShard
 from hil.harness.run.tasks import WorldTasks
@@ -173,10 +173,13 @@ class SimLoop:
         with loop_process():
             boosted = prioritise_this_thread()  # (root) served before the analysis and recording threads
             cpu0 = time.thread_time_ns()
+            me = threading.get_ident()
+            threads0 = threads_cpu_ns(loop_ident=me)
             try:
                 return self._run()
             finally:
                 self.stats.loop_cpu_ns = time.thread_time_ns() - cpu0
+                self.stats.threads_cpu_ns = cpu_by_role(threads0, threads_cpu_ns(loop_ident=me))
                 self.analysis.close()
                 self.stats.analysis_cpu_ns = self.analysis.cpu_ns
                 self.stats.analysis_dropped = self.analysis.dropped

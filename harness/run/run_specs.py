@@ -78,6 +78,7 @@ class LoopStats:
     render_warm_ms: float = 0.0  # how long they rendered before the first step (engine.render_warm_ms)
     loop_cpu_ns: int = 0       # CPU time of the loop thread (frames, estimates, controls)
     analysis_cpu_ns: int = 0   # CPU time of the analysis thread (truth, observers, recording)
+    threads_cpu_ns: dict[str, int] = field(default_factory=dict)  # the loop's, by thread role (procs.cpu_by_role)
     analysis_dropped: int = 0  # analysis tasks dropped on a full queue
     behind: dict[str, int] = field(default_factory=dict)  # records the physics's rings lost, by consumer
     # CPU time of every harness process but the physics and render workers (this one,

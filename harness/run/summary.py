@@ -175,9 +175,11 @@ def _cost(stats: LoopStats, *, frames: int) -> dict[str, Any]:
     physics and the render workers (``run_us_per_frame``: all threads, links,
     recording and analysis included, until the recording is flushed), and of it the
     loop thread (frames, estimates, controls) and the analysis thread (truth,
-    observers, recording)."""
+    observers, recording); ``threads_us_per_frame``: every thread of the run process
+    while the loop ran, by role."""
     per = max(frames, 1)
     return {"frames": frames, "run_us_per_frame": round(stats.run_cpu_ns / per / 1e3, 1),
             "loop_thread_us_per_frame": round(stats.loop_cpu_ns / per / 1e3, 1),
             "analysis_thread_us_per_frame": round(stats.analysis_cpu_ns / per / 1e3, 1),
-            "analysis_tasks_dropped": stats.analysis_dropped}
+            "analysis_tasks_dropped": stats.analysis_dropped,
+            "threads_us_per_frame": {role: round(ns / per / 1e3, 1) for role, ns in stats.threads_cpu_ns.items()}}

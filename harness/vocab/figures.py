@@ -158,6 +158,7 @@ class HarnessCost:
     finish_s: float | None = None
     windows_s: float | None = None
     summary_s: float | None = None
+    threads_us_per_frame: dict[str, float | None] = field(default_factory=dict)  # the run process's, by role
 
     @classmethod
     def from_json(cls, f: Fields) -> HarnessCost:
@@ -166,7 +167,7 @@ class HarnessCost:
                    analysis_thread_us_per_frame=f.opt_number("analysis_thread_us_per_frame"),
                    analysis_tasks_dropped=f.opt_integer("analysis_tasks_dropped"), start_s=f.opt_number("start_s"),
                    finish_s=f.opt_number("finish_s"), windows_s=f.opt_number("windows_s"),
-                   summary_s=f.opt_number("summary_s"))
+                   summary_s=f.opt_number("summary_s"), threads_us_per_frame=f.nums("threads_us_per_frame"))
 
 
 @dataclass(frozen=True)

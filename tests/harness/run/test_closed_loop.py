@@ -74,6 +74,15 @@ def test_mcap_accounts_for_every_frame(tmp_path):
     e2e = v["latency_ms"]["end_to_end"]
     assert 0 < e2e["p50_ms"] <= e2e["p99_ms"] <= e2e["max_ms"]
 
+    # The run process's CPU by thread: the loop's as the loop thread's own figure (the
+    # same thread clock over the same loop), the link's reader and the render pump there,
+    # and all of it within the run-side total (which counts the finish too).
+    cost = s["harness_cost"]
+    threads = cost["threads_us_per_frame"]
+    assert {"loop", "hil-analysis", "local-rx", "pump-render", "mcap-writer", "ring-physics"} <= set(threads), threads
+    assert abs(threads["loop"] - cost["loop_thread_us_per_frame"]) <= 0.05 * cost["loop_thread_us_per_frame"] + 5
+    assert sum(threads.values()) <= cost["run_us_per_frame"]
+
 
 def test_control_reaches_the_vehicle(tmp_path):
     # A target that brakes hard stops the car: the estimate's control is really applied.
