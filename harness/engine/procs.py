@@ -57,21 +57,29 @@ def loop_process(*, collect: bool = True) -> Iterator[None]:
         gc.unfreeze()
 
 
+def _thread_cpu_clock(native_id: int) -> int:
+    """Linux's CPU-time clock of the thread ``native_id`` (its kernel id), as glibc's
+    ``pthread_getcpuclockid`` makes it. Unlike that call it names no ``pthread_t``
+    that a thread ending meanwhile frees: a gone thread's clock is refused (EINVAL)."""
+    return ((~native_id) << 3) | 6  # CPUCLOCK_SCHED | CPUCLOCK_PERTHREAD_MASK
+
+
 def threads_cpu_ns(*, loop_ident: int | None = None) -> dict[int, tuple[str, int]]:
-    """CPU time (ns) of each live Python thread of this process so far, by thread
-    ident: ``(role, ns)``, the role being the thread's name without a trailing
+    """CPU time (ns) of each live Python thread of this process so far, by kernel
+    thread id: ``(role, ns)``, the role being the thread's name without a trailing
     ``-N`` (``local-rx-3`` -> ``local-rx``), ``loop`` for the thread ``loop_ident``.
     A thread that ends while this reads it is left out."""
     out: dict[int, tuple[str, int]] = {}
     for t in threading.enumerate():
-        if t.ident is None:
+        tid = t.native_id
+        if tid is None:
             continue
         try:
-            ns = time.clock_gettime_ns(time.pthread_getcpuclockid(t.ident))
-        except (OSError, ProcessLookupError, AttributeError):  # gone meanwhile, or not Linux
+            ns = time.clock_gettime_ns(_thread_cpu_clock(tid))
+        except OSError:  # gone meanwhile (or not Linux)
             continue
         role = "loop" if t.ident == loop_ident else t.name.rstrip("0123456789").rstrip("-") or t.name
-        out[t.ident] = (role, ns)
+        out[tid] = (role, ns)
     return out
 
 
@@ -79,8 +87,9 @@ def cpu_by_role(before: dict[int, tuple[str, int]], after: dict[int, tuple[str, 
     """CPU time (ns) each role's threads spent between two :func:`threads_cpu_ns`
     readings (a thread started in between counts from its start)."""
     out: dict[str, int] = {}
-    for ident, (role, ns) in after.items():
-        out[role] = out.get(role, 0) + ns - before.get(ident, (role, 0))[1]
+    for tid, (role, ns) in after.items():
+        was = before.get(tid)
+        out[role] = out.get(role, 0) + ns - (was[1] if was is not None and was[0] == role else 0)
     return out
 
 

@@ -149,7 +149,7 @@ def _run_section(d: RunData) -> str:
                 rows.append(("run process by thread", escape(", ".join(
                     f"{role} {us} µs" for role, us in sorted(cost.threads_us_per_frame.items(),
                                                              key=lambda kv: -(kv[1] or 0)))
-                    + " per frame (CPU while the loop ran), the costliest first")))
+                    + " per frame (CPU up to the last step), the costliest first")))
             if cost.start_s is not None and cost.summary_s is not None:
                 windows = "" if cost.windows_s is None else f", of it {ms(cost.windows_s, 2)} s cutting case windows"
                 rows.append(("start and end", escape(

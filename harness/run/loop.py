@@ -87,6 +87,7 @@ class SimLoop:
         self._physics_eof = False
         self._exiting = False  # Exit sent: the physics and then the render workers end
         self._halted = False
+        self._threads_end: dict[int, tuple[str, int]] | None = None  # each thread's CPU at the last step
         self._next_tick_ns = 0
         self._behind_told: dict[str, tuple[int, int]] = {}  # consumer -> (records told, next event ns)
 
@@ -173,13 +174,13 @@ class SimLoop:
         with loop_process():
             boosted = prioritise_this_thread()  # (root) served before the analysis and recording threads
             cpu0 = time.thread_time_ns()
-            me = threading.get_ident()
-            threads0 = threads_cpu_ns(loop_ident=me)
+            threads0 = threads_cpu_ns(loop_ident=threading.get_ident())
             try:
                 return self._run()
             finally:
                 self.stats.loop_cpu_ns = time.thread_time_ns() - cpu0
-                self.stats.threads_cpu_ns = cpu_by_role(threads0, threads_cpu_ns(loop_ident=me))
+                end = self._threads_end or threads_cpu_ns(loop_ident=threading.get_ident())
+                self.stats.threads_cpu_ns = cpu_by_role(threads0, end)
                 self.analysis.close()
                 self.stats.analysis_cpu_ns = self.analysis.cpu_ns
                 self.stats.analysis_dropped = self.analysis.dropped
@@ -206,6 +207,9 @@ class SimLoop:
                     if not self.engine.alive() and not self._finished:
                         self.request_stop("the physics or a render process ended unexpectedly")
                         break
+            # Each thread's CPU up to the last step, read while they all still run (the
+            # physics's ring pump ends with the physics, below).
+            self._threads_end = threads_cpu_ns(loop_ident=threading.get_ident())
             self._drain()
         except KeyboardInterrupt:
             self.request_stop("interrupted (Ctrl-C)")

@@ -74,14 +74,15 @@ def test_mcap_accounts_for_every_frame(tmp_path):
     e2e = v["latency_ms"]["end_to_end"]
     assert 0 < e2e["p50_ms"] <= e2e["p99_ms"] <= e2e["max_ms"]
 
-    # The run process's CPU by thread: the loop's as the loop thread's own figure (the
-    # same thread clock over the same loop), the link's reader and the render pump there,
-    # and all of it within the run-side total (which counts the finish too).
+    # The run process's CPU by thread up to the last step: every role there, the
+    # physics's ring pump included (it ends with the physics, after the last step); the
+    # loop's within the loop thread's own figure (which counts the drain after it), and
+    # all of it within the run-side total (which counts the finish too).
     cost = s["harness_cost"]
     threads = cost["threads_us_per_frame"]
     assert {"loop", "hil-analysis", "local-rx", "pump-render", "mcap-writer", "ring-physics"} <= set(threads), threads
-    assert abs(threads["loop"] - cost["loop_thread_us_per_frame"]) <= 0.05 * cost["loop_thread_us_per_frame"] + 5
-    assert sum(threads.values()) <= cost["run_us_per_frame"]
+    assert 0 < threads["loop"] <= cost["loop_thread_us_per_frame"] + 0.1, cost
+    assert sum(threads.values()) <= cost["run_us_per_frame"], cost
 
 
 def test_control_reaches_the_vehicle(tmp_path):
