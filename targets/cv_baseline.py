@@ -143,20 +143,21 @@ class CvBaseline:
 
     def warm_up(self, width: int = 320, height: int = 240) -> None:
         """Run the whole pipeline once on a frame of noise (raw and JPEG) and forget it.
-        OpenCV and numpy set themselves up on their first calls: ~41 ms against ~5 ms
-        for each later raw 320x240 frame here, so without this the run's first frame
-        waited for it and its successors queued behind (on the GPU host, with 24 and
-        32 of these targets, first estimates 139-146 ms late and frames dropped).
-        Serving calls it before HELLO."""
+        OpenCV and numpy set themselves up on their first calls (numpy.ma's import
+        among them): a rendered frame with a car in view took 18-19 ms the first time
+        and 2-3 ms after, here, so without this the run's first frame waited for it.
+        ``main`` calls it before serving, so before HELLO."""
         cam = CameraInfo(fx=width / 2, fy=width / 2, cx=width / 2, cy=height / 2, mount_height_m=1.4, pitch_rad=0.05)
         # Noise: saturated blobs everywhere, so that detection, ranging and the lane
         # search all take their first steps (a blank frame skips most of them).
         noise = np.random.default_rng(0).integers(0, 256, (height, width, 3), dtype=np.uint8)
+        images = [(ImageEncoding.RGB8, noise.tobytes())]
         ok, jpeg = cv2.imencode(".jpg", noise)
-        for encoding, data in ((ImageEncoding.RGB8, noise.tobytes()), (ImageEncoding.JPEG, jpeg.tobytes() if ok else b"")):
-            if data:
-                self.infer(Frame(vehicle_id=0, frame_id=0, sim_time_ns=0, t0_ns=0, t_tx_ns=0, width=width,
-                                 height=height, encoding=encoding, camera=cam, ego_speed_mps=0.0, data=data))
+        if ok:
+            images.append((ImageEncoding.JPEG, jpeg.tobytes()))
+        for encoding, data in images:
+            self.infer(Frame(vehicle_id=0, frame_id=0, sim_time_ns=0, t0_ns=0, t_tx_ns=0, width=width, height=height,
+                             encoding=encoding, camera=cam, ego_speed_mps=0.0, data=data))
         self._steer_rad = 0.0  # what the noise left of the steering filter
         self._geom_key = None
 

@@ -28,12 +28,12 @@ HELLO marks the link gone. A DELETE before the HELLO does not: a target serving 
 after run undeclares the token of the run it is finishing before it declares the
 next one's, and a harness that subscribed in between sees that DELETE first (CI saw
 it: the link was marked gone by the previous run's token); the harness keeps asking
-and the hello timeout says so if no target comes back. A killed process closes its TCP socket and is noticed in a few ms (3-4 ms
-measured on loopback). A silent peer (frozen process, pulled cable) is noticed when
-the lease it announced expires: ``transport/link/tx/lease`` is set to ``lease_ms``
-(default 1000 ms, Zenoh's own default is 10 s) with a keep-alive every
-``lease_ms / keep_alive`` (250 ms), on both sides; a frozen (SIGSTOP) target was
-noticed after 0.9 s. It is the silent side's announced lease that counts, so a target
+and the hello timeout says so if no target comes back. A killed process closes its
+TCP socket and is noticed in a few ms (3-4 ms measured on loopback). A silent peer
+(frozen process, pulled cable) is noticed when the lease it announced expires:
+``transport/link/tx/lease`` is set to ``lease_ms`` (default 1000 ms, Zenoh's own
+default is 10 s) with a keep-alive every ``lease_ms / keep_alive`` (250 ms), on both
+sides; a frozen (SIGSTOP) target was noticed after 0.9 s. It is the silent side's announced lease that counts, so a target
 started with Zenoh's defaults would take 10 s. The target likewise stops serving when
 the harness's token goes away (as the local transport stops on EOF), so a crashed
 harness never leaves it wedged. A target stopped by SIGTERM or Ctrl-C says BYE and

@@ -22,8 +22,8 @@ zenoh = pytest.importorskip("zenoh")
 from hil.adapters.link import open_link  # noqa: E402
 from hil.adapters.sdk import Endpoint  # noqa: E402
 from hil.adapters.wire import protocol  # noqa: E402
-from hil.adapters.wire.messages import (ClockId, Control, DrivingState, Estimate, Frame, Hello, ImageEncoding,  # noqa: E402
-                                        Inference, MsgType)
+from hil.adapters.wire.messages import (ClockId, Control, DrivingState, Estimate, Frame, Hello,  # noqa: E402
+                                        ImageEncoding, Inference, MsgType)
 from hil.adapters.zenoh.link import ZenohLink  # noqa: E402
 from hil.adapters.zenoh.options import ZenohOptions  # noqa: E402
 from hil.adapters.zenoh.session import Keys, config_entries, make_config  # noqa: E402
