@@ -120,9 +120,12 @@ def read_run(out_dir: Path, vehicle: str) -> tuple[RunData, int]:
         for _schema, channel, message in make_reader(f).iter_messages(topics=wanted, log_time_order=True):
             topics.setdefault(channel.topic, []).append(json.loads(message.data))
     events = [e for e in topics.get("/events", []) if e.get("vehicle") in (None, vehicle)]
+    config = json.loads((out_dir / "config.json").read_text(encoding="utf-8"))
+    max_delay_ms = float(((config.get("timing") or {}).get("sync") or {}).get("max_delay_ms", 50.0))
     run = RunData(summary["vehicles"][vehicle], topics.get(f"/{vehicle}/pipeline", []),
-                  topics.get(f"/{vehicle}/clock", []), events)
-    return run, len(topics.get(f"/{vehicle}/clock_sync", []))
+                  topics.get(f"/{vehicle}/clock", []), events, topics.get(f"/{vehicle}/clock_sync", []),
+                  sync_max_delay_ns=int(max_delay_ms * 1e6))
+    return run, len(run.sync)
 
 
 def evaluate(out_dir: Path, *, transport: str, vehicle: str = "ego0") -> Calibration:

@@ -153,6 +153,8 @@ class RunData:
     pipeline: list[dict[str, Any]]
     clock: list[dict[str, Any]]
     events: list[dict[str, Any]]
+    sync: list[dict[str, Any]] = field(default_factory=list)  # /<vehicle>/clock_sync: every exchange
+    sync_max_delay_ns: int = 50_000_000  # the run's timing.sync.max_delay_ms: slower exchanges are rejected
 
 
 def clock_checks(truth: Truth, run: RunData) -> list[Check]:

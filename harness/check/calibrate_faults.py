@@ -7,7 +7,7 @@ alarm (the truth shows nothing there, or it was flagged twice). Inputs as in
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from enum import Enum
 from typing import Any
@@ -189,13 +189,41 @@ def _dropped_truth(fid: int, truth: Truth, recs: Mapping[int, Mapping[str, Any]]
     return "the truth shows it answered in time", Cause.FALSE
 
 
-def _rate_truth(e: Mapping[str, Any], truth: Truth) -> tuple[str, Cause]:
+def _rate_truth(e: Mapping[str, Any], truth: Truth, recs: Mapping[int, Mapping[str, Any]]) -> tuple[str, Cause]:
+    """A rate below the floor is the target's if it sent too few in the window; the
+    harness's if it sent enough but fewer reached the harness in it (the detector
+    counts arrivals, ``t0'``: replies held up on this side, on a starved host)."""
     end, hz = int(e["harness_time_ns"]), float(e.get("threshold") or 0.0)
     window_s = 2.0  # the detector's default window
+    start = end - window_s * 1e9
     sent = sum(1 for tl in truth.frames.values()
-               if tl.get("send_mono_ns") is not None and end - window_s * 1e9 < tl["send_mono_ns"] <= end)
+               if tl.get("send_mono_ns") is not None and start < tl["send_mono_ns"] <= end)
     text = f"the target sent {sent} estimates in the {window_s:g} s before (floor {hz:g}/s)"
-    return text, Cause.TARGET if sent < hz * window_s else Cause.FALSE
+    if sent < hz * window_s:
+        return text, Cause.TARGET
+    got = sum(1 for r in recs.values() if r.get("t0p_ns") is not None and start < r["t0p_ns"] <= end)
+    if got < hz * window_s:
+        return f"{text}; {got} arrived in it: held up between the target and the harness", Cause.HARNESS
+    return text, Cause.FALSE
+
+
+def _sync_truth(e: Mapping[str, Any], sync: Sequence[Mapping[str, Any]], max_delay_ns: int) -> tuple[str, Cause]:
+    """No good clock-sync sample for the event's gap: real if every exchange that came
+    back in it spent more than ``max_delay_ns`` outside the target (``delay_ns``: the
+    round trip less the target's own turnaround), which is what the sync rejects:
+    held up between the target and the harness. An exchange in the gap within the
+    limit, or none at all (the truth keeps no sync lines), shows nothing."""
+    end = int(e["harness_time_ns"])
+    gap_ns = float(e.get("measured") or 0.0) * 1e9
+    back = [s for s in sync if not s.get("warmup") and end - gap_ns < int(s["t4_ns"]) <= end]
+    if not back:
+        return "the truth shows nothing here (no exchange came back in the gap)", Cause.FALSE
+    outside = sorted(int(s["delay_ns"]) for s in back)
+    text = (f"{len(back)} exchanges came back in the {gap_ns / 1e9:.1f} s gap, {outside[0] / 1e6:.1f}-"
+            f"{outside[-1] / 1e6:.1f} ms outside the target (limit {max_delay_ns / 1e6:g} ms)")
+    if outside[0] > max_delay_ns:
+        return f"{text}: held up between the target and the harness", Cause.HARNESS
+    return f"{text}: one within the limit, yet no good sample", Cause.FALSE
 
 
 def _others(truth: Truth, run: RunData, events: list[dict[str, Any]]) -> list[Other]:
@@ -217,7 +245,9 @@ def _others(truth: Truth, run: RunData, events: list[dict[str, Any]]) -> list[Ot
         elif kind == "jitter":
             text, cause = "end-to-end varied over the window (not injected)", Cause.UNKNOWN
         elif kind == "frame_rate_floor" and e.get("harness_time_ns") is not None:
-            text, cause = _rate_truth(e, truth)
+            text, cause = _rate_truth(e, truth, recs)
+        elif kind == "sync_lost" and e.get("harness_time_ns") is not None:
+            text, cause = _sync_truth(e, run.sync, run.sync_max_delay_ns)
         seen.add((kind, tuple(fids)))
         out.append(Other(_label(e), kind, tuple(fids), cause, text))
     return out

@@ -65,8 +65,15 @@ def _truth(**faults) -> Truth:
     return t
 
 
-def _run(events, **summary) -> RunData:
-    return RunData({"link": {"protocol_errors": 0}, **summary}, [], [], events)
+def _run(events, pipeline=(), sync=(), **summary) -> RunData:
+    return RunData({"link": {"protocol_errors": 0}, **summary}, list(pipeline), [], events, list(sync))
+
+
+def _received(truth: Truth, lag_ns: int = 100_000) -> list[dict]:
+    """Pipeline records of every frame ``truth`` answered, each reply taken off the link
+    ``lag_ns`` after the target sent it."""
+    return [{"frame_id": fid, "t0p_ns": tl["send_mono_ns"] + lag_ns} for fid, tl in truth.frames.items()
+            if tl["send_mono_ns"] is not None]
 
 
 def test_fault_flagged_twice_or_never_fails():
@@ -91,13 +98,49 @@ def test_anomaly_the_truth_does_not_show_is_a_false_alarm():
     # drop nor a rate below 10/s happened.
     events = [{"kind": "dropped_frame", "frame_ids": [4]},
               {"kind": "frame_rate_floor", "frame_ids": [], "harness_time_ns": 10 * 50_000_000, "threshold": 2.0}]
-    _, others = fault_checks(truth, _run(events))
+    _, others = fault_checks(truth, _run(events, pipeline=_received(truth)))
     assert [o.cause for o in others] == [Cause.FALSE, Cause.FALSE], others
     # A drop the target really made (it skipped the frame) is explained.
     truth.skipped.add(4)
     _, others = fault_checks(truth, _run(events[:1] * 2))
     assert [o.cause for o in others] == [Cause.TARGET, Cause.FALSE] and "skipped" in others[0].text
     assert "flagged again" in others[1].text
+
+
+def test_a_rate_the_target_kept_but_the_harness_received_late_is_the_harnesss():
+    # The target sent all 10 replies in the 2 s window ending at 0.5 s, one every 50 ms;
+    # on a starved host the harness took each off the link 0.4 s later: 2 arrived in the
+    # window (floor 2/s: 4 wanted). Real, and on this side of the target, not a false alarm.
+    truth = _truth()
+    floor = {"kind": "frame_rate_floor", "frame_ids": [], "harness_time_ns": 10 * 50_000_000, "threshold": 2.0}
+    _, others = fault_checks(truth, _run([floor], pipeline=_received(truth, lag_ns=400_000_000)))
+    assert [o.cause for o in others] == [Cause.HARNESS], others
+    assert "10 estimates" in others[0].text and "2 arrived" in others[0].text
+    # Sent too few is the target's, whatever arrived.
+    for fid in range(2, 10):
+        truth.frames[fid]["send_mono_ns"] = None
+    _, others = fault_checks(truth, _run([floor], pipeline=_received(truth)))
+    assert [o.cause for o in others] == [Cause.TARGET], others
+
+
+def _exchange(t4_ns: int, outside_ns: int, turnaround_ns: int = 20_000) -> dict:
+    t1 = t4_ns - outside_ns - turnaround_ns
+    return {"seq": 0, "t1_ns": t1, "t2_target_ns": 7_000, "t3_target_ns": 7_000 + turnaround_ns, "t4_ns": t4_ns,
+            "offset_ns": 0, "delay_ns": outside_ns, "warmup": False}
+
+
+def test_sync_lost_is_real_where_every_exchange_in_the_gap_was_too_slow_outside_the_target():
+    lost = {"kind": "sync_lost", "frame_ids": [], "harness_time_ns": 10_000_000_000, "measured": 3.5,
+            "threshold": 3.0}
+    slow = [_exchange(7_000_000_000 + k * 1_000_000_000, 80_000_000) for k in range(3)]  # 80 ms > 50 ms
+    _, others = fault_checks(_truth(), _run([lost], sync=slow))
+    assert [o.cause for o in others] == [Cause.HARNESS], others
+    assert "3 exchanges" in others[0].text and "80.0-80.0 ms outside the target (limit 50 ms)" in others[0].text
+    # One within the limit in the gap, or none back at all: the truth shows nothing.
+    fast = slow[:2] + [_exchange(9_000_000_000, 1_000_000)]
+    for sync in (fast, [], [_exchange(6_000_000_000, 80_000_000)]):  # the last one before the gap
+        _, others = fault_checks(_truth(), _run([lost], sync=sync))
+        assert [o.cause for o in others] == [Cause.FALSE], (sync, others)
 
 
 def test_malformed_message_must_reach_the_events(tmp_path):
