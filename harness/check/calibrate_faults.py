@@ -223,7 +223,7 @@ def _sync_truth(e: Mapping[str, Any], sync: Sequence[Mapping[str, Any]], max_del
             f"{outside[-1] / 1e6:.1f} ms outside the target (limit {max_delay_ns / 1e6:g} ms)")
     if outside[0] > max_delay_ns:
         return f"{text}: held up between the target and the harness", Cause.HARNESS
-    return f"{text}: one within the limit, yet no good sample", Cause.FALSE
+    return f"{text}: the sync had exchanges within its limit there", Cause.FALSE
 
 
 def _others(truth: Truth, run: RunData, events: list[dict[str, Any]]) -> list[Other]:
