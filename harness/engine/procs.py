@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import os
+import re
 import signal
 import threading
 import time
@@ -66,8 +67,9 @@ def _thread_cpu_clock(native_id: int) -> int:
 
 def threads_cpu_ns(*, loop_ident: int | None = None) -> dict[int, tuple[str, int]]:
     """CPU time (ns) of each live Python thread of this process so far, by kernel
-    thread id: ``(role, ns)``, the role being the thread's name without a trailing
-    ``-N`` (``local-rx-3`` -> ``local-rx``), ``loop`` for the thread ``loop_ident``.
+    thread id: ``(role, ns)``, the role being the thread's name without its ``-N``
+    parts (``local-rx-3`` -> ``local-rx``, ``shard-0-rec`` -> ``shard-rec``), ``loop``
+    for the thread ``loop_ident``.
     A thread that ends while this reads it is left out."""
     out: dict[int, tuple[str, int]] = {}
     for t in threading.enumerate():
@@ -78,7 +80,7 @@ def threads_cpu_ns(*, loop_ident: int | None = None) -> dict[int, tuple[str, int
             ns = time.clock_gettime_ns(_thread_cpu_clock(tid))
         except OSError:  # gone meanwhile (or not Linux)
             continue
-        role = "loop" if t.ident == loop_ident else t.name.rstrip("0123456789").rstrip("-") or t.name
+        role = "loop" if t.ident == loop_ident else re.sub(r"-\d+(?=-|$)", "", t.name) or t.name
         out[tid] = (role, ns)
     return out
 

@@ -146,7 +146,7 @@ def _run_section(d: RunData) -> str:
                 f"{cost.analysis_thread_us_per_frame} µs (CPU), analysis tasks dropped "
                 f"{cost.analysis_tasks_dropped}")))
             if cost.threads_us_per_frame:
-                rows.append(("run process by thread", escape(", ".join(
+                rows.append(("harness CPU by thread", escape(", ".join(
                     f"{role} {us} µs" for role, us in sorted(cost.threads_us_per_frame.items(),
                                                              key=lambda kv: -(kv[1] or 0)))
                     + " per frame (CPU up to the last step), the costliest first")))

@@ -224,6 +224,9 @@ class ShardedFleet:
             vehicles.update(done.vehicles)
             camera.update({n: CameraFigures(*c) for n, c in done.camera.items()})
             cpu += done.cpu_ns
+            for role, ns in done.threads_cpu_ns.items():  # the shards' threads, summed over shards
+                key = f"shard:{role}"
+                loop.stats.threads_cpu_ns[key] = loop.stats.threads_cpu_ns.get(key, 0) + ns
             loop.stats.analysis_dropped += done.analysis_dropped
             spill = _merge_spill(spill, done.spill)
         order = {n: i for i, n in enumerate(self.egos)}

@@ -29,7 +29,7 @@ from hil.harness.vocab.events import EventBus
 from hil.harness.engine.analysis_thread import AnalysisThread
 from hil.harness.engine.messages import (Applied, ApplyControl, CameraTruthReady, ChildGone, Done, Finished,
                                          FrameReady, WorldState)
-from hil.harness.engine.procs import Pump, RingPump, loop_process
+from hil.harness.engine.procs import Pump, RingPump, cpu_by_role, loop_process, threads_cpu_ns
 from hil.harness.engine.render import FrameSlots
 from hil.harness.engine.rings import Ring
 from hil.harness.run.shard_proc import (Doorbell, Outbox, ShardDone, ShardDrain, ShardDrained, ShardFailed,
@@ -81,6 +81,8 @@ class ShardHost:
         self.shard: Any = None
         self.analysis: AnalysisThread | None = None
         self._cpu0 = 0
+        self._threads0: dict[int, tuple[str, int]] = {}  # each thread's CPU at the loop's start
+        self._threads_end: dict[int, tuple[str, int]] | None = None  # and at the run's last step
 
     # -- start ----------------------------------------------------------------------------
 
@@ -105,6 +107,7 @@ class ShardHost:
             return
         self._build(start, warmup)
         self._cpu0 = time.process_time_ns()  # the run's own work from here (as the run process counts it)
+        self._threads0 = threads_cpu_ns(loop_ident=threading.get_ident())
         with loop_process(collect=False):
             self._loop()
 
@@ -244,6 +247,9 @@ class ShardHost:
                 shard.expire_all()
 
     def _drain(self, deadline_ns: int) -> None:
+        # The run's last step is past: each thread's CPU while every one still runs (the
+        # physics's ring pump ends with the physics).
+        self._threads_end = threads_cpu_ns(loop_ident=threading.get_ident())
         shard = self.shard
         while (shard.busy() or shard.truth_pending()) and self.clock.now_ns() <= deadline_ns \
                 and shard.gone() is None:
@@ -260,6 +266,7 @@ class ShardHost:
         from hil.harness.run.summary import vehicle_summary
 
         self.physics_done.wait(PHYSICS_DONE_TIMEOUT_S)  # its last answers are in the ring before it
+        threads = cpu_by_role(self._threads0, self._threads_end or threads_cpu_ns(loop_ident=threading.get_ident()))
         shard = self.shard
         shard.unconfirmed()
         assert self.analysis is not None
@@ -274,7 +281,8 @@ class ShardHost:
         camera = {v.name: (v.next_frame_id, v.late_frames, v.worst_frame_lag_ns) for v in self.vehicles}
         self.encoder.flush()
         self.out.send(ShardDone(vehicles, camera, time.process_time_ns() - self._cpu0, self.analysis.dropped,
-                                self.encoder.enqueued, self.encoder.errors, spill_summary(self.vehicles, self.timing)))
+                                self.encoder.enqueued, self.encoder.errors, spill_summary(self.vehicles, self.timing),
+                                threads))
 
     # -- lifetime -------------------------------------------------------------------------------
 

@@ -89,7 +89,7 @@ class ShardDrained(NamedTuple):
 
 class ShardDone(NamedTuple):
     """The shard's vehicles summed up (``vehicle_summary`` dicts and their camera
-    figures), its CPU time (ns) and its recording's counts."""
+    figures), its CPU time (ns), by thread role too, and its recording's counts."""
 
     vehicles: dict[str, dict[str, Any]]
     camera: dict[str, tuple[int, int, int]]
@@ -98,6 +98,7 @@ class ShardDone(NamedTuple):
     recorded: int
     record_errors: int
     spill: dict[str, Any]             # hil.harness.run.spill.spill_summary of its vehicles
+    threads_cpu_ns: dict[str, int] = {}  # its loop's start to its finish, by role (procs.cpu_by_role)
 
 
 # -- run -> shard -----------------------------------------------------------------------------

@@ -176,7 +176,8 @@ def _cost(stats: LoopStats, *, frames: int) -> dict[str, Any]:
     recording and analysis included, until the recording is flushed), and of it the
     loop thread (frames, estimates, controls) and the analysis thread (truth,
     observers, recording); ``threads_us_per_frame``: every thread of the run process
-    from the loop's start to its last step, by role."""
+    from the loop's start to its last step, by role, and the shard processes' as
+    ``shard:<role>``, summed over the shards."""
     per = max(frames, 1)
     return {"frames": frames, "run_us_per_frame": round(stats.run_cpu_ns / per / 1e3, 1),
             "loop_thread_us_per_frame": round(stats.loop_cpu_ns / per / 1e3, 1),

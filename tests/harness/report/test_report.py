@@ -412,8 +412,8 @@ def test_recorder_count_agrees_with_the_file_and_the_report(run_dir: Path, tmp_p
 
 def test_the_run_process_cost_by_thread_is_the_summarys(run_dir: Path) -> None:
     threads = json.loads((run_dir / "summary.json").read_text())["harness_cost"]["threads_us_per_frame"]
-    row = re.search(r"<tr><th>run process by thread</th><td>(.*?)</td>", write_report(run_dir).read_text()).group(1)
-    shown = re.findall(r"([\w-]+) ([\d.]+) µs", row)
+    row = re.search(r"<tr><th>harness CPU by thread</th><td>(.*?)</td>", write_report(run_dir).read_text()).group(1)
+    shown = re.findall(r"([\w:-]+) ([\d.]+) µs", row)
     assert {role: float(us) for role, us in shown} == threads and len(shown) == len(threads) >= 5
     assert [float(us) for _, us in shown] == sorted(threads.values(), reverse=True)  # the costliest first
 

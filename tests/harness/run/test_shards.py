@@ -140,7 +140,13 @@ def test_a_sharded_real_time_run_keeps_every_frame_accounted(tmp_path: Path) -> 
         assert v["frames_sent"] >= 15, name
         assert v["estimates_applied"] + v["dropped"] + v["stale"] == v["frames_sent"], name
         assert v["latency_ms"]["end_to_end"]["count"] > 0 and v["clock"]["samples_used"] > 0, name
-    assert r.summary["harness_cost"]["run_us_per_frame"] > 0
+    cost = r.summary["harness_cost"]
+    assert cost["run_us_per_frame"] > 0
+    # Where the CPU went, the shards' threads too (summed over both), all within the
+    # run-side total (which counts both shard processes whole).
+    threads = cost["threads_us_per_frame"]
+    assert {"loop", "mcap-writer", "shard:loop", "shard:hil-analysis", "shard:local-rx"} <= set(threads), threads
+    assert all(us >= 0 for us in threads.values()) and sum(threads.values()) <= cost["run_us_per_frame"], cost
     # The four cameras trigger at different instants: /ground_truth has each instant,
     # the Foxglove views of the world (/scene, world -> vehicle on /tf) one per camera
     # period (they were one per instant: N per period, N^2 messages a period).
