@@ -244,7 +244,10 @@ def _late_reader_round_trip(link: TcpLink, hold_s: float) -> tuple[int, int, int
 @pytest.mark.parametrize("stamps", [True, False])
 def test_t0p_does_not_wait_for_the_reader_thread(stamps, tmp_path):
     address = f"127.0.0.1:{free_port()}"
-    with tcp_echo(tmp_path / "t.log", [], listen=address):
+    # The target answers 50 ms after each frame: by then this thread spins with the GIL.
+    # An instant answer could beat it back from sendall, which lets the GIL go, on a
+    # loaded machine (a fresh clone's suite saw the reader stamp 0.19 ms after the send).
+    with tcp_echo(tmp_path / "t.log", ["--infer-ms", "50"], listen=address):
         link = TcpLink(vehicle_id=0, clock=MonotonicClock(),
                        options=TcpOptions(connect=address, kernel_stamps=stamps, heartbeat_idle_s=0))
         try:
