@@ -160,9 +160,11 @@ class LocalLink(Link):
         self._reader.start()
 
     def _read_loop(self) -> None:
-        assert self._sock is not None
+        sock = self._sock
+        if sock is None:  # closed before this thread first ran (a stop while the target starts)
+            return
         prioritise_this_thread()  # receipt stamps must not wait behind analysis or recording
-        reader: StreamReader[NoReturn] = StreamReader(self._sock, self.clock, stats=self.receipt_stats,
+        reader: StreamReader[NoReturn] = StreamReader(sock, self.clock, stats=self.receipt_stats,
                                                       not_before_ns=self._opened_ns)  # a message a read
         self._read_stream(reader, failed=lambda err: f"socket error: {err}", ended=self._exit_reason)
 
