@@ -95,6 +95,27 @@ def cpu_by_role(before: dict[int, tuple[str, int]], after: dict[int, tuple[str, 
     return out
 
 
+class ThreadCpu:
+    """Each thread's CPU time of this process between :meth:`start` and :meth:`mark_end`
+    (read at the run's last step, while every thread still runs; without it, when
+    :meth:`by_role` is called), by role; ``loop`` is the thread that called ``start``."""
+
+    def __init__(self) -> None:
+        self._loop: int | None = None
+        self._start: dict[int, tuple[str, int]] = {}
+        self._end: dict[int, tuple[str, int]] | None = None
+
+    def start(self) -> None:
+        self._loop = threading.get_ident()
+        self._start = threads_cpu_ns(loop_ident=self._loop)
+
+    def mark_end(self) -> None:
+        self._end = threads_cpu_ns(loop_ident=self._loop)
+
+    def by_role(self) -> dict[str, int]:
+        return cpu_by_role(self._start, self._end or threads_cpu_ns(loop_ident=self._loop))
+
+
 def stacks_on_sigusr2() -> None:
     """SIGUSR2 prints every thread's stack of this process on stderr and goes on: what
     a run that seems stuck is doing, without stopping it (README, "A run that seems stuck").

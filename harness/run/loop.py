@@ -39,7 +39,7 @@ from hil.harness.engine.messages import (Applied, ApplyControl, CameraTruthReady
                                          FrameReady, WorkerFailed, WorldState)
 from hil.harness.engine.physics import PhysicsSpec, capture_table
 from hil.harness.engine.pool import Engine
-from hil.harness.engine.procs import cpu_by_role, loop_process, threads_cpu_ns
+from hil.harness.engine.procs import ThreadCpu, loop_process
 from hil.harness.run.run_specs import LoopStats, encode_image, engine_specs
 from hil.harness.run.shard import VehicleShard
 from hil.harness.run.tasks import WorldTasks
@@ -87,7 +87,7 @@ class SimLoop:
         self._physics_eof = False
         self._exiting = False  # Exit sent: the physics and then the render workers end
         self._halted = False
-        self._threads_end: dict[int, tuple[str, int]] | None = None  # each thread's CPU at the last step
+        self._thread_cpu = ThreadCpu()  # each thread's, loop start to last step
         self._next_tick_ns = 0
         self._behind_told: dict[str, tuple[int, int]] = {}  # consumer -> (records told, next event ns)
 
@@ -174,13 +174,12 @@ class SimLoop:
         with loop_process():
             boosted = prioritise_this_thread()  # (root) served before the analysis and recording threads
             cpu0 = time.thread_time_ns()
-            threads0 = threads_cpu_ns(loop_ident=threading.get_ident())
+            self._thread_cpu.start()
             try:
                 return self._run()
             finally:
                 self.stats.loop_cpu_ns = time.thread_time_ns() - cpu0
-                end = self._threads_end or threads_cpu_ns(loop_ident=threading.get_ident())
-                self.stats.threads_cpu_ns = cpu_by_role(threads0, end)
+                self.stats.threads_cpu_ns = self._thread_cpu.by_role()
                 self.analysis.close()
                 self.stats.analysis_cpu_ns = self.analysis.cpu_ns
                 self.stats.analysis_dropped = self.analysis.dropped
@@ -209,7 +208,7 @@ class SimLoop:
                         break
             # Each thread's CPU up to the last step, read while they all still run (the
             # physics's ring pump ends with the physics, below).
-            self._threads_end = threads_cpu_ns(loop_ident=threading.get_ident())
+            self._thread_cpu.mark_end()
             self._drain()
         except KeyboardInterrupt:
             self.request_stop("interrupted (Ctrl-C)")

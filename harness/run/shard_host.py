@@ -29,7 +29,7 @@ from hil.harness.vocab.events import EventBus
 from hil.harness.engine.analysis_thread import AnalysisThread
 from hil.harness.engine.messages import (Applied, ApplyControl, CameraTruthReady, ChildGone, Done, Finished,
                                          FrameReady, WorldState)
-from hil.harness.engine.procs import Pump, RingPump, cpu_by_role, loop_process, threads_cpu_ns
+from hil.harness.engine.procs import Pump, RingPump, ThreadCpu, loop_process
 from hil.harness.engine.render import FrameSlots
 from hil.harness.engine.rings import Ring
 from hil.harness.run.shard_proc import (Doorbell, Outbox, ShardDone, ShardDrain, ShardDrained, ShardFailed,
@@ -81,8 +81,7 @@ class ShardHost:
         self.shard: Any = None
         self.analysis: AnalysisThread | None = None
         self._cpu0 = 0
-        self._threads0: dict[int, tuple[str, int]] = {}  # each thread's CPU at the loop's start
-        self._threads_end: dict[int, tuple[str, int]] | None = None  # and at the run's last step
+        self._thread_cpu = ThreadCpu()  # each thread's, loop start to the run's last step
 
     # -- start ----------------------------------------------------------------------------
 
@@ -107,7 +106,7 @@ class ShardHost:
             return
         self._build(start, warmup)
         self._cpu0 = time.process_time_ns()  # the run's own work from here (as the run process counts it)
-        self._threads0 = threads_cpu_ns(loop_ident=threading.get_ident())
+        self._thread_cpu.start()
         with loop_process(collect=False):
             self._loop()
 
@@ -249,7 +248,7 @@ class ShardHost:
     def _drain(self, deadline_ns: int) -> None:
         # The run's last step is past: each thread's CPU while every one still runs (the
         # physics's ring pump ends with the physics).
-        self._threads_end = threads_cpu_ns(loop_ident=threading.get_ident())
+        self._thread_cpu.mark_end()
         shard = self.shard
         while (shard.busy() or shard.truth_pending()) and self.clock.now_ns() <= deadline_ns \
                 and shard.gone() is None:
@@ -266,7 +265,7 @@ class ShardHost:
         from hil.harness.run.summary import vehicle_summary
 
         self.physics_done.wait(PHYSICS_DONE_TIMEOUT_S)  # its last answers are in the ring before it
-        threads = cpu_by_role(self._threads0, self._threads_end or threads_cpu_ns(loop_ident=threading.get_ident()))
+        threads = self._thread_cpu.by_role()
         shard = self.shard
         shard.unconfirmed()
         assert self.analysis is not None
