@@ -213,7 +213,8 @@ def faults_run(tmp_path_factory) -> tuple[Calibration, Path]:
 # the reference target's truth (a delay the machine causes is explained): it runs beside
 # the other tests (tests.conftest.beside), on the machine as they leave it. The runs with
 # injected faults stay here: a loaded machine widens the spike detector's baseline past
-# the injected spike (seen: the zenoh run's spike at frame 55 missed).
+# the injected spike (seen at 20 fps, where the spike had to stay under 40 ms: the
+# zenoh run's spike at frame 55 missed; at 12.5 fps it is 65 ms).
 CLEAN = ("duration_s=60", 'target.args=["--infer-ms", "20"]', "timing={}")
 beside(__name__, "clean_run", _calibrate, ahead_folder("calibrate-clean"), *CLEAN)
 
@@ -233,7 +234,7 @@ def test_every_injected_timing_fault_is_flagged_once_where_injected(faults_run):
     events = _timing_events(out)
     by_kind = {k: [e for e in events if e["kind"] == k] for k in TIMING_KINDS}
     assert [e.get("frame_ids") or [e.get("frame_id")] for e in by_kind["dropped_frame"]
-            if 65 in (e.get("frame_ids") or [e.get("frame_id")])] == [[65]]
+            if 12 in (e.get("frame_ids") or [e.get("frame_id")])] == [[12]]
     assert len(by_kind["clock_step"]) == 1
     # Never where not injected: whatever else was flagged, the truth shows it really
     # happened (a frame the target skipped, a latency really over the limit).
