@@ -166,3 +166,42 @@ def test_a_fused_set_waits_for_every_cameras_truth_and_judges_with_those_that_ca
     obs.finish()
     got = [(e["kind"], e["frame_ids"]) for e in rec.events]
     assert got == [("mismatch.ghost_object", [0]), ("mismatch.missed_object", [2]), ("mismatch.ghost_object", [4])]
+
+
+def test_each_entity_is_seen_where_the_one_at_a_time_geometry_puts_it():
+    # The observer views every entity of an instant at once (arrays); each must sit
+    # exactly where nearest_point_in_camera_frame puts it alone, and only those within
+    # 1.5 x the detector's range (all it ever compares) are kept, unless named.
+    import random
+
+    from hil.harness.cases.detector import nearest_point_in_camera_frame
+    from hil.harness.cases.detector_observer import _Footprints
+    from hil.scenarios.ground_truth import EntityState
+
+    rnd = random.Random(7)
+    ents = [EntityState(f"e{i}", "vehicle", rnd.uniform(-120, 120), rnd.uniform(-20, 20), 0.0, 0.0,
+                        rnd.uniform(-math.pi, math.pi), (rnd.uniform(0.5, 6), rnd.uniform(0.5, 3), 1.5))
+            for i in range(40)]
+    world = _Footprints(ents)
+    mount = (2.3, 0.4, math.radians(12))
+    for me in ents[:5]:
+        seen = {o.name: o for o in world.view(me, mount, {"e3"}, only=None, within_m=75.0)}
+        named = {o.name: o for o in world.view(me, mount, None, only={"e1", "e2", me.name}, within_m=None)}
+        assert me.name not in seen and set(named) == {"e1", "e2"} - {me.name}
+        far = 0
+        for e in ents:
+            if e is me:
+                continue
+            x, y = nearest_point_in_camera_frame(
+                ego_x=me.x_m, ego_y=me.y_m, ego_yaw=me.heading_rad, mount_forward_m=2.3, mount_lateral_m=0.4,
+                camera_yaw=math.radians(12), x=e.x_m, y=e.y_m, yaw=e.heading_rad, length=e.size_m[0],
+                width=e.size_m[1])
+            if math.hypot(x, y) <= 75.0:
+                o = seen[e.name]
+                assert (o.x_m, o.y_m, o.visible) == (x, y, e.name == "e3")  # to the bit
+            else:
+                far += 1
+                assert e.name not in seen
+            if e.name in named:
+                assert (named[e.name].x_m, named[e.name].y_m) == (x, y)
+        assert 0 < far < len(ents) - 1  # both sides of the range were tried
