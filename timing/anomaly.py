@@ -200,6 +200,9 @@ class Thresholds:
                                   f"of milliseconds; got {ms!r}")
 
 
+_DEFAULTS = Thresholds()  # frozen: is_sane without thresholds (once per record) builds none
+
+
 def is_sane(rec: PipelineRecord, thresholds: Thresholds | None = None) -> tuple[bool, str]:
     """Whether a record's timestamps are physically possible, and if not why.
 
@@ -208,7 +211,7 @@ def is_sane(rec: PipelineRecord, thresholds: Thresholds | None = None) -> tuple[
     turnaround longer than the harness round trip, an OK frame without ``t0'``.
     Never raises.
     """
-    t = thresholds or Thresholds()
+    t = thresholds or _DEFAULTS
     stamps = {"t0": rec.t0_ns, "t_tx": rec.t_tx_ns, "t_rx": rec.t_rx_target_ns,
               "t_infer_start": rec.t_infer_start_target_ns, "t_infer_end": rec.t_infer_end_target_ns,
               "t_reply": rec.t_reply_target_ns, "t0'": rec.t0p_ns, "t_apply": rec.t_apply_ns}
