@@ -27,6 +27,7 @@ LOWEST_US = 1
 HIGHEST_US = 60_000_000
 SIGNIFICANT_DIGITS = 3
 MAX_STAGES = 64
+PENDING = 256  # values (µs) a stage holds before they go into its histogram at once
 
 
 def _new_histogram() -> Any:
@@ -52,6 +53,28 @@ def values_at_percentiles(h: Any, percentiles: Iterable[float]) -> list[int]:
         v = h.get_value_from_index(i)
         out.append(h.get_highest_equivalent_value(v) if q else h.get_lowest_equivalent_value(v))
     return out
+
+
+def record_values(h: Any, us: np.ndarray) -> None:
+    """``h.record_value(v)`` for each ``v`` of ``us`` (non-negative whole µs, int64),
+    at once: the same bucket arithmetic as the library's, on arrays (its per-value
+    Python call was ~3.5 µs, eleven stages a frame)."""
+    if us.size == 0:
+        return
+    # bit length of (v | mask): frexp's exponent, exact for integers below 2**53
+    pow2ceiling = np.frexp((us | h.sub_bucket_mask).astype(np.float64))[1].astype(np.int64)
+    bucket = pow2ceiling - h.unit_magnitude - (h.sub_bucket_half_count_magnitude + 1)
+    sub = us >> (bucket + h.unit_magnitude)
+    idx = ((bucket + 1) << h.sub_bucket_half_count_magnitude) + (sub - h.sub_bucket_half_count)
+    ok = (idx >= 0) & (idx < h.counts_len)
+    if not ok.all():
+        idx, us = idx[ok], us[ok]
+        if us.size == 0:
+            return
+    np.add.at(np.ctypeslib.as_array(h.counts)[:h.counts_len], idx, 1)
+    h.total_count += int(us.size)
+    h.min_value = min(h.min_value, int(us.min()))
+    h.max_value = max(h.max_value, int(us.max()))
 
 
 @dataclass
@@ -103,6 +126,7 @@ class StageHistograms:
     def __init__(self) -> None:
         self._hist: dict[str, Any] = {}
         self._moments: dict[str, _Moments] = {}
+        self._pending: dict[str, list[int]] = {}  # µs values not yet in their histogram
         self.rejected = 0
         self.overflow = 0
         self.excluded_records = 0
@@ -117,7 +141,16 @@ class StageHistograms:
                 raise ValueError(f"more than {MAX_STAGES} stages; got new stage {stage!r}: "
                                  "stage names must come from a fixed set (hil.timing.records.STAGES)")
             self._hist[stage], self._moments[stage] = _new_histogram(), _Moments()
+            self._pending[stage] = []
         return self._hist[stage], self._moments[stage]
+
+    def _settle(self, stage: str | None = None) -> None:
+        """Put the pending values of ``stage`` (None: of every stage) into their histogram."""
+        for name in (stage,) if stage is not None else tuple(self._pending):
+            p = self._pending.get(name)
+            if p:
+                record_values(self._hist[name], np.array(p, dtype=np.int64))
+                p.clear()
 
     def record(self, stage: str, value_ns: int) -> bool:
         """Record one duration (ns). Returns False (and counts it in ``rejected``)
@@ -126,12 +159,15 @@ class StageHistograms:
         if value_ns < 0:
             self.rejected += 1
             return False
-        hist, moments = self._slot(stage)
+        _hist, moments = self._slot(stage)
         us = (value_ns + 500) // 1000
         if us > HIGHEST_US:
             self.overflow += 1
             us = HIGHEST_US
-        hist.record_value(us)
+        pending = self._pending[stage]
+        pending.append(us)
+        if len(pending) >= PENDING:
+            self._settle(stage)
         moments.add_one(value_ns)
         return True
 
@@ -145,13 +181,13 @@ class StageHistograms:
         if a.size == 0:
             return 0
         hist, moments = self._slot(stage)
+        self._settle(stage)
         us = (a + 500) // 1000
         over = us > HIGHEST_US
         if over.any():
             self.overflow += int(over.sum())
             us = np.minimum(us, HIGHEST_US)
-        for v, c in zip(*np.unique(us, return_counts=True), strict=True):
-            hist.record_value(int(v), int(c))
+        record_values(hist, us)
         moments.add(a)
         return int(a.size)
 
@@ -172,6 +208,7 @@ class StageHistograms:
         m = self._moments.get(stage)
         if m is None or m.count == 0:
             return {"count": 0}
+        self._settle(stage)
         out: dict[str, float | int] = {"count": m.count}
         for q, us in zip((50, 90, 99), values_at_percentiles(self._hist[stage], (50, 90, 99)), strict=True):
             out[f"p{q}_ms"] = round(us / 1e3, 4)
@@ -186,6 +223,8 @@ class StageHistograms:
     def merge(self, other: StageHistograms) -> None:
         """Add ``other``'s values into this one (``other`` is unchanged).
         Raises ValueError beyond ``MAX_STAGES`` stage names."""
+        self._settle()
+        other._settle()  # its counts, not its values: unchanged
         for stage, h in other._hist.items():
             mine, moments = self._slot(stage)
             mine.add(h)

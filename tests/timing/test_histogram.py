@@ -118,3 +118,33 @@ def test_records_feed_every_sync_free_stage_and_insane_ones_are_skipped():
     assert sorted(hist.stages()) == sorted(good.stages_ns())
     assert hist.excluded_records == 1
     assert hist.summary_ms()["inference"]["p50_ms"] == pytest.approx(4.9, rel=1e-3)
+
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_values_recorded_at_once_fill_the_librarys_own_buckets(seed: int) -> None:
+    # record_values does the library's bucket arithmetic on arrays: every count, the
+    # total, min and max must be what record_value gives one value at a time, at the
+    # edges of the buckets too; and a stage's pending values reach its percentiles.
+    from hdrh.histogram import HdrHistogram
+
+    from hil.timing.histogram import HIGHEST_US, LOWEST_US, PENDING, SIGNIFICANT_DIGITS, record_values
+
+    rng = np.random.default_rng(seed)
+    edges = [0, 1, 2, 1023, 1024, 2047, 2048, 2049, 4095, 4096, 65_535, 65_536, HIGHEST_US - 1, HIGHEST_US]
+    us = np.concatenate([np.array(edges, dtype=np.int64), rng.integers(0, HIGHEST_US, 3000),
+                         (rng.lognormal(9, 1.5, 3000)).astype(np.int64)])
+    one, many = (HdrHistogram(LOWEST_US, HIGHEST_US, SIGNIFICANT_DIGITS) for _ in range(2))
+    for v in us.tolist():
+        one.record_value(v)
+    record_values(many, us)
+    counts = [np.ctypeslib.as_array(h.counts)[:h.counts_len].copy() for h in (one, many)]
+    assert np.array_equal(counts[0], counts[1]) and counts[0].sum() == us.size
+    assert (one.total_count, one.min_value, one.max_value) == (many.total_count, many.min_value, many.max_value)
+
+    hist = StageHistograms()
+    for v in us[:PENDING - 1].tolist():  # fewer than a batch: all still pending
+        hist.record("end_to_end", v * 1000)
+    exact = StageHistograms()
+    exact.record_many("end_to_end", us[:PENDING - 1] * 1000)
+    assert hist.percentiles_ms("end_to_end") == exact.percentiles_ms("end_to_end")
