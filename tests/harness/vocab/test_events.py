@@ -90,8 +90,8 @@ def test_a_run_with_faults_writes_only_schema_events(tmp_path):
     cfg = load_config("hil_configs/calibrate.yaml", overrides=[
         "duration_s=4", "progress=false",
         f'target.command=["{sys.executable}", "-m", "hil.targets.reference"]',
-        'target.args=["--drop-frames", "30", "--reorder-frames", "40", '
-        '"--bad-crc-frames", "50", "--bad-length-frames", "60"]'])
+        'target.args=["--drop-frames", "10", "--reorder-frames", "20", '
+        '"--bad-crc-frames", "30", "--bad-length-frames", "40"]'])  # 4 s at 12.5 fps: frames 0-49
     out = prepare_out_dir(tmp_path / "r")
     execute(cfg, out_dir=out, gl_backend=GL_BACKEND, install_signal_handlers=False)
     events = [d for _, d in read_mcap(out / "run.mcap")["/events"]]  # read_mcap validates each one
