@@ -58,7 +58,7 @@ def values_at_percentiles(h: Any, percentiles: Iterable[float]) -> list[int]:
 def record_values(h: Any, us: np.ndarray) -> None:
     """``h.record_value(v)`` for each ``v`` of ``us`` (non-negative whole µs, int64),
     at once: the same bucket arithmetic as the library's, on arrays (its per-value
-    Python call was ~3.5 µs, eleven stages a frame)."""
+    Python call, ~1 µs, ran for a dozen stages and splits of every frame)."""
     if us.size == 0:
         return
     # bit length of (v | mask): frexp's exponent, exact for integers below 2**53

