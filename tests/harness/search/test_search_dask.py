@@ -105,8 +105,10 @@ def test_a_local_dask_cluster_runs_the_same_episodes_and_cases_as_the_pool(spec_
 def test_a_shard_on_a_running_cluster_merges_into_the_pooled_campaign(spec_file, pooled, cluster, tmp_path):
     addr = cluster.scheduler_address
     assert addr.startswith("tcp://127.0.0.1:")
-    workers = cluster.scheduler_info["workers"]
-    pids = {w: cluster.get_client().run(os.getpid)[w] for w in workers}
+    # One call, over a copy of the names: scheduler_info is refreshed while the client
+    # talks to the scheduler (a fresh clone's suite saw it change size in a loop over it).
+    pids = cluster.get_client().run(os.getpid)
+    assert set(pids) == set(cluster.scheduler_info["workers"]), pids
     assert len(set(pids.values())) == 2 and os.getpid() not in pids.values(), "worker processes, not threads"
     p = hil("search", str(spec_file), "--scheduler", addr, "--shard", "0/2", "--out", str(tmp_path / "s0"),
             "--no-progress")
