@@ -120,7 +120,6 @@ def test_records_feed_every_sync_free_stage_and_insane_ones_are_skipped():
     assert hist.summary_ms()["inference"]["p50_ms"] == pytest.approx(4.9, rel=1e-3)
 
 
-
 @pytest.mark.parametrize("seed", [0, 1])
 def test_values_recorded_at_once_fill_the_librarys_own_buckets(seed: int) -> None:
     # record_values does the library's bucket arithmetic on arrays: every count, the
