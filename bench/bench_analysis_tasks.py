@@ -69,7 +69,6 @@ def _timed_tasks() -> dict[str, list[int]]:
 
 def main(argv: list[str]) -> int:
     argv = argv or DEFAULT
-    out = None
     if "--out" not in argv:
         out = Path(tempfile.mkdtemp(prefix="hil-bench-analysis-")) / "run"
         argv = [*argv, "--out", str(out)]

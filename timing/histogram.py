@@ -180,8 +180,7 @@ class StageHistograms:
             a = a[~bad]
         if a.size == 0:
             return 0
-        hist, moments = self._slot(stage)
-        self._settle(stage)
+        hist, moments = self._slot(stage)  # its pending values may stay: counts add in any order
         us = (a + 500) // 1000
         over = us > HIGHEST_US
         if over.any():

@@ -98,7 +98,7 @@ class ShardDone(NamedTuple):
     recorded: int
     record_errors: int
     spill: dict[str, Any]             # hil.harness.run.spill.spill_summary of its vehicles
-    threads_cpu_ns: dict[str, int] = {}  # its loop's start to its finish, by role (procs.cpu_by_role)
+    threads_cpu_ns: dict[str, int]   # its loop's start to the run's last step, by role (procs.ThreadCpu)
 
 
 # -- run -> shard -----------------------------------------------------------------------------
