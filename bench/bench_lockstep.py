@@ -5,8 +5,8 @@ harness's own CPU per frame (issue 24, goal on the 2-core machine: frames/s at N
 Per round, one after another (never two at once):
 
 * floor: plain ``mujoco.Renderer`` over the N cameras of ``multi_vehicle`` (320x240,
-  no shadows or reflections, one process; ``bench_sim.bare``), ``--floor-images``
-  images;
+  no shadows or reflections, scale.yaml's ``camera.antialias``, one process;
+  ``bench_sim.bare``), ``--floor-images`` images;
 * run: ``hil run hil_configs/scale.yaml`` with N vehicles in lockstep, echo targets,
   ``truth.visible_boxes=false``, ``--duration`` simulated seconds, for each
   ``--workers`` (render workers) and ``--shards`` (engine.shards) setting: frames/s
@@ -41,9 +41,12 @@ def _load() -> str:
 
 def floor(n: int, images: int) -> float:
     """Images per second of bare rendering of the N cameras (a child process, so the
-    GL context is gone before the run)."""
+    GL context is gone before the run), anti-aliased as scale.yaml's runs are."""
+    from hil.harness.config.loading import load_config
+
+    antialias = load_config(ROOT / "hil_configs" / "scale.yaml").camera.antialias
     code = (f"import sys; sys.path.insert(0, {str(ROOT / 'bench')!r}); import bench_sim; "
-            f"print(bench_sim.bare({n}, {max(2, images // n)}, seg=False))")
+            f"print(bench_sim.bare({n}, {max(2, images // n)}, seg=False, antialias={antialias}))")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
     return float(out.stdout.strip().splitlines()[-1])
 

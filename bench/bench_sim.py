@@ -108,14 +108,15 @@ class EchoLink:
         self._out.put(None)
 
 
-def _world(n: int) -> Any:
-    return scenarios.get("multi_vehicle").build(params={"n_vehicles": n}, seed=0, camera=CameraSpec(),
-                                                physics_step_s=STEP_S)
+def _world(n: int, antialias: int = 4) -> Any:
+    return scenarios.get("multi_vehicle").build(params={"n_vehicles": n}, seed=0,
+                                                camera=CameraSpec(antialias=antialias), physics_step_s=STEP_S)
 
 
-def bare(n: int, frames: int, *, seg: bool) -> float:
-    """Images per second of plain mujoco.Renderer over the N cameras."""
-    with Simulation(_world(n)) as sim:
+def bare(n: int, frames: int, *, seg: bool, antialias: int = 4) -> float:
+    """Images per second of plain mujoco.Renderer over the N cameras (``antialias``:
+    samples per pixel, as ``camera.antialias``; the run compared must use the same)."""
+    with Simulation(_world(n, antialias)) as sim:
         m, d = sim.model, sim.data
         r = mujoco.Renderer(m, 240, 320)
         r.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False

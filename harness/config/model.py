@@ -84,6 +84,11 @@ class CameraConfig(BaseModel):
     jpeg_quality: Int = Field(85, ge=1, le=100)
     shadows: bool = False
     reflections: bool = False
+    # Samples per pixel of the offscreen render's multisample anti-aliasing (MuJoCo's
+    # visual/quality/offsamples; 4, its default, as before this setting). 0: none, thin
+    # distant lines break into dashes, and software GL (llvmpipe) renders a 320x240
+    # camera ~2x cheaper (bench/README, "Anti-aliasing").
+    antialias: Int = Field(4, ge=0, le=16)
     mount_height_m: Float = Field(1.3, ge=0.2, le=5)
     mount_forward_m: Float = Field(2.3, ge=-5, le=5)  # from the vehicle centre
     mount_lateral_m: Float = Field(0.0, ge=-3, le=3)  # left of the vehicle centre line

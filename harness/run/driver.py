@@ -118,7 +118,7 @@ def build_world(cfg: RunConfig) -> tuple[Any, Any]:
                                          mount_forward_m=cam.mount_forward_m,
                                          mount_height_m=cam.mount_height_m, mount_lateral_m=cam.mount_lateral_m,
                                          pitch_rad=math.radians(cam.pitch_deg), yaw_rad=math.radians(cam.yaw_deg),
-                                         rig=rig),
+                                         rig=rig, antialias=cam.antialias),
                        shadows=cam.shadows, reflections=cam.reflections)
     egos = [v.name for v in world.egos]
     for name in cfg.timing.vehicles:  # a typo'd vehicle's thresholds would judge nothing

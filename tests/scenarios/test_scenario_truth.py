@@ -197,6 +197,25 @@ def test_camera_mount_pose_moves_the_view() -> None:
     assert wide[2] - wide[0] == pytest.approx(2 * (straight[2] - straight[0]), abs=2)
 
 
+def test_antialias_smooths_the_camera_image_and_leaves_the_truth_alone() -> None:
+    """``camera.antialias``: samples per pixel of the offscreen render. Off, each
+    pixel takes one colour (edges step); on, edge pixels blend their neighbours'. The
+    segmentation, and so every true box, is the same either way."""
+    from hil.scenarios.sim import Simulation
+
+    seen = {}
+    for samples in (4, 0):
+        with Simulation(build("stopped_car", {"gap_m": 20.0}, antialias=samples)) as sim:
+            assert sim.model.vis.quality.offsamples == samples
+            rgb = sim.render("ego0").copy()
+            seen[samples] = (rgb, len(np.unique(rgb.reshape(-1, 3), axis=0)), sim.segmentation("ego0").copy(),
+                             sim.camera_truth("ego0").boxes)
+    (smooth, smooth_colours, seg4, boxes4), (sharp, sharp_colours, seg0, boxes0) = seen[4], seen[0]
+    assert smooth.shape == sharp.shape and not np.array_equal(smooth, sharp)
+    assert smooth_colours > sharp_colours + 20  # blended edge colours
+    assert np.array_equal(seg4, seg0) and boxes4 == boxes0 and boxes4
+
+
 def test_distance_along_a_curved_path(make_sim) -> None:
     sim = make_sim("curved_road", {"lead_gap_m": 60.0, "lead_speed_mps": 10.0, "ego_speed_mps": 10.0})
     sim.set_control("ego0", steering_rad=0.0, throttle=0.0, brake=1.0)

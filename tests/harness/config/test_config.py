@@ -113,6 +113,16 @@ def test_out_of_range_names_the_bound(write) -> None:
     assert "config error at duration_s: got -1; expected greater than 0" in message
 
 
+def test_camera_antialias_reaches_the_world_and_is_bounded(write) -> None:
+    from hil.harness.run.driver import build_world
+
+    assert load_config(write("{}")).camera.antialias == 4  # MuJoCo's own default, as before the setting
+    world, _ = build_world(load_config(write("camera:\n  antialias: 0\n")))
+    assert world.camera.antialias == 0
+    assert "config error at camera.antialias: got 17; expected less than or equal to 16" in config_error(
+        write("camera:\n  antialias: 17\n"))
+
+
 def test_bool_is_not_a_number(write) -> None:
     message = config_error(write("seed: true\n"))
     assert "at seed: got True" in message
