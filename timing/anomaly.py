@@ -32,6 +32,7 @@ timed out). Durations are integer ns in, milliseconds in the anomalies.
 
 from __future__ import annotations
 
+import math
 from bisect import bisect_right, insort
 from collections import deque
 from collections.abc import Iterable, Mapping
@@ -76,7 +77,8 @@ SEVERITY: Mapping[AnomalyKind, Severity] = MappingProxyType({
     k: Severity.CRITICAL if k in (AnomalyKind.DEADLINE_MISS, AnomalyKind.FRAME_RATE_FLOOR)
     else Severity.WARNING for k in AnomalyKind})
 
-FRAME_RATE_STEP_NS = 100_000_000  # the frame-rate windows are judged every 100 ms
+FRAME_RATE_STEP_NS = 100_000_000  # the frame-rate windows are judged every 100 ms (the floor's period at 10 Hz)
+_MIN_STEP_NS = 10_000_000          # and never more often than every 10 ms (a floor over 100 Hz: its period's multiple)
 MAX_JUDGED_WINDOWS = 100_000       # per on_tick call; older ones are skipped (bounded work)
 MAX_ARRIVALS = 1 << 16             # receipt times kept without a tick
 
@@ -262,6 +264,16 @@ class _Stream:
         self.parts: dict[str, deque[int]] = {p: deque(maxlen=_PART_WINDOW) for p in (*_PARTS["to_apply"], *_PARTS)}
 
 
+def _judging_step_ns(floor_hz: float) -> int:
+    """How often the frame-rate windows are judged: the floor's period (100 ms at the
+    default 10 Hz), or the smallest multiple of it of at least ``_MIN_STEP_NS``;
+    ``FRAME_RATE_STEP_NS`` without a floor."""
+    if floor_hz <= 0:
+        return FRAME_RATE_STEP_NS
+    period = round(1e9 / floor_hz)
+    return period * max(1, -(-_MIN_STEP_NS // period))
+
+
 class AnomalyDetector:
     """Flags timing anomalies of one vehicle's records, sync events and ticks.
     ``counts`` tallies the anomalies by kind; ``excluded`` the insane records."""
@@ -275,6 +287,9 @@ class AnomalyDetector:
         self._arrivals: list[int] = []  # t0' of estimates not yet out of every window, sorted
         self._start_ns: int | None = None
         self._next_judge_ns: int | None = None
+        self._answered = False  # an estimate arrived (the frame-rate windows start with the first)
+        self._judged = False  # a frame-rate window was judged
+        self._step_ns = _judging_step_ns(t.frame_rate_floor_hz)
         self._streams: dict[int | None, _Stream] = {}  # by camera of a rig (None: one camera)
         self._s = self._stream(None)  # the stream of the record being judged
         self._sets: dict[int, None] = {}  # a rig's recent frame sets with an arrival (insertion order)
@@ -318,6 +333,11 @@ class AnomalyDetector:
             insort(self._arrivals, rec.t0p_ns)  # it arrived, whatever its target stamps say
             if len(self._arrivals) > MAX_ARRIVALS:  # never ticked: keep memory bounded
                 del self._arrivals[:MAX_ARRIVALS // 2]
+            if not self._answered and not self._judged:
+                # The stream's first estimate: windows start with it, not with the ticks
+                # (or the capture) before it, whose silence no window at its rate holds.
+                self._start_ns, self._next_judge_ns = rec.t0p_ns, None
+            self._answered = True
         mk = _Where((rec.frame_id,), rec.sim_time_ns, at)
         if not ok:
             self.excluded += 1
@@ -396,28 +416,35 @@ class AnomalyDetector:
         """Periodic check (harness time ns): the estimate rate below the floor,
         flagged once per episode.
 
-        Windows of ``frame_rate_window_s`` are judged every ``FRAME_RATE_STEP_NS``
-        on a fixed grid, each counting the estimates whose ``t0'`` lies in it, and
-        only once the window is complete: it ends at or before
+        Windows of ``frame_rate_window_s`` are judged one a step (the floor's
+        period, ``_judging_step_ns``), each counting the estimates whose ``t0'``
+        lies in it, and only once the window is complete: it ends at or before
         ``complete_until_ns`` (default ``now_ns``: the caller hands every estimate
-        over as it arrives), so every estimate in it has been seen. The first
-        window starts at the first record's ``t0`` or the first tick. An anomaly's
-        ``harness_time_ns`` is the end of the window that fell below the floor;
-        ``sim_time_ns`` is the caller's (when judged)."""
+        over as it arrives), so every estimate in it has been seen. Each window
+        ends midway between the arrivals it counts (their mean phase within a
+        step, plus half a step; ``_window_end``): an estimate stream at the floor's
+        own rate holds exactly floor x window estimates in every window however its
+        latency jitters (within half a period), where an edge among the arrivals
+        counted one short. The first window starts at the first estimate's ``t0'``
+        (seen before any window was judged), else the first record's ``t0`` or the
+        first tick. An anomaly's ``harness_time_ns`` is the end of the window
+        that fell below the floor; ``sim_time_ns`` is the caller's (when judged)."""
         t = self.thresholds
+        step = self._step_ns
         if self._start_ns is None:
             self._start_ns = now_ns
         window_ns = int(t.frame_rate_window_s * 1e9)
         if self._next_judge_ns is None:
             self._next_judge_ns = self._start_ns + window_ns
         end_ns = now_ns if complete_until_ns is None else min(complete_until_ns, now_ns)
-        if end_ns - self._next_judge_ns > MAX_JUDGED_WINDOWS * FRAME_RATE_STEP_NS:  # a huge jump
-            skip = (end_ns - self._next_judge_ns) // FRAME_RATE_STEP_NS - MAX_JUDGED_WINDOWS
-            self._next_judge_ns += skip * FRAME_RATE_STEP_NS
+        if end_ns - self._next_judge_ns > MAX_JUDGED_WINDOWS * step:  # a huge jump
+            skip = (end_ns - self._next_judge_ns) // step - MAX_JUDGED_WINDOWS
+            self._next_judge_ns += skip * step
         out: list[Anomaly] = []
         while self._next_judge_ns <= end_ns:
-            e = self._next_judge_ns
-            self._next_judge_ns += FRAME_RATE_STEP_NS
+            e = self._window_end(self._next_judge_ns, window_ns)
+            self._next_judge_ns += step  # (the next end lies after this slot: the ends only increase)
+            self._judged = True
             n = bisect_right(self._arrivals, e) - bisect_right(self._arrivals, e - window_ns)
             rate = n / t.frame_rate_window_s
             if self._in_floor:
@@ -428,8 +455,28 @@ class AnomalyDetector:
                                       measured=rate, threshold=t.frame_rate_floor_hz, unit="Hz",
                                       detail=f"{n} estimates received in the {t.frame_rate_window_s} s "
                                              "before this instant"))
-        del self._arrivals[:bisect_right(self._arrivals, self._next_judge_ns - window_ns)]
+        # Kept: every arrival a later window can count (it ends at most a step before its slot).
+        del self._arrivals[:bisect_right(self._arrivals, self._next_judge_ns - window_ns - step)]
         return out
+
+    def _window_end(self, slot_ns: int, window_ns: int) -> int:
+        """Where the window judged at ``slot_ns`` ends: the last instant at or before
+        it that lies half a step from the mean phase (within a step) of the arrivals
+        in the window ending at the slot; the slot itself where it holds none. At
+        the floor's rate the arrivals keep one phase, so the window's two edges fall
+        midway between them."""
+        step = self._step_ns
+        lo, hi = bisect_right(self._arrivals, slot_ns - window_ns), bisect_right(self._arrivals, slot_ns)
+        if lo == hi:
+            return slot_ns
+        c = s = 0.0
+        k = 2 * math.pi / step
+        for a in self._arrivals[lo:hi]:
+            angle = (a % step) * k
+            c += math.cos(angle)
+            s += math.sin(angle)
+        mid = (round(math.atan2(s, c) / k) + step // 2) % step  # midway between the arrivals' phase
+        return slot_ns - (slot_ns - mid) % step
 
     # --- pieces -------------------------------------------------------------------
 

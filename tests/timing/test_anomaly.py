@@ -255,6 +255,52 @@ def test_frame_rate_floor_is_flagged_once_per_episode_with_hysteresis():
     assert floors[0].measured < 10 and floors[0].unit == "Hz" and floors[0].severity is Severity.CRITICAL
 
 
+def _steady_at_the_floor(fps: float, *, seed: int, phase_ns: int, drop: int | None = None,
+                         floor_hz: float = 10.0) -> list[Anomaly]:
+    """A target answering every frame at exactly ``fps`` with 3-13 ms of latency
+    (OpenCV-like jitter), ticked every 2 ms from ``phase_ns`` before the first capture
+    (as a run's loop ticks before its first record is analysed), records handed over
+    ~1 s late (as analysis waits for the sync), 30 s; frame ``drop`` never answered."""
+    rng = np.random.default_rng(seed)
+    det = AnomalyDetector("ego", Thresholds(frame_rate_floor_hz=floor_hz))
+    period = round(1e9 / fps)
+    events = []  # (harness time handed over, record)
+    for i in range(round(30 * fps)):
+        t0 = START_NS + i * period
+        if i == drop:
+            events.append((t0 + 500 * MS + 1_000 * MS, PipelineRecord("ego", i, i, t0, t0 + US, FrameStatus.DROPPED)))
+            continue
+        t0p = t0 + int(rng.uniform(3, 13) * MS)
+        events.append((t0p + 1_000 * MS, PipelineRecord("ego", i, i, t0, t0 + US, FrameStatus.OK, t0p_ns=t0p)))
+    out: list[Anomaly] = []
+    k = 0
+    for now in range(START_NS - phase_ns, START_NS + 31_000 * MS, 2 * MS):  # judged up to the last answer
+        while k < len(events) and events[k][0] <= now:
+            out += det.on_record(events[k][1])
+            k += 1
+        out += det.on_tick(now, complete_until_ns=now - 1_100 * MS)
+    return [a for a in out if a.kind is AnomalyKind.FRAME_RATE_FLOOR]
+
+
+@pytest.mark.parametrize("fps,floor_hz", [(10.0, 10.0), (10.2, 10.0), (20.0, 20.0), (12.5, 12.5)])
+@pytest.mark.parametrize("phase_ms", [1, 40, 90, 95])
+def test_a_steady_stream_at_the_floor_never_trips_it_whatever_the_ticks_phase(fps, floor_hz, phase_ms):
+    # At the floor's own rate a 2-s window holds exactly floor x 2 s estimates; a window
+    # whose edges fell among the jittered arrivals counted one short (19 at 10 fps: a
+    # critical anomaly in a run that dropped nothing, seen in 8-vehicle runs at 10 fps).
+    # The windows now end midway between the arrivals. (Ticks from 90 and 95 ms before
+    # the first capture put the old grid's edges 10 and 5 ms after each capture: among
+    # the arrivals.)
+    assert _steady_at_the_floor(fps, seed=phase_ms, phase_ns=phase_ms * MS, floor_hz=floor_hz) == []
+
+
+@pytest.mark.parametrize("phase_ms", [1, 40, 90, 95])
+def test_one_lost_answer_at_the_floors_rate_is_below_it_once(phase_ms):
+    (a,) = _steady_at_the_floor(10.0, seed=phase_ms, phase_ns=phase_ms * MS, drop=100)
+    assert a.measured == 9.5 and "19 estimates" in a.detail
+    assert START_NS + 10_000 * MS < a.harness_time_ns < START_NS + 12_200 * MS  # a window holding frame 100
+
+
 def test_no_estimates_at_all_trips_the_floor_after_one_window():
     det = AnomalyDetector("ego")
     out = [a for k in range(40) for a in det.on_tick(START_NS + k * 100 * MS)]
