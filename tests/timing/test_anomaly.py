@@ -272,6 +272,7 @@ def _steady_at_the_floor(fps: float, *, seed: int, phase_ns: int, drop: int | No
             continue
         t0p = t0 + int(rng.uniform(3, 13) * MS)
         events.append((t0p + 1_000 * MS, PipelineRecord("ego", i, i, t0, t0 + US, FrameStatus.OK, t0p_ns=t0p)))
+    events.sort(key=lambda e: e[0])  # handed over in the order they settle
     out: list[Anomaly] = []
     k = 0
     for now in range(START_NS - phase_ns, START_NS + 31_000 * MS, 2 * MS):  # judged up to the last answer
