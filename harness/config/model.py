@@ -87,7 +87,8 @@ class CameraConfig(BaseModel):
     # Samples per pixel of the offscreen render's multisample anti-aliasing (MuJoCo's
     # visual/quality/offsamples; 4, its default, as before this setting). 0: none, thin
     # distant lines break into dashes, and software GL (llvmpipe) renders a 320x240
-    # camera ~2x cheaper (bench/README, "Anti-aliasing").
+    # camera ~2x cheaper (bench/README, "Anti-aliasing"). The GL driver may draw more
+    # samples than asked (llvmpipe draws 4 for any value above 0).
     antialias: Int = Field(4, ge=0, le=16)
     mount_height_m: Float = Field(1.3, ge=0.2, le=5)
     mount_forward_m: Float = Field(2.3, ge=-5, le=5)  # from the vehicle centre
