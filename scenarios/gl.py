@@ -35,18 +35,57 @@ INSTALL_HINT = (
 )
 
 
-def probe(backend: str, *, timeout_s: float = 30.0) -> str | None:
-    """Try to render one tiny image with ``backend``; return None on success or the
-    last line of the failure."""
+_early: subprocess.Popen[str] | None = None  # the EGL probe start_probe() started, not yet read
+
+
+def _spawn(backend: str) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-c", _PROBE, backend], stdin=subprocess.DEVNULL,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _outcome(proc: subprocess.Popen[str], timeout_s: float) -> str | None:
     try:
-        proc = subprocess.run([sys.executable, "-c", _PROBE, backend], capture_output=True,
-                              text=True, timeout=timeout_s, check=False)
+        _, err = proc.communicate(timeout=timeout_s)
     except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate()
         return f"probe timed out after {timeout_s:g} s"
     if proc.returncode == 0:
         return None
-    lines = [ln for ln in proc.stderr.strip().splitlines() if ln.strip()]
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
     return lines[-1] if lines else f"exit code {proc.returncode}"
+
+
+def probe(backend: str, *, timeout_s: float = 30.0) -> str | None:
+    """Try to render one tiny image with ``backend``; return None on success or the
+    last line of the failure."""
+    return _outcome(_spawn(backend), timeout_s)
+
+
+def _driver_defaults() -> None:
+    for name, value in GL_DRIVER_DEFAULTS.items():
+        os.environ.setdefault(name, value)  # inherited by the probe, the render workers, the floors
+
+
+def start_probe() -> None:
+    """Start the EGL probe of :func:`select_backend` now, in its child, where it will be
+    needed (``MUJOCO_GL`` unset, ``mujoco`` not imported), so that it runs while the
+    caller loads its config and modules (~0.5 s of a command's start). Pair with
+    :func:`cancel_probe` for the paths that never select."""
+    global _early
+    if _early is None and not os.environ.get("MUJOCO_GL", "").strip() and "mujoco" not in sys.modules:
+        _driver_defaults()  # as select_backend's own probe inherits them
+        _early = _spawn("egl")
+
+
+def cancel_probe() -> None:
+    """End an early probe nothing read (a command that stopped before rendering)."""
+    global _early
+    proc, _early = _early, None
+    if proc is not None and proc.poll() is None:
+        proc.kill()
+    if proc is not None:
+        proc.communicate()
 
 
 def select_backend() -> str:
@@ -57,16 +96,19 @@ def select_backend() -> str:
         SimulationError: neither EGL nor OSMesa works (with the install hint), or
             ``mujoco`` was already imported with another backend.
     """
-    for name, value in GL_DRIVER_DEFAULTS.items():
-        os.environ.setdefault(name, value)  # inherited by the probe, the render workers, the floors
+    _driver_defaults()
     chosen = os.environ.get("MUJOCO_GL", "").strip().lower()
     if chosen:
         return chosen
     if "mujoco" in sys.modules:
         raise SimulationError("mujoco was imported before a GL backend was chosen; call select_backend() first")
+    global _early
     failures = []
     for backend in ("egl", "osmesa"):
-        err = probe(backend)
+        early = _early if backend == "egl" else None  # start_probe()'s, started earlier
+        if early is not None:
+            _early = None
+        err = probe(backend) if early is None else _outcome(early, 30.0)
         if err is None:
             os.environ["MUJOCO_GL"] = backend
             return backend

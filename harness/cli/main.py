@@ -176,6 +176,16 @@ def _cmd_scenarios(args: argparse.Namespace) -> int:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from hil.scenarios.gl import cancel_probe, start_probe
+
+    start_probe()  # the GL probe runs while the config and the modules load
+    try:
+        return _run(args)
+    finally:
+        cancel_probe()
+
+
+def _run(args: argparse.Namespace) -> int:
     from hil.harness.cli.progress import Progress, final_table
     from hil.harness.report.progress import make_console
     from hil.harness.config.loading import load_config

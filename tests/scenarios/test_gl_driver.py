@@ -26,3 +26,24 @@ def _yield_after_select(env_yield: str | None) -> str:
 @pytest.mark.parametrize(("given", "after"), [(None, "'USLEEP'"), ("NOTHING", "'NOTHING'"), ("", "''")])
 def test_select_backend_sets_gl_yield_only_where_the_user_left_it_unset(given: str | None, after: str) -> None:
     assert _yield_after_select(given) == after
+
+
+_EARLY = ("import os; from hil.scenarios import gl; gl.start_probe(); early = gl._early; "
+          "print(early is not None, gl.select_backend(), early.returncode, gl._early is None); "
+          "gl.start_probe(); late = gl._early; print(late); "  # MUJOCO_GL is set now: nothing started
+          "os.environ.pop('MUJOCO_GL'); gl.start_probe(); p = gl._early; gl.cancel_probe(); "
+          "print(p.poll() is not None, gl._early is None)")
+
+
+def test_an_early_probe_is_the_one_select_backend_reads_and_cancel_ends_it(gl_backend) -> None:
+    # hil run starts the probe before loading its config and modules: select_backend
+    # reads that child's outcome (no second probe); a command that ends first kills it.
+    env = {k: v for k, v in os.environ.items() if k != "MUJOCO_GL"}
+    out = subprocess.run([sys.executable, "-c", _EARLY], env=env, capture_output=True, text=True, check=True,
+                         timeout=120)
+    first, second, third = out.stdout.split("\n")[:3]
+    started, chosen, code, read = first.split()
+    assert started == "True" and chosen == gl_backend and read == "True"
+    assert (code == "0") == (gl_backend == "egl")  # the EGL probe's own outcome was the one read
+    assert second == "None"
+    assert third == "True True"
