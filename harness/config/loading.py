@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import copy
 import difflib
-import hashlib
-import json
 import os
 import re
 from collections.abc import Mapping, Sequence
@@ -25,6 +23,7 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from hil.common.errors import ConfigError
+from hil.harness.config.digest import digest
 from hil.harness.config.model import _GOT_MAX_CHARS, _PERIOD_ERROR, _RULE_ERROR, RunConfig
 
 __all__ = ["config_hash", "dump_config", "load_config", "parse_config"]
@@ -298,19 +297,7 @@ def dump_config(cfg: RunConfig) -> dict[str, Any]:
     return cfg.model_dump(mode="json")
 
 
-# Fields added after runs first recorded their config hash, left out of it while at
-# their default: a config that does not use one hashes as it did before it existed,
-# so ``hil compare`` against an older baseline notes no difference where there is none.
-HASH_NEUTRAL_DEFAULTS: dict[tuple[str, str], Any] = {("camera", "antialias"): 4}
-
-
 def config_hash(cfg: RunConfig) -> str:
-    """sha256 hex digest of the canonical JSON (sorted keys; ``HASH_NEUTRAL_DEFAULTS``
-    left out at their defaults): stable across runs."""
-    doc = dump_config(cfg)
-    for (section, key), default in HASH_NEUTRAL_DEFAULTS.items():
-        part = doc.get(section)
-        if isinstance(part, dict) and key in part and part[key] == default:
-            del part[key]
-    canonical = json.dumps(doc, sort_keys=True, separators=(",", ":"))
-    return hashlib.sha256(canonical.encode("utf-8")).hexdigest()
+    """sha256 hex digest of the canonical JSON (``hil.harness.config.digest``): stable
+    across runs."""
+    return digest(dump_config(cfg))

@@ -357,9 +357,9 @@ def meta_from_config(run_dir: Path) -> dict[str, Any]:
     """What ran, from ``RUN/config.json`` (written before the run starts, so a killed
     run has it while its ``run.mcap`` has no metadata): ``name``, ``scenario``,
     ``scenario_params`` (as configured, defaults not filled in), ``seed`` and
-    ``config_hash`` (the digest ``hil run`` records: sha256 of the canonical JSON),
+    ``config_hash`` (the digest ``hil run`` records: ``hil.harness.config.digest``),
     with ``meta_source`` naming the file. Empty when it is missing or not a config."""
-    import hashlib
+    from hil.harness.config.digest import digest
 
     try:
         cfg = json.loads((run_dir / CONFIG_NAME).read_text(encoding="utf-8"))
@@ -372,7 +372,7 @@ def meta_from_config(run_dir: Path) -> dict[str, Any]:
         scenario = {}
     out = {"name": cfg.get("name"), "scenario": scenario.get("name"), "scenario_params": scenario.get("params"),
            "seed": cfg.get("seed"),
-           "config_hash": hashlib.sha256(json.dumps(cfg, sort_keys=True, separators=(",", ":")).encode()).hexdigest()}
+           "config_hash": digest(cfg)}
     return {**{k: v for k, v in out.items() if v is not None}, "meta_source": CONFIG_NAME}
 
 
