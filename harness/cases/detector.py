@@ -51,6 +51,9 @@ import math
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
+from typing import Any
+
+import numpy as np
 
 from hil.adapters.wire.messages import DrivingState, Estimate
 from hil.common.classes import ObjectClass
@@ -135,26 +138,39 @@ class Mismatch:
                 "linked_anomalies": list(self.linked_anomalies), "evidence": dict(self.evidence)}
 
 
+def camera_position(ego_x: float, ego_y: float, ego_yaw: float, mount_forward_m: float,
+                    mount_lateral_m: float) -> tuple[float, float]:
+    """Where a camera mounted on an ego stands, in the world frame (m)."""
+    c, s = math.cos(ego_yaw), math.sin(ego_yaw)
+    return ego_x + c * mount_forward_m - s * mount_lateral_m, ego_y + s * mount_forward_m + c * mount_lateral_m
+
+
+def footprints_in_camera_frame(cam_x: float, cam_y: float, heading: float, x: Any, y: Any, cos_yaw: Any,
+                               sin_yaw: Any, half_l: Any, half_w: Any) -> tuple[Any, Any]:
+    """The point of each footprint (a rectangle: centre ``x``, ``y``, its heading's
+    ``cos_yaw``, ``sin_yaw``, half length and width; floats or arrays alike, the same
+    operations either way) nearest to the camera at ``cam_x``, ``cam_y`` looking along
+    ``heading``, in the camera-ground frame (m)."""
+    # The camera's point in each entity's frame, clamped to its footprint.
+    dx, dy = cam_x - x, cam_y - y
+    lx = np.minimum(np.maximum(cos_yaw * dx + sin_yaw * dy, -half_l), half_l)
+    ly = np.minimum(np.maximum(-sin_yaw * dx + cos_yaw * dy, -half_w), half_w)
+    # Back into the world, then into the camera-ground frame.
+    rx = (x + cos_yaw * lx - sin_yaw * ly) - cam_x
+    ry = (y + sin_yaw * lx + cos_yaw * ly) - cam_y
+    ch, sh = math.cos(heading), math.sin(heading)
+    return ch * rx + sh * ry, -sh * rx + ch * ry
+
+
 def nearest_point_in_camera_frame(*, ego_x: float, ego_y: float, ego_yaw: float, mount_forward_m: float,
                                   mount_lateral_m: float, camera_yaw: float, x: float, y: float, yaw: float,
                                   length: float, width: float) -> tuple[float, float]:
     """The point of an entity's footprint (a rectangle) nearest to the camera, in the
     camera-ground frame (m). World frame: x along the road, y left."""
-    c, s = math.cos(ego_yaw), math.sin(ego_yaw)
-    cam_x = ego_x + c * mount_forward_m - s * mount_lateral_m
-    cam_y = ego_y + s * mount_forward_m + c * mount_lateral_m
-    # Camera point in the entity's frame, clamped to its footprint.
-    ce, se = math.cos(yaw), math.sin(yaw)
-    dx, dy = cam_x - x, cam_y - y
-    lx, ly = ce * dx + se * dy, -se * dx + ce * dy
-    lx = min(max(lx, -length / 2), length / 2)
-    ly = min(max(ly, -width / 2), width / 2)
-    px, py = x + ce * lx - se * ly, y + se * lx + ce * ly
-    # Into the camera-ground frame.
-    heading = ego_yaw + camera_yaw
-    ch, sh = math.cos(heading), math.sin(heading)
-    rx, ry = px - cam_x, py - cam_y
-    return ch * rx + sh * ry, -sh * rx + ch * ry
+    cam_x, cam_y = camera_position(ego_x, ego_y, ego_yaw, mount_forward_m, mount_lateral_m)
+    px, py = footprints_in_camera_frame(cam_x, cam_y, ego_yaw + camera_yaw, x, y, math.cos(yaw), math.sin(yaw),
+                                        length / 2, width / 2)
+    return float(px), float(py)
 
 
 def match(est: Sequence[tuple[str, float, float]], truth: Sequence[TruthObject], *,

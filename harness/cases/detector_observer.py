@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 
 from hil.adapters.wire.messages import DrivingState, Estimate
-from hil.harness.cases.detector import (CornerCaseDetector, FrameTruth, Mismatch, TruthObject,
-                                           link_anomalies)
+from hil.harness.cases.detector import (CornerCaseDetector, FrameTruth, Mismatch, TruthObject, camera_position,
+                                           footprints_in_camera_frame, link_anomalies)
 from hil.harness.vocab.events import Event, EventBus
 from hil.harness.cases.late_reaction import EgoView
 from hil.harness.analysis.timing_observer import TimingObserver
@@ -72,9 +72,9 @@ class _VehicleJudge:
 
 class _Footprints:
     """One instant's entities as arrays, for the point of each footprint nearest a
-    camera (``hil.harness.cases.detector.nearest_point_in_camera_frame``, the same
-    operations in the same order on all of them at once: one at a time, a view of 30
-    entities took ~100 µs of the analysis thread, twice a frame; ~47 µs so)."""
+    camera (``hil.harness.cases.detector.footprints_in_camera_frame`` on all of them at
+    once: one at a time, a view of 30 entities took ~100 µs of the analysis thread,
+    twice a frame; ~47 µs so)."""
 
     def __init__(self, entities: Sequence[EntityState]) -> None:
         self.entities = entities
@@ -92,18 +92,9 @@ class _Footprints:
         lateral, yaw of the camera), those named in ``only`` (or all), those no farther
         than ``within_m`` (or all); ``visible``: the names seen (None: all)."""
         forward, lateral, yaw = mount
-        c, s = math.cos(me.heading_rad), math.sin(me.heading_rad)
-        cam_x = me.x_m + c * forward - s * lateral
-        cam_y = me.y_m + s * forward + c * lateral
-        ce, se = self.cos, self.sin
-        dx, dy = cam_x - self.x, cam_y - self.y
-        lx = np.minimum(np.maximum(ce * dx + se * dy, -self.half_l), self.half_l)
-        ly = np.minimum(np.maximum(-se * dx + ce * dy, -self.half_w), self.half_w)
-        rx = (self.x + ce * lx - se * ly) - cam_x
-        ry = (self.y + se * lx + ce * ly) - cam_y
-        heading = me.heading_rad + yaw
-        ch, sh = math.cos(heading), math.sin(heading)
-        xs, ys = ch * rx + sh * ry, -sh * rx + ch * ry
+        cam_x, cam_y = camera_position(me.x_m, me.y_m, me.heading_rad, forward, lateral)
+        xs, ys = footprints_in_camera_frame(cam_x, cam_y, me.heading_rad + yaw, self.x, self.y, self.cos, self.sin,
+                                            self.half_l, self.half_w)
         pick: Sequence[int]
         if only is not None:
             pick = sorted(i for i in (self.index.get(n) for n in only) if i is not None)
@@ -151,12 +142,13 @@ class DetectorObserver:
         """``vehicle``'s view of ``gt``: every other entity in its camera-ground frame
         (those named in ``only``; without ``only``, those within the 1.5 x range the
         judgement compares at all), its reference state and route truth."""
-        me = next((e for e in gt.entities if e.name == vehicle), None)
+        world = self._world(gt)
+        k = world.index.get(vehicle)  # (entity names are unique: WorldSpec)
         ego = next((e for e in gt.egos if e.vehicle == vehicle), None)
         objs: tuple[TruthObject, ...] = ()
-        if me is not None:
-            objs = self._world(gt).view(me, self._mount, visible, only=only,
-                                        within_m=None if only is not None else self.cfg.max_range_m * 1.5)
+        if k is not None:
+            objs = world.view(world.entities[k], self._mount, visible, only=only,
+                              within_m=None if only is not None else self.cfg.max_range_m * 1.5)
         if ego is None:
             return FrameTruth(gt.sim_time_ns, objs, DrivingState.SAFE)
         view = EgoView(gt.sim_time_ns, ego.gap_m, ego.obstacle, ego.speed_mps, ego.obstacle_speed_mps)
