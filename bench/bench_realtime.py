@@ -73,7 +73,7 @@ def floor(seconds: float, *, priority: int | None = None, nice: int = 0, config:
     from hil.harness.config.loading import load_config
     from hil.harness.engine.messages import Done, Exit, Finished, PhysicsReady, Start, decode
     from hil.harness.engine.physics import PhysicsOutputs, PhysicsSpec, physics_main
-    from hil.harness.engine.procs import physics_core
+    from hil.harness.engine.procs import Origin, physics_core
     from hil.harness.engine.rings import Ring
     from hil.harness.run.driver import build_world
     from hil import scenarios
@@ -91,7 +91,7 @@ def floor(seconds: float, *, priority: int | None = None, nice: int = 0, config:
     ctx = mp.get_context("spawn")
     ring = Ring.create("run")
     a, b = ctx.Pipe()
-    p = ctx.Process(target=physics_main, args=(b, PhysicsOutputs(ring.producer_spec(), ()), spec, os.getpid()),
+    p = ctx.Process(target=physics_main, args=(b, PhysicsOutputs(ring.producer_spec(), ()), spec, Origin.here()),
                     daemon=True)
     p.start()
     ring.release(producer=True)

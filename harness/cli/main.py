@@ -179,6 +179,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from hil.scenarios.gl import cancel_probe, start_probe
 
     start_probe()  # the GL probe runs while the config and the modules load
+    if os.environ.get("MUJOCO_GL", "").strip():  # chosen by the user: the engine's fork server
+        from hil.harness.engine.procs import start_child_server  # imports their modules meanwhile too
+        from hil.scenarios.gl import select_backend
+
+        select_backend()  # the GL driver's settings, which the server's children inherit
+        start_child_server()
     try:
         return _run(args)
     finally:

@@ -13,7 +13,10 @@
 
 Lockstep runs on the same processes: the run process tells the physics process how
 far to step and which controls to apply first, so lockstep stays deterministic.
-Every child dies with the run process (``PR_SET_PDEATHSIG``); shared memory is
+The physics and render processes are forks of a fork server of the run process that
+imported their modules once (``procs.child_context``; ``hil run`` starts it while it
+loads its config). Every child dies with the run process (``PR_SET_PDEATHSIG``; a fork
+server's children through the server, which ends with the run process); shared memory is
 unlinked on close and, if the run process is killed, by multiprocessing's resource
 tracker.
 """

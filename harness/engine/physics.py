@@ -26,7 +26,7 @@ import numpy as np
 
 from hil.harness.engine.messages import (Advance, Applied, ApplyControl, Done, Exit, Finished, Halt, PhysicsReady,
                                          RenderJob, Start, WorldState, encode)
-from hil.harness.engine.procs import ask_realtime, die_with_parent
+from hil.harness.engine.procs import Origin, ask_realtime
 from hil.harness.engine.rings import Ring, RingSpec
 
 SPIN_NS = 60_000          # spin the last 60 µs before a due instant (sleep overshoots)
@@ -136,11 +136,11 @@ class PhysicsOutputs:
     controls: tuple[Connection, ...] = ()
 
 
-def physics_main(conn: Connection, outputs: PhysicsOutputs, spec: PhysicsSpec, parent_pid: int) -> None:
+def physics_main(conn: Connection, outputs: PhysicsOutputs, spec: PhysicsSpec, origin: Origin) -> None:
     """Entry point of the physics process. ``conn`` brings the run's commands (and
     takes ``PhysicsReady``); everything else goes out through ``outputs``: each
     render worker gets the world state of its vehicles' camera instants directly."""
-    die_with_parent(parent_pid)
+    origin.adopt()
     scheduling = ask_realtime(spec.realtime_priority, fallback_nice=spec.fallback_nice, cpu=spec.cpu)
     spins = owns_core(spec.cpu)
     if spins and spec.realtime:

@@ -5,7 +5,6 @@ unlinks the shared memory."""
 from __future__ import annotations
 
 import contextlib
-import multiprocessing as mp
 import os
 import sys
 from collections.abc import Callable, Iterator
@@ -17,7 +16,7 @@ from hil.common.errors import SimulationError
 from hil.harness.engine.messages import (Advance, ApplyControl, Exit, Halt, PhysicsReady, Start, StopWorker, Warm,
                                          WorkerFailed, WorkerReady)
 from hil.harness.engine.physics import PhysicsOutputs, PhysicsSpec, physics_main
-from hil.harness.engine.procs import Pump, RingPump, end_child, widen_pipe
+from hil.harness.engine.procs import Origin, Pump, RingPump, child_context, end_child, widen_pipe
 from hil.harness.engine.render import FrameSlots, RenderSpec, render_main
 from hil.harness.engine.rings import Ring, RingSpec
 
@@ -101,7 +100,8 @@ class Engine:
         self._stall = stall_run
         self.shard_of = shard_of
         self._shard_ends: list[ShardIO] = []
-        ctx = mp.get_context("spawn")
+        ctx = child_context()
+        origin = Origin.here()  # this thread: the physics's core kept off (keep_off_core)
         names = render.vehicles
         n_shards = max(shard_of, default=-1) + 1
         try:
@@ -129,7 +129,7 @@ class Engine:
                 for c in (a, b, *(c for pair in frames[w] for c in pair)):
                     widen_pipe(c)
                 outs = tuple(wr for _rd, wr in frames[w])
-                rp = ctx.Process(target=render_main, args=(b, self.rings[w].consumer_spec(), rs, os.getpid(), outs),
+                rp = ctx.Process(target=render_main, args=(b, self.rings[w].consumer_spec(), rs, origin, outs),
                                  name=f"hil-render-{w}", daemon=True)
                 with without_main_module():
                     rp.start()
@@ -146,7 +146,7 @@ class Engine:
             pc, cc = ctx.Pipe()
             widen_pipe(pc)
             widen_pipe(cc)
-            p = ctx.Process(target=physics_main, args=(cc, outputs, physics, os.getpid()), name="hil-physics",
+            p = ctx.Process(target=physics_main, args=(cc, outputs, physics, origin), name="hil-physics",
                             daemon=True)
             with without_main_module():
                 p.start()
@@ -171,7 +171,7 @@ class Engine:
 
     def wait_ready(self) -> None:
         """Wait until the physics and every render worker have started (imports, MuJoCo,
-        the GL context). The constructor only spawns them, so that what starts beside
+        the GL context). The constructor only starts them, so that what starts beside
         them (the targets) overlaps their start-up; :meth:`connect` and :meth:`start`
         wait here first if nobody did. Idempotent.
 

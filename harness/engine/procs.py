@@ -12,6 +12,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -137,6 +138,107 @@ def die_with_parent(expected_parent: int | None = None) -> None:
     _prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL))
     if expected_parent is not None and os.getppid() != expected_parent:
         os._exit(1)
+
+
+# --- where the engine's children come from ------------------------------------------
+# Spawned, each child started an interpreter and imported MuJoCo, numpy and our engine
+# modules (~0.3 s of CPU a child, on the start of every run; 16 render workers pay it 16
+# times). A fork server of the run process imports them once: each child is a fork of it
+# (a clean process: no thread, no GL context; the GL backend was chosen before it
+# started). What a spawned child took from the thread that started it (its cores, its
+# nice value) and its parent-death tie are set by the child itself (:class:`Origin`).
+ENGINE_MODULES = ["hil.harness.engine.physics", "hil.harness.engine.render"]
+
+
+def child_context() -> Any:
+    """The multiprocessing context the engine starts its children from: the fork server
+    with :data:`ENGINE_MODULES` imported (Linux), else spawn."""
+    import multiprocessing as mp
+
+    if "forkserver" not in mp.get_all_start_methods():
+        return mp.get_context("spawn")
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(ENGINE_MODULES)
+    return ctx
+
+
+def start_child_server() -> None:
+    """Start the fork server now, so that its imports overlap the caller's (``hil run``
+    while it loads its config and modules). Only once the GL backend is chosen
+    (``MUJOCO_GL`` set): the server imports MuJoCo, which fixes it. Idempotent."""
+    ctx = child_context()
+    if ctx.get_start_method() == "forkserver" and os.environ.get("MUJOCO_GL", "").strip():
+        from multiprocessing import forkserver
+
+        forkserver.ensure_running()
+
+
+@dataclass(frozen=True)
+class Origin:
+    """What an engine child takes from the thread that starts it (:meth:`here`) and
+    applies first (:meth:`adopt`), however it was started: the run process's PID (to
+    die with it), the cores and the nice value of that thread (the physics's own core
+    kept off, ``nice`` of the caller)."""
+
+    pid: int
+    cores: frozenset[int] | None = None
+    nice: int | None = None
+
+    @classmethod
+    def here(cls) -> Origin:
+        try:
+            cores: frozenset[int] | None = frozenset(os.sched_getaffinity(0))
+        except AttributeError:  # not Linux
+            cores = None
+        try:
+            nice: int | None = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+        except (AttributeError, OSError):
+            nice = None
+        return cls(os.getpid(), cores, nice)
+
+    def adopt(self) -> None:
+        """Die with the run process (SIGKILL when it is gone: directly where it is the
+        parent; a fork server's children through the server, which ends when the run
+        process does), exiting at once if it is already gone; then the run thread's
+        cores and nice value. A harness child also prints its stacks on SIGUSR2."""
+        stacks_on_sigusr2()
+        parent = os.getppid()
+        if parent != self.pid:  # forked by the fork server: it stays up while a client holds
+            _release_server_tie()  # its "alive" pipe; only the run process may hold it
+        _prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL))
+        if os.getppid() != parent or not _alive(self.pid):
+            os._exit(1)
+        if self.cores:
+            with contextlib.suppress(OSError):
+                os.sched_setaffinity(0, self.cores)
+        if self.nice is not None:
+            with contextlib.suppress(OSError):  # raising priority needs the privilege to
+                if os.getpriority(os.PRIO_PROCESS, 0) != self.nice:
+                    os.setpriority(os.PRIO_PROCESS, 0, self.nice)
+
+
+def _release_server_tie() -> None:
+    """Close this child's copy of the fork server's "alive" pipe (multiprocessing hands
+    it to every child it forks): the server then ends when the run process does, and
+    with it, by their parent-death signal, its children."""
+    from multiprocessing import forkserver
+
+    server = getattr(forkserver, "_forkserver", None)
+    fd = getattr(server, "_forkserver_alive_fd", None)
+    if isinstance(fd, int):
+        with contextlib.suppress(OSError):
+            os.close(fd)
+        server._forkserver_alive_fd = None  # type: ignore[union-attr]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def preexec_die_with_parent() -> None:

@@ -28,7 +28,7 @@ import numpy as np
 
 from hil.harness.engine.messages import (CameraTruthReady, FrameReady, RenderJob, Warm, WorkerFailed, WorkerReady,
                                          decode)
-from hil.harness.engine.procs import die_with_parent
+from hil.harness.engine.procs import Origin
 from hil.harness.engine.rings import Ring, RingSpec
 
 SLOTS = 8  # frames of one camera in flight between a worker and the links
@@ -119,7 +119,7 @@ def _hold(ns: int) -> None:
         pass
 
 
-def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, parent_pid: int,
+def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, origin: Origin,
                 outs: tuple[Connection, ...] = ()) -> None:
     """Entry point of a render worker: jobs from the physics process in the ring
     ``jobs``, results (and ``StopWorker``) with the run process on ``conn``; the
@@ -127,7 +127,7 @@ def render_main(conn: Connection, jobs: RingSpec, spec: RenderSpec, parent_pid: 
     pipe in ``outs`` (``spec.out_of``)."""
     from multiprocessing.connection import wait
 
-    die_with_parent(parent_pid)
+    origin.adopt()
     # On the capture path: served before the targets and the run's analysis where the
     # harness may (root). Set before the GL context, so its render threads inherit it.
     from hil.adapters.process import prioritise_this_thread

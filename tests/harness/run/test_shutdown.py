@@ -115,6 +115,13 @@ def test_sigterm_while_waiting_for_the_target_ends_everything(tmp_path):
             p.wait(10)
 
 
+def _parent(pid: int) -> int | None:
+    try:
+        return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def _cmdline(pid: int) -> bytes:
     try:
         return Path(f"/proc/{pid}/cmdline").read_bytes()
@@ -129,7 +136,9 @@ def test_a_render_worker_crashing_ends_the_run_cleanly(tmp_path):
     try:
         _wait_for_frames(p, out)
         kids = _children(p.pid)
-        workers = [k for k in kids if b"multiprocessing.spawn" in _cmdline(k)]
+        # The engine's children are forks of its fork server (hil.harness.engine.procs).
+        server = [k for k in kids if b"multiprocessing.forkserver" in _cmdline(k) and _parent(k) == p.pid]
+        workers = [k for k in kids if server and _parent(k) == server[0]]
         assert len(workers) >= 2, [_cmdline(k)[:120] for k in kids]  # physics + render worker(s)
         # The render worker is the one started first (the physics process starts last).
         victim = min(workers)
