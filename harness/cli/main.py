@@ -178,10 +178,11 @@ def _cmd_scenarios(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     from hil.scenarios.gl import cancel_probe, start_probe
 
+    from hil.harness.engine.procs import start_child_server, stop_child_server
+
     start_probe()  # the GL probe runs while the config and the modules load
     if os.environ.get("MUJOCO_GL", "").strip():  # chosen by the user: the engine's fork server
-        from hil.harness.engine.procs import start_child_server  # imports their modules meanwhile too
-        from hil.scenarios.gl import select_backend
+        from hil.scenarios.gl import select_backend  # imports their modules meanwhile too
 
         select_backend()  # the GL driver's settings, which the server's children inherit
         start_child_server()
@@ -189,6 +190,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         return _run(args)
     finally:
         cancel_probe()
+        stop_child_server()
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -173,6 +173,22 @@ def start_child_server() -> None:
         forkserver.ensure_running()
 
 
+def stop_child_server() -> None:
+    """End this process's fork server at once, if it has one (a command's end: one that
+    stopped before it ran anything does not leave it importing for nothing)."""
+    import sys
+
+    module = sys.modules.get("multiprocessing.forkserver")
+    server = getattr(module, "_forkserver", None)
+    pid = getattr(server, "_forkserver_pid", None)
+    if server is None or not isinstance(pid, int):
+        return
+    with contextlib.suppress(OSError):
+        os.kill(pid, signal.SIGKILL)
+    with contextlib.suppress(OSError, ChildProcessError):
+        server._stop()
+
+
 @dataclass(frozen=True)
 class Origin:
     """What an engine child takes from the thread that starts it (:meth:`here`) and
