@@ -228,6 +228,9 @@ def _run(args: argparse.Namespace) -> int:
     out = prepare_out_dir(args.out or default_out_dir(cfg))
     console = make_console()
     backend = select_backend()
+    from hil.harness.engine.procs import start_child_server
+
+    start_child_server()  # where the GL probe chose: its imports overlap what follows (idempotent)
     console.print(f"renderer: MuJoCo offscreen via [bold]{backend.upper()}[/bold]"
                   + (" (software fallback: slower)" if backend == "osmesa" else ""))
     try:
