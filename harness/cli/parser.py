@@ -79,7 +79,8 @@ _PARSERS: dict[str, str | None] = {
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The parser of ``hil``; with ``command`` (the first word of ``hil COMMAND ...``)
     only that command's, as importing every command's module cost ~0.35 s of each
-    start (``python -X importtime``); None or an unknown word: all of them."""
+    start (``python -X importtime``); ``--version``: none (it prints and exits before any
+    command is read); None or another unknown word: all of them."""
     import importlib
 
     p = _Parser(prog="hil", description="Hardware-in-the-loop timing harness for autonomous-driving AI.")
@@ -87,7 +88,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     sub: argparse._SubParsersAction[argparse.ArgumentParser] = p.add_subparsers(dest="command", required=True,
                                                                                 parser_class=_Parser)
     added: set[str] = set()
-    for name, module in _PARSERS.items():
+    for name, module in _PARSERS.items() if command != "--version" else ():
         if (command in _PARSERS and name != command) or module in added:
             continue
         if module is None:
