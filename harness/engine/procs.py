@@ -152,13 +152,21 @@ ENGINE_MODULES = ["hil.harness.engine.physics", "hil.harness.engine.render"]
 
 def child_context() -> Any:
     """The multiprocessing context the engine starts its children from: the fork server
-    with :data:`ENGINE_MODULES` imported (Linux), else spawn."""
+    with :data:`ENGINE_MODULES` imported (Linux; started here if it is not running),
+    else spawn (no fork server here, or it could not start: its socket lives in the
+    temporary folder)."""
     import multiprocessing as mp
 
     if "forkserver" not in mp.get_all_start_methods():
         return mp.get_context("spawn")
+    from multiprocessing import forkserver
+
     ctx = mp.get_context("forkserver")
     ctx.set_forkserver_preload(ENGINE_MODULES)
+    try:
+        forkserver.ensure_running()
+    except OSError:
+        return mp.get_context("spawn")
     return ctx
 
 
@@ -166,11 +174,8 @@ def start_child_server() -> None:
     """Start the fork server now, so that its imports overlap the caller's (``hil run``
     while it loads its config and modules). Only once the GL backend is chosen
     (``MUJOCO_GL`` set): the server imports MuJoCo, which fixes it. Idempotent."""
-    ctx = child_context()
-    if ctx.get_start_method() == "forkserver" and os.environ.get("MUJOCO_GL", "").strip():
-        from multiprocessing import forkserver
-
-        forkserver.ensure_running()
+    if os.environ.get("MUJOCO_GL", "").strip():
+        child_context()
 
 
 def stop_child_server() -> None:

@@ -101,3 +101,20 @@ def test_killing_the_run_process_ends_the_server_and_its_children() -> None:
         if p.poll() is None:
             p.kill()
             p.wait(10)
+
+
+def test_where_the_server_cannot_start_the_children_are_spawned(tmp_path: Path) -> None:
+    # The server's socket lives in the temporary folder: a path past AF_UNIX's 108 bytes
+    # cannot be bound (a real failure, as a full or odd temporary folder would be).
+    deep = tmp_path / ("x" * 60) / ("y" * 60)
+    deep.mkdir(parents=True)
+    code = ("from hil.harness.engine.procs import Origin, child_context\n"
+            "from tests.harness.engine.test_child_origin import _report\n"
+            "ctx = child_context()\n"
+            "a, b = ctx.Pipe(duplex=False)\n"
+            "p = ctx.Process(target=_report, args=(Origin.here(), b)); p.start(); b.close()\n"
+            "print(ctx.get_start_method(), a.recv()[2] == __import__('os').getpid()); p.join(10)\n")
+    p = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=dict(os.environ, TMPDIR=str(deep)),
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert p.stdout.split() == ["spawn", "True"]  # spawned: its parent is the caller itself
