@@ -222,18 +222,17 @@ class Origin:
         parent; a fork server's children through the server, which ends when the run
         process does), exiting at once if it is already gone; then the run thread's
         cores and nice value. A harness child also prints its stacks on SIGUSR2."""
-        stacks_on_sigusr2()
         parent = os.getppid()
         if parent != self.pid:  # forked by the fork server: it stays up while a client holds
             _release_server_tie()  # its "alive" pipe; only the run process may hold it
-        _prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL))
-        if os.getppid() != parent or not _alive(self.pid):
+        die_with_parent(parent)  # exits if that parent is gone already
+        if not _alive(self.pid):  # the run process, where the server is the parent
             os._exit(1)
         if self.cores:
             with contextlib.suppress(OSError):
                 os.sched_setaffinity(0, self.cores)
         if self.nice is not None:
-            with contextlib.suppress(OSError):  # raising priority needs the privilege to
+            with contextlib.suppress(OSError):  # a lower nice value than the server's needs the privilege
                 if os.getpriority(os.PRIO_PROCESS, 0) != self.nice:
                     os.setpriority(os.PRIO_PROCESS, 0, self.nice)
 
@@ -257,8 +256,8 @@ def _alive(pid: int) -> bool:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
-    except PermissionError:
-        return True
+    except PermissionError:  # there, another user's
+        pass
     return True
 
 
