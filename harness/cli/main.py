@@ -38,12 +38,35 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_EARLY
 
 
+def _renders(argv: list[str]) -> bool:
+    """Whether ``hil ARGV`` renders (so selects a GL backend) besides ``hil run``, which
+    starts its own probe: ``calibrate``, ``replay``, ``search`` (not its merge, cases or
+    report); not for help."""
+    if not argv or argv[0] not in ("calibrate", "replay", "search") or "-h" in argv or "--help" in argv:
+        return False
+    from hil.harness.search.cli import SUBCOMMANDS
+
+    return not (argv[0] == "search" and argv[1:2] and argv[1] in SUBCOMMANDS)
+
+
 def _main(argv: Sequence[str] | None) -> int:
     if argv is None:  # the program (not a caller in its own process): SIGUSR2 prints its stacks
         from hil.harness.engine.procs import stacks_on_sigusr2
 
         stacks_on_sigusr2()
     argv = list(sys.argv[1:] if argv is None else argv)
+    if not _renders(argv):
+        return _command(argv)
+    from hil.scenarios.gl import cancel_probe, start_probe
+
+    start_probe()  # the GL probe (MUJOCO_GL unset) runs while the command loads what it needs
+    try:
+        return _command(argv)
+    finally:
+        cancel_probe()
+
+
+def _command(argv: list[str]) -> int:
     if len(argv) >= 2 and argv[0] == "target" and argv[1] in TARGETS:
         # Everything after the name belongs to the target (including --help).
         import importlib

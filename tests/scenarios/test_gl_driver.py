@@ -47,3 +47,14 @@ def test_an_early_probe_is_the_one_select_backend_reads_and_cancel_ends_it(gl_ba
     assert (code == "0") == (gl_backend == "egl")  # the EGL probe's own outcome was the one read
     assert second == "None"
     assert third == "True True"
+
+
+@pytest.mark.parametrize("argv, early", [
+    (["calibrate", "hil_configs/calibrate.yaml"], True), (["replay", "runs/x", "c1"], True),
+    (["search", "hil_configs/search.yaml"], True), (["search", "merge", "out", "a"], False),
+    (["search", "report", "c"], False), (["calibrate", "--help"], False), (["cases", "runs/x"], False),
+    (["report", "runs/x"], False), ([], False)])
+def test_the_commands_that_render_start_the_gl_probe_first(argv: list[str], early: bool) -> None:
+    from hil.harness.cli.main import _renders
+
+    assert _renders(argv) is early
