@@ -28,6 +28,8 @@ _PROBE = (
 # (bench/README, "start-up burst"). Mesa ignores it. ``__GL_YIELD=`` (empty) gives the
 # driver's own choice back.
 GL_DRIVER_DEFAULTS = {"__GL_YIELD": "USLEEP"}
+# What MUJOCO_GL may say for hil to render: headless first; glfw and glx need a display.
+USER_BACKENDS = ("egl", "osmesa", "glfw", "glx")
 
 INSTALL_HINT = (
     "install Mesa's EGL (Debian: apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri) "
@@ -93,12 +95,16 @@ def select_backend() -> str:
     driver's settings of ``GL_DRIVER_DEFAULTS`` the user left unset).
 
     Raises:
-        SimulationError: neither EGL nor OSMesa works (with the install hint), or
-            ``mujoco`` was already imported with another backend.
+        SimulationError: ``MUJOCO_GL`` names no backend MuJoCo renders with,
+            neither EGL nor OSMesa works (with the install hint), or ``mujoco`` was
+            already imported with another backend.
     """
     _driver_defaults()
     chosen = os.environ.get("MUJOCO_GL", "").strip().lower()
     if chosen:
+        if chosen not in USER_BACKENDS:  # MuJoCo's own refusal is a traceback at its import
+            raise SimulationError(f"MUJOCO_GL={chosen}: not a backend MuJoCo renders with here; "
+                                  f"use {' or '.join(USER_BACKENDS[:2])} (headless), or unset it to let hil choose")
         return chosen
     if "mujoco" in sys.modules:
         raise SimulationError("mujoco was imported before a GL backend was chosen; call select_backend() first")

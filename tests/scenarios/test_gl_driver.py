@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -58,3 +59,15 @@ def test_the_commands_that_render_start_the_gl_probe_first(argv: list[str], earl
     from hil.harness.cli.main import _renders
 
     assert _renders(argv) is early
+
+
+@pytest.mark.parametrize("value", ["bogus", "disable"])
+def test_a_mujoco_gl_that_cannot_render_is_one_line_not_a_traceback(tmp_path, value: str) -> None:
+    root = Path(__file__).resolve().parents[2]
+    p = subprocess.run([sys.executable, "-m", "hil.harness.cli.main", "run", "hil_configs/demo.yaml", "--out",
+                        str(tmp_path / "run"), "--no-progress"], cwd=root, env=dict(os.environ, MUJOCO_GL=value),
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2, p.stderr[-2000:]
+    assert p.stderr.strip().splitlines() == [f"hil: error: MUJOCO_GL={value}: not a backend MuJoCo renders with here; "
+                                             "use egl or osmesa (headless), or unset it to let hil choose"]
+    assert not (tmp_path / "run" / "run.mcap").exists()
