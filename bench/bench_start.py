@@ -46,16 +46,9 @@ CONFIGS = {
 }
 
 
-def _stop_server() -> None:
-    from multiprocessing import forkserver
-
-    forkserver._forkserver._stop()  # type: ignore[attr-defined]
-
-
 def _cold() -> Any:
-    _stop_server()
-    procs.start_child_server()
-    return procs.child_context()
+    procs.stop_child_server()
+    return procs.child_context()  # started anew
 
 
 WAYS: dict[str, Callable[[], Any]] = {

@@ -39,10 +39,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _renders(argv: list[str]) -> bool:
-    """Whether ``hil ARGV`` renders (so selects a GL backend) besides ``hil run``, which
-    starts its own probe: ``calibrate``, ``replay``, ``search`` (not its merge, cases or
-    report); not for help."""
-    if not argv or argv[0] not in ("calibrate", "replay", "search") or "-h" in argv or "--help" in argv:
+    """Whether ``hil ARGV`` renders (so selects a GL backend): ``run``, ``calibrate``,
+    ``replay``, ``search`` (not its merge, cases or report); not for help."""
+    if not argv or argv[0] not in ("run", "calibrate", "replay", "search") or "-h" in argv or "--help" in argv:
         return False
     from hil.harness.search.cli import SUBCOMMANDS
 
@@ -199,20 +198,12 @@ def _cmd_scenarios(args: argparse.Namespace) -> int:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from hil.scenarios.gl import cancel_probe, start_probe
-
     from hil.harness.engine.procs import start_child_server, stop_child_server
 
-    start_probe()  # the GL probe runs while the config and the modules load
-    if os.environ.get("MUJOCO_GL", "").strip():  # chosen by the user: the engine's fork server
-        from hil.scenarios.gl import select_backend  # imports their modules meanwhile too
-
-        select_backend()  # the GL driver's settings, which the server's children inherit
-        start_child_server()
+    start_child_server()  # MUJOCO_GL chosen by the user: the engine's modules load meanwhile too
     try:
         return _run(args)
     finally:
-        cancel_probe()
         stop_child_server()
 
 
@@ -221,6 +212,7 @@ def _run(args: argparse.Namespace) -> int:
     from hil.harness.report.progress import make_console
     from hil.harness.config.loading import load_config
     from hil.harness.report.ci_outputs import check_ci_args, write_ci_outputs
+    from hil.harness.engine.procs import start_child_server
     from hil.harness.run.driver import default_out_dir, execute, prepare_out_dir
     from hil.scenarios.gl import select_backend
 
@@ -251,8 +243,6 @@ def _run(args: argparse.Namespace) -> int:
     out = prepare_out_dir(args.out or default_out_dir(cfg))
     console = make_console()
     backend = select_backend()
-    from hil.harness.engine.procs import start_child_server
-
     start_child_server()  # where the GL probe chose: its imports overlap what follows (idempotent)
     console.print(f"renderer: MuJoCo offscreen via [bold]{backend.upper()}[/bold]"
                   + (" (software fallback: slower)" if backend == "osmesa" else ""))

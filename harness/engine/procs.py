@@ -173,8 +173,16 @@ def child_context() -> Any:
 def start_child_server() -> None:
     """Start the fork server now, so that its imports overlap the caller's (``hil run``
     while it loads its config and modules). Only once the GL backend is chosen
-    (``MUJOCO_GL`` set): the server imports MuJoCo, which fixes it. Idempotent."""
+    (``MUJOCO_GL`` set): the server imports MuJoCo, which fixes it; the GL driver's
+    settings (``select_backend``) are set first, for its children to inherit. Idempotent.
+
+    Raises:
+        SimulationError: ``MUJOCO_GL`` names no backend MuJoCo renders with.
+    """
     if os.environ.get("MUJOCO_GL", "").strip():
+        from hil.scenarios.gl import select_backend
+
+        select_backend()
         child_context()
 
 
