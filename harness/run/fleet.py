@@ -98,13 +98,13 @@ class LocalFleet:
         """The run's loop, with this fleet's observers on the run's recording and bus."""
         from hil.adapters.impair import record_on
         from hil.harness.cases.detector_observer import DetectorObserver
-        from hil.harness.analysis.timing_observer import TimingObserver, rig_of
+        from hil.harness.analysis.timing_observer import TimingObserver
         from hil.harness.record.channels import sync_sample_json
 
         cfg, names = self.cfg, [v.name for v in self.vehicles]
         for v in self.vehicles:  # link faults in real time: each impaired message on /<vehicle>/impairment
             record_on(v.link.impairment, rec, f"/{v.name}/impairment")
-        self.timing = TimingObserver(cfg.timing, names, recorder=rec, events=bus, rig=rig_of(cfg))
+        self.timing = TimingObserver.for_run(cfg, names, recorder=rec, events=bus)
         self.detector = (DetectorObserver(cfg.detector, names, camera=cfg.camera, recorder=rec,
                                           timing=self.timing, events=bus) if cfg.detector.enabled else None)
         for name, samples in self.warmup.items():

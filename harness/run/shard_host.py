@@ -17,7 +17,7 @@ from hil.common.errors import HilError
 # What a shard builds its vehicles' work from is imported with the process, while the
 # targets start (~0.3 s on 2 cores): built after the run's start, the first frames of
 # every vehicle waited for these imports in the render pipes (hand-off 50-290 ms).
-from hil.harness.analysis.timing_observer import TimingObserver, rig_of
+from hil.harness.analysis.timing_observer import TimingObserver
 from hil.harness.cases.detector_observer import DetectorObserver
 from hil.harness.config.loading import dump_config
 from hil.harness.record.channels import register_all, sync_sample_json, views_of
@@ -137,7 +137,7 @@ class ShardHost:
         bus.subscribe(lambda ev, log_ns: enc.write_event(ev.to_json(), log_ns))
         for v in self.vehicles:
             record_on(v.link.impairment, enc, f"/{v.name}/impairment")
-        self.timing = TimingObserver(cfg.timing, names, recorder=enc, events=bus, rig=rig_of(cfg))
+        self.timing = TimingObserver.for_run(cfg, names, recorder=enc, events=bus)
         self.detector = (DetectorObserver(cfg.detector, names, camera=cfg.camera, recorder=enc,
                                           timing=self.timing, events=bus) if cfg.detector.enabled else None)
         for name, samples in warmup.items():
