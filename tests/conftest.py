@@ -94,16 +94,18 @@ def _lowest_priority() -> None:
     os.nice(19)
 
 
-# --- a real-time run beside the tests ---------------------------------------------------
-# One real-time run is judged on the machine as it is: the clean calibration holds every
-# anomaly against the reference target's own truth, so a delay the machine causes (the
-# target or the harness preempted) is explained, and only a false alarm fails it. It runs
-# in a child process at the session's own priority (not nice 19: it must keep real time),
-# started before any test; its fixture takes the result, waiting for what is left. A run
-# whose verdict needs a quiet machine is no such work (runs with injected faults are not:
-# a loaded machine widens the spike detector's baseline). One at a time: runs beside each
-# other would load each other past what a test beside them does. The clean calibration
-# (~65 s) ends within the first folder of tests (tests/adapters, ~100 s here).
+# --- real-time runs beside the tests ----------------------------------------------------
+# A few real-time runs are judged on the machine as it is: the clean calibration holds
+# every anomaly against the reference target's own truth, so a delay the machine causes
+# (the target or the harness preempted) is explained, and only a false alarm fails it; the
+# demo is judged on where the car stops, a tiny study on what its points wrote and how
+# they compare. They run in a child process at the session's own priority (not nice 19:
+# they must keep real time), started before any test; each fixture takes its result,
+# waiting for what is left. A run whose verdict needs a quiet machine is no such work
+# (runs with injected faults are not: a loaded machine widens the spike detector's
+# baseline). One at a time, in the order their modules are collected: runs beside each
+# other would load each other past what a test beside them does. The three (~65 + 16 +
+# 14 s) end within the first folders of tests (tests/adapters, ~115 s here).
 _BESIDE: dict[str, tuple[Callable[..., Any], tuple[Any, ...], dict[str, Any]]] = {}
 
 

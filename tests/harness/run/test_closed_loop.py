@@ -6,6 +6,7 @@ from __future__ import annotations
 import base64
 import json
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -13,7 +14,9 @@ import pytest
 
 from hil.harness.config.loading import parse_config
 from hil.harness.run.driver import execute, prepare_out_dir
-from tests.conftest import GL_BACKEND, read_mcap
+from tests.conftest import GL_BACKEND, ahead_folder, ahead_results, beside, read_mcap
+
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def _run(tmp_path, **cfg):
@@ -114,14 +117,23 @@ def test_target_dying_mid_run_keeps_the_recording(tmp_path):
     assert recs == list(range(v["frames_sent"]))
 
 
-@pytest.mark.slow
-def test_demo_stops_before_the_car(tmp_path):
+def _demo_outcome(out: Path) -> dict:
     from hil.harness.config.loading import load_config
 
-    cfg = load_config("hil_configs/demo.yaml", overrides=["progress=false"])
-    result = execute(cfg, out_dir=prepare_out_dir(tmp_path / "demo"), gl_backend=GL_BACKEND,
-                     install_signal_handlers=False)
-    out = result.summary["vehicles"]["ego0"]["outcome"]
+    cfg = load_config(ROOT / "hil_configs" / "demo.yaml", overrides=["progress=false"])
+    result = execute(cfg, out_dir=prepare_out_dir(out), gl_backend=GL_BACKEND, install_signal_handlers=False)
+    return result.summary["vehicles"]["ego0"]["outcome"]
+
+
+# The demo as shipped, 15 s of real time: it runs beside the other tests
+# (tests.conftest.beside), as a user's demo runs on a busy laptop; with a core held busy
+# beside it the car stopped 3.93 m short, as on a quiet machine.
+beside(__name__, "demo_outcome", _demo_outcome, ahead_folder("demo"))
+
+
+@pytest.mark.slow
+def test_demo_stops_before_the_car():
+    (out,) = ahead_results(__name__, "demo_outcome")
     assert out["collisions"] == 0
     assert out["final_speed_mps"] < 0.3
     assert 0.5 < out["final_gap_m"] < 15

@@ -15,6 +15,7 @@ import pytest
 
 from hil.harness.study.study_page import largest_holding, write_study
 from hil.harness.study.study import Placement, Point, PointResult
+from tests.conftest import GL_BACKEND, ahead_folder, ahead_results, beside
 from tests.harness.browser import assert_charts_legible, needs_chromium, probe
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -78,12 +79,22 @@ def test_a_relative_out_and_config_mean_the_callers_folder(tmp_path, gl_backend)
     assert not (ROOT / "st").exists()
 
 
-@pytest.mark.slow
-def test_a_tiny_study_in_both_placements(tmp_path, gl_backend):
-    out = tmp_path / "study"
+def _tiny_study(out: Path) -> tuple[int, str, str]:
     p = _hil("study", "hil_configs/study.yaml", "--vehicles", "1", "2", "--duration", "2", "--out", str(out),
-             timeout=400, env={**os.environ, "MUJOCO_GL": gl_backend})
-    assert p.returncode in (0, 1), (p.stdout, p.stderr)
+             timeout=400, env={**os.environ, "MUJOCO_GL": GL_BACKEND})
+    return p.returncode, p.stdout, p.stderr
+
+
+# Four 2-s points in real time (~14 s): beside the other tests (tests.conftest.beside);
+# what it asserts of throughput is relative (2 vehicles carry more frames than 1).
+beside(__name__, "tiny_study", _tiny_study, ahead_folder("tiny-study"))
+
+
+@pytest.mark.slow
+def test_a_tiny_study_in_both_placements():
+    out = ahead_folder("tiny-study")
+    ((code, stdout, stderr),) = ahead_results(__name__, "tiny_study")
+    assert code in (0, 1), (stdout, stderr)
     doc = json.loads((out / "results.json").read_text())
     pts = {(r["placement"], r["vehicles"]): r for r in doc["points"]}
     assert set(pts) == {("replicated", 1), ("replicated", 2), ("distributed", 1), ("distributed", 2)}
