@@ -131,9 +131,15 @@ def _demo_outcome(out: Path) -> dict:
 beside(__name__, "demo_outcome", _demo_outcome, ahead_folder("demo"))
 
 
+@pytest.fixture(scope="module")
+def demo_outcome() -> dict:
+    (outcome,) = ahead_results(__name__, "demo_outcome")
+    return outcome
+
+
 @pytest.mark.slow
-def test_demo_stops_before_the_car():
-    (out,) = ahead_results(__name__, "demo_outcome")
+def test_demo_stops_before_the_car(demo_outcome):
+    out = demo_outcome
     assert out["collisions"] == 0
     assert out["final_speed_mps"] < 0.3
     assert 0.5 < out["final_gap_m"] < 15

@@ -90,10 +90,16 @@ def _tiny_study(out: Path) -> tuple[int, str, str]:
 beside(__name__, "tiny_study", _tiny_study, ahead_folder("tiny-study"))
 
 
+@pytest.fixture(scope="module")
+def tiny_study() -> tuple[int, str, str]:
+    (result,) = ahead_results(__name__, "tiny_study")
+    return result
+
+
 @pytest.mark.slow
-def test_a_tiny_study_in_both_placements():
+def test_a_tiny_study_in_both_placements(tiny_study):
     out = ahead_folder("tiny-study")
-    ((code, stdout, stderr),) = ahead_results(__name__, "tiny_study")
+    code, stdout, stderr = tiny_study
     assert code in (0, 1), (stdout, stderr)
     doc = json.loads((out / "results.json").read_text())
     pts = {(r["placement"], r["vehicles"]): r for r in doc["points"]}
