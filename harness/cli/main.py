@@ -315,8 +315,7 @@ def print_verdict(console: Any, figures: RunFigures) -> None:
         console.print(f"[bold white on red] COLLISION [/bold white on red] [bold red]{escape(col.headline)}"
                       "[/bold red]")
     fails = set(v.fails_run)
-    head = "all checks passed" if v.passed else f"{len(v.failed)} check(s) failed: {', '.join(v.failed)}"
-    console.print(f"[bold]verdict:[/bold] {escape(head)}")
+    console.print(f"[bold]verdict:[/bold] {escape(v.headline)}")
     for c in v.checks:
         mark = "[green]ok  [/green]" if c.ok else ("[bold red]FAIL[/bold red]" if c.name in fails
                                                     else "[yellow]warn[/yellow]")

@@ -298,9 +298,7 @@ def _verdict_section(d: RunData) -> str:
     col = v.check("collision")
     if col is not None and not col.ok:
         out.append(f'<div class="note bad banner"><b>COLLISION</b> — {escape(col.headline)}</div>')
-    head = ("all checks passed" if v.passed
-            else f"{len(v.failed)} check{'s' if len(v.failed) != 1 else ''} failed: {', '.join(v.failed)}")
-    out.append(f'<p class="{"ok" if v.passed else "nok"}">{escape(head)}</p>')
+    out.append(f'<p class="{"ok" if v.passed else "nok"}">{escape(v.headline)}</p>')
     rows = []
     for c in v.checks:
         mark = ('<span class="ok">ok</span>' if c.ok else

@@ -137,6 +137,19 @@ class VerdictFigures:
         """The check called ``name``, if the verdict has it."""
         return next((c for c in self.checks if c.name == name), None)
 
+    @property
+    def headline(self) -> str:
+        """The verdict in one line, as the terminal and the report open with it: the
+        failed checks, and whether any of them fails the run (``--fail-on``): a run
+        whose failed checks are only warnings still ends with exit 0."""
+        if self.passed:
+            return "all checks passed"
+        n = len(self.failed)
+        text = f"{n} check{'s' if n != 1 else ''} failed: {', '.join(self.failed)}"
+        if not self.fails_run:
+            return f"{text} (warnings only: none is in --fail-on, so the run does not fail on them)"
+        return text
+
     def to_json(self) -> dict[str, Any]:
         """As ``hil.harness.vocab.verdict.verdict_json`` writes it."""
         return {"passed": self.passed, "failed": list(self.failed), "fail_on": list(self.fail_on),

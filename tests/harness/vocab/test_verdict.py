@@ -15,6 +15,7 @@ from typing import Any, get_args
 import numpy as np
 import pytest
 
+from hil.harness.vocab.figures import VerdictFigures
 from hil.harness.vocab.verdict import CheckName, checks, parse_fail_on, stage_budgets, verdict_json
 from hil.harness.config.loading import parse_config
 from hil.harness.config.model import VerdictName
@@ -126,6 +127,7 @@ def test_a_run_over_budget_says_so_first_and_fails_on_request(tmp_path: Path) ->
     dl = next(ln for ln in lines if " deadline " in ln)
     assert "FAIL" in dl and f"{applied} of {applied} frames over 100 ms end_to_end" in dl
     assert "the run fails on: deadline (--fail-on): exit 3" in p.stdout
+    assert "warnings only" not in lines[first]
     # The report's first screen is the same verdict.
     html = (out / "report.html").read_text()
     assert html.index('id="verdict"') < html.index('id="run"')
@@ -146,6 +148,19 @@ def test_a_run_over_budget_says_so_first_and_fails_on_request(tmp_path: Path) ->
     assert bad.stderr.strip().splitlines() == [
         "hil: error: --fail-on: unknown verdict 'deadlines'; valid: realtime, deadline, drop, collision, "
         "mismatch, anomaly"]
+
+
+def test_the_verdicts_first_line_says_when_failed_checks_are_only_warnings() -> None:
+    # "1 check(s) failed: mismatch" over a run that exits 0 read as a fault of the tool
+    # (the demo's usual perception mismatch is a warning: not in --fail-on).
+    def head(failed: tuple[str, ...], fail_on: tuple[str, ...]) -> str:
+        return VerdictFigures(not failed, failed, fail_on, tuple(n for n in failed if n in fail_on), {}, ()).headline
+
+    assert head((), ()) == "all checks passed"
+    assert head(("mismatch",), ()) == ("1 check failed: mismatch (warnings only: none is in --fail-on, so the run "
+                                       "does not fail on them)")
+    assert head(("mismatch",), ("deadline",)).endswith("so the run does not fail on them)")
+    assert head(("deadline", "mismatch"), ("deadline",)) == "2 checks failed: deadline, mismatch"
 
 
 def test_an_old_summary_says_what_it_cannot_judge() -> None:
