@@ -39,7 +39,8 @@ def nav(vehicles: list[str]) -> str:
 
 def limits(run_dir: Path, vehicle: str) -> dict[str, float]:
     """The run's limits for ``vehicle`` in ms: ``deadline.<stage>`` per stage
-    deadline and ``timeout`` (the estimate timeout: older estimates are dropped).
+    deadline and ``timeout`` (the estimate timeout: older estimates are dropped); and
+    ``fps_floor``, the frame-rate floor (per second), in a real-time run only.
     Empty when ``config.json`` is missing or unreadable (an old or foreign run)."""
     try:
         cfg = json.loads((run_dir / "config.json").read_text())
@@ -51,7 +52,8 @@ def limits(run_dir: Path, vehicle: str) -> dict[str, float]:
 
         th = TimingConfig.model_validate(cfg.get("timing") or {}).thresholds_for(vehicle)
         out.update({f"deadline.{k}": float(v) for k, v in th.deadline_ms.items()})
-        out["fps_floor"] = float(th.frame_rate_floor_hz)
+        if cfg.get("mode") != "lockstep":  # judged in real time only (TimingObserver.for_run)
+            out["fps_floor"] = float(th.frame_rate_floor_hz)
     except Exception:  # a config of another version: no deadline lines, the rest stands
         pass
     timeout = (cfg.get("target") or {}).get("estimate_timeout_s")

@@ -8,6 +8,7 @@ import sys
 import pytest
 
 from hil.harness.config.loading import parse_config
+from hil.harness.report.fleet import limits
 from hil.harness.run.driver import execute, prepare_out_dir
 from tests.conftest import GL_BACKEND, read_mcap
 
@@ -47,6 +48,7 @@ def test_offset_and_drifting_target_clock_is_mapped(tmp_path):
     assert up["min_ms"] >= -up["min_uncertainty_ms"] and down["min_ms"] >= -down["min_uncertainty_ms"]
     assert v["splits_excluded"] == {"clock_step": 0, "unconfirmed_sync": 0, "causality": 0}
     assert v["anomalies"].get("frame_rate_floor", 0) == 0
+    assert limits(result.out_dir, "ego0")["fps_floor"] == 10.0  # the report's line where it was judged
     # End to end is at least the inference, whatever the sync says.
     assert v["latency_ms"]["end_to_end"]["min_ms"] >= inf["min_ms"]
     # The clock state is recorded for Foxglove and reports.
@@ -109,3 +111,5 @@ def test_lockstep_judges_no_frame_rate_floor_and_a_slow_ai_is_still_flagged(tmp_
     assert v["latency_ms"]["end_to_end"]["p50_ms"] >= 200
     kinds = {d["kind"] for _, d in read_mcap(r.mcap_path)["/events"]}
     assert "frame_rate_floor" not in kinds and "deadline_miss" in kinds
+    # Nor does its report draw a floor line it was not judged on (a real-time run's does).
+    assert "fps_floor" not in limits(r.out_dir, "ego0") and limits(r.out_dir, "ego0")["deadline.end_to_end"] == 100
