@@ -63,8 +63,8 @@ h3{font-size:15px;margin:18px 0 6px}table{border-collapse:collapse;margin:6px 0 
 th,td{border:1px solid #ddd;padding:3px 8px;text-align:left;vertical-align:top}th{background:#f4f4f4}
 td.n{text-align:right;font-variant-numeric:tabular-nums}.note{padding:8px 12px;margin:8px 0;border-radius:4px}
 .warn{background:#fff4e0;border:1px solid #f0b860}.bad{background:#fde8e8;border:1px solid #e88}
-.ok{color:#2a7a2a;font-weight:bold}.banner{font-size:16px}.nok{color:#c62828;font-weight:bold}.soft{color:#a35f00;font-weight:bold}.muted{color:#777}
-.grid{display:flex;flex-wrap:wrap;gap:6px}code{font-size:12px}details{margin:6px 0}
+.ok{color:#2a7a2a;font-weight:bold}.banner{font-size:16px}.nok{color:#c62828;font-weight:bold}.muted{color:#777}
+.soft{color:#a35f00;font-weight:bold}.grid{display:flex;flex-wrap:wrap;gap:6px}code{font-size:12px}details{margin:6px 0}
 .case{display:flex;align-items:flex-start;gap:12px;border:1px solid #ddd;padding:8px;margin:8px 0;border-radius:4px}
 .case img{flex:none;width:320px;height:auto;border:1px solid #ccc}
 svg{max-width:100%;height:auto}:target{background:#fff8d0}
