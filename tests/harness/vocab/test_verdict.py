@@ -133,6 +133,8 @@ def test_a_run_over_budget_says_so_first_and_fails_on_request(tmp_path: Path) ->
     assert html.index('id="verdict"') < html.index('id="run"')
     assert f"missed: ego0: {applied} of {applied} frames over 100 ms end_to_end" in html
     assert "FAILED (fails the run)" in html
+    warned = [n for n in v["failed"] if n not in v["fails_run"]]  # the terminal's "warn", amber here
+    assert ('<span class="soft">warning</span>' in html) == bool(warned), warned
     # The summary's event counts are what /events holds, vehicle by vehicle and kind by kind.
     events = Counter((d["vehicle"], d["kind"]) for _, d in read_mcap(out / "run.mcap")["/events"])
     assert s["events"]["unrecorded"] == 0 and s["events"]["published"] == sum(events.values())
