@@ -15,6 +15,7 @@ Call ``hil.scenarios.gl.select_backend()`` before this module is imported (it im
 from __future__ import annotations
 
 import math
+from collections.abc import Collection
 from dataclasses import dataclass
 
 import mujoco
@@ -380,23 +381,29 @@ class Simulation:
         self._states_step = self.steps
         return self._states_cache
 
-    def ground_truth(self, *, egos: tuple[str, ...] | None = None) -> GroundTruth:
-        """Every entity's state, the truth of ``egos`` (default: every ego), and the
-        collisions that began since the previous call."""
+    def ground_truth(self, *, egos: tuple[str, ...] | None = None,
+                     entities: Collection[str] | None = None) -> GroundTruth:
+        """Every entity's state (or those named in ``entities``, in the world's order),
+        the truth of ``egos`` (default: every ego), and the collisions that began since
+        the previous call."""
         self._sync_kinematics()
         t = self.sim_time_ns
         xs, ys, hs, vxs, vys = (a.tolist() for a in self._states())
-        ents = tuple(EntityState(name, label, xs[i], ys[i], vxs[i], vys[i], hs[i], size, i, t)
-                     for i, (name, label, size) in enumerate(self._fixed))
+        fixed = self._fixed
+        pick = range(len(fixed)) if entities is None else [i for i, f in enumerate(fixed) if f[0] in entities]
+        ents = tuple(EntityState(fixed[i][0], fixed[i][1], xs[i], ys[i], vxs[i], vys[i], hs[i], fixed[i][2], i, t)
+                     for i in pick)
         truths = tuple(self._ego_truth(name) for name in (self.egos if egos is None else egos))
         collisions, self._new_collisions = tuple(self._new_collisions), []
         return GroundTruth(t, ents, truths, collisions)
 
-    def truth_snapshot(self, *, egos: tuple[str, ...] | None = None) -> GroundTruth:
-        """Every entity's state and the truth of ``egos`` (default: every ego) now,
-        without taking the new collisions (they stay for the next ``ground_truth()``)."""
+    def truth_snapshot(self, *, egos: tuple[str, ...] | None = None,
+                       entities: Collection[str] | None = None) -> GroundTruth:
+        """Every entity's state (or those named in ``entities``) and the truth of
+        ``egos`` (default: every ego) now, without taking the new collisions (they stay
+        for the next ``ground_truth()``)."""
         pending = self._new_collisions
-        gt = self.ground_truth(egos=egos)
+        gt = self.ground_truth(egos=egos, entities=entities)
         self._new_collisions = pending
         return GroundTruth(gt.sim_time_ns, gt.entities, gt.egos, ())
 

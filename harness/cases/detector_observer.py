@@ -9,9 +9,9 @@ the union of its cameras' visible sets (an entity any camera showed is visible):
 waits for each camera's truth, and one that never comes (a camera left out of the
 set) no longer counts once a later answer's truth arrives. Truth at ``t_apply`` comes
 from a snapshot taken when its control is applied, of that ego only and of the
-entities it had in range at ``t0``: the work per estimate does not grow with the
-number of vehicles (``truth_now`` is called with ``egos=(vehicle,)`` where it takes
-that keyword). Ground truths are kept by sim time (bounded) so that a camera truth
+entities it had in range at ``t0``: the work per estimate grows little with the
+number of vehicles (``truth_now`` is called with ``egos=(vehicle,)`` and
+``entities=`` those names and the ego's where it takes those keywords). Ground truths are kept by sim time (bounded) so that a camera truth
 rendered late still meets its own instant. A mismatch is written to ``/events``
 (kind ``mismatch.<kind>``) ``link_delay_s`` after it is found, once the timing
 analysis of its frames is done, with those frames' timing anomalies linked; the
@@ -129,7 +129,7 @@ class DetectorObserver:
         self.delay_ns = int(link_delay_s * 1e9)
         self.v = {name: _VehicleJudge(CornerCaseDetector(name, cfg)) for name in vehicles}
         self._gts: OrderedDict[int, GroundTruth] = OrderedDict()
-        self._takes_egos: dict[object, bool] = {}
+        self._takes: dict[object, frozenset[str]] = {}
         self._last_ns = 0  # the latest harness time seen (ns)
         self._pending: list[tuple[int, Mismatch]] = []
         self.mismatches: list[Mismatch] = []
@@ -221,26 +221,32 @@ class DetectorObserver:
         vj = self.v.get(vehicle)
         if vj is None:
             return
-        gt = truth_now(egos=(vehicle,)) if self._accepts_egos(truth_now) else truth_now()
         # Only what the t0 judgement can compare: the entities it had in range (all of
         # them while its camera truth is still on its way).
         t0 = vj.at_t0.get(frame_id)
         near = None if t0 is None else {o.name for o in t0.objects if o.distance_m <= self.cfg.max_range_m * 1.5}
-        vj.at_apply[frame_id] = self._frame_truth(vehicle, gt, None, only=near)
+        takes = self._keywords(truth_now)
+        asked: dict[str, Any] = {}
+        if "egos" in takes:
+            asked["egos"] = (vehicle,)
+        if "entities" in takes and near is not None:
+            asked["entities"] = near | {vehicle}  # the view below picks these alone
+        vj.at_apply[frame_id] = self._frame_truth(vehicle, truth_now(**asked), None, only=near)
         _trim(vj.at_apply, frame_id)
 
-    def _accepts_egos(self, fn: Callable[..., GroundTruth]) -> bool:
+    def _keywords(self, fn: Callable[..., GroundTruth]) -> frozenset[str]:
+        """Which of ``egos`` and ``entities`` a ``truth_now`` takes."""
         # Keyed by the code, not the callable: the run makes a new closure per applied
         # control, and keeping each one (with the world state it holds) leaked ~2 MB/min.
         func = getattr(fn, "__func__", fn)
         key = getattr(func, "__code__", func)
-        known = self._takes_egos.get(key)
+        known = self._takes.get(key)
         if known is None:
             try:
-                known = "egos" in inspect.signature(fn).parameters
+                known = frozenset(inspect.signature(fn).parameters) & {"egos", "entities"}
             except (TypeError, ValueError):
-                known = False
-            self._takes_egos[key] = known
+                known = frozenset()
+            self._takes[key] = known
         return known
 
     def on_record(self, vehicle: str, rec: PipelineRecord, estimate: Estimate | None) -> None:

@@ -10,6 +10,7 @@ clock-sync samples, and the observers' hooks (timing analysis, detector).
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from typing import Any
 
 import numpy as np
@@ -185,12 +186,14 @@ class VehicleTasks:
     def applied(self, a: Answer, t_apply: int, steps: int, qpos: np.ndarray, qvel: np.ndarray) -> None:
         sim, v = self.sim, a.v
 
-        def truth_now() -> GroundTruth:
+        def truth_now(*, entities: Collection[str] | None = None) -> GroundTruth:
+            """The world at ``t_apply``: this ego's truth, and of the entities those
+            named (default: all; the camera instant's truth where it is this step's)."""
             gt = self.cache.get(steps, v.name)
             if gt is not None:
                 return gt
             sim.load_state(steps, qpos, qvel)
-            return sim.truth_snapshot(egos=(v.name,))
+            return sim.truth_snapshot(egos=(v.name,), entities=entities)
 
         for ob in self.observers:
             if hasattr(ob, "on_apply"):

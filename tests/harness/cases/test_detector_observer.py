@@ -79,6 +79,51 @@ def test_camera_truth_after_the_estimate_is_judged_in_frame_order(sim):
     assert snapshots == [("ego0",)] * 6  # only the applying ego's truth is asked for
 
 
+def test_the_truth_at_apply_of_the_entities_in_range_alone_judges_alike():
+    # The truth at t_apply built every entity's state and the detector's footprints of
+    # all of them, though it compares only those in range at t0: 88 -> 197 us from 8 to
+    # 64 vehicles, against ~65 us for the ego's truth alone. Asked for those entities
+    # (``entities=``), the frame truth it keeps is the same, object for object.
+    sdef = scenarios.get("multi_vehicle")
+    world = sdef.build(params=sdef.resolve({"n_vehicles": 12}), seed=3, physics_step_s=0.002, camera=CameraSpec())
+    kept: dict[str, list] = {}
+    asked: list[int] = []
+    for way in ("all", "near"):
+        with Simulation(world, rules=RefStateRules()) as s:
+            egos = list(s.egos)
+            obs = DetectorObserver(DetectorSettings(), egos, camera=CameraConfig(), recorder=Events(), timing=None,
+                                   link_delay_s=0.0)
+
+            def everything(*, egos: tuple[str, ...] | None = None) -> GroundTruth:
+                return s.truth_snapshot(egos=egos)
+
+            def in_range(*, egos: tuple[str, ...] | None = None, entities: set[str] | None = None) -> GroundTruth:
+                gt_now = s.truth_snapshot(egos=egos, entities=entities)
+                asked.append(len(gt_now.entities))
+                return gt_now
+
+            for f in range(8):
+                for _ in range(25):
+                    s.step()
+                gt = s.ground_truth()
+                obs.on_truth(gt, t_ns=f * 50 * MS)
+                for name in egos:
+                    obs.on_camera_truth(name, f, seen_by(gt, name))
+                for _ in range(5):
+                    s.step()
+                for name in egos:
+                    obs.on_apply(name, f, everything if way == "all" else in_range)
+            kept[way] = [obs.v[name].at_apply[f] for name in egos for f in range(8) if f in obs.v[name].at_apply]
+    assert kept["near"] == kept["all"] and len(kept["all"]) >= 8
+    assert any(t.objects for t in kept["all"])  # something in range to compare
+    assert asked and max(asked) < len(world.vehicles)  # the entities in range (and the ego) alone
+
+
+def seen_by(gt: GroundTruth, ego: str) -> CameraTruth:
+    """``ego``'s camera truth showing nothing: its t0 truth holds every entity in range."""
+    return CameraTruth(ego, gt.sim_time_ns, (), gt.ego(ego))
+
+
 # -- a camera rig (issue 31) ----------------------------------------------------------
 
 RIG = [{"name": "front", "forward_m": 1.0, "lateral_m": 0.5, "yaw_deg": 30.0},
