@@ -11,8 +11,9 @@ set) no longer counts once a later answer's truth arrives. Truth at ``t_apply`` 
 from a snapshot taken when its control is applied, of that ego only and of the
 entities it had in range at ``t0``: the work per estimate grows little with the
 number of vehicles (``truth_now`` is called with ``egos=(vehicle,)`` and
-``entities=`` those names and the ego's where it takes those keywords). Ground truths are kept by sim time (bounded) so that a camera truth
-rendered late still meets its own instant. A mismatch is written to ``/events``
+``entities=`` those names and the ego's where it takes those keywords). Ground
+truths are kept by sim time (bounded) so that a camera truth rendered late still
+meets its own instant. A mismatch is written to ``/events``
 (kind ``mismatch.<kind>``) ``link_delay_s`` after it is found, once the timing
 analysis of its frames is done, with those frames' timing anomalies linked; the
 corner-case recorder picks it up from there.
