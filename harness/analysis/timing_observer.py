@@ -31,7 +31,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from hil.adapters.wire.messages import Estimate
-from hil.harness.config.model import Mode, RunConfig
+from hil.harness.config.model import RunConfig
 from hil.harness.config.timing import TimingConfig
 from hil.harness.vocab.events import Event, EventBus, JsonSink
 from hil.scenarios.ground_truth import GroundTruth
@@ -160,14 +160,9 @@ class TimingObserver:
     @classmethod
     def for_run(cls, cfg: RunConfig, vehicles: list[str], *, recorder: JsonSink, events: EventBus) -> TimingObserver:
         """The observer of a run of ``cfg``: its rig's frame sets (``rig_of``) and, in
-        real time only, the frame-rate floor. A lockstep run sets its own pace: the
-        harness waits for each answer and renders the next frame only then, so its
-        estimates per wall-clock second measure the harness and the machine as much as
-        the AI (16 vehicles on 2 cores: 7.6 a second, a floor anomaly for every AI);
-        an answer it never got is a ``dropped_frame`` there, a slow one a deadline
-        miss."""
+        real time only, the frame-rate floor (``Mode.judges_rate_floor``)."""
         return cls(cfg.timing, vehicles, recorder=recorder, events=events, rig=rig_of(cfg),
-                   rate_floor=cfg.mode is not Mode.LOCKSTEP)
+                   rate_floor=cfg.mode.judges_rate_floor)
 
     # -- observer hooks -------------------------------------------------------
 

@@ -54,6 +54,16 @@ class Mode(str, Enum):
     REALTIME = "realtime"  # wall-clock pace, never waits for the target
     LOCKSTEP = "lockstep"  # waits for each estimate: deterministic, for replay
 
+    @property
+    def judges_rate_floor(self) -> bool:
+        """Whether a run of this mode judges the frame-rate floor: in real time only.
+        A lockstep run sets its own pace (the harness waits for each answer and renders
+        the next frame only then), so its estimates per wall-clock second measure the
+        harness and the machine as much as the AI (16 vehicles on 2 cores: 7.6 a second,
+        a floor anomaly for every AI); an answer it never got is a ``dropped_frame``
+        there, a slow one a deadline miss."""
+        return self is Mode.REALTIME
+
 
 class Encoding(str, Enum):
     """How camera frames travel on the wire."""

@@ -48,11 +48,12 @@ def limits(run_dir: Path, vehicle: str) -> dict[str, float]:
         return {}
     out: dict[str, float] = {}
     try:
+        from hil.harness.config.model import Mode
         from hil.harness.config.timing import TimingConfig
 
         th = TimingConfig.model_validate(cfg.get("timing") or {}).thresholds_for(vehicle)
         out.update({f"deadline.{k}": float(v) for k, v in th.deadline_ms.items()})
-        if cfg.get("mode") != "lockstep":  # judged in real time only (TimingObserver.for_run)
+        if Mode(cfg.get("mode", Mode.REALTIME)).judges_rate_floor:
             out["fps_floor"] = float(th.frame_rate_floor_hz)
     except Exception:  # a config of another version: no deadline lines, the rest stands
         pass
