@@ -41,8 +41,6 @@ from enum import Enum
 from types import MappingProxyType
 from typing import NamedTuple
 
-import numpy as np
-
 from hil.common.errors import ConfigError
 from hil.timing.pipeline import Mapper, Split, Violation, causality_violations, split_stages
 from hil.timing.records import FrameStatus, PipelineRecord
@@ -132,6 +130,23 @@ _PARTS: Mapping[str, tuple[str, ...]] = MappingProxyType({
     "end_to_end": ("capture_to_send", "transport", "target_total"),
     "to_apply": ("capture_to_send", "transport", "target_total", "apply_delay")})
 _PART_WINDOW = 100  # recent values of each part kept for its median
+
+
+def _middle(s: list[float] | list[int]) -> float:
+    """The median of the sorted ``s`` (not empty), as numpy gives it: the middle value, or
+    the mean of the middle two."""
+    h = len(s) // 2
+    return float(s[h]) if len(s) % 2 else (s[h - 1] + s[h]) / 2
+
+
+def median_mad(values: Iterable[int]) -> tuple[float, float]:
+    """(median, median absolute deviation) of ``values`` (not empty): the values of
+    ``np.median``, by sorting. A window of 50-100 values costs ~8 µs this way against ~23
+    through numpy (whose first median of floats imports ``numpy.ma``, ~10-80 ms, in the
+    middle of a run), once or twice per record."""
+    s = sorted(values)
+    med = _middle(s)
+    return med, _middle(sorted([abs(x - med) for x in s]))
 
 
 def _default_deadlines() -> dict[str, float]:
@@ -396,7 +411,7 @@ class AnomalyDetector:
 
     def _median(self, part: str) -> int:
         q = self._s.parts[part]
-        return int(np.median(np.fromiter(q, np.int64, len(q)))) if q else 0
+        return int(_middle(sorted(q))) if q else 0
 
     def on_sync_events(self, events: Iterable[SyncEvent], *,
                        sim_time_ns: int | None = None) -> list[Anomaly]:
@@ -549,9 +564,7 @@ class AnomalyDetector:
             v = sp.value_ns - sp.uncertainty_ns
             spike = False
             if len(base) >= t.spike_min_baseline:
-                a = np.fromiter(base, np.int64, len(base))
-                med = float(np.median(a))
-                mad = float(np.median(np.abs(a - med)))
+                med, mad = median_mad(base)
                 limit = med + max(t.spike_k * 1.4826 * mad, t.spike_floor_ms * 1e6)
                 spike = v > limit
                 if spike and not self._s.in_spike.get(stage, False) and stage not in skip and not late:
@@ -570,8 +583,7 @@ class AnomalyDetector:
         st.e2e.append(e2e.value_ns)
         if len(st.e2e) < t.jitter_window:
             return
-        a = np.fromiter(st.e2e, np.int64, len(st.e2e))
-        jitter_ms = 1.4826 * float(np.median(np.abs(a - np.median(a)))) / 1e6
+        jitter_ms = 1.4826 * median_mad(st.e2e)[1] / 1e6
         if st.in_jitter:
             st.in_jitter = jitter_ms >= t.jitter_ms * t.jitter_rearm
         elif jitter_ms > t.jitter_ms:

@@ -483,3 +483,15 @@ def test_without_target_stamps_a_rise_elsewhere_names_no_side() -> None:
         det.on_record(_rec(i, target_stamps=False))
     found = det.on_record(_rec(80, infer_ns=40 * MS, target_stamps=False))
     assert [a.kind for a in found] == [AnomalyKind.LATENCY_SPIKE] and found[0].cause is None
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.integers(min_value=0, max_value=10**13), min_size=1, max_size=120))
+def test_median_mad_is_numpys(values: list[int]) -> None:
+    """The spike and jitter windows' median and MAD, by sorting, are numpy's values to
+    the bit (the detector judged with ``np.median`` before)."""
+    from hil.timing.anomaly import median_mad
+
+    a = np.array(values, dtype=np.int64)
+    med = float(np.median(a))
+    assert median_mad(values) == (med, float(np.median(np.abs(a - med))))
