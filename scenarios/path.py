@@ -45,6 +45,7 @@ class Path:
     segments: tuple[Segment, ...] = ()
     _starts: np.ndarray = field(init=False, repr=False, compare=False)  # (n, 4): s, x, y, heading
     _curvatures: np.ndarray = field(init=False, repr=False, compare=False)  # (n,): each segment's
+    _line: tuple[np.float64, np.float64] | None = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         rows = []
@@ -57,6 +58,12 @@ class Path:
         object.__setattr__(self, "_starts", np.array(rows, dtype=np.float64))
         object.__setattr__(self, "_curvatures", np.array([seg.curvature_per_m for seg in self.segments],
                                                          dtype=np.float64))
+        # One straight line (an ego's lane on a straight road: the ground truth asks
+        # its poses at every camera instant): its heading's cosine and sine, as the
+        # general formula takes them.
+        line = len(self.segments) == 1 and self.segments[0].curvature_per_m == 0.0
+        h0 = self._starts[:1, 3]
+        object.__setattr__(self, "_line", (np.cos(h0)[0], np.sin(h0)[0]) if line else None)
 
     # -- building ------------------------------------------------------------
 
@@ -114,6 +121,11 @@ class Path:
             h = np.full_like(s, self.heading0_rad)
             return self.x0_m + s * np.cos(h), self.y0_m + s * np.sin(h), h
         starts = self._starts
+        if self._line is not None and s.ndim and not (s > self.length_m).any():
+            # The general formula's values on a line, before its end, in 5 array
+            # operations instead of ~25 (~10 µs against ~30 a call).
+            c, sn = self._line
+            return starts[0, 1] + s * c, starts[0, 2] + s * sn, np.full_like(s, starts[0, 3])
         idx = np.clip(np.searchsorted(starts[:n, 0], s, side="right") - 1, 0, n - 1)
         k = self._curvatures[idx]
         s0, x0, y0, h0 = starts[idx, 0], starts[idx, 1], starts[idx, 2], starts[idx, 3]

@@ -421,10 +421,8 @@ class Simulation:
         xs, ys, hs, vxs, vys = self._states()
         route = self._routes[vehicle]
         me = self._entity_index[vehicle]
-        px = np.append(xs[idx], xs[me])
-        py = np.append(ys[idx], ys[me])
-        ps, pl = route.project(px, py)
-        os_, ol, es, el = ps[:-1], pl[:-1], ps[-1], pl[-1]
+        ps, pl = route.project(xs, ys)  # every entity's (the ego's among them: cheaper than picking first)
+        os_, ol, es, el = ps[idx], pl[idx], ps[me], pl[me]
         _, _, rh = route.pose_at(os_)
         dh = hs[idx] - rh
         half_l, half_w = self._half_l[idx], self._half_w[idx]

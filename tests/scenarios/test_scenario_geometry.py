@@ -56,6 +56,21 @@ def test_beyond_the_ends_the_path_runs_straight_on() -> None:
     assert float(path.project(-7.0, 0.0)[0]) == pytest.approx(-7.0)
 
 
+@pytest.mark.parametrize("heading", [0.0, 0.7, -2.9])
+def test_a_straight_line_poses_as_the_general_formula(heading: float) -> None:
+    """One straight segment takes a shortcut (the ground truth asks an ego's lane for
+    poses at every camera instant): the same values to the bit as the general formula,
+    before the start too; past the end, where the formula restarts from the end pose, the
+    general one."""
+    line = Path.start(3.5, -20.0, heading).line(700.0)
+    general = Path.start(3.5, -20.0, heading).line(700.0)
+    object.__setattr__(general, "_line", None)
+    rng = np.random.default_rng(3)
+    for s in (rng.uniform(-50, 700, 64), np.array([0.0, 700.0, -1e-9]), rng.uniform(-50, 760, 64)):
+        for fast, slow in zip(line.pose_at(s), general.pose_at(s), strict=True):
+            assert fast.shape == s.shape and np.array_equal(fast, slow)
+
+
 def test_offset_path_is_parallel() -> None:
     path = s_curve()
     left = path.offset(1.85)
