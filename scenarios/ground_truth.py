@@ -14,6 +14,8 @@ Records (all frozen; positions m, velocities m/s, angles rad, times ns of sim ti
 
 ``StateChanges`` turns a stream of ``GroundTruth`` into the record stream: every
 entity's initial state once, then an update for each entity whose state changed.
+``EntityTable``: one instant's entities as columns, as the simulator takes them (an
+``EntityState`` is built only for an entity asked for).
 
 The reference state is what a perfect driver would decide from true distances and
 speeds. With ``v`` the ego's speed, ``u`` the obstacle's speed along the ego's path
@@ -36,8 +38,12 @@ from the run config's ``truth`` section.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
+from typing import overload
+
+import numpy as np
 
 
 class RefState(IntEnum):
@@ -75,6 +81,14 @@ class RefStateRules:
         return RefState.SAFE
 
 
+_KEY_STEPS = (1e4, 1e4, 1e5, 1e4, 1e4)  # x, y, heading, vx, vy: per metre, radian, m/s
+
+
+def _quantum(v: float) -> float:
+    """``v`` rounded to a whole number, halves to even (``np.rint``'s value); not a finite number as it is."""
+    return float(round(v)) if math.isfinite(v) else v
+
+
 @dataclass(frozen=True)
 class EntityState:
     """One entity at one instant: position (m), velocity (m/s), heading (rad), its
@@ -92,10 +106,11 @@ class EntityState:
     sim_time_ns: int = 0
 
     def key(self) -> tuple[float, ...]:
-        """What "changed" compares: position to 0.1 mm, velocity to 0.1 mm/s,
-        heading to 1e-5 rad."""
-        return (round(self.x_m, 4), round(self.y_m, 4), round(self.vx_mps, 4), round(self.vy_mps, 4),
-                round(self.heading_rad, 5))
+        """What "changed" compares: position to 0.1 mm, heading to 1e-5 rad, velocity to
+        0.1 mm/s (``EntityTable.keys``, the same values: multiples of those steps,
+        halves to even)."""
+        return tuple(_quantum(v * q) for v, q in zip(
+            (self.x_m, self.y_m, self.heading_rad, self.vx_mps, self.vy_mps), _KEY_STEPS, strict=True))
 
     def to_json(self) -> dict[str, object]:
         return {"id": self.entity_id, "name": self.name, "cls": self.cls, "x_m": self.x_m, "y_m": self.y_m,
@@ -187,10 +202,86 @@ class CameraTruth:
                 "boxes": [b.to_json() for b in self.boxes], "ego": self.ego.to_json()}
 
 
+class EntityTable(Sequence[EntityState]):
+    """One instant's entities as columns: ``cols`` (5, n) holds x, y (m), heading (rad),
+    vx, vy (m/s) of each, in the order of ``names`` (their classes, sizes, world ids
+    alongside; ``dims``: the sizes as an (n, 3) array). A sequence of ``EntityState``,
+    each built when it is asked for (and kept): the simulator's ground truth of every
+    camera instant gives one, and what reads all of its entities reads the columns
+    (``StateChanges``, the detector's footprints); equal to the tuple of its states."""
+
+    __slots__ = ("names", "classes", "sizes", "dims", "ids", "cols", "sim_time_ns", "_rows", "_row_of")
+
+    def __init__(self, names: tuple[str, ...], classes: tuple[str, ...], sizes: tuple[tuple[float, float, float], ...],
+                 dims: np.ndarray, ids: tuple[int, ...], cols: np.ndarray, sim_time_ns: int, *,
+                 row_of: dict[str, int] | None = None) -> None:
+        self.names, self.classes, self.sizes, self.dims, self.ids = names, classes, sizes, dims, ids
+        self.cols, self.sim_time_ns = cols, sim_time_ns
+        self._rows: list[EntityState | None] = [None] * len(names)
+        self._row_of = row_of
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    @overload
+    def __getitem__(self, i: int) -> EntityState: ...
+    @overload
+    def __getitem__(self, i: slice) -> tuple[EntityState, ...]: ...
+
+    def __getitem__(self, i: int | slice) -> EntityState | tuple[EntityState, ...]:
+        if isinstance(i, slice):
+            return tuple(self)[i]
+        if i < 0:
+            i += len(self.names)
+        e = self._rows[i]  # (IndexError past either end)
+        if e is None:
+            x, y, h, vx, vy = self.cols[:, i].tolist()
+            e = self._rows[i] = EntityState(self.names[i], self.classes[i], x, y, vx, vy, h, self.sizes[i],
+                                            self.ids[i], self.sim_time_ns)
+        return e
+
+    def __iter__(self) -> Iterator[EntityState]:
+        return (self[i] for i in range(len(self.names)))
+
+    def __eq__(self, other: object) -> bool:
+        if isinstance(other, (tuple, EntityTable)):
+            return tuple(self) == tuple(other)
+        return NotImplemented
+
+    def __hash__(self) -> int:
+        return hash(tuple(self))
+
+    def __repr__(self) -> str:
+        return f"EntityTable{tuple(self)!r}"
+
+    @property
+    def row_of(self) -> dict[str, int]:
+        """Name -> row."""
+        if self._row_of is None:
+            self._row_of = {n: i for i, n in enumerate(self.names)}
+        return self._row_of
+
+    def keys(self) -> np.ndarray:
+        """(5, n): what "changed" compares, per entity (``EntityState.key``'s values)."""
+        keys: np.ndarray = np.rint(self.cols * _KEY_COLS)
+        return keys
+
+    def rows_json(self, rows: Sequence[int]) -> list[dict[str, object]]:
+        """``EntityState.to_json`` of the entities in ``rows``, from the columns."""
+        x, y, h, vx, vy = self.cols[:, rows].tolist()
+        t, names, classes, ids, sizes = self.sim_time_ns, self.names, self.classes, self.ids, self.sizes
+        return [{"id": ids[i], "name": names[i], "cls": classes[i], "x_m": x[k], "y_m": y[k], "vx_mps": vx[k],
+                 "vy_mps": vy[k], "heading_rad": h[k], "size_m": list(sizes[i]), "sim_time_ns": t}
+                for k, i in enumerate(rows)]
+
+
+_KEY_COLS = np.array(_KEY_STEPS)[:, None]
+
+
 @dataclass(frozen=True)
 class GroundTruth:
     sim_time_ns: int
-    entities: tuple[EntityState, ...]
+    entities: Sequence[EntityState]  # a tuple, or the simulator's EntityTable
     egos: tuple[EgoTruth, ...]
     collisions: tuple[Collision, ...]  # those that began since the previous record
 
@@ -202,22 +293,48 @@ class GroundTruth:
 
 
 class StateChanges:
-    """The per-entity record stream: ``changes(gt)`` returns every entity the first
-    time, then only those whose state changed since they were last returned."""
+    """The per-entity record stream: ``changes_json(gt)`` gives every entity's state
+    the first time, then only those whose state changed since they were last given."""
 
     def __init__(self) -> None:
         self._last: dict[str, tuple[float, ...]] = {}
+        # The keys of the last EntityTable's entities, in its order (while they, not
+        # ``_last``, are the latest: ``_last`` is brought up to date from them when a
+        # tuple of states comes).
+        self._names: tuple[str, ...] | None = None
+        self._keys = np.zeros((5, 0))
 
     @property
     def seen(self) -> bool:
-        """True once ``changes`` has returned the initial states."""
-        return bool(self._last)
+        """True once ``changes_json`` has given the initial states."""
+        return bool(self._last) or self._names is not None
 
-    def changes(self, gt: GroundTruth) -> tuple[EntityState, ...]:
+    def changes_json(self, gt: GroundTruth) -> list[dict[str, object]]:
+        ents = gt.entities
+        if isinstance(ents, EntityTable):
+            return ents.rows_json(self._changed_rows(ents))
+        self._settle()
         out = []
-        for e in gt.entities:
+        for e in ents:
             k = e.key()
             if self._last.get(e.name) != k:
                 self._last[e.name] = k
-                out.append(e)
-        return tuple(out)
+                out.append(e.to_json())
+        return out
+
+    def _settle(self) -> None:
+        """``_last`` brought up to date from the last table's keys."""
+        if self._names is not None:
+            self._last.update(zip(self._names, map(tuple, self._keys.T.tolist()), strict=True))
+            self._names = None
+
+    def _changed_rows(self, table: EntityTable) -> list[int]:
+        keys = table.keys()
+        if self._names is not table.names:
+            self._settle()
+            last = [self._last.get(n) for n in table.names]
+            self._keys = np.array([k if k is not None else (math.nan,) * 5 for k in last], float).reshape(-1, 5).T
+            self._names = table.names
+        changed = (keys != self._keys).any(axis=0)  # NaN: never the same
+        self._keys = keys
+        return np.flatnonzero(changed).tolist()

@@ -15,7 +15,6 @@ Call ``hil.scenarios.gl.select_backend()`` before this module is imported (it im
 from __future__ import annotations
 
 import math
-from collections.abc import Collection
 from dataclasses import dataclass
 
 import mujoco
@@ -25,7 +24,7 @@ from hil.scenarios.ground_truth import (
                                         CameraTruth,
                                         Collision,
                                         EgoTruth,
-                                        EntityState,
+                                        EntityTable,
                                         GroundTruth,
                                         RefStateRules,
                                         VisibleBox,
@@ -117,11 +116,16 @@ class Simulation:
         self._half_l = np.array([v.size_m[0] / 2 for v in world.vehicles])
         self._half_w = np.array([v.size_m[1] / 2 for v in world.vehicles])
         self._others = [np.array([j for j in range(n) if j != i], int) for i in range(n)]
-        # Each entity's fixed part of its EntityState (name, class label, size), read at
-        # every camera instant: the label's enum lookup was a third of ground_truth().
-        self._fixed = [(v.name, v.cls.label, v.size_m) for v in world.vehicles]
+        # Each entity's fixed part of its EntityState (name, class label, size, id), read
+        # at every camera instant: the label's enum lookup was a third of ground_truth().
+        self._names = tuple(v.name for v in world.vehicles)
+        self._classes = tuple(v.cls.label for v in world.vehicles)
+        self._sizes = tuple(v.size_m for v in world.vehicles)
+        self._dims = np.array(self._sizes, float).reshape(n, 3)
+        self._ids = tuple(range(n))
         self._states_step = -1
         self._states_cache: _States | None = None
+        self._states_arr = np.zeros((5, 0))  # the cache's rows as one (5, n) array
         self._qvel_before = np.zeros(m.nv)
         self._rgb: dict[tuple[str, int], np.ndarray] = {}
         self._seg: dict[tuple[int, int], np.ndarray] = {}  # segmentation buffers by image size
@@ -378,32 +382,28 @@ class Simulation:
             st[3, self._scripted_ids] = self._table.vel[r, :, 0]
             st[4, self._scripted_ids] = self._table.vel[r, :, 1]
         self._states_cache = (st[0], st[1], st[2], st[3], st[4])
+        self._states_arr = st
         self._states_step = self.steps
         return self._states_cache
 
-    def ground_truth(self, *, egos: tuple[str, ...] | None = None,
-                     entities: Collection[str] | None = None) -> GroundTruth:
-        """Every entity's state (or those named in ``entities``, in the world's order),
-        the truth of ``egos`` (default: every ego), and the collisions that began since
-        the previous call."""
+    def ground_truth(self, *, egos: tuple[str, ...] | None = None) -> GroundTruth:
+        """Every entity's state (an ``EntityTable``: the same names tuple each time, so
+        ``StateChanges`` compares columns), the truth of ``egos`` (default: every ego),
+        and the collisions that began since the previous call."""
         self._sync_kinematics()
         t = self.sim_time_ns
-        xs, ys, hs, vxs, vys = (a.tolist() for a in self._states())
-        fixed = self._fixed
-        pick = range(len(fixed)) if entities is None else [i for i, f in enumerate(fixed) if f[0] in entities]
-        ents = tuple(EntityState(fixed[i][0], fixed[i][1], xs[i], ys[i], vxs[i], vys[i], hs[i], fixed[i][2], i, t)
-                     for i in pick)
+        self._states()
+        ents = EntityTable(self._names, self._classes, self._sizes, self._dims, self._ids, self._states_arr, t,
+                           row_of=self._entity_index)
         truths = tuple(self._ego_truth(name) for name in (self.egos if egos is None else egos))
         collisions, self._new_collisions = tuple(self._new_collisions), []
         return GroundTruth(t, ents, truths, collisions)
 
-    def truth_snapshot(self, *, egos: tuple[str, ...] | None = None,
-                       entities: Collection[str] | None = None) -> GroundTruth:
-        """Every entity's state (or those named in ``entities``) and the truth of
-        ``egos`` (default: every ego) now, without taking the new collisions (they stay
-        for the next ``ground_truth()``)."""
+    def truth_snapshot(self, *, egos: tuple[str, ...] | None = None) -> GroundTruth:
+        """Every entity's state and the truth of ``egos`` (default: every ego) now,
+        without taking the new collisions (they stay for the next ``ground_truth()``)."""
         pending = self._new_collisions
-        gt = self.ground_truth(egos=egos, entities=entities)
+        gt = self.ground_truth(egos=egos)
         self._new_collisions = pending
         return GroundTruth(gt.sim_time_ns, gt.entities, gt.egos, ())
 

@@ -8,10 +8,11 @@ boxes; the ego's route truth). A fused frame set's answer is judged once, agains
 the union of its cameras' visible sets (an entity any camera showed is visible): it
 waits for each camera's truth, and one that never comes (a camera left out of the
 set) no longer counts once a later answer's truth arrives. Truth at ``t_apply`` comes
-from a snapshot taken when its control is applied, of that ego only and of the
-entities it had in range at ``t0``: the work per estimate grows little with the
-number of vehicles (``truth_now`` is called with ``egos=(vehicle,)`` and
-``entities=`` those names and the ego's where it takes those keywords). Ground
+from a snapshot taken when its control is applied, of that ego's route truth only
+(``truth_now`` is called with ``egos=(vehicle,)`` where it takes that keyword) and
+the entities it had in range at ``t0``, read off the snapshot's columns (the
+simulator's ``EntityTable``): the work per estimate grows little with the number of
+vehicles. Ground
 truths are kept by sim time (bounded) so that a camera truth rendered late still
 meets its own instant. A mismatch is written to ``/events``
 (kind ``mismatch.<kind>``) ``link_delay_s`` after it is found, once the timing
@@ -38,7 +39,7 @@ from hil.harness.cases.late_reaction import EgoView
 from hil.harness.analysis.timing_observer import TimingObserver
 from hil.harness.config.detector import DetectorSettings
 from hil.harness.config.model import CameraConfig
-from hil.scenarios.ground_truth import CameraTruth, EntityState, GroundTruth
+from hil.scenarios.ground_truth import CameraTruth, EntityState, EntityTable, GroundTruth
 from hil.timing.records import FrameStatus, PipelineRecord
 from hil.timing.sync import SyncSample
 
@@ -79,22 +80,29 @@ class _Footprints:
 
     def __init__(self, entities: Sequence[EntityState]) -> None:
         self.entities = entities
-        self.index = {e.name: i for i, e in enumerate(entities)}
-        self.x = np.array([e.x_m for e in entities], dtype=np.float64)
-        self.y = np.array([e.y_m for e in entities], dtype=np.float64)
-        self.cos = np.array([math.cos(e.heading_rad) for e in entities], dtype=np.float64)
-        self.sin = np.array([math.sin(e.heading_rad) for e in entities], dtype=np.float64)
-        self.half_l = np.array([e.size_m[0] / 2 for e in entities], dtype=np.float64)
-        self.half_w = np.array([e.size_m[1] / 2 for e in entities], dtype=np.float64)
+        if isinstance(entities, EntityTable):  # the simulator's: its columns, no state object built
+            self.index, self.names, self.classes = entities.row_of, entities.names, entities.classes
+            self.x, self.y, self.h = entities.cols[0], entities.cols[1], entities.cols[2]
+            self.half_l, self.half_w = entities.dims[:, 0] / 2, entities.dims[:, 1] / 2
+        else:
+            self.index = {e.name: i for i, e in enumerate(entities)}
+            self.names, self.classes = tuple(e.name for e in entities), tuple(e.cls for e in entities)
+            self.x = np.array([e.x_m for e in entities], dtype=np.float64)
+            self.y = np.array([e.y_m for e in entities], dtype=np.float64)
+            self.h = np.array([e.heading_rad for e in entities], dtype=np.float64)
+            self.half_l = np.array([e.size_m[0] / 2 for e in entities], dtype=np.float64)
+            self.half_w = np.array([e.size_m[1] / 2 for e in entities], dtype=np.float64)
+        self.cos, self.sin = np.cos(self.h), np.sin(self.h)
 
-    def view(self, me: EntityState, mount: tuple[float, float, float], visible: set[str] | None, *,
+    def view(self, me: int, mount: tuple[float, float, float], visible: set[str] | None, *,
              only: set[str] | None, within_m: float | None) -> tuple[TruthObject, ...]:
-        """Every entity but ``me`` in ``me``'s camera-ground frame (``mount``: forward,
-        lateral, yaw of the camera), those named in ``only`` (or all), those no farther
-        than ``within_m`` (or all); ``visible``: the names seen (None: all)."""
+        """Every entity but the one in row ``me`` in its camera-ground frame (``mount``:
+        forward, lateral, yaw of the camera), those named in ``only`` (or all), those no
+        farther than ``within_m`` (or all); ``visible``: the names seen (None: all)."""
         forward, lateral, yaw = mount
-        cam_x, cam_y = camera_position(me.x_m, me.y_m, me.heading_rad, forward, lateral)
-        xs, ys = footprints_in_camera_frame(cam_x, cam_y, me.heading_rad + yaw, self.x, self.y, self.cos, self.sin,
+        heading = float(self.h[me])
+        cam_x, cam_y = camera_position(float(self.x[me]), float(self.y[me]), heading, forward, lateral)
+        xs, ys = footprints_in_camera_frame(cam_x, cam_y, heading + yaw, self.x, self.y, self.cos, self.sin,
                                             self.half_l, self.half_w)
         pick: Sequence[int]
         if only is not None:
@@ -102,13 +110,14 @@ class _Footprints:
         elif within_m is not None:  # a margin over the exact test below, made per object
             pick = np.flatnonzero(xs * xs + ys * ys <= within_m * within_m * (1 + 1e-9) + 1e-9).tolist()
         else:
-            pick = range(len(self.entities))
+            pick = range(len(self.names))
         out = []
+        names, classes, mine = self.names, self.classes, self.names[me]
         for i in pick:
-            e = self.entities[i]
-            if e.name == me.name:
+            name = names[i]
+            if name == mine:
                 continue
-            t = TruthObject(e.name, e.cls, float(xs[i]), float(ys[i]), visible is None or e.name in visible)
+            t = TruthObject(name, classes[i], float(xs[i]), float(ys[i]), visible is None or name in visible)
             if within_m is None or t.distance_m <= within_m:
                 out.append(t)
         return tuple(out)
@@ -130,7 +139,7 @@ class DetectorObserver:
         self.delay_ns = int(link_delay_s * 1e9)
         self.v = {name: _VehicleJudge(CornerCaseDetector(name, cfg)) for name in vehicles}
         self._gts: OrderedDict[int, GroundTruth] = OrderedDict()
-        self._takes: dict[object, frozenset[str]] = {}
+        self._takes: dict[object, bool] = {}
         self._last_ns = 0  # the latest harness time seen (ns)
         self._pending: list[tuple[int, Mismatch]] = []
         self.mismatches: list[Mismatch] = []
@@ -148,7 +157,7 @@ class DetectorObserver:
         ego = next((e for e in gt.egos if e.vehicle == vehicle), None)
         objs: tuple[TruthObject, ...] = ()
         if k is not None:
-            objs = world.view(world.entities[k], self._mount, visible, only=only,
+            objs = world.view(k, self._mount, visible, only=only,
                               within_m=None if only is not None else self.cfg.max_range_m * 1.5)
         if ego is None:
             return FrameTruth(gt.sim_time_ns, objs, DrivingState.SAFE)
@@ -226,17 +235,12 @@ class DetectorObserver:
         # them while its camera truth is still on its way).
         t0 = vj.at_t0.get(frame_id)
         near = None if t0 is None else {o.name for o in t0.objects if o.distance_m <= self.cfg.max_range_m * 1.5}
-        takes = self._keywords(truth_now)
-        asked: dict[str, Any] = {}
-        if "egos" in takes:
-            asked["egos"] = (vehicle,)
-        if "entities" in takes and near is not None:
-            asked["entities"] = near | {vehicle}  # the view below picks these alone
-        vj.at_apply[frame_id] = self._frame_truth(vehicle, truth_now(**asked), None, only=near)
+        gt = truth_now(egos=(vehicle,)) if self._takes_egos(truth_now) else truth_now()
+        vj.at_apply[frame_id] = self._frame_truth(vehicle, gt, None, only=near)
         _trim(vj.at_apply, frame_id)
 
-    def _keywords(self, fn: Callable[..., GroundTruth]) -> frozenset[str]:
-        """Which of ``egos`` and ``entities`` a ``truth_now`` takes."""
+    def _takes_egos(self, fn: Callable[..., GroundTruth]) -> bool:
+        """Whether a ``truth_now`` takes ``egos=``."""
         # Keyed by the code, not the callable: the run makes a new closure per applied
         # control, and keeping each one (with the world state it holds) leaked ~2 MB/min.
         func = getattr(fn, "__func__", fn)
@@ -244,9 +248,9 @@ class DetectorObserver:
         known = self._takes.get(key)
         if known is None:
             try:
-                known = frozenset(inspect.signature(fn).parameters) & {"egos", "entities"}
+                known = "egos" in inspect.signature(fn).parameters
             except (TypeError, ValueError):
-                known = frozenset()
+                known = False
             self._takes[key] = known
         return known
 

@@ -10,7 +10,6 @@ clock-sync samples, and the observers' hooks (timing analysis, detector).
 
 from __future__ import annotations
 
-from collections.abc import Collection
 from typing import Any
 
 import numpy as np
@@ -134,7 +133,7 @@ class WorldTasks:
         self.rec.write_json("/ground_truth", {
             "sim_time_ns": gt.sim_time_ns,
             "initial": initial,  # every entity's state once, then only those that changed
-            "entities": [e.to_json() for e in self._changes.changes(gt)],
+            "entities": self._changes.changes_json(gt),
             "egos": [e.to_json() for e in gt.egos],
             "collisions": [c.to_json() for c in gt.collisions],
         }, log_time_ns=t, publish_time_ns=t)
@@ -186,14 +185,14 @@ class VehicleTasks:
     def applied(self, a: Answer, t_apply: int, steps: int, qpos: np.ndarray, qvel: np.ndarray) -> None:
         sim, v = self.sim, a.v
 
-        def truth_now(*, entities: Collection[str] | None = None) -> GroundTruth:
-            """The world at ``t_apply``: this ego's truth, and of the entities those
-            named (default: all; the camera instant's truth where it is this step's)."""
+        def truth_now() -> GroundTruth:
+            """The world at ``t_apply`` and this ego's truth (the camera instant's truth
+            where it is this step's)."""
             gt = self.cache.get(steps, v.name)
             if gt is not None:
                 return gt
             sim.load_state(steps, qpos, qvel)
-            return sim.truth_snapshot(egos=(v.name,), entities=entities)
+            return sim.truth_snapshot(egos=(v.name,))
 
         for ob in self.observers:
             if hasattr(ob, "on_apply"):

@@ -42,4 +42,4 @@ class TruthObserver(RunObserver, Protocol):
     def on_apply(self, vehicle: str, frame_id: int, truth_now: Callable[[], GroundTruth]) -> None:
         """Frame ``frame_id``'s control was just applied; ``truth_now()`` gives the
         world at this instant (call it only when needed: it costs); where it takes the
-        keywords, ``egos=`` and ``entities=`` (names) narrow it to what is needed."""
+        keyword ``egos=``, it narrows the route truth to those egos."""

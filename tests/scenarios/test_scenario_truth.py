@@ -5,12 +5,13 @@ occlusion-aware, collisions say who hit whom, the reference state follows its ru
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from conftest import build  # tests/scenarios/conftest.py
 
-from hil.scenarios.ground_truth import GroundTruth, RefState, RefStateRules, StateChanges
+from hil.scenarios.ground_truth import EntityTable, GroundTruth, RefState, RefStateRules, StateChanges
 from hil.scenarios.motion import SpeedChange, SpeedProfile
 from hil.scenarios.world import CameraSpec, VehicleSpec, WorldSpec
 
@@ -238,13 +239,48 @@ def test_distance_along_a_curved_path(make_sim) -> None:
 def test_state_records_are_initial_then_changes(make_sim) -> None:
     sim = make_sim("pedestrian_occluded", {"step_out_s": 0.5})
     changes = StateChanges()
-    first = changes.changes(sim.ground_truth())
-    assert [e.name for e in first] == ["ego0", "van1", "ped1"]
+    first = changes.changes_json(sim.ground_truth())
+    assert [e["name"] for e in first] == ["ego0", "van1", "ped1"]
+    assert first == [e.to_json() for e in sim.ground_truth().entities]
     run_until(sim, 0.1)
-    assert [e.name for e in changes.changes(sim.ground_truth())] == ["ego0"]  # the pedestrian still waits
+    assert [e["name"] for e in changes.changes_json(sim.ground_truth())] == ["ego0"]  # the pedestrian still waits
     run_until(sim, 1.0)
-    assert [e.name for e in changes.changes(sim.ground_truth())] == ["ego0", "ped1"]
-    assert changes.changes(sim.ground_truth()) == ()  # same instant: nothing changed
+    assert [e["name"] for e in changes.changes_json(sim.ground_truth())] == ["ego0", "ped1"]
+    assert changes.changes_json(sim.ground_truth()) == []  # same instant: nothing changed
+
+
+def test_state_records_from_columns_are_those_from_states(make_sim) -> None:
+    # The simulator gives its entities as columns (EntityTable) and the records are
+    # made from them; a ground truth holding EntityState objects (any other maker, or
+    # both in one stream) gives the same records: same keys, same rounding.
+    sim = make_sim("pedestrian_occluded", {"step_out_s": 0.3})
+    cols, objs, mixed = StateChanges(), StateChanges(), StateChanges()
+    seen = set()
+    for k in range(40):
+        run_until(sim, 0.025 * k)
+        gt = sim.ground_truth()
+        assert isinstance(gt.entities, EntityTable) and gt.entities == tuple(gt.entities)
+        as_states = replace(gt, entities=tuple(gt.entities))
+        a, b = cols.changes_json(gt), objs.changes_json(as_states)
+        assert a == b
+        assert mixed.changes_json(gt if k % 3 else as_states) == a
+        assert mixed.changes_json(as_states if k % 3 else gt) == []  # the same instant the other way
+        seen.update(e["name"] for e in a)
+    assert seen == {"ego0", "van1", "ped1"}
+
+
+def test_an_entity_table_is_the_sequence_of_its_states(make_sim) -> None:
+    sim = make_sim("pedestrian_occluded", {"step_out_s": 0.3})
+    run_until(sim, 0.5)
+    t = sim.ground_truth().entities
+    states = tuple(t)
+    assert len(t) == 3 and t[-1] is t[2] is states[2] and t[0:2] == states[0:2]
+    assert [e.name for e in states] == ["ego0", "van1", "ped1"] and [e.entity_id for e in states] == [0, 1, 2]
+    assert states[0].x_m == float(sim.pose("ego0")[0]) and states[0].size_m == sim.world.vehicles[0].size_m
+    assert t.rows_json([2, 0]) == [states[2].to_json(), states[0].to_json()]
+    assert hash(t) == hash(states) and t.row_of == {"ego0": 0, "van1": 1, "ped1": 2}
+    with pytest.raises(IndexError):
+        t[3]
 
 
 def test_reference_state_rules() -> None:
