@@ -405,8 +405,11 @@ class AnomalyDetector:
             if not part or rises[part] < 0.5 * rises[stage]:
                 return a
         side = CAUSE_SIDES[part]
+        # On a vehicle's first frames a part has no recent values: its rise is its value.
+        rise = (f"{rises[part] / 1e6:+.3f} ms over its recent median" if self._s.parts[part]
+                else "the largest part (no earlier frame to compare with)")
         why = (f"{'caused by the harness' if side == 'harness' else 'on the ' + side + ' side'}: {part} "
-               f"{values[part].value_ns / 1e6:.3f} ms, {rises[part] / 1e6:+.3f} ms over its recent median")
+               f"{values[part].value_ns / 1e6:.3f} ms, {rise}")
         return replace(a, cause=side, detail=f"{a.detail}; {why}" if a.detail else why)
 
     def _median(self, part: str) -> int:

@@ -155,7 +155,7 @@ def _realtime(rt: Mapping[str, Any]) -> Check:
 
 def _deadline(vehicles: Mapping[str, Any], allowed: float) -> Check:
     over_total = frames_total = 0
-    worst: tuple[float, str, str, float] | None = None  # fraction, vehicle, stage, budget
+    worst: tuple[tuple[float, float], str, str, float] | None = None  # (fraction, worst / budget), vehicle, stage, budget
     failing: dict[str, dict[str, Any]] = {}
     unmeasured: list[str] = []
     for name, v in vehicles.items():
@@ -165,8 +165,11 @@ def _deadline(vehicles: Mapping[str, Any], allowed: float) -> Check:
                 continue
             over_total += b["over"]
             frames_total += b["frames"]
-            if worst is None or b["fraction"] > worst[0]:
-                worst = (b["fraction"], name, stage, b["budget_ms"])
+            # The largest share over budget; among equal shares (none over, often), the
+            # frame nearest its budget or furthest past it.
+            key = (b["fraction"], (b.get("worst_ms") or 0.0) / b["budget_ms"])
+            if worst is None or key > worst[0]:
+                worst = (key, name, stage, b["budget_ms"])
             if b["over"] and b["fraction"] > allowed:
                 failing.setdefault(name, {})[stage] = b
     if not any("budgets" in v for v in vehicles.values()):
@@ -224,7 +227,9 @@ def _mismatch(summary: Mapping[str, Any], vehicles: Mapping[str, Any]) -> Check:
         for key, n in (v.get("mismatches") or {}).items():
             by[key] = by.get(key, 0) + int(n)
     cases = (summary.get("corner_cases") or {}).get("written")
-    case_text = f"; {cases} corner case{'s' if cases != 1 else ''} written" if cases else ""
+    # The run's corner cases of every trigger (mismatches and timing anomalies alike).
+    case_text = (f"; {cases} corner case{'s' if cases != 1 else ''} written (of every kind: hil cases lists them)"
+                 if cases else "")
     if not by:
         return Check(CheckName.MISMATCH, True, "none: the AI's state agreed with ground truth" + case_text,
                      measured=0.0, limit=0.0, unit="mismatches", details={"corner_cases": cases or 0})

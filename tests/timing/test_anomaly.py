@@ -477,6 +477,19 @@ def test_a_spike_in_inference_is_the_target_and_on_the_wire_the_link() -> None:
     assert [(a.kind, a.stage, a.cause) for a in miss] == [(AnomalyKind.DEADLINE_MISS, "inference", "target")]
 
 
+def test_a_first_frame_over_its_deadline_claims_no_rise_over_a_median_it_has_not() -> None:
+    # The first frame has no recent values to rise over: its largest part is named as
+    # such, not as "+X ms over its recent median" (X its whole value).
+    det = AnomalyDetector("ego", Thresholds(deadline_ms={"end_to_end": 20.0}))
+    first = det.on_record(_rec(0, infer_ns=30 * MS))
+    assert [(a.kind, a.cause) for a in first] == [(AnomalyKind.DEADLINE_MISS, "target")]
+    assert "target_total 30.120 ms, the largest part (no earlier frame to compare with)" in first[0].detail
+    for i in range(1, 10):
+        det.on_record(_rec(i))
+    later = det.on_record(_rec(10, infer_ns=40 * MS))
+    assert "over its recent median" in later[0].detail and "no earlier frame" not in later[0].detail
+
+
 def test_without_target_stamps_a_rise_elsewhere_names_no_side() -> None:
     det = AnomalyDetector("ego")
     for i in range(80):

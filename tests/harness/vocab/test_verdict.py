@@ -71,6 +71,18 @@ def test_a_clean_run_passes_every_check_and_says_so() -> None:
     assert verdict_json(_summary())["passed"] is True
 
 
+def test_with_no_frame_over_budget_the_largest_is_the_worst_frame() -> None:
+    # Every vehicle met its budget (0 over each): the headline names the one whose worst
+    # frame came nearest, not the first vehicle.
+    s = _summary()
+    s["vehicles"]["ego1"] = {**s["vehicles"]["ego0"], "budgets": {"end_to_end": {
+        "budget_ms": 100.0, "frames": 40, "over": 0, "fraction": 0.0, "worst_ms": 33.5}}}
+    s["vehicles"]["ego2"] = {**s["vehicles"]["ego0"], "budgets": {"end_to_end": {
+        "budget_ms": 100.0, "frames": 40, "over": 0, "fraction": 0.0, "worst_ms": 21.9}}}
+    assert checks(s)[1].headline == ("met: 0 of 120 frames over budget (largest: ego1 end_to_end 0 of 40 over "
+                                     "100 ms, worst 33.5 ms)")
+
+
 def test_every_frame_over_budget_is_a_missed_deadline_with_its_numbers() -> None:
     s = _summary(budgets={"end_to_end": {"budget_ms": 100.0, "frames": 40, "over": 40, "fraction": 1.0,
                                          "worst_ms": 121.3}}, dropped=2)
@@ -95,7 +107,7 @@ def test_collisions_mismatches_and_anomalies_are_named() -> None:
     by = {c.name: c for c in checks(s)}
     assert by[CheckName.COLLISION].headline == "1 collision: ego0 and car1 at 3.25 s, 4.0 m/s"
     assert by[CheckName.MISMATCH].headline == ("3: 2 state_mismatch (latency), 1 missed_object (perception); "
-                                               "1 corner case written")
+                                               "1 corner case written (of every kind: hil cases lists them)")
     assert by[CheckName.ANOMALY].headline == "4: 3 latency spike (2 caused by the harness), 1 dropped frame"
     # A collision between two scripted cars is not the AI's.
     assert checks(_summary(collisions=[{"a": "car1", "b": "car2"}]))[3].ok
