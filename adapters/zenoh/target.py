@@ -15,6 +15,7 @@ SIGTERM or Ctrl-C ends it (saying BYE to a harness that is connected).
 
 from __future__ import annotations
 
+import itertools
 import sys
 import threading
 from collections.abc import Callable
@@ -22,7 +23,7 @@ from typing import TYPE_CHECKING
 
 import zenoh
 
-from hil.adapters.sdk import announce_line, fresh_endpoint, serving, stop_on_sigterm
+from hil.adapters.sdk import announce_line, fresh_endpoint, said_bye, serving, session_line, stop_on_sigterm
 from hil.adapters.wire.messages import MsgType
 from hil.adapters.zenoh.options import ZenohOptions
 from hil.adapters.zenoh.session import BYE_LINGER_S, CLOSE_TIMEOUT_S, Keys, _is, close_session, open_with
@@ -66,7 +67,7 @@ def serve_endpoint(ep: Endpoint, *, options: ZenohOptions | None = None, vehicle
     (``ZenohOptions``): listens on ``listen`` (how a harness reaches a device, e.g.
     ``tcp/0.0.0.0:7447``) and/or connects to ``connect``; a ``usrpwd``
     ``dictionary_file`` admits only the peers it lists. ``announce`` gets the startup
-    line (default: stderr).
+    line and one line per session as it ends (default: stderr).
 
     Raises:
         ConfigError: a bad option, or neither ``listen`` nor ``connect`` given.
@@ -84,12 +85,14 @@ def serve_endpoint(ep: Endpoint, *, options: ZenohOptions | None = None, vehicle
         quit_.set()
         current.stop()
 
+    say = announce or (lambda text: print(text, file=sys.stderr, flush=True))
     try:
         with stop_on_sigterm(on_term):
-            line = startup_line(ep, options=o, keys=keys, keep_serving=keep_serving)
-            (announce or (lambda text: print(text, file=sys.stderr, flush=True)))(line)
-            while True:
-                _serve_one(session, current, keys=keys, vehicle_id=vehicle_id, quit_=quit_)
+            say(startup_line(ep, options=o, keys=keys, keep_serving=keep_serving))
+            for n in itertools.count(1):
+                ended = _serve_one(session, current, keys=keys, vehicle_id=vehicle_id, quit_=quit_)
+                if ended is not None:
+                    say(session_line(current, n, f"the harness on {keys.h2t}", ended))
                 if quit_.is_set() or not keep_serving:
                     return
                 current = fresh_endpoint(ep, current)
@@ -98,10 +101,11 @@ def serve_endpoint(ep: Endpoint, *, options: ZenohOptions | None = None, vehicle
 
 
 def _serve_one(session: zenoh.Session, ep: Endpoint, *, keys: Keys, vehicle_id: int,
-               quit_: threading.Event) -> None:
-    """One harness: declarations, HELLO, serve until it leaves or we are stopped."""
+               quit_: threading.Event) -> str | None:
+    """One harness: declarations, HELLO, serve until it leaves or we are stopped.
+    Returns how the session ended (None: it never began)."""
     if quit_.is_set():  # a SIGTERM while ``ep`` was being made stopped the endpoint before it
-        return
+        return None
     engaged = threading.Event()  # a FRAME or SYNC_REQUEST came: the handshake is over
     harness_gone = threading.Event()  # BYE from the harness, or its token went away
 
@@ -120,8 +124,11 @@ def _serve_one(session: zenoh.Session, ep: Endpoint, *, keys: Keys, vehicle_id: 
         except TransportError:
             pass  # the session is closing: nothing can be answered any more
 
+    token_gone = threading.Event()  # the harness's liveliness token went away
+
     def on_harness(sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.DELETE:
+            token_gone.set()
             harness_gone.set()
             ep.stop()
 
@@ -176,3 +183,5 @@ def _serve_one(session: zenoh.Session, ep: Endpoint, *, keys: Keys, vehicle_id: 
                 except (zenoh.ZError, RuntimeError):  # RuntimeError: in use elsewhere; dropped with the list
                     pass
         entities.clear()
+    return (said_bye(ep) or ("stopped (SIGTERM)" if quit_.is_set() else "")
+            or ("the harness went away (its liveliness token)" if token_gone.is_set() else "the session ended"))

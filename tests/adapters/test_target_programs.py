@@ -115,6 +115,28 @@ def test_a_listening_tcp_target_serves_run_after_run_until_sigterm(program):
         assert t.proc.wait(timeout=10) == 0
 
 
+def test_a_zenoh_target_prints_a_line_per_session_as_tcp_and_can_ones_do():
+    # The README: a hand-started target prints one line per session (who, frames and
+    # estimates, how it ended); the zenoh one printed its startup line alone.
+    from tests.adapters.zenoh.pair import zenoh_link
+
+    port = free_port()
+    with target([*HIL, "target", "echo", "--transport", "zenoh", "--listen", f"tcp/127.0.0.1:{port}"]) as t:
+        assert "zenoh target" in t.expect("run after run")
+        for n in (1, 2):
+            link = zenoh_link(port)
+            try:
+                link.open(hello_timeout_s=20)
+                send_frame(link, n)
+                assert next_estimate(link)[0].frame_id == n
+            finally:
+                link.close()
+            line = t.expect(f"session {n} with the harness on")
+            assert "vehicle 0: 1 frames, 1 estimates" in line and "ended: the harness said BYE" in line, line
+        t.proc.send_signal(signal.SIGTERM)
+        assert t.proc.wait(timeout=15) == 0
+
+
 def test_once_serves_one_run():
     address = f"127.0.0.1:{free_port()}"
     with target([*HIL, "target", "echo", "--transport", "tcp", "--listen", address, "--once"]) as t:
