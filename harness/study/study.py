@@ -122,6 +122,11 @@ def cmd(args: argparse.Namespace) -> int:
         _load(args.config, _overrides(args, pt, ns=None))
     _check_capacity(args, points)
     out = args.out or ROOT / "runs" / f"study-{base.name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        # An earlier study's report, results and points would mix with this one's
+        # (its points of other N stayed, referred to by nothing).
+        raise ConfigError(f"--out {out}: {'not a folder' if not out.is_dir() else 'not empty'}; choose a new or "
+                          "empty folder")
     out.mkdir(parents=True, exist_ok=True)
     (out / "points").mkdir(exist_ok=True)
     results: list[PointResult] = []

@@ -39,6 +39,18 @@ def test_bad_input_is_one_line_and_exit_2_before_any_run(tmp_path, argv, needle)
     assert not (tmp_path / "s").exists()
 
 
+def test_a_folder_holding_anything_is_refused_before_any_run(tmp_path):
+    # An earlier study's folder: its report and its points of other N were overwritten
+    # in part and left in part, with exit 0.
+    out = tmp_path / "s"
+    (out / "points" / "replicated-n2-fps20").mkdir(parents=True)
+    (out / "report.md").write_text("the earlier study")
+    p = _hil("study", "hil_configs/study.yaml", "--vehicles", "1", "--duration", "1", "--out", str(out))
+    assert p.returncode == 2 and "Traceback" not in p.stderr and len(p.stderr.strip().splitlines()) == 1
+    assert f"--out {out}: not empty" in p.stderr, p.stderr
+    assert (out / "report.md").read_text() == "the earlier study" and not (out / "points" / "replicated-n1-fps20").exists()
+
+
 def test_largest_n_stops_at_the_first_point_that_fails():
     rows = [{"placement": "replicated", "fps": 20.0, "vehicles": n, "status": "ok", "holds": h}
             for n, h in ((1, True), (2, True), (4, False), (8, True))]
