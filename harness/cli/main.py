@@ -212,7 +212,8 @@ def _run(args: argparse.Namespace) -> int:
     from hil.harness.report.progress import make_console
     from hil.harness.config.loading import load_config
     from hil.harness.report.ci_outputs import check_ci_args, write_ci_outputs
-    from hil.harness.engine.procs import start_child_server
+    from hil.harness.config.model import Mode
+    from hil.harness.engine.procs import physics_core, start_child_server
     from hil.harness.run.driver import default_out_dir, execute, prepare_out_dir
     from hil.scenarios.gl import select_backend
 
@@ -240,6 +241,8 @@ def _run(args: argparse.Namespace) -> int:
         raise ConfigError(f"{err}{_scenario_switch_hint(args.overrides, str(err))}") from err
     if cfg.target.zenoh.auth is not None:
         cfg.target.zenoh.auth.usrpwd()  # the password's environment variable is set: checked before anything
+    if cfg.mode == Mode.REALTIME:
+        physics_core(cfg.engine.physics_cpu)  # a core this machine has: checked before anything
     out = prepare_out_dir(args.out or default_out_dir(cfg))
     console = make_console()
     backend = select_backend()

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from typing import Any
 
+from hil.common.errors import ConfigError
+
 _PR_SET_PDEATHSIG = 1
 _PR_SET_TIMERSLACK = 29
 _F_SETPIPE_SZ = 1031
@@ -308,15 +310,23 @@ def ask_realtime(priority: int, *, fallback_nice: int = 0, cpu: int | None = Non
 def physics_core(setting: str | int) -> int | None:
     """The core the physics keeps to itself under ``engine.physics_cpu``: ``"auto"``
     gives it the last core of this process's set when there are 4 or more (fewer
-    cannot spare one: rendering needs them), ``"none"`` none, a number that core."""
+    cannot spare one: rendering needs them), ``"none"`` none, a number that core.
+
+    Raises:
+        ConfigError: a number that is not a core this process may run on (the
+            physics would run unpinned, said only in ``summary.json``).
+    """
     if setting == "none":
         return None
-    if isinstance(setting, int):
-        return setting
     try:
         cores = sorted(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
-        return None
+        return setting if isinstance(setting, int) else None
+    if isinstance(setting, int):
+        if setting not in cores:
+            raise ConfigError(f"engine.physics_cpu: core {setting} is not one this run may use here (cores "
+                              f"{', '.join(map(str, cores))}); use one of them, auto or none")
+        return setting
     return cores[-1] if len(cores) >= 4 else None
 
 

@@ -94,6 +94,14 @@ def test_parameter_out_of_range(tmp_path):
                               "--out", str(tmp_path / "r")), "gap_m", "[15, 150]")
 
 
+def test_a_physics_core_this_machine_has_not_is_refused_before_anything(tmp_path):
+    # It ran unpinned, with exit 0, said only in summary.json's scheduling line.
+    core = max(os.sched_getaffinity(0)) + 1
+    assert_one_line_error(hil("run", "hil_configs/demo.yaml", "--set", f"engine.physics_cpu={core}",
+                              "--out", str(tmp_path / "r")), "engine.physics_cpu", f"core {core} is not one")
+    assert not (tmp_path / "r").exists()
+
+
 def test_target_command_missing(tmp_path):
     assert_one_line_error(hil("run", "hil_configs/demo.yaml", "--set", "target.command=[/no/such/ai]",
                               "--out", str(tmp_path / "r")), "not found", "/no/such/ai")
