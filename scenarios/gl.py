@@ -105,6 +105,10 @@ def select_backend() -> str:
         if chosen not in USER_BACKENDS:  # MuJoCo's own refusal is a traceback at its import
             raise SimulationError(f"MUJOCO_GL={chosen}: not a backend MuJoCo renders with here; "
                                   f"use {' or '.join(USER_BACKENDS[:2])} (headless), or unset it to let hil choose")
+        if chosen in USER_BACKENDS[2:] and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+            # Else a render worker fails to start behind GLFW's warnings, after the run began.
+            raise SimulationError(f"MUJOCO_GL={chosen}: needs a display and none is set ($DISPLAY); use "
+                                  f"{' or '.join(USER_BACKENDS[:2])} (headless), or unset it to let hil choose")
         return chosen
     if "mujoco" in sys.modules:
         raise SimulationError("mujoco was imported before a GL backend was chosen; call select_backend() first")

@@ -61,13 +61,16 @@ def test_the_commands_that_render_start_the_gl_probe_first(argv: list[str], earl
     assert _renders(argv) is early
 
 
-@pytest.mark.parametrize("value", ["bogus", "disable"])
-def test_a_mujoco_gl_that_cannot_render_is_one_line_not_a_traceback(tmp_path, value: str) -> None:
+@pytest.mark.parametrize(("value", "why"), [("bogus", "not a backend MuJoCo renders with here"),
+                                          ("disable", "not a backend MuJoCo renders with here"),
+                                          ("glx", "needs a display and none is set ($DISPLAY)")])
+def test_a_mujoco_gl_that_cannot_render_is_one_line_not_a_traceback(tmp_path, value: str, why: str) -> None:
     root = Path(__file__).resolve().parents[2]
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     p = subprocess.run([sys.executable, "-m", "hil.harness.cli.main", "run", "hil_configs/demo.yaml", "--out",
-                        str(tmp_path / "run"), "--no-progress"], cwd=root, env=dict(os.environ, MUJOCO_GL=value),
+                        str(tmp_path / "run"), "--no-progress"], cwd=root, env=dict(env, MUJOCO_GL=value),
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 2, p.stderr[-2000:]
-    assert p.stderr.strip().splitlines() == [f"hil: error: MUJOCO_GL={value}: not a backend MuJoCo renders with here; "
+    assert p.stderr.strip().splitlines() == [f"hil: error: MUJOCO_GL={value}: {why}; "
                                              "use egl or osmesa (headless), or unset it to let hil choose"]
-    assert not (tmp_path / "run" / "run.mcap").exists()
+    assert not (tmp_path / "run").exists()
