@@ -29,7 +29,8 @@ exceed ``baseline + allowance``; the table says ``point`` for those.
 
 Always: a vehicle or stage of the baseline missing in RUN (or without samples there)
 is a regression; one new in RUN is information. A RUN that ended early (``ended_by``
-not ``duration``) is a regression. Different scenario, seed or config hash are
+not ``duration``; or killed before its summary: ``gate_samples.UNFINISHED``) is a
+regression. Different scenario, seed or config hash are
 noted, not failed.
 """
 
@@ -44,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from hil.harness.check.gate_render import percent, render
-from hil.harness.check.gate_samples import RunSamples, VehicleSamples, load_run
+from hil.harness.check.gate_samples import UNFINISHED, RunSamples, VehicleSamples, load_run
 from hil.harness.check.gate_tolerances import (
                                                    LATENCY_METRICS,
                                                    Tolerance,
@@ -337,7 +338,7 @@ def cmd(args: argparse.Namespace) -> int:
     with WorkProgress(console, what="reading the runs", total=2, unit="runs", lines=False) as progress:
         baseline, xb = load_run(args.baseline)
         progress.advance(note=str(args.baseline))
-        run, xr = load_run(args.run)
+        run, xr = load_run(args.run, unfinished=True)
         progress.advance(note=str(args.run))
     check_selection(baseline, tol)
     if args.point:
@@ -346,7 +347,7 @@ def cmd(args: argparse.Namespace) -> int:
                       lines=False) as progress:
         checks = compare(baseline, run, tol, base_samples=xb, run_samples=xr, settings=settings,
                          on_judged=progress.advance)
-    notes = differences(baseline, run)
+    notes = differences(baseline, run) if run.get("ended_by") != UNFINISHED else []
     for note in notes:
         console.print(f"[yellow]note: {note}[/yellow]")
     for name, x in (("baseline", xb), ("run", xr)):

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from hil.common.errors import ConfigError
-from hil.harness.record.run_folder import MCAP_NAME, load_summary, pipeline_record, run_dir_of
+from hil.harness.record.run_folder import MCAP_NAME, SUMMARY_NAME, load_summary, pipeline_record, run_dir_of
 from hil.timing.anomaly import is_sane
 from hil.timing.records import FrameStatus, PipelineRecord
 
@@ -82,14 +82,24 @@ def read_samples(run_dir: Path, vehicles: list[str]) -> RunSamples:
     return RunSamples(out, f"no pipeline records for {', '.join(missing)}" if missing else "")
 
 
-def load_run(path: str | os.PathLike[str]) -> tuple[dict[str, Any], RunSamples]:
-    """A run's ``summary.json`` and its per-frame samples.
+# What ``load_run(..., unfinished=True)`` gives for a run that did not finish.
+UNFINISHED = "did not finish (no summary.json, only run.mcap: killed or crashed; see hil report)"
+
+
+def load_run(path: str | os.PathLike[str], *, unfinished: bool = False) -> tuple[dict[str, Any], RunSamples]:
+    """A run's ``summary.json`` and its per-frame samples. With ``unfinished``, a run
+    folder holding ``run.mcap`` but no ``summary.json`` (a run killed or crashed) is a
+    summary of no vehicle with ``ended_by`` :data:`UNFINISHED` (the RUN that
+    ``hil compare`` judges: a run that ended early is a regression, not bad input).
 
     Raises:
         ConfigError: not a run folder, or its ``summary.json`` is missing or bad
             (``hil.harness.record.run_folder.load_summary``). A missing or unreadable
             ``run.mcap`` is not an error: the samples are then empty, with a note.
     """
+    p = Path(path)
+    if unfinished and p.is_dir() and (p / MCAP_NAME).is_file() and not (p / SUMMARY_NAME).is_file():
+        return {"vehicles": {}, "ended_by": UNFINISHED}, RunSamples({}, "")
     summary = load_summary(path)
     return summary, read_samples(run_dir_of(path), list(summary["vehicles"]))
 

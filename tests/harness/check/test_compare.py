@@ -203,14 +203,29 @@ def test_bad_inputs_give_one_line_and_exit_2(runs: dict[str, Path], tmp_path: Pa
     binary.write_bytes(b"\x89MCAP0\r\n\xff\xfe\x00")
     _one_line_error(["compare", base, str(binary)], capsys, str(binary), "not UTF-8")
 
-    killed = tmp_path / "killed"
+    killed = tmp_path / "killed"  # a killed baseline is no baseline (a killed RUN: the test below)
     killed.mkdir()
     shutil.copy(runs["base"] / "run.mcap", killed / "run.mcap")
-    _one_line_error(["compare", base, str(killed)], capsys, "killed", "no summary.json", "did not finish")
+    _one_line_error(["compare", str(killed), base], capsys, "killed", "no summary.json", "did not finish")
 
     _one_line_error(["compare", base, base, "--tolerances", str(tmp_path / "tol.yaml")], capsys,
                     "tol.yaml", "not found")
     _one_line_error(["compare", base, base, "--p99-rel", "-1"], capsys, "--p99-rel", ">= 0")
+
+
+def test_a_run_killed_before_its_summary_is_a_regression_not_bad_input(runs: dict[str, Path], tmp_path: Path,
+                                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    # The README: a RUN that ended early is a regression. A SIGKILLed run has run.mcap
+    # and no summary.json: it was refused as bad input (exit 2, and no JUnit case).
+    killed = tmp_path / "killed"
+    killed.mkdir()
+    shutil.copy(runs["base"] / "run.mcap", killed / "run.mcap")
+    junit = tmp_path / "gate.xml"
+    assert hil_main(["compare", str(runs["base"]), str(killed), "--junit", str(junit)]) == 1
+    out = capsys.readouterr().out
+    assert "ended early: did not finish (no summary.json" in out and "REGRESSION" in out, out
+    assert "note:" not in out  # no "scenario differs: ... run None" for a summary it has not
+    assert "did not finish" in junit.read_text()
 
 
 def test_cli_subprocess_exit_codes(runs: dict[str, Path]) -> None:
