@@ -126,7 +126,7 @@ def _object(text: str) -> DetectedObject:
 def main(argv: Sequence[str] | None = None, *, prog: str = "python -m hil.targets.echo") -> int:
     from hil.adapters.sdk import TargetArgumentParser, add_transport_args, run_target, serve, transport_options
 
-    p = TargetArgumentParser(prog=prog, description=__doc__.splitlines()[0])
+    p = TargetArgumentParser(prog=prog, description=" ".join(__doc__.split("\n\n")[0].split()))  # the first paragraph
     p.add_argument("--infer-ms", type=float, default=0.0, help="busy time per frame (ms)")
     p.add_argument("--throttle", type=float, default=0.0)
     p.add_argument("--brake", type=float, default=0.0)

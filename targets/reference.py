@@ -265,7 +265,8 @@ def _frames(text: str) -> frozenset[int]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m hil.targets.reference", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m hil.targets.reference",
+                                description=" ".join(__doc__.split("\n\n")[0].split()))  # the first paragraph
     p.add_argument("--truth", type=Path, default=None, help="write the injected truth here (JSON lines)")
     p.add_argument("--name", default="reference")
     p.add_argument("--clock-offset-s", type=float, default=2.5, help="target clock ahead of the host's (s)")

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from rich.console import Console
+from rich.console import Console, Group
 from rich.live import Live
 from rich.table import Table
+from rich.text import Text
 
 from hil.harness.report.progress import table as _table
 from hil.harness.run.vehicle_state import ProgressRow
@@ -50,12 +51,15 @@ class Progress:
         self._live.update(t, refresh=True)
 
 
-def final_table(summary: dict[str, Any]) -> Table:
+def final_table(summary: dict[str, Any]) -> Group:
+    """The run's line (its name, simulated and wall time, real time) over the table of
+    its vehicles. (The line as the table's title was wrapped to the table's width,
+    padded with spaces.)"""
     rt = summary["realtime"]
     title = (f"{summary['name']}: {summary['sim_time_s']:.2f} s simulated in {summary['wall_time_s']:.2f} s "
              f"({rt['mode']}, real-time factor {rt['achieved_factor']:.2f}, late steps {rt['late_steps']})")
-    t = _table(title, ("vehicle", "frames", "applied", "dropped", "fps", "e2e p50 ms", "e2e p99 ms",
-                       "e2e max ms", "min gap m", "collisions"))
+    t = _table(None, ("vehicle", "frames", "applied", "dropped", "fps", "e2e p50 ms", "e2e p99 ms",
+                      "e2e max ms", "min gap m", "collisions"))
     for name, v in summary["vehicles"].items():
         e2e = v["latency_ms"]["end_to_end"]
         gap = v["outcome"]["min_gap_m"]
@@ -63,4 +67,4 @@ def final_table(summary: dict[str, Any]) -> Table:
                   f"{v['frames_per_s']:.1f}", _ms(e2e.get("p50_ms")), _ms(e2e.get("p99_ms")),
                   _ms(e2e.get("max_ms")), "-" if gap is None else f"{gap:.2f}",
                   str(v["outcome"]["collisions"]))
-    return t
+    return Group(Text(title, style="table.title"), t)

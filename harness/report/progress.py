@@ -23,7 +23,7 @@ def make_console() -> Console:
     return console
 
 
-def table(title: str, headers: tuple[str, ...]) -> Table:
+def table(title: str | None, headers: tuple[str, ...]) -> Table:
     """A right-aligned table narrow enough for 80 columns: each header's words are
     stacked (``e2e`` / ``p99`` / ``ms``) so no header is cut to ``e2e…``."""
     t = Table(title=title, title_justify="left", box=box.SIMPLE_HEAD, padding=0, show_edge=False)

@@ -203,6 +203,9 @@ def test_final_table_fits_80_columns_without_cut_headers():
                  "ego0", "300", "299", "19.9", "12.3", "40.1", "62.0", "5.20"):
         assert word in text, (word, text)
     assert max(len(line.rstrip()) for line in text.splitlines()) <= 80
+    # The run's line wraps at the console's width, not at the table's (~64).
+    head = [line.rstrip() for line in text.splitlines()[:2]]
+    assert head == ["demo: 15.00 s simulated in 15.20 s (realtime, real-time factor 1.00, late steps", "1900)"], text
 
 
 def test_realtime_warning_says_what_was_not_kept():
