@@ -86,12 +86,13 @@ class Outcome:
         return not self.stopped and ok + self.already_done == self.planned
 
 
-def prepare_campaign_dir(out: Path, *, resume: bool) -> None:
-    """Create ``out`` or accept it for ``resume``; never write over anything else.
+def check_campaign_dir(out: Path, *, resume: bool) -> None:
+    """Whether ``out`` may take this campaign (``prepare_campaign_dir``'s refusals,
+    before anything is written or printed).
 
     Raises:
         ConfigError: ``out`` holds a campaign and ``resume`` is off, or is a file or
-            a non-empty folder that is not a campaign, or cannot be written.
+            a non-empty folder that is not a campaign.
     """
     if out.exists():
         if not out.is_dir():
@@ -102,6 +103,15 @@ def prepare_campaign_dir(out: Path, *, resume: bool) -> None:
                                   "it, or choose another folder")
         elif any(out.iterdir()):
             raise ConfigError(f"--out {out}: a folder that is not empty and holds no campaign; choose another")
+
+
+def prepare_campaign_dir(out: Path, *, resume: bool) -> None:
+    """Create ``out`` or accept it for ``resume``; never write over anything else.
+
+    Raises:
+        ConfigError: ``check_campaign_dir``'s refusals, or ``out`` cannot be written.
+    """
+    check_campaign_dir(out, resume=resume)
     try:
         (out / "episodes").mkdir(parents=True, exist_ok=True)
     except OSError as err:
@@ -270,4 +280,4 @@ def _failed(d: Draw, shard: str, error: str) -> EpisodeResult:
                          dir=f"episodes/{episode_dirname(d.index)}", error=error)
 
 
-__all__ = ["Engine", "Outcome", "QuietReporter", "Reporter", "prepare_campaign_dir", "run_campaign"]
+__all__ = ["Engine", "Outcome", "QuietReporter", "Reporter", "check_campaign_dir", "prepare_campaign_dir", "run_campaign"]

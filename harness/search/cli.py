@@ -111,7 +111,7 @@ def main(argv: Sequence[str]) -> int:
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from hil.common.errors import ConfigError
-    from hil.harness.search.campaign import run_campaign
+    from hil.harness.search.campaign import check_campaign_dir, run_campaign
     from hil.harness.search.executor import DaskEngine, EngineKind
     from hil.harness.search.progress import CampaignProgress
     from hil.harness.search.shard import Shard, parse_shard
@@ -135,6 +135,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if out is None:
         suffix = "" if shard.count == 1 else f"-shard{shard.index}of{shard.count}"
         out = Path("campaigns") / f"{c.name}-{time.strftime('%Y%m%d-%H%M%S')}{suffix}"
+    check_campaign_dir(out, resume=args.resume)  # refused before the campaign's line
     console = _console()
     backend = select_backend()
     console.print(f"campaign {c.name} [dim]{c.campaign_id}[/dim]: {c.scenario}, {c.strategy.kind.value}, "

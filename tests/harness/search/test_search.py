@@ -159,6 +159,11 @@ def test_cli_bad_input_is_one_line_and_writes_nothing(tmp_path):
         assert p.returncode == 2, (args, p.stdout, p.stderr)
         assert msg in p.stderr and "Traceback" not in p.stderr and p.stderr.count("\n") == 1, p.stderr
     assert not (tmp_path / "out").exists() and not (tmp_path / "m").exists()
+    taken = tmp_path / "taken"  # refused before the campaign's line is printed (it came first)
+    taken.mkdir()
+    (taken / "notes.txt").write_text("mine")
+    p = hil(str(ROOT / "hil_configs/search.yaml"), "--out", str(taken))
+    assert p.returncode == 2 and "not empty and holds no campaign" in p.stderr and p.stdout == "", (p.stdout, p.stderr)
     p = subprocess.run([sys.executable, "-m", "hil.harness.cli.main", "--help"], cwd=ROOT, capture_output=True, text=True,
                        check=False)
     assert "search" in p.stdout
