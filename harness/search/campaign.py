@@ -47,7 +47,9 @@ from hil.harness.search.spec import Campaign
 class Reporter(Protocol):
     """Where progress goes (a live bar, log lines, or nothing)."""
 
-    def start(self, *, total: int, done: int, workers: int, shard: Shard) -> None: ...
+    def start(self, *, total: int, done: int, workers: int, shard: Shard, km: float = 0.0, cases: int = 0) -> None:
+        """``done`` episodes of ``total`` ran before (a resumed campaign), with ``km``
+        virtual kilometres and ``cases`` corner cases between them."""
 
     def episode(self, r: EpisodeResult) -> None: ...
 
@@ -55,7 +57,7 @@ class Reporter(Protocol):
 
 
 class QuietReporter:
-    def start(self, *, total: int, done: int, workers: int, shard: Shard) -> None:
+    def start(self, *, total: int, done: int, workers: int, shard: Shard, km: float = 0.0, cases: int = 0) -> None:
         pass
 
     def episode(self, r: EpisodeResult) -> None:
@@ -157,7 +159,10 @@ def run_campaign(c: Campaign, *, out: Path, gl_backend: str, shard: Shard | None
         oc = Outcome(out_dir=out, shard=shard, planned=len(mine), already_done=len(mine) - len(todo))
         stop = _StopFlag()
         restore = stop.install() if install_signal_handlers else None
-        reporter.start(total=len(mine), done=oc.already_done, workers=workers, shard=shard)
+        before = [e for e in known if e["episode"] in done and shard.owns(e["episode"])]
+        reporter.start(total=len(mine), done=oc.already_done, workers=workers, shard=shard,
+                       km=sum(float(e["virtual_km"] or 0.0) for e in before),
+                       cases=sum(int(e["cases"] or 0) for e in before))
         t0 = time.perf_counter()
         pool = _Pool(engine)
         try:

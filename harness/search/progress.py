@@ -32,8 +32,8 @@ class CampaignProgress:
         self.km = 0.0
         self._t0 = time.perf_counter()
 
-    def start(self, *, total: int, done: int, workers: int, shard: Shard) -> None:
-        self.total, self.done = total, done
+    def start(self, *, total: int, done: int, workers: int, shard: Shard, km: float = 0.0, cases: int = 0) -> None:
+        self.total, self.done, self.km, self.cases = total, done, km, cases  # a resumed campaign's so far
         self._t0 = time.perf_counter()
         where = "" if shard.count == 1 else f" (shard {shard})"
         self.console.print(f"{total} episodes{where}, {done} done already, {workers} worker"
@@ -44,7 +44,7 @@ class CampaignProgress:
                                             "{task.fields[rate]:.1f} ep/min"),
                                  TimeElapsedColumn(), TimeRemainingColumn(), console=self.console)
             self._bar.start()
-            self._task = self._bar.add_task("search", total=total, completed=done, km=0.0, cases=0, rate=0.0)
+            self._task = self._bar.add_task("search", total=total, completed=done, km=km, cases=cases, rate=0.0)
 
     def _rate(self) -> float:
         dt = time.perf_counter() - self._t0

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import sqlite3
 import subprocess
@@ -280,4 +281,10 @@ def test_sigterm_stops_the_campaign_and_resume_finishes_it(spec_file, tmp_path):
     assert p.returncode == 0, (p.stdout, p.stderr)
     assert f"6 episodes, {len(done)} done already" in p.stdout
     assert sorted(episodes(out)) == list(range(6))
-    assert json.loads((out / "summary.json").read_text())["episodes"]["complete"]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["episodes"]["complete"]
+    # The last line's running totals count the episodes before the resume too (its
+    # episode count did, its km and cases did not).
+    last = [ln for ln in p.stdout.splitlines() if ln.startswith("e0000")][-1]
+    m = re.search(r"\[6/6, ([0-9.]+) km, (\d+) cases,", last)
+    assert m and abs(float(m[1]) - s["virtual_km"]) < 0.0011 and int(m[2]) == s["cases"]["total"], (last, s)
