@@ -22,6 +22,7 @@ any fails, 2 for a bad endpoint or option.
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 import time
 from typing import Any
@@ -59,6 +60,8 @@ def parse_endpoint(endpoint: str, command: list[str], *, vehicle_id: int,
     if endpoint == "local":
         if not command:
             raise TransportError("local: give the target's command after --, e.g. hil target-check local -- ./t")
+        if shutil.which(command[0]) is None:  # a typo, not a target that fails the checks
+            raise TransportError(f"local: target command not found or not executable: {command[0]!r}")
         return "local", LocalOptions(), {"command": command}
     scheme, sep, rest = endpoint.partition("://")
     if not sep:

@@ -104,6 +104,7 @@ def test_broken_clock_fails_with_the_offsets(capsys, tmp_path):
 @pytest.mark.parametrize("argv, message", [
     (["bogus"], "ENDPOINT 'bogus'"), (["tcp://nohost"], "ENDPOINT='nohost'"),
     (["local"], "give the target's command after --"), (["can://socketcan"], "can://INTERFACE/CHANNEL"),
+    (["local", "--", "/no/such/target"], "target command not found or not executable: '/no/such/target'"),
     (["tcp://127.0.0.1:1", "--timeout", "0"], "--timeout must be > 0 s (got 0)"),
     (["tcp://127.0.0.1:1", "--vehicle", "-1"], "--vehicle must be in 0..4294967295 (got -1)"),
 ])
