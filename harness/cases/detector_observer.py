@@ -12,9 +12,8 @@ from a snapshot taken when its control is applied, of that ego's route truth onl
 (``truth_now`` is called with ``egos=(vehicle,)`` where it takes that keyword) and
 the entities it had in range at ``t0``, read off the snapshot's columns (the
 simulator's ``EntityTable``): the work per estimate grows little with the number of
-vehicles. Ground
-truths are kept by sim time (bounded) so that a camera truth rendered late still
-meets its own instant. A mismatch is written to ``/events``
+vehicles. Ground truths are kept by sim time (bounded) so that a camera truth
+rendered late still meets its own instant. A mismatch is written to ``/events``
 (kind ``mismatch.<kind>``) ``link_delay_s`` after it is found, once the timing
 analysis of its frames is done, with those frames' timing anomalies linked; the
 corner-case recorder picks it up from there.

@@ -285,4 +285,5 @@ def _failed(d: Draw, shard: str, error: str) -> EpisodeResult:
                          dir=f"episodes/{episode_dirname(d.index)}", error=error)
 
 
-__all__ = ["Engine", "Outcome", "QuietReporter", "Reporter", "check_campaign_dir", "prepare_campaign_dir", "run_campaign"]
+__all__ = ["Engine", "Outcome", "QuietReporter", "Reporter", "check_campaign_dir", "prepare_campaign_dir",
+           "run_campaign"]

@@ -155,7 +155,8 @@ def _realtime(rt: Mapping[str, Any]) -> Check:
 
 def _deadline(vehicles: Mapping[str, Any], allowed: float) -> Check:
     over_total = frames_total = 0
-    worst: tuple[tuple[float, float], str, str, float] | None = None  # (fraction, worst / budget), vehicle, stage, budget
+    # ((fraction over, worst / budget), vehicle, stage, budget)
+    worst: tuple[tuple[float, float], str, str, float] | None = None
     failing: dict[str, dict[str, Any]] = {}
     unmeasured: list[str] = []
     for name, v in vehicles.items():

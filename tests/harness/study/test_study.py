@@ -48,7 +48,8 @@ def test_a_folder_holding_anything_is_refused_before_any_run(tmp_path):
     p = _hil("study", "hil_configs/study.yaml", "--vehicles", "1", "--duration", "1", "--out", str(out))
     assert p.returncode == 2 and "Traceback" not in p.stderr and len(p.stderr.strip().splitlines()) == 1
     assert f"--out {out}: not empty" in p.stderr, p.stderr
-    assert (out / "report.md").read_text() == "the earlier study" and not (out / "points" / "replicated-n1-fps20").exists()
+    assert (out / "report.md").read_text() == "the earlier study"
+    assert not (out / "points" / "replicated-n1-fps20").exists()
 
 
 def test_largest_n_stops_at_the_first_point_that_fails():
