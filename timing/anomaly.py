@@ -241,7 +241,7 @@ def is_sane(rec: PipelineRecord, thresholds: Thresholds | None = None) -> tuple[
         return False, "control applied at a sim time before the frame's"
     bad = rec.order_violations()
     if bad:
-        return False, "timestamps go backwards: " + ", ".join(bad)
+        return False, f"timestamps go backwards: {', '.join(bad)} (by up to {rec.backwards_ns() / 1e6:.3f} ms)"
     if rec.status is FrameStatus.OK and rec.t0p_ns is None:
         return False, "OK frame without t0'"
     stages = rec.stages_ns()
@@ -356,7 +356,8 @@ class AnomalyDetector:
         mk = _Where((rec.frame_id,), rec.sim_time_ns, at)
         if not ok:
             self.excluded += 1
-            return [self._make(AnomalyKind.CAUSALITY, mk, measured=0.0, threshold=0.0, unit="",
+            back = rec.backwards_ns()  # (timestamps out of order: by how much; else the why says it)
+            return [self._make(AnomalyKind.CAUSALITY, mk, measured=back / 1e6, threshold=0.0, unit="ms" if back else "",
                                detail=why)]
         if self._start_ns is None:
             self._start_ns = rec.t0_ns

@@ -92,6 +92,16 @@ class PipelineRecord:
     def order_violations(self) -> list[str]:
         """Names of timestamp pairs that are out of order within one clock (each
         should be empty for a sane target; cross-clock order needs sync)."""
+        return [f"{nb} < {na}" for na, nb, _ in self._backwards()]
+
+    def backwards_ns(self) -> int:
+        """The largest step backwards between consecutive timestamps of one clock (0:
+        none): how far out of order ``order_violations`` are."""
+        return max((by for _, _, by in self._backwards()), default=0)
+
+    def _backwards(self) -> list[tuple[str, str, int]]:
+        """(earlier name, later name, ns the later one is before the earlier) of each
+        out-of-order pair within one clock."""
         bad = []
         chain_h = [("t_state", self.t_state_ns), ("t0", self.t0_ns), ("t_tx", self.t_tx_ns), ("t0'", self.t0p_ns),
                    ("t_apply", self.t_apply_ns)]
@@ -101,7 +111,7 @@ class PipelineRecord:
             present = [(n, v) for n, v in chain if v is not None]
             for (na, va), (nb, vb) in zip(present, present[1:]):
                 if vb < va:
-                    bad.append(f"{nb} < {na}")
+                    bad.append((na, nb, va - vb))
         return bad
 
     def to_json(self) -> dict[str, object]:

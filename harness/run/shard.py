@@ -418,8 +418,12 @@ class VehicleShard:
                 v.late_estimates += 1
             else:
                 v.unknown_estimates += 1
+            why = (f"an ESTIMATE for frame {m.frame_id}, already settled: dropped after target.estimate_timeout_s, "
+                   "stale, or answered before (a second answer)" if late else
+                   f"an ESTIMATE for frame {m.frame_id}, which was never sent (the newest sent is "
+                   f"{v.next_frame_id - 1})")
             self._event(Event.of(EventKind.LATE_ESTIMATE if late else EventKind.UNKNOWN_ESTIMATE, t0p,
-                                 vehicle=v.name, frame_ids=(m.frame_id,), extra={"t0p_ns": t0p}))
+                                 vehicle=v.name, frame_ids=(m.frame_id,), detail=why, extra={"t0p_ns": t0p}))
             return
         a = Answer(v, fl, m, t0p, rest)
         if self.held is not None:  # lockstep latency profile: applied when sim time comes

@@ -187,6 +187,27 @@ def test_config_refuses_a_bad_value_in_one_line(tmp_path):
 
 
 @pytest.mark.slow
+def test_a_duplicated_estimate_is_a_late_estimate_that_says_what_it_is(tmp_path, gl_backend):
+    """A second answer to a frame (here the downlink duplicating estimates) comes after
+    its frame settled: a late estimate, counted and on /events with a detail that names
+    its frame and what a late estimate can be (it had none)."""
+    from tests.conftest import read_mcap
+
+    out = tmp_path / "run"
+    p = subprocess.run([sys.executable, "-m", "hil.harness.cli.main", "run", "hil_configs/demo.yaml", "--out", str(out),
+                        "--no-progress", "--set", "duration_s=2", "--set", "recording.images=false",
+                        "--set", 'target.command=["{python}", "-m", "hil.targets.echo"]',
+                        "--set", "target.impair.downlink.duplicate=0.3"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=180,
+                       env={**__import__("os").environ, "MUJOCO_GL": gl_backend})
+    assert p.returncode in (0, 1), p.stderr[-2000:]
+    v = json.loads((out / "summary.json").read_text())["vehicles"]["ego0"]
+    late = [m for _, m in read_mcap(out / "run.mcap")["/events"] if m["kind"] == "late_estimate"]
+    assert v["late_estimates"] == len(late) > 0
+    for e in late:
+        assert e["detail"].startswith(f"an ESTIMATE for frame {e['frame_ids'][0]}, already settled"), e
+
+
 def test_a_run_measures_the_injected_uplink_delay_back(tmp_path, gl_backend):
     """Uplink 20 ± 2 ms and downlink loss 10 % on the local transport: the harness's
     uplink split moves by the injected delay, frame by frame within the clock's stated

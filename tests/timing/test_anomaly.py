@@ -490,6 +490,17 @@ def test_a_first_frame_over_its_deadline_claims_no_rise_over_a_median_it_has_not
     assert "over its recent median" in later[0].detail and "no earlier frame" not in later[0].detail
 
 
+def test_timestamps_out_of_order_say_by_how_much() -> None:
+    # The causality event of a record whose stamps go backwards carried 0 ms against 0
+    # with no unit: now how far (the largest step back), as target-check says it.
+    r = _rec(0)
+    bad = replace(r, t_reply_target_ns=r.t_infer_end_target_ns - 5 * MS)
+    (a,) = AnomalyDetector("ego").on_record(bad)
+    assert (a.kind, a.measured, a.unit) == (AnomalyKind.CAUSALITY, 5.0, "ms")
+    assert a.detail == "timestamps go backwards: t_reply < t_infer_end (by up to 5.000 ms)"
+    assert bad.backwards_ns() == 5 * MS and r.backwards_ns() == 0
+
+
 def test_without_target_stamps_a_rise_elsewhere_names_no_side() -> None:
     det = AnomalyDetector("ego")
     for i in range(80):
