@@ -292,10 +292,26 @@ def link_warnings(figures: RunFigures, *, rig_cameras: int = 1) -> list[str]:
     """What a user should know of each vehicle's link, one line each, from
     ``summary.json``: connections refused that were not its target
     (``vehicles.<name>.link.connections_refused``, ``refused``: a squatter on the port
-    or a rogue dialling in was kept out), and a rig of ``rig_cameras`` cameras whose
-    target takes one camera, so it got camera 0 only (``events.rig_camera_zero_only``)."""
+    or a rogue dialling in was kept out), messages from the target that could not be
+    decoded, estimates for frames already settled or never sent (none is a timing
+    anomaly, so the verdict's lines do not show them), and a rig of ``rig_cameras``
+    cameras whose target takes one camera, so it got camera 0 only
+    (``events.rig_camera_zero_only``)."""
     out = []
     for name, v in figures.vehicles.items():
+        for n, one, more, field in (
+                (v.protocol_errors, "message from its target", "messages from its target", "protocol_errors"),
+                (v.unknown_estimates, "estimate for a frame never sent", "estimates for frames never sent",
+                 "unknown_estimates"),
+                (v.late_estimates, "estimate for a frame already settled", "estimates for frames already settled",
+                 "late_estimates")):
+            if n:
+                what = one if n == 1 else more
+                if field == "protocol_errors":
+                    what += " could not be decoded"
+                elif field == "late_estimates":
+                    what += " (dropped, stale or answered before)"
+                out.append(f"{name}: {n} {what} (summary.json vehicles.{name}.{field}; the events on /events)")
         n = v.link.connections_refused
         if n:
             named = "; ".join(v.link.refused)
