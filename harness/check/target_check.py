@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from hil.adapters.can.options import CanOptions
-from hil.adapters.link import Link, open_link
+from hil.adapters.link import Link, Received, open_link
 from hil.adapters.local.options import LocalOptions
 from hil.adapters.tcp.handshake import parse_address
 from hil.adapters.tcp.options import TcpOptions
@@ -154,7 +154,18 @@ def check_sync(s: Session, n: int = 16) -> tuple[int, int] | None:
     return best if not p else None
 
 
+def _stray(got: int, fid: int, sent: list[int], answered: set[int]) -> str:
+    """What an ESTIMATE for frame ``got`` is while the answer to ``fid`` is awaited."""
+    if got in answered:
+        return f"a second ESTIMATE for frame {got}, answered before (one per frame, PROTOCOL.md 4.3)"
+    if got in sent:
+        return f"the ESTIMATE for frame {got} came after frame {fid} was sent (answers out of order)"
+    return f"an ESTIMATE for frame {got}, which was never sent (frame_id, offset 16)"
+
+
 def check_frames(s: Session, sync: tuple[int, int] | None) -> None:
+    sent: list[int] = []
+    answered: set[int] = set()
     for k, enc in enumerate((ImageEncoding.RGB8, ImageEncoding.BGR8, ImageEncoding.JPEG)):
         data = _image(enc)
         name = f"frame {enc.name} -> estimate"
@@ -164,17 +175,25 @@ def check_frames(s: Session, sync: tuple[int, int] | None) -> None:
         fid = 1000 + k
         t_tx = s.link.send_frame(frame_id=fid, sim_time_ns=fid * 50_000_000, t0_ns=s.link.clock.now_ns(),
                                  width=W, height=H, encoding=enc, camera=CAM, ego_speed_mps=5.0, data=data)
-        r = s.wait_for(lambda r: isinstance(r.msg, (Estimate, ErrorMsg)))
-        p: list[str] = []
+        sent.append(fid)
+        p: list[str] = []  # this frame's problems: ESTIMATEs for other frames that came meanwhile first
+
+        def answer(r: Received, fid: int = fid, p: list[str] = p) -> bool:  # (this frame's)
+            if isinstance(r.msg, Estimate) and r.msg.frame_id != fid:
+                p.append(_stray(r.msg.frame_id, fid, sent, answered))
+                answered.add(r.msg.frame_id)
+                return False
+            return isinstance(r.msg, (Estimate, ErrorMsg))
+
+        r = s.wait_for(answer)
         if r is None or not isinstance(r.msg, Estimate):
             why = f"ERROR {r.msg.code}: {r.msg.message}" if r is not None and isinstance(r.msg, ErrorMsg) \
-                else f"no ESTIMATE within {s.timeout_s:g} s"
-            s.add(name, "4.2, 4.3", [why], "")
+                else f"no ESTIMATE for frame {fid} within {s.timeout_s:g} s"
+            s.add(name, "4.2, 4.3", [*p, why], "")
             continue
         e = r.msg
         assert isinstance(e, Estimate)  # what wait_for was asked for
-        if e.frame_id != fid:
-            p.append(f"frame_id (offset 16) is {e.frame_id}, expected {fid}")
+        answered.add(fid)
         if e.vehicle_id != s.link.vehicle_id:
             p.append(f"vehicle_id (offset 8) is {e.vehicle_id}, expected {s.link.vehicle_id}")
         t_rx, t_reply = e.t_rx_target_ns, e.t_reply_target_ns

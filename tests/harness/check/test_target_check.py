@@ -160,6 +160,42 @@ def test_c_target_answering_per_set_passes(capsys, monkeypatch):
     assert "one ESTIMATE per set (CAP_FRAME_SETS): frame_id 2000" in out, out
 
 
+def test_a_second_answer_to_a_frame_is_named_not_blamed_on_the_next_frames(capsys):
+    """A target that answers frame 1000 twice: the row of the frame during which the
+    second answer came names it; the frames after it pass (each took the answer before
+    as its own: "frame_id is 1000, expected 1001", then 1001 for 1002)."""
+    import threading
+
+    from hil.adapters.sdk import Endpoint
+    from hil.adapters.tcp.options import TcpOptions
+    from hil.adapters.tcp.target import serve_endpoint
+    from hil.adapters.wire.messages import Control, DrivingState, Estimate, Inference, Message
+
+    class Twice(Endpoint):
+        def send_stamped(self, make) -> None:  # type: ignore[no-untyped-def]
+            super().send_stamped(make)
+            m: Message = make(self.clock.now_ns())
+            if isinstance(m, Estimate) and m.frame_id == 1000:
+                super().send_stamped(make)
+
+    address = f"127.0.0.1:{free_port()}"
+    ep = Twice(lambda f: Inference(DrivingState.SAFE, Control()), target_name="twice")
+    t = threading.Thread(target=serve_endpoint, args=(ep,), kwargs={"options": TcpOptions(listen=address)},
+                         daemon=True)
+    t.start()
+    try:
+        code = target_check.main([f"tcp://{address}", "--timeout", "2"])
+    finally:
+        ep.stop()
+        t.join(timeout=10)
+    out = capsys.readouterr().out
+    rows = _rows(out)
+    assert code == 1 and rows["frame RGB8 -> estimate"] == "PASS", out
+    assert rows["frame BGR8 -> estimate"] == "FAIL" and rows["frame JPEG -> estimate"] == "PASS", out
+    line = next(ln for ln in out.splitlines() if ln.startswith("frame BGR8"))
+    assert "a second ESTIMATE for frame 1000, answered before" in line and "expected" not in line, line
+
+
 def test_a_target_whose_answers_break_its_hello_fails_in_one_line(capsys):
     """A target that declares CAP_FRAME_SETS but answers every camera fails the rig
     rows, each in one line naming the frame_ids and offset 16."""
