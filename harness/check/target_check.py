@@ -284,7 +284,10 @@ def run_checks(link: Link, *, timeout_s: float, token_env: str | None = None, he
         try:
             hello = link.open(hello_timeout_s=timeout_s if hello_timeout_s is None else hello_timeout_s)
         except HilError as err:
-            s.add("hello", "1, 4.1", [str(err)], "")
+            # The link refuses a target whose proof fails during its handshake: that
+            # is the AUTH row's failure (its reason names the AUTH challenge or CAP_AUTH).
+            proof = token_env is not None and "AUTH" in str(err)
+            s.add("auth (token proof)" if proof else "hello", "4.8" if proof else "1, 4.1", [str(err)], "")
             return s.rows
         check_hello(s, hello)
         check_auth(s, hello, token_env)

@@ -66,7 +66,7 @@ def test_c_target_passes_over_tcp_and_proves_its_token(checker_token, capsys, tm
         out = capsys.readouterr().out
         rows = _rows(out)
         if checker_token == "another-token-0123456789":
-            assert code == 1 and rows["hello"] == "FAIL" and "wrong proof" in out, out
+            assert code == 1 and rows["auth (token proof)"] == "FAIL" and "wrong proof" in out, out
         else:
             assert code == 0, out
             assert ("proved the token in $CHECK_TOKEN" if checker_token else "give --token-env NAME") in out, out
