@@ -187,6 +187,8 @@ def _realtime_rows(rt: RealtimeFigures) -> list[tuple[str, str]]:
     """The run table's real-time rows: mode, health (physics and cameras), lateness, processes."""
     badge = ('<span class="ok">kept</span>' if rt.kept_realtime else '<span class="nok">NOT kept</span>'
              + (f" ({escape(', '.join(rt.lagging))} lagged)" if rt.lagging else ""))
+    if rt.mode == "lockstep":  # as the verdict says: nothing to keep, the figures as they were
+        badge = "not applicable (lockstep waits for every answer)"
     cam = rt.camera
     rows = [("mode", escape(rt.mode)),
             ("real-time health", (f"{badge}: physics factor {rt.achieved_factor} of "

@@ -231,7 +231,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
              notify: Callable[[str], None], install_signal_handlers: bool) -> RunResult:
     # Imported here: these pull in mujoco, whose GL backend the caller chose first.
     from hil.harness.vocab.events import EventBus
-    from hil.harness.run.summary import build_summary, wall_seconds
+    from hil.harness.run.summary import build_summary, rate_seconds
     from hil.harness.vocab.verdict import parse_fail_on, verdict_json
     from hil.harness.cases.casebook import CaseRecorder
     from hil.harness.engine.pool import Engine, auto_workers
@@ -338,8 +338,7 @@ def _execute(cfg: RunConfig, *, out_dir: Path, gl_backend: str, on_progress: Cal
                         restore()
                 if main_rec.failure is not None:  # the disk filled: the reserve is for the case rows,
                     reserve.unlink(missing_ok=True)  # the summary and the report, from now on
-                wall_s = wall_seconds(stats)
-                vehicles, camera, shard_cpu, spill = fleet.finish(loop, wall_s=wall_s)
+                vehicles, camera, shard_cpu, spill = fleet.finish(loop, wall_s=rate_seconds(stats))
                 if can_log is not None:
                     can_log.close()
                 if isinstance(rec, CaseRecorder):

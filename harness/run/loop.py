@@ -209,6 +209,7 @@ class SimLoop:
             # Each thread's CPU up to the last step, read while they all still run (the
             # physics's ring pump ends with the physics, below).
             self._thread_cpu.mark_end()
+            st.wall_last_step_ns = self.clock.now_ns()
             self._drain()
         except KeyboardInterrupt:
             self.request_stop("interrupted (Ctrl-C)")

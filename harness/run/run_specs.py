@@ -66,6 +66,7 @@ def stall_of(cfg: RunConfig) -> tuple[int, float] | None:
 class LoopStats:
     wall_start_ns: int = 0
     wall_end_ns: int = 0
+    wall_last_step_ns: int = 0  # the loop's last step, before it drained the answers still in flight
     sim_steps: int = 0
     late_steps: int = 0
     max_lateness_ns: int = 0

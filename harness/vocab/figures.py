@@ -148,7 +148,7 @@ class VerdictFigures:
         text = f"{n} check{'s' if n != 1 else ''} failed: {', '.join(self.failed)}"
         if not self.fails_run:
             return f"{text} (warnings only: none is in --fail-on, so the run does not fail on them)"
-        return text
+        return f"{text}; the run fails on {', '.join(self.fails_run)} (--fail-on)"
 
     def to_json(self) -> dict[str, Any]:
         """As ``hil.harness.vocab.verdict.verdict_json`` writes it."""

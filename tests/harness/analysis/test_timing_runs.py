@@ -113,3 +113,6 @@ def test_lockstep_judges_no_frame_rate_floor_and_a_slow_ai_is_still_flagged(tmp_
     assert "frame_rate_floor" not in kinds and "deadline_miss" in kinds
     # Nor does its report draw a floor line it was not judged on (a real-time run's does).
     assert "fps_floor" not in limits(r.out_dir, "ego0") and limits(r.out_dir, "ego0")["deadline.end_to_end"] == 100
+    # Nor does its Run section say real time was "kept" where the verdict says "not applicable".
+    html = (r.out_dir / "report.html").read_text()
+    assert "real-time health</th><td>not applicable (lockstep waits for every answer)" in html.replace("\n", "")
