@@ -8,13 +8,18 @@ linked.
 
 Definitions (per point, one run):
 
-* **total frames/s**: frames sent by all vehicles / the run's wall-clock seconds.
-* **per-vehicle frames/s**: estimates applied per wall-clock second, per vehicle (a
-  frame counts once its answer came back in time); ``min`` over the vehicles is held
-  against the floor (10 fps, the paper's).
+* **total frames/s**: the vehicles' frames per second summed (``summary.json``
+  ``frames_per_s``: frames sent over the loop's start to its last step).
+* **per-vehicle frames/s**: estimates applied per second, per vehicle
+  (``estimates_per_s``, over the same seconds; a frame counts once its answer came
+  back in time); ``min`` over the vehicles is held against the floor (10 fps, the
+  paper's).
 * **end-to-end** (``t0' − t0``, capture to the answer's receipt) and **inference**
   (the target's own inference time) latency: pooled over every vehicle's answered
   frames from the run's ``/<vehicle>/pipeline`` records; p50, p99 and std (jitter).
+* **uplink p50**: the median over the vehicles of each one's clock-mapped uplink p50
+  (``summary.json`` ``splits_ms.uplink.p50_ms``: a target on another host has a clock
+  of its own).
 * **real-time health**: the summary's ``realtime`` block: physics steps later than
   the tolerance, lateness p99, whether real time was kept.
 
@@ -55,20 +60,21 @@ def _stats(values_ms: list[float]) -> tuple[float | None, float | None, float | 
 def point_metrics(run_dir: Path, *, floor_fps: float) -> dict[str, Any]:
     """The study's figures of one run folder (see the module docstring)."""
     s = json.loads((run_dir / "summary.json").read_text())
-    wall = max(float(s["wall_time_s"]), 1e-9)
     vs = s["vehicles"]
-    per = [v["estimates_applied"] / wall for v in vs.values()]
-    e2e, inf, up = _pooled(run_dir / "run.mcap", list(vs))
+    per = [float(v["estimates_per_s"]) for v in vs.values()]
+    e2e, inf = _pooled(run_dir / "run.mcap", list(vs))
+    up = [float(u["p50_ms"]) for v in vs.values()
+          if (u := (v.get("splits_ms") or {}).get("uplink") or {}).get("p50_ms") is not None]
     rt = s["realtime"]
     e = _stats(e2e)
     i = _stats(inf)
     m = {
-        "total_fps": round(sum(v["frames_sent"] for v in vs.values()) / wall, 2),
+        "total_fps": round(sum(float(v["frames_per_s"]) for v in vs.values()), 2),
         "fps_per_vehicle_mean": round(float(np.mean(per)), 2) if per else 0.0,
         "fps_per_vehicle_min": round(min(per), 2) if per else 0.0,
         "e2e_p50_ms": e[0], "e2e_p99_ms": e[1], "e2e_std_ms": e[2],
         "inference_p50_ms": i[0], "inference_p99_ms": i[1], "inference_std_ms": i[2],
-        "uplink_p50_ms": _stats(up)[0],
+        "uplink_p50_ms": round(float(np.median(up)), 3) if up else None,
         "late_steps": rt["late_steps"], "steps_over_10ms": rt.get("steps_over_10ms"),
         "lateness_p99_ms": rt["lateness_ms"]["p99"], "achieved_factor": rt["achieved_factor"],
         "kept_realtime": bool(rt["kept_realtime"]),
@@ -78,13 +84,12 @@ def point_metrics(run_dir: Path, *, floor_fps: float) -> dict[str, Any]:
     return m
 
 
-def _pooled(mcap: Path, vehicles: list[str]) -> tuple[list[float], list[float], list[float]]:
-    """End-to-end, inference and uplink values (ms) of every answered frame."""
+def _pooled(mcap: Path, vehicles: list[str]) -> tuple[list[float], list[float]]:
+    """End-to-end and inference values (ms) of every answered frame."""
     from mcap.reader import make_reader
 
     e2e: list[float] = []
     inf: list[float] = []
-    up: list[float] = []
     topics = [f"/{v}/pipeline" for v in vehicles]
     with open(mcap, "rb") as f:
         for _, _, msg in make_reader(f).iter_messages(topics=topics, log_time_order=False):
@@ -96,9 +101,7 @@ def _pooled(mcap: Path, vehicles: list[str]) -> tuple[list[float], list[float], 
                 e2e.append(st["end_to_end"] / 1e6)
             if "inference" in st:
                 inf.append(st["inference"] / 1e6)
-            if rec.get("t_rx_target_ns") is not None:
-                up.append((rec["t_rx_target_ns"] - rec["t_tx_ns"]) / 1e6)  # raw: same-clock targets only
-    return e2e, inf, up
+    return e2e, inf
 
 
 def _row(r: Any) -> dict[str, Any]:

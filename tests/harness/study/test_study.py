@@ -126,6 +126,11 @@ def test_a_tiny_study_in_both_placements(tiny_study):
         assert r["e2e_p50_ms"] > 0 and r["inference_p50_ms"] is not None and r["late_steps"] is not None
         summary = json.loads((Path(r["run_dir"]) / "summary.json").read_text()) if r.get("run_dir") else None
         assert summary is None or len(summary["vehicles"]) == n
+        if summary is not None:  # the point's figures are its run's (the uplink was raw, unmapped, stamps)
+            vs = summary["vehicles"].values()
+            ups = sorted(v["splits_ms"]["uplink"]["p50_ms"] for v in vs)
+            assert r["uplink_p50_ms"] == round((ups[(n - 1) // 2] + ups[n // 2]) / 2, 3), (r, ups)
+            assert r["fps_per_vehicle_min"] == round(min(v["estimates_per_s"] for v in vs), 2)
     assert pts[("replicated", 2)]["total_fps"] > pts[("replicated", 1)]["total_fps"]
     with open(out / "results.csv") as f:
         assert len(list(csv.DictReader(f))) == 4
