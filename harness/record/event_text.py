@@ -50,6 +50,9 @@ def state_name(v: Any) -> str:
         return str(v)
 
 
+_COUNTED = frozenset({"frames", "estimates", "records", "steps", "cameras", "messages"})  # plural count units
+
+
 def value_vs_threshold(data: Mapping[str, Any]) -> str:
     """``measured`` against ``threshold`` with their unit (``61.2 ms > 50 ms``); a
     state mismatch as the two states (``AI STOP, truth SLOW``); ``–`` without a value."""
@@ -60,9 +63,10 @@ def value_vs_threshold(data: Mapping[str, Any]) -> str:
     if unit == "state":
         return f"AI {state_name(m)}" + (f", truth {state_name(th)}" if tf is not None else "")
     u = f" {unit}" if isinstance(unit, str) and unit else ""
+    one = u[:-1] if mf == 1 and unit in _COUNTED else u  # "1 frame", not "1 frames"
     if tf is None:
-        return f"{number(mf)}{u}"
-    return f"{number(mf)}{u} {'>' if mf > tf else '≤'} {number(tf)}{u}"
+        return f"{number(mf)}{one}"
+    return f"{number(mf)}{one} {'>' if mf > tf else '≤'} {number(tf)}{u}"
 
 
 def frames(data: Mapping[str, Any]) -> str:

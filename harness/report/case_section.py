@@ -208,6 +208,7 @@ def cases_section(d: RunData, *, page_dir: Path | None = None) -> str:
     h = "".join(f"<th>{escape(c)}</th>" for c in head)
     out.append(f"<table><tr>{h}</tr>" + "".join("<tr>" + "".join(f"<td>{c}</td>" for c in b) + "</tr>"
                                                 for b in body) + "</table>")
+    run_end_s = None if d.summary is None else d.summary.sim_time_s
     frames: dict[int, tuple[str, int]] = {}
     for i, r in enumerate(rows[:MAX_THUMBNAILS]):
         v, t = _vehicle(d, r), r.get("sim_time_ns")
@@ -238,6 +239,9 @@ def cases_section(d: RunData, *, page_dir: Path | None = None) -> str:
                 continue
             if k == "harness_time_ns" and isinstance(v, (int, float)):
                 cells.append(("time since first frame (s)", f"{(v - d.t_start_ns) / 1e9:.3f}"))
+            elif k == "window_end_ns" and isinstance(v, (int, float)) and run_end_s is not None \
+                    and v / 1e9 > run_end_s:  # asked for after_s past the trigger; the run ended first
+                cells.append(("window end (s)", f"{run_end_s:.3f} (the run's end; asked {v / 1e9:.3f})"))
             elif k.endswith("_ns") and isinstance(v, (int, float)):
                 cells.append((k[:-3].replace("_", " ") + " (s)", f"{v / 1e9:.3f}"))
             elif k == "event" and isinstance(v, str):

@@ -9,7 +9,7 @@ from html import escape
 
 import numpy as np
 
-from hil.harness.report.plots import Scale, colour_for, fmt, log_ticks, nice_ticks, svg_element
+from hil.harness.report.plots import Scale, colour_for, log_ticks, nice_ticks, svg_element, tick_labels
 
 
 def box_chart(rows: Sequence[tuple[str, np.ndarray]], *, x_label: str, width: int = 1000,
@@ -34,10 +34,10 @@ def box_chart(rows: Sequence[tuple[str, np.ndarray]], *, x_label: str, width: in
         ticks = nice_ticks(sx.lo, sx.hi, 8)
     bottom = top + row_h * len(rows)
     body = [f'<rect x="{left}" y="{top}" width="{pw}" height="{bottom - top}" fill="#fafafa" stroke="#ccc"/>']
-    for t in ticks:
+    for t, label in zip(ticks, tick_labels(ticks)):
         x = sx(t)
         body.append(f'<line x1="{x:.1f}" x2="{x:.1f}" y1="{top}" y2="{bottom}" stroke="#e4e4e4"/>'
-                    f'<text x="{x:.1f}" y="{bottom + 14}" text-anchor="middle">{fmt(t)}</text>')
+                    f'<text x="{x:.1f}" y="{bottom + 14}" text-anchor="middle">{label}</text>')
     for i, (label, v) in enumerate(rows):
         p1, p25, p50, p75, p99 = np.percentile(v, (1, 25, 50, 75, 99))
         mx = float(v.max())
@@ -93,8 +93,9 @@ def histogram(values: np.ndarray, *, label: str, colour: str, width: int = 250, 
         x = float(sx(np.percentile(v, q)))
         body.append(f'<line x1="{x:.1f}" x2="{x:.1f}" y1="{top}" y2="{top + ph}" stroke="#000" '
                     f'stroke-dasharray="{dash}"><title>p{q}</title></line>')
-    for t in nice_ticks(lo, hi, 4):
-        body.append(f'<text x="{sx(t):.1f}" y="{top + ph + 12}" text-anchor="middle" font-size="9">{fmt(t)}</text>')
+    ht = nice_ticks(lo, hi, 4)
+    for t, label in zip(ht, tick_labels(ht)):
+        body.append(f'<text x="{sx(t):.1f}" y="{top + ph + 12}" text-anchor="middle" font-size="9">{label}</text>')
     body.append(f'<text x="{left + pw / 2:.0f}" y="{height - 3}" text-anchor="middle" font-size="9">ms '
                 f'(dashed p50, dotted p99{f"; {over} beyond p99.9" if over else ""})</text>'
                 f'<text x="{left - 3}" y="{top + 8}" text-anchor="end" font-size="9">{int(counts.max())}</text>')

@@ -69,6 +69,17 @@ def fmt(v: float) -> str:
     return f"{v:.3g}"
 
 
+def tick_labels(ticks: list[float]) -> list[str]:
+    """``fmt`` of each tick, with as many decimals as it takes to tell them apart (ticks
+    150.00 to 150.20 ms read "150 150 150 150 150")."""
+    labels = [fmt(t) for t in ticks]
+    digits = 1
+    while len(set(labels)) < len(set(ticks)) and digits <= 6:
+        labels = [f"{t:.{digits}f}" for t in ticks]
+        digits += 1
+    return labels
+
+
 def nice_ticks(lo: float, hi: float, n: int = 5) -> list[float]:
     """About ``n`` round tick values covering ``[lo, hi]``."""
     if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
@@ -307,14 +318,16 @@ def line_chart(*, series: Sequence[Series], bands: Sequence[Band] = (), strips: 
     sx = Scale(x_lo, x_hi, left, left + pw)
     sy = Scale(y_lo, y_hi, top + ph, top)
     body = [f'<rect x="{left}" y="{top}" width="{pw}" height="{ph}" fill="#fafafa" stroke="#ccc"/>']
-    for t in _integers(nice_ticks(sy.lo, sy.hi), sy.lo, sy.hi) if y_integer else nice_ticks(sy.lo, sy.hi):
+    yt = _integers(nice_ticks(sy.lo, sy.hi), sy.lo, sy.hi) if y_integer else nice_ticks(sy.lo, sy.hi)
+    for t, label in zip(yt, tick_labels(yt)):
         y = sy(t)
         body.append(f'<line x1="{left}" x2="{left + pw}" y1="{y:.1f}" y2="{y:.1f}" stroke="#e4e4e4"/>'
-                    f'<text x="{left - 4}" y="{y + 4:.1f}" text-anchor="end">{fmt(t)}</text>')
-    for t in (x_ticks if x_ticks is not None else nice_ticks(sx.lo, sx.hi, 8)):
+                    f'<text x="{left - 4}" y="{y + 4:.1f}" text-anchor="end">{label}</text>')
+    xt = list(x_ticks) if x_ticks is not None else nice_ticks(sx.lo, sx.hi, 8)
+    for t, label in zip(xt, tick_labels(xt)):
         x = sx(t)
         body.append(f'<line x1="{x:.1f}" x2="{x:.1f}" y1="{top}" y2="{top + ph}" stroke="#eee"/>'
-                    f'<text x="{x:.1f}" y="{top + ph + 14}" text-anchor="middle">{fmt(t)}</text>')
+                    f'<text x="{x:.1f}" y="{top + ph + 14}" text-anchor="middle">{label}</text>')
     body.append(f'<text x="{left + pw / 2:.0f}" y="{top + ph + 30}" text-anchor="middle">{escape(x_label)}</text>'
                 f'<text transform="translate(13 {top + ph / 2:.0f}) rotate(-90)" text-anchor="middle">'
                 f'{escape(y_label)}</text>')

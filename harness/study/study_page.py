@@ -223,7 +223,8 @@ def write_study(out: Path, results: list[Any], *, config: str, floor_fps: float,
     for name, svg in charts.items():
         (out / name).write_text(standalone(svg) + "\n")
     reading = _reading(rows, holds, floor, floor_fps, study_wall_s)
-    about = (f"Config `{config}`; {len(rows)} points; load average at the end `{loadavg}`. Definitions: "
+    load = " / ".join(loadavg.split()[:3])  # /proc/loadavg's 1, 5 and 15-minute figures (not its run queue, last PID)
+    about = (f"Config `{config}`; {len(rows)} points; load average at the end (1 / 5 / 15 min) {load}. Definitions: "
              f"harness/study/study_page.py. Per-point run folders under `points/`.")
     lines = ["# Study: throughput and latency versus the number of vehicles", "", reading, "", about, "",
              "| " + " | ".join(_TABLE) + " |", "|" + "---|" * len(_TABLE)]
