@@ -210,7 +210,7 @@ def clock_section(d: RunData) -> str:
         x = np.array([(p.t_ns - t0) / 1e9 for p in pts])
         y = np.array([(p.offset_ns - med) / 1e3 for p in pts])
         u = np.array([p.uncertainty_ns / 1e3 for p in pts])
-        c = rp.colour_for(vehicle)
+        c = fleet.vehicle_colours(d.vehicles).get(vehicle) or rp.colour_for(vehicle)  # the fleet charts' colour
         out.append(rp.line_chart(series=[rp.Series("offset − median (µs)", x, y, c, "line"),
                                          rp.Series("samples", x, y, c, "points")],
                                  bands=[rp.Band("± uncertainty", x, y - u, y + u, c)],
@@ -218,12 +218,19 @@ def clock_section(d: RunData) -> str:
                                  title=f"{vehicle} ({d.clock_source.get(vehicle, '?')})", height=200,
                                  left=left, x_range=span))
         vf = vs.get(vehicle)
+        fin = None if vf is None or vf.clock is None else vf.clock
+        final = ("–" if fin is None or fin.offset_ns is None else
+                 f"{fin.offset_ns / 1e6:+.3f}" + ("" if fin.uncertainty_ns is None else
+                                                  f" ± {fin.uncertainty_ns / 1e6:.3f}"))
         rows.append([escape(vehicle), escape(d.clock_source.get(vehicle, "?")), str(len(pts)),
-                     f"{med / 1e6:.3f}", ms(float(u.min()), 1), ms(float(np.median(u)), 1),
+                     f"{med / 1e6:.3f}", escape(final), ms(float(u.min()), 1), ms(float(np.median(u)), 1),
                      ms(float(np.ptp(y)), 1),
                      escape(_skew_text(skew_ppm(pts, None if vf is None else vf.clock)))])
-    out.append(table(["vehicle", "source", "samples", "median offset (ms)", "min uncertainty (µs)",
-                      "median uncertainty (µs)", "offset spread (µs)", "skew (ppm)"], rows, numeric_from=2))
+    # The samples' median offset, and the summary's final fit (clock.offset_ns at its
+    # ref_ns): a skewed clock's offset moves over the run, so the two differ.
+    out.append(table(["vehicle", "source", "samples", "median offset (ms)", "final offset (ms, summary.json)",
+                      "min uncertainty (µs)", "median uncertainty (µs)", "offset spread (µs)", "skew (ppm)"], rows,
+                     numeric_from=2))
     return "".join(out)
 
 

@@ -362,6 +362,15 @@ def test_events_and_case_evidence_read_as_words(paced_run: Path) -> None:
     assert "harness_time" not in html
 
 
+def test_the_clock_table_shows_the_summarys_final_offset_beside_the_samples_median(run_dir: Path) -> None:
+    # The table had the samples' median offset only, which a reader could not find in
+    # summary.json (a skewed clock's offset moves: 0.019 ms there against 2.107 here).
+    html = build_report(read_run(run_dir))
+    c = json.loads((run_dir / "summary.json").read_text())["vehicles"]["ego0"]["clock"]
+    assert "final offset (ms, summary.json)" in html
+    assert f"{c['offset_ns'] / 1e6:+.3f} ± {c['uncertainty_ns'] / 1e6:.3f}" in html
+
+
 def test_a_killed_run_says_what_ran_from_its_config(run_dir: Path, tmp_path: Path) -> None:
     killed = tmp_path / "killed"
     killed.mkdir()
