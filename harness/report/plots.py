@@ -197,6 +197,17 @@ def _thin(x: np.ndarray, y: np.ndarray, px: np.ndarray, columns: int) -> tuple[n
     return x[keep], y[keep]
 
 
+def _isolated(ys: np.ndarray, xs: np.ndarray) -> list[tuple[float, float]]:
+    """The finite vertices of a line with no finite neighbour (a one-point series, or a
+    point between gaps): a line through them draws nothing."""
+    ok = np.isfinite(ys)
+    out = []
+    for i in np.flatnonzero(ok).tolist():
+        if not (i > 0 and ok[i - 1]) and not (i + 1 < len(ok) and ok[i + 1]):
+            out.append((float(xs[i]), float(ys[i])))
+    return out
+
+
 def _path(xs: np.ndarray, ys: np.ndarray, *, points: bool) -> str:
     parts = []
     pen_up = True
@@ -357,6 +368,11 @@ def line_chart(*, series: Sequence[Series], bands: Sequence[Band] = (), strips: 
         else:
             body.append(f'<path d="{d}" stroke="{s.colour}" stroke-width="{s.width:g}" fill="none" '
                         f'stroke-linejoin="round"><title>{escape(s.label)}</title></path>')
+            alone = _isolated(np.asarray(sy(y), float), x)  # a vertex with no neighbour draws no line: a dot
+            if alone:
+                dots = "".join(f"M{a:.1f} {b:.1f}h0" for a, b in alone)
+                body.append(f'<path d="{dots}" stroke="{s.colour}" stroke-width="{max(6.0, 3 * s.width):g}" '
+                            f'stroke-linecap="round" fill="none"><title>{escape(s.label)}</title></path>')
     body += head
     y0 = top + ph + 42
     for i, st in enumerate(strips):

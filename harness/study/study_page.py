@@ -259,7 +259,7 @@ def _largest_text(rows: list[dict[str, Any]], holds: dict[str, int | None]) -> s
 _CSS = """
 body{font:14px/1.45 system-ui,sans-serif;margin:24px auto;max-width:1100px;color:#222;padding:0 16px}
 h1{font-size:22px}h2{font-size:18px;border-bottom:1px solid #ddd;padding-bottom:3px;margin-top:30px}
-table{border-collapse:collapse;margin:6px 0 12px;font-size:13px}
+table{border-collapse:collapse;margin:6px 0 12px;font-size:12px}
 th,td{border:1px solid #ddd;padding:3px 6px;text-align:left}th{background:#f4f4f4}
 td.n{text-align:right;font-variant-numeric:tabular-nums}.muted{color:#777}code{font-size:12px}
 .grid{display:flex;flex-wrap:wrap;gap:10px}svg{max-width:100%;height:auto}.wide{overflow-x:auto}
@@ -270,7 +270,9 @@ def _html(out: Path, rows: list[dict[str, Any]], charts: dict[str, str], *, read
           largest: str) -> str:
     """``report.html``: one self-contained page (inline SVG, no script, nothing loaded):
     the reading, the charts, the table with each point's run report linked."""
-    head = "".join(f"<th>{escape(c)}</th>" for c in _TABLE)
+    # Column names may break at their underscores: the whole table fits the page (its
+    # right third, real time and "holds" among it, was off-screen at 1280 px).
+    head = "".join(f"<th>{escape(c).replace('_', '_<wbr>')}</th>" for c in _TABLE)
     body = []
     for r in rows:
         cells = []

@@ -26,3 +26,14 @@ def test_a_short_last_rate_bin_is_left_out() -> None:
     assert list(np.round(rates, 6)) == [10.0] * 4 and centres[-1] == 1.75
     _, whole = rate_bins(times, start_s=0.0, period_s=0.1, frames=5, end_s=2.45)  # a last bin of 5: kept
     assert len(whole) == 5
+
+
+def test_a_one_point_line_is_drawn_as_a_dot() -> None:
+    # A study of one N drew six empty charts: a line through one vertex draws nothing.
+    from hil.harness.report.plots import Series, line_chart
+
+    svg = line_chart(series=[Series("total", [1.0], [20.0], "#4c78a8", "line")], x_label="N", y_label="frames/s")
+    assert 'stroke-linecap="round"' in svg and "h0" in svg
+    two = line_chart(series=[Series("total", [1.0, 2.0], [20.0, 40.0], "#4c78a8", "line")], x_label="N",
+                     y_label="frames/s")
+    assert "h0" not in two  # a line with neighbours draws as a line
