@@ -10,6 +10,7 @@ import time
 
 import pytest
 
+from hil.adapters.sdk import Endpoint
 from hil.harness.cli import main as cli
 
 from hil.harness.check import target_check
@@ -160,15 +161,28 @@ def test_c_target_answering_per_set_passes(capsys, monkeypatch):
     assert "one ESTIMATE per set (CAP_FRAME_SETS): frame_id 2000" in out, out
 
 
+def _check_served(ep: Endpoint) -> int:
+    """``hil target-check`` against the SDK endpoint ``ep`` served over TCP here; its exit code."""
+    import threading
+
+    from hil.adapters.tcp.options import TcpOptions
+    from hil.adapters.tcp.target import serve_endpoint
+
+    address = f"127.0.0.1:{free_port()}"
+    t = threading.Thread(target=serve_endpoint, args=(ep,), kwargs={"options": TcpOptions(listen=address)},
+                         daemon=True)
+    t.start()
+    try:
+        return target_check.main([f"tcp://{address}", "--timeout", "2"])
+    finally:
+        ep.stop()
+        t.join(timeout=10)
+
+
 def test_a_second_answer_to_a_frame_is_named_not_blamed_on_the_next_frames(capsys):
     """A target that answers frame 1000 twice: the row of the frame during which the
     second answer came names it; the frames after it pass (each took the answer before
     as its own: "frame_id is 1000, expected 1001", then 1001 for 1002)."""
-    import threading
-
-    from hil.adapters.sdk import Endpoint
-    from hil.adapters.tcp.options import TcpOptions
-    from hil.adapters.tcp.target import serve_endpoint
     from hil.adapters.wire.messages import Control, DrivingState, Estimate, Inference, Message
 
     class Twice(Endpoint):
@@ -178,16 +192,7 @@ def test_a_second_answer_to_a_frame_is_named_not_blamed_on_the_next_frames(capsy
             if isinstance(m, Estimate) and m.frame_id == 1000:
                 super().send_stamped(make)
 
-    address = f"127.0.0.1:{free_port()}"
-    ep = Twice(lambda f: Inference(DrivingState.SAFE, Control()), target_name="twice")
-    t = threading.Thread(target=serve_endpoint, args=(ep,), kwargs={"options": TcpOptions(listen=address)},
-                         daemon=True)
-    t.start()
-    try:
-        code = target_check.main([f"tcp://{address}", "--timeout", "2"])
-    finally:
-        ep.stop()
-        t.join(timeout=10)
+    code = _check_served(Twice(lambda f: Inference(DrivingState.SAFE, Control()), target_name="twice"))
     out = capsys.readouterr().out
     rows = _rows(out)
     assert code == 1 and rows["frame RGB8 -> estimate"] == "PASS", out
@@ -199,11 +204,6 @@ def test_a_second_answer_to_a_frame_is_named_not_blamed_on_the_next_frames(capsy
 def test_a_target_whose_answers_break_its_hello_fails_in_one_line(capsys):
     """A target that declares CAP_FRAME_SETS but answers every camera fails the rig
     rows, each in one line naming the frame_ids and offset 16."""
-    import threading
-
-    from hil.adapters.sdk import Endpoint
-    from hil.adapters.tcp.options import TcpOptions
-    from hil.adapters.tcp.target import serve_endpoint
     from hil.adapters.wire import protocol
     from hil.adapters.wire.messages import Control, DrivingState, Hello, Inference
 
@@ -213,16 +213,7 @@ def test_a_target_whose_answers_break_its_hello_fails_in_one_line(capsys):
             return Hello(h.target_name, h.protocol_version, h.clock_id, h.clock_resolution_ns,
                          h.capabilities | protocol.CAP_FRAME_SETS)
 
-    address = f"127.0.0.1:{free_port()}"
-    ep = Liar(lambda f: Inference(DrivingState.SAFE, Control()), target_name="liar", cameras="each")
-    t = threading.Thread(target=serve_endpoint, args=(ep,), kwargs={"options": TcpOptions(listen=address)},
-                         daemon=True)
-    t.start()
-    try:
-        code = target_check.main([f"tcp://{address}", "--timeout", "2"])
-    finally:
-        ep.stop()
-        t.join(timeout=10)
+    code = _check_served(Liar(lambda f: Inference(DrivingState.SAFE, Control()), target_name="liar", cameras="each"))
     out = capsys.readouterr().out
     rows = _rows(out)
     assert code == 1 and rows["frame set of 3 cameras"] == "FAIL" and rows["frame set missing a camera"] == "FAIL", out
