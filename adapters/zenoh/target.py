@@ -100,6 +100,9 @@ def serve_endpoint(ep: Endpoint, *, options: ZenohOptions | None = None, vehicle
         close_session(session, timeout_s=CLOSE_TIMEOUT_S)  # bounded: the harness may be frozen
 
 
+TOKEN_GRACE_S = 0.2  # after the harness's token went away, how long its BYE may still come
+
+
 def _serve_one(session: zenoh.Session, ep: Endpoint, *, keys: Keys, vehicle_id: int,
                quit_: threading.Event) -> str | None:
     """One harness: declarations, HELLO, serve until it leaves or we are stopped.
@@ -130,7 +133,12 @@ def _serve_one(session: zenoh.Session, ep: Endpoint, *, keys: Keys, vehicle_id: 
         if sample.kind == zenoh.SampleKind.DELETE:
             token_gone.set()
             harness_gone.set()
-            ep.stop()
+            # A leaving harness's token DELETE can overtake its BYE (declarations travel
+            # at a higher priority): the BYE, coming just after, ends the session as
+            # said (and its line says so); a harness that vanished, the grace's end.
+            grace = threading.Timer(TOKEN_GRACE_S, ep.stop)
+            grace.daemon = True
+            grace.start()
 
     entities: list[object] = []
     # The publisher is written from several threads (the inference worker, Zenoh's
