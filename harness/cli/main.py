@@ -300,18 +300,15 @@ def link_warnings(figures: RunFigures, *, rig_cameras: int = 1) -> list[str]:
     out = []
     for name, v in figures.vehicles.items():
         for n, one, more, field in (
-                (v.protocol_errors, "message from its target", "messages from its target", "protocol_errors"),
+                (v.protocol_errors, "message from its target could not be decoded",
+                 "messages from its target could not be decoded", "protocol_errors"),
                 (v.unknown_estimates, "estimate for a frame never sent", "estimates for frames never sent",
                  "unknown_estimates"),
-                (v.late_estimates, "estimate for a frame already settled", "estimates for frames already settled",
-                 "late_estimates")):
+                (v.late_estimates, "estimate for a frame already settled (dropped, stale or answered before)",
+                 "estimates for frames already settled (dropped, stale or answered before)", "late_estimates")):
             if n:
-                what = one if n == 1 else more
-                if field == "protocol_errors":
-                    what += " could not be decoded"
-                elif field == "late_estimates":
-                    what += " (dropped, stale or answered before)"
-                out.append(f"{name}: {n} {what} (summary.json vehicles.{name}.{field}; the events on /events)")
+                out.append(f"{name}: {n} {one if n == 1 else more} (summary.json vehicles.{name}.{field}; "
+                           "the events on /events)")
         n = v.link.connections_refused
         if n:
             named = "; ".join(v.link.refused)

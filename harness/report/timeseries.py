@@ -202,6 +202,7 @@ def clock_section(d: RunData) -> str:
     left, span = fleet.chart_left(d, strips), time_span(d)
     rows = []
     vs = {} if d.summary is None else d.summary.vehicles
+    colours = fleet.vehicle_colours(d.vehicles)
     for vehicle in d.vehicles + sorted(v for v in d.clock if v not in d.vehicles):
         pts = d.clock.get(vehicle)
         if not pts:
@@ -210,7 +211,7 @@ def clock_section(d: RunData) -> str:
         x = np.array([(p.t_ns - t0) / 1e9 for p in pts])
         y = np.array([(p.offset_ns - med) / 1e3 for p in pts])
         u = np.array([p.uncertainty_ns / 1e3 for p in pts])
-        c = fleet.vehicle_colours(d.vehicles).get(vehicle) or rp.colour_for(vehicle)  # the fleet charts' colour
+        c = colours.get(vehicle) or rp.colour_for(vehicle)  # the fleet charts' colour
         out.append(rp.line_chart(series=[rp.Series("offset − median (µs)", x, y, c, "line"),
                                          rp.Series("samples", x, y, c, "points")],
                                  bands=[rp.Band("± uncertainty", x, y - u, y + u, c)],
